@@ -1,0 +1,136 @@
+"""Safe, versioned `.npz` files: the only on-disk format of ShapeGen's data and models.
+
+* Never pickled: written from plain numeric / string arrays, read with
+  ``allow_pickle=False`` (an object array in a file is refused, not executed).
+* Tagged: every file holds ``format`` (e.g. "shapegen.prepared") and ``format_version``;
+  a foreign file or another version is refused with a message naming the file.
+* Validated: the reader checks the keys it needs, their dtypes kinds and shapes.
+* Atomic: written to a temporary file in the same folder, then renamed, so a crash never
+  leaves a half-written file where a good one was.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .errors import ModelFileError
+
+__all__ = ["save_npz", "load_npz", "ArraySpec"]
+
+
+class ArraySpec:
+    """Expected dtype kind (numpy 'f', 'i', 'U', 'b', ... ; several allowed) and shape.
+
+    Shape entries are ints, None (any length) or a name: equal names must be equal sizes
+    across all arrays of one file (e.g. 'M' shapes, 'L' landmarks).
+    """
+
+    def __init__(self, kinds: str, shape: tuple, finite: bool = True):
+        self.kinds = kinds
+        self.shape = shape
+        self.finite = finite  # refuse NaN / inf (False for e.g. partial shapes with NaN gaps)
+
+
+def save_npz(path: str | os.PathLike, file_format: str, version: int, arrays: Mapping[str, np.ndarray]) -> Path:
+    path = Path(path)
+    payload = {}
+    for key, value in arrays.items():
+        array = np.asarray(value)
+        if array.dtype.kind == "O":
+            raise TypeError(f"{path}: array {key!r} has dtype object; refusing to write a pickle")
+        payload[key] = array
+    payload["format"] = np.asarray(file_format)
+    payload["format_version"] = np.asarray(version, dtype=np.int64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as handle:
+            np.savez_compressed(handle, **payload)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def load_npz(
+    path: str | os.PathLike,
+    file_format: str,
+    version: int,
+    spec: Mapping[str, ArraySpec],
+) -> dict[str, np.ndarray]:
+    """Read and validate a file written by `save_npz`. Raises ModelFileError on anything
+    unexpected; the message starts with the path."""
+    path = Path(path)
+    label = str(path)
+    if not path.is_file():
+        raise ModelFileError(f"{label}: no such file")
+    try:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            # a bare .npy array: np.load returns the array itself
+            raise ModelFileError(f"{label}: is a single .npy array, not a ShapeGen .npz file")
+        with data:
+            arrays = {}
+            for key in data.files:
+                try:
+                    arrays[key] = data[key]
+                except ValueError as exc:
+                    if "pickle" in str(exc).lower():
+                        raise ModelFileError(
+                            f"{label}: array {key!r} needs pickle to load; refused (ShapeGen files never contain pickles)"
+                        ) from None
+                    raise
+    except ModelFileError:
+        raise
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error) as exc:
+        raise ModelFileError(f"{label}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    if "format" not in arrays or "format_version" not in arrays:
+        raise ModelFileError(f"{label}: not a ShapeGen file (no format tag); expected {file_format!r}")
+    tag, tag_version = arrays.pop("format"), arrays.pop("format_version")
+    found = str(tag)
+    if tag.shape != () or tag.dtype.kind != "U" or found != file_format:
+        raise ModelFileError(f"{label}: is a {found!r} file, expected {file_format!r}")
+    if tag_version.shape != () or tag_version.dtype.kind not in "iu":
+        raise ModelFileError(f"{label}: format_version {str(tag_version)!r} is not an integer version")
+    found_version = int(tag_version)
+    if found != file_format:
+        raise ModelFileError(f"{label}: is a {found!r} file, expected {file_format!r}")
+    if found_version != version:
+        raise ModelFileError(
+            f"{label}: {file_format} version {found_version} is not supported (this ShapeGen reads version {version})"
+        )
+    sizes: dict[str, int] = {}
+    for key, expected in spec.items():
+        if key not in arrays:
+            raise ModelFileError(f"{label}: missing array {key!r}")
+        array = arrays[key]
+        if array.dtype.kind not in expected.kinds:
+            raise ModelFileError(
+                f"{label}: array {key!r} has dtype {array.dtype}, expected kind {expected.kinds!r}"
+            )
+        if len(array.shape) != len(expected.shape):
+            raise ModelFileError(
+                f"{label}: array {key!r} has shape {array.shape}, expected {len(expected.shape)} dimensions"
+            )
+        for axis, (got, want) in enumerate(zip(array.shape, expected.shape)):
+            if want is None:
+                continue
+            if isinstance(want, int):
+                if got != want:
+                    raise ModelFileError(f"{label}: array {key!r} has shape {array.shape}, axis {axis} must be {want}")
+            else:
+                if sizes.setdefault(want, got) != got:
+                    raise ModelFileError(
+                        f"{label}: array {key!r} has shape {array.shape}: its {want} = {got} disagrees "
+                        f"with {sizes[want]} in other arrays"
+                    )
+        if expected.finite and array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise ModelFileError(f"{label}: array {key!r} contains NaN or infinite values")
+    return arrays

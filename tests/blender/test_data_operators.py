@@ -1,0 +1,144 @@
+"""Data section operators, driven through the installed extension on bpy 5.0.1:
+Import Training Collection (Blender's own importers) and Prepare."""
+
+from __future__ import annotations
+
+import importlib
+
+import bpy
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+
+@pytest.fixture
+def datasets(extension):
+    return importlib.import_module(f"{extension}.core.datasets")
+
+
+@pytest.fixture
+def vase_folder(tmp_path, datasets):
+    """Four procedural vases, one per file format Blender (or the core reader) imports."""
+    shapes = datasets.make_vases(4, seed=3, resolution=(16, 24))
+    folder = tmp_path / "vases"
+    folder.mkdir()
+    for shape, fmt in zip(shapes, ("obj", "ply", "off", "obj")):
+        trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False).export(folder / f"{shape.name}.{fmt}")
+    return folder, shapes
+
+
+def _vertices(obj) -> np.ndarray:
+    co = np.empty(len(obj.data.vertices) * 3)
+    obj.data.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def test_import_makes_one_object_per_file_with_vertex_order_kept(vase_folder):
+    folder, shapes = vase_folder
+    assert bpy.ops.shapegen.import_collection(directory=str(folder)) == {"FINISHED"}
+    collection = bpy.context.scene.shapegen.source_collection
+    assert collection is not None and collection.name == "vases"
+    assert sorted(o.name for o in collection.objects) == sorted(s.name for s in shapes)
+    for shape in shapes:
+        obj = collection.objects[shape.name]
+        assert obj.type == "MESH"
+        np.testing.assert_allclose(_vertices(obj), shape.mesh.vertices, atol=1e-5)  # float32 in Blender
+        assert len(obj.data.polygons) == shape.mesh.n_faces
+
+
+def test_import_of_folder_without_meshes_is_a_clear_error(tmp_path):
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    with pytest.raises(RuntimeError, match="no mesh files"):
+        bpy.ops.shapegen.import_collection(directory=str(tmp_path))
+    assert len(bpy.data.collections) == 0
+
+
+def test_import_reports_a_broken_file_by_name_and_keeps_the_rest(vase_folder):
+    folder, shapes = vase_folder
+    (folder / "broken.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\nnan 1 0\n3 0 1 2\n")
+    assert bpy.ops.shapegen.import_collection(directory=str(folder)) == {"FINISHED"}
+    collection = bpy.context.scene.shapegen.source_collection
+    assert "broken" not in collection.objects
+    assert len(collection.objects) == len(shapes)
+
+
+def test_prepare_aligns_scales_and_landmarks_without_touching_originals(vase_folder):
+    folder, shapes = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 150
+    source = settings.source_collection
+    before = {o.name: _vertices(o).copy() for o in source.objects}
+    assert bpy.ops.shapegen.prepare() == {"FINISHED"}
+
+    for obj in source.objects:  # originals untouched
+        np.testing.assert_array_equal(_vertices(obj), before[obj.name])
+    prepared = bpy.data.collections["vases Prepared"]
+    assert prepared["shapegen_prepared"]
+    shape_objects = [o for o in prepared.objects if "shapegen_landmarks" in o]
+    assert len(shape_objects) == len(shapes)
+    variances = []
+    for obj in shape_objects:
+        landmarks = np.asarray(obj["shapegen_landmarks"]).reshape(-1, 3)
+        assert abs(len(landmarks) - 150) <= 0.02 * 150
+        local = _vertices(obj)
+        assert local[:, 2].min() == pytest.approx(0.0, abs=1e-5)  # floor at z = 0
+        # landmarks lie on the prepared surface
+        surface = trimesh.Trimesh(local, np.array([p.vertices[:] for p in obj.data.polygons]), process=False)
+        _, distance, _ = trimesh.proximity.closest_point(surface, landmarks)
+        assert distance.max() < 1e-4
+        # the stored transform maps them back onto the user's original object
+        transform = np.asarray(obj["shapegen_transform"]).reshape(4, 4)
+        back = (landmarks - transform[:3, 3]) @ np.linalg.inv(transform[:3, :3]).T
+        original = source.objects[obj["shapegen_source"]]
+        tree = cKDTree(_vertices(original))
+        assert tree.query(back)[0].max() < 0.2 * np.ptp(_vertices(original), axis=0).max()
+        markers = [c for c in obj.children if c.name.endswith("landmarks")]
+        assert len(markers) == 1 and len(markers[0].data.vertices) == 6 * len(landmarks)
+        variances.append(np.trace(np.cov(landmarks.T)))
+    # equal-variance scaling: landmark spreads agree closely (landmarks are surface samples)
+    assert np.ptp(variances) / np.mean(variances) < 0.1
+
+
+def test_prepare_skips_non_mesh_objects_and_refuses_empty_or_single(vase_folder):
+    folder, _ = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 60
+    source = settings.source_collection
+    empty = bpy.data.objects.new("an empty", None)
+    source.objects.link(empty)
+    assert bpy.ops.shapegen.prepare() == {"FINISHED"}  # skipped with a warning
+
+    lonely = bpy.data.collections.new("lonely")
+    bpy.context.scene.collection.children.link(lonely)
+    lonely.objects.link(bpy.data.objects.new("only an empty", None))
+    settings.source_collection = lonely
+    with pytest.raises(RuntimeError, match="no mesh objects"):
+        bpy.ops.shapegen.prepare()
+    lonely.objects.link(source.objects[0])
+    with pytest.raises(RuntimeError, match="only one mesh object"):
+        bpy.ops.shapegen.prepare()
+
+
+def test_prepare_names_the_object_with_bad_geometry(vase_folder):
+    folder, _ = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 60
+    bad = bpy.data.objects.new("no faces", bpy.data.meshes.new("no faces"))
+    bad.data.vertices.add(3)
+    settings.source_collection.objects.link(bad)
+    n_collections = len(bpy.data.collections)
+    with pytest.raises(RuntimeError, match="no faces: mesh has no faces"):
+        bpy.ops.shapegen.prepare()
+    assert len(bpy.data.collections) == n_collections  # nothing half-created
+
+
+def test_operators_push_undo_steps():
+    # headless bpy has no window, so ed.undo cannot run here (its poll fails); the
+    # operators declare UNDO so Blender records a step for each in the UI.
+    for name in ("import_collection", "prepare"):
+        op = getattr(bpy.types, f"SHAPEGEN_OT_{name}")
+        assert "UNDO" in op.bl_options
