@@ -1,0 +1,30 @@
+"""Shape models of thesis §5.3 behind one estimator API (issue 4; method.md §4).
+
+- `PPCA`           probabilistic PCA with Ledoit-Wolf shrinkage (§5.3.2)
+- `GPLVM`          GP latent variable model, RBF kernel, KDE latent density (§5.3.3, §5.4.3)
+- `BayesianGPLVM`  variational sparse Bayesian GP-LVM, ARD RBF (§5.3.4, Titsias & Lawrence 2010)
+
+All share: fit(Y, progress=None), sample(n, rng), encode(Y), decode(Z),
+complete(Y_partial, observed_mask), score(Y), latent_dim, to_arrays(), from_arrays(d).
+"""
+
+from ..errors import ModelFileError
+from .base import ModelInputError, ShapeModel
+from .bgplvm import BayesianGPLVM
+from .gplvm import GPLVM
+from .ppca import PPCA
+
+__all__ = ["PPCA", "GPLVM", "BayesianGPLVM", "MODEL_TYPES", "ModelInputError", "ShapeModel",
+           "model_from_arrays"]
+
+MODEL_TYPES: dict[str, type[ShapeModel]] = {"ppca": PPCA, "gplvm": GPLVM, "bgplvm": BayesianGPLVM}
+
+
+def model_from_arrays(arrays) -> ShapeModel:
+    """Rebuild any fitted model from its `to_arrays()` dict, dispatching on 'model_type'."""
+    if not hasattr(arrays, "keys") or "model_type" not in arrays.keys():
+        raise ModelFileError("model arrays have no 'model_type' key")
+    name = str(arrays["model_type"])
+    if name not in MODEL_TYPES:
+        raise ModelFileError(f"unknown model_type '{name}' (known: {', '.join(MODEL_TYPES)})")
+    return MODEL_TYPES[name].from_arrays(arrays)

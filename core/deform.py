@@ -1,0 +1,328 @@
+"""Embedded deformation of a template mesh driven by landmarks (thesis §6, Sumner et al. 2007).
+
+Nodes g_j are the template's own landmarks, the graph is the correspondence k-NN graph
+(§6.2.2: a fresh k-NN on sampled landmarks can disconnect). Node affines A_j (3×4, absolute
+form: A_j [x; 1] is the new position of x) are fitted to target landmarks u_j:
+
+    E(A) = Σ_j ‖A_j x̃_j − u_j‖²  +  α² Σ_{(i,j) ∈ edges} ‖(A_i − A_j) G‖²_F,   G = diag(1,1,1,γ)
+
+(eq. 6.3 + the stiffness of eq. 4.16, in the stacked form ‖B A − C‖² of method.md §3 with
+B = [α (M⊗G); X], so α enters squared). Every template vertex is then blended over its k
+nearest nodes (eq. 6.1–6.2, with the absolute affines: v' = Σ_j w_j(v) A_j [v; 1],
+w_j = (1 − ‖v − g_j‖/d_max)², d_max the distance to the (k+1)-th node, normalised).
+
+Two ways to fit the affines:
+* `schedule="relax"` — iterative stiffness relaxation (§6.2.3 reusing Alg. 3): for α in a
+  decreasing schedule solve for affines relative to the current node positions, move the
+  nodes, compose. Correspondences are known, so there is one solve per α.
+* `schedule="single"` — one solve at the final α. For fixed template, graph and α the map
+  landmarks → vertices is then LINEAR: `LinearMeshMap` factorises once, after which each
+  new landmark set costs a dense product and a sparse product (method.md §6 **beyond**).
+
+Optional curvature-flow smoothing (§6.2.4, Desbrun et al. 1999): implicit steps
+(M − h L) V' = M V with the cotangent Laplacian L and lumped (barycentric) mass M,
+followed by a rescaling about the centroid that restores the enclosed volume of a closed
+mesh (so smoothing never shrinks a closed mesh's volume).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import factorized, splu
+from scipy.spatial import cKDTree
+
+from .errors import ShapeGenError
+from .mesh import Mesh
+
+__all__ = [
+    "DeformSettings",
+    "EmbeddedDeformer",
+    "LinearMeshMap",
+    "DeformInputError",
+    "stiffness_gram",
+    "data_matrix",
+    "blend_matrix",
+    "cotangent_laplacian",
+    "smooth_curvature_flow",
+    "enclosed_volume",
+]
+
+
+class DeformInputError(ShapeGenError, ValueError):
+    """Landmarks or template unusable for deformation (wrong count, NaN, ...)."""
+
+
+@dataclass(frozen=True)
+class DeformSettings:
+    """Embedded-deformation parameters (thesis §6; defaults as the thesis used for vases).
+
+    final_alpha: stiffness of the last (or only) solve; low = follow landmarks closely,
+        high = stay close to the template's shape (thesis: 3 vases, 5 cars, 10 teapots).
+    start_alpha: first stiffness of the relaxation schedule (thesis §4: 100).
+    n_stages: number of evenly spaced α values from start_alpha to final_alpha.
+    gamma: weight of the translation column in the stiffness (G = diag(1,1,1,γ); thesis 2).
+    k_blend: nodes that influence each vertex (Sumner et al.: 4).
+    """
+
+    final_alpha: float = 3.0
+    start_alpha: float = 100.0
+    n_stages: int = 8
+    gamma: float = 2.0
+    k_blend: int = 4
+
+    def schedule(self) -> np.ndarray:
+        return np.linspace(self.start_alpha, self.final_alpha, max(1, self.n_stages))
+
+
+# ---------------------------------------------------------------------------- matrices
+def stiffness_gram(n_nodes: int, edges: np.ndarray, gamma: float) -> sp.csc_matrix:
+    """(M⊗G)ᵀ(M⊗G) for the edge–node incidence M (E × n) and G = diag(1,1,1,γ): 4n × 4n."""
+    edges = np.asarray(edges, dtype=np.int64)
+    n_edges = len(edges)
+    rows = np.repeat(np.arange(n_edges), 2)
+    cols = edges.ravel()
+    vals = np.tile([1.0, -1.0], n_edges)
+    incidence = sp.csr_matrix((vals, (rows, cols)), shape=(n_edges, n_nodes))
+    g = sp.diags([1.0, 1.0, 1.0, gamma])
+    mg = sp.kron(incidence, g, format="csr")
+    return (mg.T @ mg).tocsc()
+
+
+def data_matrix(points: np.ndarray) -> sp.csr_matrix:
+    """X: row j holds x̃_j = [x_j, 1] in columns 4j..4j+3 (n × 4n), so (X A)_j = x̃_jᵀ A_jᵀ."""
+    n = len(points)
+    homogeneous = np.hstack([points, np.ones((n, 1))])
+    rows = np.repeat(np.arange(n), 4)
+    cols = (4 * np.arange(n)[:, None] + np.arange(4)[None, :]).ravel()
+    return sp.csr_matrix((homogeneous.ravel(), (rows, cols)), shape=(n, 4 * n))
+
+
+def blend_matrix(vertices: np.ndarray, nodes: np.ndarray, k: int) -> sp.csr_matrix:
+    """Sparse V × 4n matrix W with (W A)_v = Σ_j w_j(v) [v, 1] A_jᵀ (eq. 6.1–6.2)."""
+    n_nodes = len(nodes)
+    k = min(k, n_nodes - 1)
+    if k < 1:
+        raise DeformInputError(f"need at least 2 deformation nodes, got {n_nodes}")
+    distances, index = cKDTree(nodes).query(vertices, k=k + 1)
+    d_max = distances[:, -1:]
+    weights = (1.0 - distances[:, :k] / np.maximum(d_max, np.finfo(float).tiny)) ** 2
+    total = weights.sum(axis=1, keepdims=True)
+    # a vertex equidistant from all k+1 nodes gets equal weights instead of 0/0
+    weights = np.where(total > 0, weights / np.where(total > 0, total, 1.0), 1.0 / k)
+    homogeneous = np.hstack([vertices, np.ones((len(vertices), 1))])
+    n_vertices = len(vertices)
+    rows = np.repeat(np.arange(n_vertices), 4 * k)
+    cols = (4 * index[:, :k, None] + np.arange(4)[None, None, :]).reshape(n_vertices, -1).ravel()
+    vals = (weights[:, :, None] * homogeneous[:, None, :]).ravel()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n_vertices, 4 * n_nodes))
+
+
+def _apply_affines(affines_stacked: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """New node positions x̃_jᵀ A_jᵀ for a stacked (4n × 3) affine matrix."""
+    blocks = affines_stacked.reshape(-1, 4, 3)
+    return np.einsum("nk,nkd->nd", np.hstack([points, np.ones((len(points), 1))]), blocks)
+
+
+def _compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """Stacked affines of 'inner then outer' (both 4n × 3 in the x̃ᵀ Aᵀ convention)."""
+    o = outer.reshape(-1, 4, 3)
+    i = inner.reshape(-1, 4, 3)
+    # x̃ᵀ I gives a 3-row; append 1 and multiply by O
+    i_h = np.concatenate([i, np.tile(np.array([0.0, 0.0, 0.0, 1.0])[None, :, None], (len(i), 1, 1))], axis=2)
+    return np.einsum("nab,nbc->nac", i_h, o).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------- deformer
+class EmbeddedDeformer:
+    """Deforms one template mesh so its landmarks (nodes) move to given target landmarks."""
+
+    def __init__(self, template: Mesh, nodes: np.ndarray, edges: np.ndarray,
+                 settings: DeformSettings = DeformSettings()):
+        nodes = np.asarray(nodes, dtype=np.float64)
+        edges = np.asarray(edges, dtype=np.int64)
+        label = template.name or "template"
+        if nodes.ndim != 2 or nodes.shape[1] != 3 or not np.isfinite(nodes).all():
+            raise DeformInputError(f"{label}: nodes must be a finite (L, 3) array, got {nodes.shape}")
+        if edges.ndim != 2 or edges.shape[1] != 2 or len(edges) == 0:
+            raise DeformInputError(f"{label}: edges must be a non-empty (E, 2) array, got {edges.shape}")
+        if edges.min() < 0 or edges.max() >= len(nodes):
+            raise DeformInputError(f"{label}: an edge refers to a node outside [0, {len(nodes)})")
+        self.template = template
+        self.nodes = nodes
+        self.edges = edges
+        self.settings = settings
+        # solve in a frame where the nodes are centred with unit RMS radius, so α means the
+        # same for every shape size (as in correspond.py's registration frame)
+        self.frame_centre = nodes.mean(axis=0)
+        self.frame_scale = float(np.sqrt(((nodes - self.frame_centre) ** 2).sum(axis=1).mean()))
+        if not self.frame_scale > 0:
+            raise DeformInputError(f"{label}: all nodes are at one point")
+        self._nodes_frame = self._to_frame(nodes)
+        self.blend = blend_matrix(self._to_frame(template.vertices), self._nodes_frame, settings.k_blend)
+        self._stiffness = stiffness_gram(len(nodes), edges, settings.gamma)
+
+    def _to_frame(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.frame_centre) / self.frame_scale
+
+    def _from_frame(self, points: np.ndarray) -> np.ndarray:
+        return points * self.frame_scale + self.frame_centre
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    def check_targets(self, targets: np.ndarray) -> np.ndarray:
+        targets = np.asarray(targets, dtype=np.float64)
+        label = self.template.name or "template"
+        if targets.shape != self.nodes.shape:
+            raise DeformInputError(
+                f"{label}: target landmarks have shape {targets.shape}, the template has "
+                f"{self.n_nodes} landmarks (expected {self.nodes.shape})"
+            )
+        if not np.isfinite(targets).all():
+            bad = int(np.flatnonzero(~np.isfinite(targets).all(axis=1))[0])
+            raise DeformInputError(f"{label}: target landmark {bad} is NaN or infinite")
+        return targets
+
+    def solve_affines(self, points: np.ndarray, targets: np.ndarray, alpha: float) -> np.ndarray:
+        """Minimise ‖X A − U‖² + α²‖(M⊗G) A‖² for nodes at `points`: (XᵀX + α²K) A = XᵀU,
+        one sparse LU reused for the three coordinate columns."""
+        x = data_matrix(points)
+        system = (x.T @ x + alpha**2 * self._stiffness).tocsc()
+        return splu(system).solve(np.asarray(x.T @ targets))
+
+    def fit(self, targets: np.ndarray, schedule: str = "relax") -> np.ndarray:
+        """Absolute node affines (stacked 4L × 3, in the solve frame) moving the nodes onto
+        `targets`."""
+        targets = self._to_frame(self.check_targets(targets))
+        if schedule == "single":
+            return self.solve_affines(self._nodes_frame, targets, self.settings.final_alpha)
+        if schedule != "relax":
+            raise ValueError(f"unknown schedule {schedule!r}: 'relax' or 'single'")
+        total = np.tile(np.vstack([np.eye(3), np.zeros((1, 3))]), (self.n_nodes, 1))
+        points = self._nodes_frame
+        for alpha in self.settings.schedule():
+            step = self.solve_affines(points, targets, alpha)
+            points = _apply_affines(step, points)
+            total = _compose(step, total)
+        return total
+
+    def deform(self, targets: np.ndarray, schedule: str = "relax", smooth_iterations: int = 0,
+               name: str = "") -> Mesh:
+        """The template deformed to `targets` (and optionally smoothed)."""
+        affines = self.fit(targets, schedule)
+        vertices = self._from_frame(np.asarray(self.blend @ affines))
+        mesh = self.template.with_vertices(vertices, name=name or self.template.name)
+        if smooth_iterations:
+            mesh = smooth_curvature_flow(mesh, smooth_iterations)
+        return mesh
+
+
+class LinearMeshMap:
+    """The fast path: landmarks U (L × 3) → vertices = W S⁻¹ Xᵀ U for a fixed template,
+    graph and α, with S = XᵀX + α²K factorised once.
+
+    `Q = S⁻¹ Xᵀ` (4L × L, dense, computed from the one factorisation) is kept, so
+    `vertices(U) = W (Q U)`: a dense product with L columns and a sparse product with the
+    blend matrix. Whole landmark bases can be pushed through the map, so a model whose
+    decode is affine in some coefficients becomes mesh = V₀ + Σ c_k V_k (`linear_part`).
+    """
+
+    def __init__(self, deformer: EmbeddedDeformer, alpha: float | None = None):
+        self.deformer = deformer
+        self.alpha = deformer.settings.final_alpha if alpha is None else float(alpha)
+        x = data_matrix(deformer._nodes_frame)
+        system = (x.T @ x + self.alpha**2 * deformer._stiffness).tocsc()
+        solve = factorized(system)
+        xt = x.T.toarray()  # 4L × L, 4 non-zeros per column
+        self.node_map = np.column_stack([solve(xt[:, j]) for j in range(xt.shape[1])])  # Q
+
+    def vertices(self, targets: np.ndarray) -> np.ndarray:
+        """Deformed template vertices for one landmark set (L, 3) → (V, 3)."""
+        d = self.deformer
+        frame = d._to_frame(d.check_targets(targets))
+        return d._from_frame(np.asarray(d.blend @ (self.node_map @ frame)))
+
+    def linear_part(self, directions: np.ndarray) -> np.ndarray:
+        """The map's linear part applied to landmark displacements (K, L, 3) → (K, V, 3):
+        vertices(U + Σ c_k B_k) = vertices(U) + Σ c_k linear_part(B)_k. No NaN / count
+        checks (directions need not be shapes)."""
+        directions = np.asarray(directions, dtype=np.float64)
+        k, n, _ = directions.shape
+        stacked = directions.transpose(1, 0, 2).reshape(n, 3 * k)
+        verts = np.asarray(self.deformer.blend @ (self.node_map @ stacked))  # V × 3K
+        return verts.reshape(-1, k, 3).transpose(1, 0, 2)
+
+
+# ---------------------------------------------------------------------------- smoothing
+def cotangent_laplacian(mesh: Mesh) -> sp.csr_matrix:
+    """L with L_ij = ½(cot α_ij + cot β_ij) for edges, L_ii = −Σ_j L_ij (negative semi-definite)."""
+    v, f = mesh.vertices, mesh.faces
+    n = len(v)
+    rows, cols, vals = [], [], []
+    for corner in range(3):
+        i, j, k = f[:, corner], f[:, (corner + 1) % 3], f[:, (corner + 2) % 3]
+        # angle at vertex i, opposite edge (j, k)
+        a, b = v[j] - v[i], v[k] - v[i]
+        cross = np.linalg.norm(np.cross(a, b), axis=1)
+        cot = np.einsum("ij,ij->i", a, b) / np.maximum(cross, 1e-300)
+        rows.extend([j, k])
+        cols.extend([k, j])
+        vals.extend([0.5 * cot, 0.5 * cot])
+    off = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    return (off - sp.diags(np.asarray(off.sum(axis=1)).ravel())).tocsr()
+
+
+def _lumped_mass(mesh: Mesh) -> np.ndarray:
+    """Barycentric vertex areas: a third of each incident face's area."""
+    areas = mesh.face_areas()
+    mass = np.zeros(mesh.n_vertices)
+    for corner in range(3):
+        np.add.at(mass, mesh.faces[:, corner], areas / 3.0)
+    return np.maximum(mass, 1e-300)
+
+
+def enclosed_volume(mesh: Mesh) -> float:
+    """Signed volume (divergence theorem); meaningful for closed, consistently oriented meshes."""
+    tri = mesh.triangles
+    return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+
+
+def _is_closed(mesh: Mesh) -> bool:
+    edges = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def smooth_curvature_flow(mesh: Mesh, iterations: int = 1, step: float = 0.5,
+                          preserve_volume: bool = True) -> Mesh:
+    """Implicit mean-curvature flow (Desbrun et al. 1999, thesis eq. 6.4).
+
+    Each iteration solves (M − h L) V' = M V with h = step × (mean edge length)², the
+    Laplacian and mass rebuilt from the current mesh. With `preserve_volume` a closed mesh
+    is rescaled about its centroid after each step to its original enclosed volume.
+    """
+    if iterations < 0:
+        raise ValueError(f"smoothing iterations must be >= 0, got {iterations}")
+    closed = preserve_volume and _is_closed(mesh)
+    volume0 = enclosed_volume(mesh) if closed else None
+    current = mesh
+    for _ in range(iterations):
+        laplacian = cotangent_laplacian(current)
+        mass = _lumped_mass(current)
+        h = step * current.mean_edge_length() ** 2
+        system = (sp.diags(mass) - h * laplacian).tocsc()
+        solve = factorized(system)
+        rhs = mass[:, None] * current.vertices
+        vertices = np.column_stack([solve(rhs[:, d]) for d in range(3)])
+        if closed and volume0:
+            trial = current.with_vertices(vertices)
+            volume = enclosed_volume(trial)
+            if volume * volume0 > 0:
+                centre = vertices.mean(axis=0)
+                vertices = centre + (vertices - centre) * np.cbrt(volume0 / volume)
+        current = current.with_vertices(vertices)
+    return current

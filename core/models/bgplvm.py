@@ -1,0 +1,399 @@
+"""Bayesian GP-LVM (thesis §5.3.4; Titsias & Lawrence 2010; method.md §4).
+
+Prior p(X) = prod_n N(x_n | 0, I), variational q(X) = prod_n N(mu_n, diag S_n), ARD RBF kernel
+(kernels.py), M inducing inputs Z (default 20) and Gaussian noise beta^-1. The collapsed bound
+(T&L 2010 eq. 14, with A = K_mm + beta Psi2, psi-statistics from kernels.PsiStatistics):
+
+  F = (N D / 2) log(beta / 2 pi) - (D / 2) log|A K_mm^-1| - (beta / 2) tr(Y Y^T)
+      + (beta^2 / 2) tr(A^-1 Psi1^T Y Y^T Psi1) - (beta D / 2) psi0 + (beta D / 2) tr(K_mm^-1 Psi2)
+      - KL(q(X) || p(X)),      KL = 1/2 sum_nq (mu^2 + S - log S - 1).
+
+It is maximised over mu, log S, Z, log s_f^2, log a (inverse squared length-scales) and log beta
+by L-BFGS-B with analytic gradients. Y enters only through Y Y^T (formed once, N x N), so an
+iteration costs O(N M^2 Q + N^2 M), whatever D.
+
+Prediction uses the optimal q(u_d) = N(K_mm B_d, K_mm A^-1 K_mm) with B = beta A^-1 Psi1^T Y
+(M x D, one pass over D after the fit). For a new, possibly partial, shape y* with observed
+coordinates o, q(x*) = N(mu*, diag S*) maximises the per-point bound given q(u):
+
+  L(y*) = -(D_o / 2) log(2 pi / beta) - (beta / 2) [ |y*_o|^2 - 2 psi1* B_o y*_o
+          + tr(psi2* (B_o B_o^T + D_o (A^-1 - K_mm^-1))) ] - (beta D_o / 2) psi0* - KL(q(x*) || p)
+
+(the ELBO of the new point with q(u) fixed at its training optimum, i.e. the change of the
+uncollapsed bound when y* is added). `score` reports its mean; `complete` decodes
+E_q(x*)[f] = psi1(mu*, S*) B.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.optimize import minimize
+
+from ..errors import ModelFileError
+from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
+                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
+from .kernels import PsiStatistics, ard_rbf, ard_rbf_grads
+
+__all__ = ["BayesianGPLVM", "bgplvm_bound", "BoundLayout", "gram_root"]
+
+_LOG_2PI = np.log(2.0 * np.pi)
+
+
+class BoundLayout:
+    """Packing of the parameter vector [mu, log S, Z, log s_f^2, log a, log beta]."""
+
+    def __init__(self, n: int, q: int, m: int):
+        self.n, self.q, self.m = n, q, m
+        sizes = [n * q, n * q, m * q, 1, q, 1]
+        self.splits = np.cumsum(sizes)[:-1]
+        self.size = int(sum(sizes))
+
+    def unpack(self, x):
+        mu, log_S, Z, log_var, log_alpha, log_beta = np.split(x, self.splits)
+        n, q, m = self.n, self.q, self.m
+        return mu.reshape(n, q), log_S.reshape(n, q), Z.reshape(m, q), log_var[0], log_alpha, log_beta[0]
+
+    @staticmethod
+    def pack(mu, log_S, Z, log_var, log_alpha, log_beta):
+        return np.concatenate([mu.ravel(), log_S.ravel(), Z.ravel(), [log_var], log_alpha, [log_beta]])
+
+
+def _factors(Kmm: np.ndarray, Psi2: np.ndarray, beta: float):
+    """Factors for A = K_mm + beta Psi2 (M x M), kept well-conditioned:
+    L = chol K_mm, X = L^-1 Psi2 L^-T = V diag(lam) V^T (lam clipped at 0: X is PSD and only
+    rounding makes it otherwise), B = I + beta X = L^-1 A L^-T.
+    Returns (L^-1, X, B^-1, B^-1/2 = diag((1 + beta lam)^-1/2) V^T, log|B|); then
+    K_mm^-1 = L^-T L^-1 and A^-1 = L^-T B^-1 L^-1."""
+    m = Kmm.shape[0]
+    L_inv = solve_triangular(np.linalg.cholesky(Kmm), np.eye(m), lower=True)
+    X = L_inv @ Psi2 @ L_inv.T
+    lam, V = np.linalg.eigh(0.5 * (X + X.T))
+    lam = np.maximum(lam, 0.0)
+    X = (V * lam) @ V.T
+    b = 1.0 + beta * lam
+    return L_inv, X, (V / b) @ V.T, V.T / np.sqrt(b)[:, None], float(np.sum(np.log(b)))
+
+
+def gram_root(YYt: np.ndarray) -> np.ndarray:
+    """R (N x r) with R R^T = Y Y^T (from the N x N Gram matrix; clipped eigenvalues)."""
+    w, U = np.linalg.eigh(YYt)
+    keep = w > w.max() * 1e-14
+    return U[:, keep] * np.sqrt(w[keep])
+
+
+def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_features: int, jitter: float):
+    """Collapsed bound F (module docstring) and its gradient w.r.t. the packed parameters.
+
+    Y enters through any `Y_root` with Y_root Y_root^T = Y Y^T (Y itself, or `gram_root(Y Y^T)`,
+    N x N, so the cost does not grow with D). K_mm carries a jitter of `jitter * s_f^2` on its
+    diagonal. The data term is computed as a sum of squares, tr(A^-1 Psi1^T Y Y^T Psi1) =
+    |B^-1/2 L^-1 Psi1^T Y_root|^2, and the K_mm / Psi2 gradients in the L^-1 frame, which keeps
+    the value accurate when K_mm is ill-conditioned.
+    """
+    mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
+    n, m, d = layout.n, layout.m, n_features
+    S, variance, alpha, beta = np.exp(log_S), np.exp(log_var), np.exp(log_alpha), np.exp(log_beta)
+    psi = PsiStatistics(mu, S, Z, variance, alpha)
+    Psi1, Psi2 = psi.psi1, psi.psi2
+    Kmm = ard_rbf(Z, Z, variance, alpha) + jitter * variance * np.eye(m)
+    L_inv, X, B_inv, B_half_inv, log_det_B = _factors(Kmm, Psi2, beta)
+    F_root = L_inv @ (Psi1.T @ Y_root)                            # L^-1 Psi1^T Y, (M, r)
+    E = B_half_inv @ F_root
+    tr_YYt = np.sum(Y_root**2)
+    tr_E2 = np.sum(E**2)                                          # tr(A^-1 Psi1^T Y Y^T Psi1)
+    tr_X = np.trace(X)                                            # tr(K_mm^-1 Psi2)
+    kl = 0.5 * np.sum(mu**2 + S - log_S - 1.0)
+    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * log_det_B - 0.5 * beta * tr_YYt
+         + 0.5 * beta**2 * tr_E2 - 0.5 * beta * d * psi.psi0 + 0.5 * beta * d * tr_X - kl)
+    # dF/dA = L^-T inner_A L^-1,  A^-1 P A^-1 = L^-T Q1 L^-1 with Q1 = B^-1 F F^T B^-1
+    B_inv_F = B_inv @ F_root
+    Q1 = B_inv_F @ B_inv_F.T
+    inner_A = -0.5 * d * B_inv - 0.5 * beta**2 * Q1
+    # dF/dK_mm = D/2 K^-1 + dF/dA - beta D/2 K^-1 Psi2 K^-1, using (I - B^-1) = beta B^-1 X
+    inner_K = -0.5 * beta**2 * d * (B_inv @ X @ X) - 0.5 * beta**2 * Q1
+    # dF/dPsi2 = beta dF/dA + beta D/2 K^-1
+    inner_P2 = 0.5 * beta**2 * d * (B_inv @ X) - 0.5 * beta**3 * Q1
+    G_Kmm = L_inv.T @ (0.5 * (inner_K + inner_K.T)) @ L_inv
+    G_Psi2 = L_inv.T @ (0.5 * (inner_P2 + inner_P2.T)) @ L_inv
+    G_Psi1 = beta**2 * (Y_root @ (B_inv_F.T @ L_inv))            # beta^2 Y Y^T Psi1 A^-1
+    g_psi0 = -0.5 * beta * d
+    dF_dbeta = (0.5 * n * d / beta - 0.5 * tr_YYt + beta * tr_E2 - 0.5 * d * psi.psi0
+                + 0.5 * d * tr_X + np.sum(inner_A * X))
+    d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(g_psi0, G_Psi1, G_Psi2)
+    dZ_k, dalpha_k, dlogvar_k = ard_rbf_grads(G_Kmm, Z, Kmm, alpha)   # jitter on the diagonal: no dZ, d alpha
+    d_mu = d_mu - mu
+    d_logS = d_S * S - 0.5 * (S - 1.0)
+    grad = layout.pack(d_mu, d_logS, d_Z + dZ_k, d_logvar + dlogvar_k, (d_alpha + dalpha_k) * alpha,
+                       dF_dbeta * beta)
+    return F, grad
+
+
+class BayesianGPLVM(ShapeModel):
+    """Bayesian GP-LVM shape model (sparse variational, ARD RBF).
+
+    Parameters
+    ----------
+    n_components : int or None
+        Latent dimension Q; None = the PPCA 80 % explained-variance rule (§5.4.1).
+    n_inducing : int
+        Inducing inputs M (thesis: 20); capped at N.
+    max_iter : int
+        L-BFGS-B iterations (thesis: 2000 SCG iterations).
+    n_restarts : int
+        Starting points per row in encode / complete / score (best training q(x_n)).
+    variance_fraction : float
+        Fraction for the explained-variance rule.
+    random_state : None, int or Generator
+        Seeds the choice of initial inducing inputs.
+    jitter : float
+        Added to the diagonal of K_mm relative to s_f^2. Any jitter keeps F a lower bound on
+        log p(Y) (the inducing variables just become noisy), but a larger one loosens it.
+    """
+
+    model_type = "bgplvm"
+    _ARRAY_SPEC = {
+        "model_type": ("U", ()),
+        "mean_": ("f", ("D",)),
+        "latent_mean_": ("f", ("N", "Q")),
+        "latent_variance_": ("f", ("N", "Q")),
+        "inducing_": ("f", ("M", "Q")),
+        "kernel_variance_": ("f", ()),
+        "inverse_lengthscales_": ("f", ("Q",)),
+        "noise_variance_": ("f", ()),
+        "jitter_": ("f", ()),
+        "B_": ("f", ("M", "D")),
+        "elbo_": ("f", ()),
+        "param_n_components": ("i", ()),
+        "param_n_inducing": ("i", ()),
+        "param_max_iter": ("i", ()),
+        "param_n_restarts": ("i", ()),
+        "param_variance_fraction": ("f", ()),
+    }
+
+    def __init__(self, n_components: int | None = None, n_inducing: int = 20, max_iter: int = 2000,
+                 n_restarts: int = 3, variance_fraction: float = 0.8, random_state=None,
+                 jitter: float = 1e-6):
+        self.n_components = n_components
+        self.n_inducing = n_inducing
+        self.max_iter = max_iter
+        self.n_restarts = n_restarts
+        self.variance_fraction = variance_fraction
+        self.random_state = random_state
+        self.jitter = jitter
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, Y, progress: ProgressCallback | None = None) -> "BayesianGPLVM":
+        """Maximise the collapsed bound from a PCA initialisation; returns self."""
+        Y = check_training_data(Y)
+        n, d = Y.shape
+        rng = as_generator(self.random_state)
+        if isinstance(self.n_inducing, bool) or not isinstance(self.n_inducing, (int, np.integer)) or self.n_inducing < 1:
+            raise ModelInputError(f"n_inducing must be a positive integer, got {self.n_inducing!r}")
+        mean = Y.mean(0)
+        Yc = Y - mean
+        q = (default_latent_dim(Yc, self.variance_fraction) if self.n_components is None
+             else check_latent_dim(self.n_components, n))
+        m = int(min(self.n_inducing, n))
+        if progress is not None:
+            progress(0.0, "Bayesian GP-LVM: PCA initialisation")
+        YYt = Yc @ Yc.T                                       # the only use of D-sized data
+        Y_root = gram_root(YYt)                               # N x r, Y_root Y_root^T = Y Y^T
+        data_var = np.trace(YYt) / (n * d)
+        mu0 = pca_latents(Yc, q)
+        Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
+        layout = BoundLayout(n, q, m)
+        x0 = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
+                         np.log(100.0 / data_var))
+        jitter = float(self.jitter)
+        if not 0.0 < jitter < 1.0:
+            raise ModelInputError(f"jitter must be in (0, 1), got {self.jitter!r}")
+        bounds = ([(None, None)] * (n * q) + [(np.log(1e-10), np.log(1e3))] * (n * q) + [(None, None)] * (m * q)
+                  + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
+                  + [(None, np.log(1e8 / data_var))])
+
+        def objective(x):
+            value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
+            return -value, -grad
+
+        # warm-up with the noise fixed at 1 % of the data variance, so the latents and kernel
+        # explain the data before beta may grow (avoids the all-noise local optimum)
+        free = np.ones(layout.size, bool)
+        free[-1] = False
+        n_warm = int(min(max(self.max_iter // 10, 1), 200))
+
+        def objective_fixed_noise(x_free):
+            x = x0.copy()
+            x[free] = x_free
+            value, grad = objective(x)
+            return value, grad[free]
+
+        warm = lbfgs(objective_fixed_noise, x0[free], max_iter=n_warm, progress=progress,
+                     message="Bayesian GP-LVM: warm-up (noise fixed)",
+                     bounds=[b for b, keep in zip(bounds, free) if keep], progress_span=(0.0, 0.1))
+        x0[free] = warm.x
+        result = lbfgs(objective, x0, max_iter=max(self.max_iter - warm.nit, 1), progress=progress,
+                       message="Bayesian GP-LVM: optimising the bound", bounds=bounds,
+                       progress_span=(0.1, 0.95))
+        result.nit += warm.nit
+        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(result.x)
+        self.mean_ = mean
+        self.latent_mean_ = mu.copy()
+        self.latent_variance_ = np.exp(log_S)
+        self.inducing_ = Z.copy()
+        self.kernel_variance_ = float(np.exp(log_var))
+        self.inverse_lengthscales_ = np.exp(log_alpha)
+        self.noise_variance_ = float(np.exp(-log_beta))
+        self.jitter_ = float(jitter)
+        self.elbo_ = float(-result.fun)
+        self.n_iter_ = int(result.nit)
+        self.optimizer_message_ = str(result.message)
+        self._prepare()
+        # B = beta A^-1 Psi1^T Y: the one pass over D after the fit
+        self.B_ = (self.beta_ * self._A_inv) @ (self._train_psi.psi1.T @ Yc)
+        if progress is not None:
+            progress(1.0, "Bayesian GP-LVM: done")
+        return self
+
+    @property
+    def beta_(self) -> float:
+        return 1.0 / self.noise_variance_
+
+    def _prepare(self) -> None:
+        """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters)."""
+        self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
+                                        self.kernel_variance_, self.inverse_lengthscales_)
+        Kmm = (ard_rbf(self.inducing_, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
+               + self.jitter_ * self.kernel_variance_ * np.eye(self.inducing_.shape[0]))
+        L_inv, _, B_inv, _, _ = _factors(Kmm, self._train_psi.psi2, self.beta_)
+        self._A_inv = L_inv.T @ B_inv @ L_inv
+        self._posterior_term = L_inv.T @ (B_inv - np.eye(B_inv.shape[0])) @ L_inv   # A^-1 - K_mm^-1
+
+    @property
+    def latent_dim(self) -> int:
+        self._check_fitted()
+        return int(self.latent_mean_.shape[1])
+
+    # ------------------------------------------------------------------ API
+    def decode(self, Z) -> np.ndarray:
+        """Predictive mean at latent points: mean + k(z, Z_ind) B, (n, D)."""
+        self._check_fitted()
+        Z = self._check_latents(Z)
+        return self.mean_ + ard_rbf(Z, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_) @ self.B_
+
+    def sample(self, n: int, rng=None) -> np.ndarray:
+        """x ~ N(0, I) (the prior, §5.3.4.1) mapped by the predictive mean, (n, D)."""
+        self._check_fitted()
+        rng = as_generator(rng)
+        return self.decode(rng.standard_normal((self._check_count(n), self.latent_dim)))
+
+    def _row_setup(self, B_o: np.ndarray, r_o: np.ndarray):
+        """Per-row constants of the per-point bound for observed residual r_o = (y - mean)_o.
+
+        With the thin QR B_o^T = Q R: |r_o|^2 - 2 psi1 B_o r_o + tr(psi2 B_o B_o^T)
+        = |c - R psi1|^2 + rest + tr((psi2 - psi1^T psi1) R^T R), c = Q^T r_o,
+        rest = |r_o|^2 - |c|^2, so each evaluation costs O(M^2 Q), not O(D), without cancellation.
+        Returns (c, R, rest, H, d_o) with H = B_o B_o^T + D_o (A^-1 - K_mm^-1).
+        """
+        Q, R = np.linalg.qr(B_o.T)
+        c = Q.T @ r_o
+        d_o = r_o.size
+        H = R.T @ R + d_o * self._posterior_term
+        return c, R, max(float(r_o @ r_o - c @ c), 0.0), H, d_o
+
+    def _fit_rows(self, Y, mask):
+        """Optimise q(x*) = N(mu*, diag S*) of each row against its observed coordinates
+        (per-point bound, module docstring). Returns (mu*, S*, bound) per row."""
+        R_all = np.where(mask, Y - self.mean_, 0.0)
+        beta, q = self.beta_, self.latent_dim
+        tp = self._train_psi
+        kl_train = 0.5 * np.sum(tp.mu**2 + tp.S - np.log(tp.S) - 1.0, 1)
+        psi2_var = tp.psi2n - tp.psi1[:, :, None] * tp.psi1[:, None, :]
+        mus, Ss, bounds_out = np.empty((len(Y), q)), np.empty((len(Y), q)), np.empty(len(Y))
+        for i in range(len(Y)):
+            o = mask[i]
+            args = self._row_setup(self.B_[:, o], R_all[i, o])
+            c, R, rest, H, d_o = args
+            # starting points: training q(x_n) with the best per-point bound
+            G = R.T @ R
+            data = (np.sum((c[:, None] - R @ tp.psi1.T) ** 2, 0) + rest
+                    + np.einsum("nab,ab->n", psi2_var, G) + d_o * np.einsum("nab,ab->n", tp.psi2n, self._posterior_term))
+            start_vals = -0.5 * beta * data - kl_train
+            best = (-np.inf, None)
+            for j in np.argsort(-start_vals)[: max(1, self.n_restarts)]:
+                x0 = np.concatenate([tp.mu[j], np.log(tp.S[j])])
+                res = minimize(self._row_bound, x0, args=args, jac=True, method="L-BFGS-B",
+                               bounds=[(None, None)] * q + [(np.log(1e-10), np.log(1e3))] * q,
+                               options={"maxiter": 200})
+                if -res.fun > best[0]:
+                    best = (-res.fun, res.x)
+            bounds_out[i] = best[0]
+            mus[i], Ss[i] = best[1][:q], np.exp(best[1][q:])
+        return mus, Ss, bounds_out
+
+    def _row_bound(self, x, c, R, rest, H, d_o):
+        """-L(y*) for one row and its gradient w.r.t. [mu*, log S*] (args from `_row_setup`)."""
+        q = self.latent_dim
+        mu, log_S = x[None, :q], x[None, q:]
+        S = np.exp(log_S)
+        beta = self.beta_
+        psi = PsiStatistics(mu, S, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
+        psi1, psi2 = psi.psi1[0], psi.psi2n[0]
+        e = c - R @ psi1
+        G = H - d_o * self._posterior_term                        # R^T R
+        data = (e @ e + rest + np.sum((psi2 - np.outer(psi1, psi1)) * G)
+                + d_o * np.sum(psi2 * self._posterior_term))
+        value = (-0.5 * d_o * np.log(2 * np.pi / beta) - 0.5 * beta * data
+                 - 0.5 * beta * d_o * psi.psi0 - 0.5 * np.sum(mu**2 + S - log_S - 1.0))
+        d_mu, d_S, _, _, _ = psi.gradients(-0.5 * beta * d_o, beta * (R.T @ c)[None, :], -0.5 * beta * H)
+        d_mu = d_mu - mu
+        d_logS = d_S * S - 0.5 * (S - 1.0)
+        return -value, -np.concatenate([d_mu[0], d_logS[0]])
+
+    def encode(self, Y) -> np.ndarray:
+        """Means mu* of the optimised q(x*) of each row, (n, Q)."""
+        self._check_fitted()
+        Y = check_rows(Y, self.n_features_)
+        return self._fit_rows(Y, np.ones(Y.shape, bool))[0]
+
+    def score(self, Y) -> float:
+        """Mean over rows of the per-point ELBO with q(x*) optimised (a lower-bound-based
+        estimate of log p(y* | Y); module docstring)."""
+        self._check_fitted()
+        Y = check_rows(Y, self.n_features_)
+        return float(np.mean(self._fit_rows(Y, np.ones(Y.shape, bool))[2]))
+
+    def complete(self, Y_partial, observed_mask) -> np.ndarray:
+        """Optimise q(x*) against the observed coordinates, fill the rest with E_q[f] = psi1 B."""
+        Y, mask = self._check_partial(Y_partial, observed_mask)
+        mu, S, _ = self._fit_rows(np.where(mask, Y, 0.0), mask)
+        psi = PsiStatistics(mu, S, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
+        return np.where(mask, Y, self.mean_ + psi.psi1 @ self.B_)
+
+    # ------------------------------------------------------------------ arrays
+    def _array_value(self, key: str):
+        if key == "param_n_components":
+            return -1 if self.n_components is None else int(self.n_components)
+        if key.startswith("param_"):
+            return getattr(self, key[len("param_"):])
+        return getattr(self, key)
+
+    def _restore(self, a) -> None:
+        for key in ("kernel_variance_", "noise_variance_", "jitter_"):
+            if not a[key] > 0:
+                raise ModelFileError(f"BayesianGPLVM arrays: {key} must be positive")
+        for key in ("latent_variance_", "inverse_lengthscales_"):
+            if not np.all(a[key] > 0):
+                raise ModelFileError(f"BayesianGPLVM arrays: {key} must be positive")
+        nc = int(a["param_n_components"])
+        self.__init__(n_components=None if nc < 0 else nc, n_inducing=int(a["param_n_inducing"]),
+                      max_iter=int(a["param_max_iter"]), n_restarts=int(a["param_n_restarts"]),
+                      variance_fraction=float(a["param_variance_fraction"]), jitter=float(a["jitter_"]))
+        for key in ("mean_", "latent_mean_", "latent_variance_", "inducing_", "inverse_lengthscales_", "B_"):
+            setattr(self, key, a[key])
+        for key in ("kernel_variance_", "noise_variance_", "jitter_", "elbo_"):
+            setattr(self, key, float(a[key]))
+        try:
+            self._prepare()
+        except np.linalg.LinAlgError:
+            raise ModelFileError("BayesianGPLVM arrays: the stored kernel matrices are not positive definite") from None

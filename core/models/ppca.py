@@ -1,0 +1,210 @@
+"""Probabilistic PCA with Ledoit-Wolf shrinkage (thesis §5.3.2, eqs. 5.14-5.19; method.md §4).
+
+Model: y = mu + W z + eps,  z ~ N(0, I_q),  eps ~ N(0, s^2 I_D)  =>  y ~ N(mu, C), C = W W^T + s^2 I.
+Fit (closed form, eq. 5.18-5.19) on the shrunk covariance S_s = (1 - d) S + d (tr S / D) I:
+  W = V_q (L_q - s^2 I)^(1/2),  s^2 = mean of the D - q discarded eigenvalues of S_s.
+Everything goes through the thin SVD of the centred N x D data (N << D): no D x D matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ModelFileError
+from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
+                   check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
+                   principal_axes, shrunk_spectrum)
+
+__all__ = ["PPCA"]
+
+_LOG_2PI = np.log(2.0 * np.pi)
+
+
+class PPCA(ShapeModel):
+    """PPCA shape model.
+
+    Parameters
+    ----------
+    n_components : int or None
+        Latent dimension q; None = smallest q explaining `variance_fraction` of the (shrunk)
+        variance (thesis §5.4.1, 80 %).
+    shrinkage : "ledoit-wolf" or float in [0, 1]
+        Weight d of (tr S / D) I in the shrunk covariance; 0 = plain ML PPCA (Tipping & Bishop).
+    variance_fraction : float
+        Fraction for the explained-variance rule.
+    sample_noise : bool
+        If True `sample` adds the isotropic noise eps (the thesis' "finally add noise"); default
+        False returns the smooth shapes mu + W z.
+    """
+
+    model_type = "ppca"
+    _ARRAY_SPEC = {
+        "model_type": ("U", ()),
+        "mean_": ("f", ("D",)),
+        "components_": ("f", ("D", "Q")),
+        "noise_variance_": ("f", ()),
+        "shrinkage_": ("f", ()),
+        "eigenvalues_": ("f", ("R",)),
+        "n_samples_": ("i", ()),
+        "param_n_components": ("i", ()),
+        "param_shrinkage": ("U", ()),
+        "param_variance_fraction": ("f", ()),
+        "param_sample_noise": ("i", ()),
+    }
+
+    def __init__(self, n_components: int | None = None, shrinkage="ledoit-wolf",
+                 variance_fraction: float = 0.8, sample_noise: bool = False):
+        self.n_components = n_components
+        self.shrinkage = shrinkage
+        self.variance_fraction = variance_fraction
+        self.sample_noise = sample_noise
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, Y, progress: ProgressCallback | None = None) -> "PPCA":
+        """Closed-form fit (eqs. 5.18-5.19) on the shrunk covariance; returns self."""
+        Y = check_training_data(Y)
+        n, d = Y.shape
+        if progress is not None:
+            progress(0.0, "PPCA: thin SVD")
+        mean = Y.mean(0)
+        Yc = Y - mean
+        _, eigvals, axes = principal_axes(Yc)
+        if self.shrinkage == "ledoit-wolf":
+            shrinkage = ledoit_wolf_shrinkage(Yc)
+        else:
+            try:
+                shrinkage = float(self.shrinkage)
+            except (TypeError, ValueError):
+                raise ModelInputError(f"shrinkage must be 'ledoit-wolf' or a number in [0, 1], got {self.shrinkage!r}") from None
+            if not 0.0 <= shrinkage <= 1.0:
+                raise ModelInputError(f"shrinkage must be in [0, 1], got {shrinkage}")
+        spectrum, floor = shrunk_spectrum(eigvals, d, shrinkage)
+        total = eigvals.sum()
+        if self.n_components is None:
+            if not 0.0 < self.variance_fraction <= 1.0:
+                raise ModelInputError(f"variance_fraction must be in (0, 1], got {self.variance_fraction}")
+            q = latent_dim_for_variance(spectrum, total, self.variance_fraction)
+            q = min(q, n - 1, d - 1, spectrum.size)
+            q = max(q, 1)
+        else:
+            q = check_latent_dim(self.n_components, n, d)
+            if q > spectrum.size:
+                raise ModelInputError(f"latent dimension {q} exceeds the data's {spectrum.size} directions")
+        # eq. 5.19 on the shrunk covariance: discarded eigenvalues are spectrum[q:] and the
+        # D - rank directions off the data span, each of value `floor`
+        noise_variance = (total - spectrum[:q].sum()) / (d - q)
+        if not noise_variance > 1e-12 * total / d:
+            raise ModelInputError(
+                f"PPCA noise variance is zero with q = {q}: the data span only {q} directions; "
+                "choose fewer components or use shrinkage"
+            )
+        self.mean_ = mean
+        self.components_ = axes[:, :q] * np.sqrt(np.maximum(spectrum[:q] - noise_variance, 0.0))
+        self.noise_variance_ = float(noise_variance)
+        self.shrinkage_ = float(shrinkage)
+        self.eigenvalues_ = spectrum
+        self.n_samples_ = n
+        self._prepare()
+        if progress is not None:
+            progress(1.0, "PPCA: done")
+        return self
+
+    def _prepare(self) -> None:
+        """Cache M = W^T W + s^2 I (q x q) used by Woodbury / posterior formulas."""
+        W = self.components_
+        self._M = W.T @ W + self.noise_variance_ * np.eye(W.shape[1])
+        self._M_chol = np.linalg.cholesky(self._M)
+
+    @property
+    def latent_dim(self) -> int:
+        self._check_fitted()
+        return int(self.components_.shape[1])
+
+    @property
+    def explained_variance_ratio_(self) -> np.ndarray:
+        return self.eigenvalues_ / self.eigenvalues_.sum()
+
+    # ------------------------------------------------------------------ API
+    def encode(self, Y) -> np.ndarray:
+        """Posterior means E[z | y] = M^-1 W^T (y - mu) (Tipping & Bishop 1999), (n, q)."""
+        self._check_fitted()
+        Y = check_rows(Y, self.n_features_)
+        return np.linalg.solve(self._M, self.components_.T @ (Y - self.mean_).T).T
+
+    def decode(self, Z) -> np.ndarray:
+        """Mean shapes mu + W z, (n, D)."""
+        self._check_fitted()
+        return self.mean_ + self._check_latents(Z) @ self.components_.T
+
+    def sample(self, n: int, rng=None) -> np.ndarray:
+        """n shapes y = mu + W z, z ~ N(0, I) (+ N(0, s^2 I) if sample_noise)."""
+        self._check_fitted()
+        rng = as_generator(rng)
+        Y = self.decode(rng.standard_normal((self._check_count(n), self.latent_dim)))
+        if self.sample_noise:
+            Y += np.sqrt(self.noise_variance_) * rng.standard_normal(Y.shape)
+        return Y
+
+    def log_likelihood(self, Y) -> np.ndarray:
+        """Exact log N(y | mu, W W^T + s^2 I) per row, by Woodbury and the determinant lemma:
+        C^-1 = (I - W M^-1 W^T) / s^2,  log|C| = (D - q) log s^2 + log|M|."""
+        self._check_fitted()
+        Y = check_rows(Y, self.n_features_)
+        d, q, s2 = self.n_features_, self.latent_dim, self.noise_variance_
+        R = Y - self.mean_
+        proj = np.linalg.solve(self._M_chol, self.components_.T @ R.T)     # L^-1 W^T r, (q, n)
+        quad = (np.sum(R**2, 1) - np.sum(proj**2, 0)) / s2
+        logdet = (d - q) * np.log(s2) + 2.0 * np.sum(np.log(np.diag(self._M_chol)))
+        return -0.5 * (d * _LOG_2PI + logdet + quad)
+
+    def score(self, Y) -> float:
+        """Mean held-out log-likelihood per shape (exact)."""
+        return float(np.mean(self.log_likelihood(Y)))
+
+    def complete(self, Y_partial, observed_mask) -> np.ndarray:
+        """Conditional Gaussian mean of the missing given the observed coordinates, per row:
+        y_m = mu_m + W_m (W_o^T W_o + s^2 I)^-1 W_o^T (y_o - mu_o); observed entries kept."""
+        Y, mask = self._check_partial(Y_partial, observed_mask)
+        W, s2, q = self.components_, self.noise_variance_, self.latent_dim
+        R = np.where(mask, Y - self.mean_, 0.0)
+        WtW_rows = (mask.astype(float) @ (W[:, :, None] * W[:, None, :]).reshape(W.shape[0], q * q))
+        M_rows = WtW_rows.reshape(-1, q, q) + s2 * np.eye(q)
+        z = np.linalg.solve(M_rows, (R @ W)[:, :, None])[:, :, 0]          # (n, q)
+        out = self.mean_ + z @ W.T
+        return np.where(mask, Y, out)
+
+    # ------------------------------------------------------------------ arrays
+    def _array_value(self, key: str):
+        if key == "param_n_components":
+            return -1 if self.n_components is None else int(self.n_components)
+        if key == "param_shrinkage":
+            return str(self.shrinkage)
+        if key == "param_variance_fraction":
+            return float(self.variance_fraction)
+        if key == "param_sample_noise":
+            return int(bool(self.sample_noise))
+        return getattr(self, key)
+
+    def _restore(self, a) -> None:
+        if a["components_"].shape[1] >= a["mean_"].shape[0]:
+            raise ModelFileError("PPCA arrays: latent dimension must be smaller than D")
+        if not a["noise_variance_"] > 0:
+            raise ModelFileError("PPCA arrays: noise_variance_ must be positive")
+        nc = int(a["param_n_components"])
+        shrink = str(a["param_shrinkage"])
+        if shrink != "ledoit-wolf":
+            try:
+                shrink = float(shrink)
+            except ValueError:
+                raise ModelFileError(f"PPCA arrays: param_shrinkage {shrink!r} is not 'ledoit-wolf' or a number") from None
+        self.__init__(n_components=None if nc < 0 else nc,
+                      shrinkage=shrink,
+                      variance_fraction=float(a["param_variance_fraction"]),
+                      sample_noise=bool(a["param_sample_noise"]))
+        self.mean_ = a["mean_"]
+        self.components_ = a["components_"]
+        self.noise_variance_ = float(a["noise_variance_"])
+        self.shrinkage_ = float(a["shrinkage_"])
+        self.eigenvalues_ = a["eigenvalues_"]
+        self.n_samples_ = int(a["n_samples_"])
+        self._prepare()

@@ -1,0 +1,385 @@
+"""Tests of the shape models (issue 4): gradients, closed forms, peers, bounds, ARD, completion,
+reproducibility, input errors and serialisation. Small data only (the file runs in well under 60 s).
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from shapegen_core.errors import Cancelled, ModelFileError
+from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, model_from_arrays
+from shapegen_core.models.base import ModelInputError, ledoit_wolf_shrinkage
+from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound
+from shapegen_core.models.gplvm import gplvm_log_likelihood
+from shapegen_core.models.kernels import ard_rbf
+
+# ----------------------------------------------------------------------------- data
+
+
+def linear_data(rng, n, d=30, q=2, noise=0.01):
+    """Rows from a known PPCA model: y = mu + W z + eps."""
+    W = rng.standard_normal((d, q))
+    mu = rng.standard_normal(d)
+    return lambda k: mu + rng.standard_normal((k, q)) @ W.T + noise * rng.standard_normal((k, d))
+
+
+def curve_data(rng, n, d=12, noise=0.02):
+    """Rows from a 1-D latent through smooth non-linear maps (sines), plus noise."""
+    freq, phase = rng.uniform(0.5, 1.5, d), rng.uniform(0, 2 * np.pi, d)
+
+    def draw(k):
+        t = rng.uniform(-2, 2, k)
+        return np.sin(t[:, None] * freq + phase) + noise * rng.standard_normal((k, d))
+    return draw
+
+
+def central_diff(f, x, h=1e-5):
+    """Fourth-order central differences, one coordinate at a time."""
+    out = np.empty_like(x)
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
+    return out
+
+
+def rel_err(a, b):
+    return np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-12)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    """One small fitted model of each kind, shared by the read-only tests."""
+    rng = np.random.default_rng(0)
+    draw = curve_data(rng, 0)
+    Y, Y_test = draw(25), draw(8)
+    models = {
+        "ppca": PPCA().fit(Y),
+        "gplvm": GPLVM(n_components=2, max_iter=300).fit(Y),
+        "bgplvm": BayesianGPLVM(n_components=2, n_inducing=8, max_iter=300, random_state=1).fit(Y),
+    }
+    return models, Y, Y_test
+
+
+# ----------------------------------------------------------------------------- gradients
+
+def test_gplvm_gradient_every_block():
+    rng = np.random.default_rng(1)
+    n, d, q = 10, 6, 2
+    Y = rng.standard_normal((n, d))
+    YYt = Y @ Y.T
+    x = np.concatenate([rng.standard_normal(n * q), [0.3, -0.2, 1.0]])
+    value, grad = gplvm_log_likelihood(x, YYt, d, q)
+    numeric = central_diff(lambda v: gplvm_log_likelihood(v, YYt, d, q)[0], x)
+    blocks = {"Z": slice(0, n * q), "log s_f^2": slice(n * q, n * q + 1),
+              "log l": slice(n * q + 1, n * q + 2), "log beta": slice(n * q + 2, n * q + 3)}
+    for name, sl in blocks.items():
+        assert rel_err(grad[sl], numeric[sl]) < 1e-5, name
+    # the objective is eq. 5.34: compare with a dense evaluation
+    Z = x[: n * q].reshape(n, q)
+    K = np.exp(0.3) * np.exp(-0.5 * ((Z[:, None] - Z[None]) ** 2).sum(-1) / np.exp(-0.4)) + np.exp(-1.0) * np.eye(n)
+    dense = sum(multivariate_normal(np.zeros(n), K).logpdf(Y[:, j]) for j in range(d))
+    assert value == pytest.approx(dense, rel=1e-10)
+
+
+def test_bgplvm_gradient_every_block():
+    rng = np.random.default_rng(2)
+    n, d, q, m = 9, 5, 2, 4
+    Y = rng.standard_normal((n, d))
+    layout = BoundLayout(n, q, m)
+    x = layout.pack(rng.standard_normal((n, q)), np.log(rng.uniform(0.1, 0.5, (n, q))),
+                    rng.standard_normal((m, q)), np.log(1.3), np.log(rng.uniform(0.5, 2, q)), np.log(3.0))
+    _, grad = bgplvm_bound(x, layout, Y, d, 1e-6)
+    numeric = central_diff(lambda v: bgplvm_bound(v, layout, Y, d, 1e-6)[0], x)
+    names = ["mu", "log S", "Z inducing", "log s_f^2", "log alpha", "log beta"]
+    for name, idx in zip(names, np.split(np.arange(x.size), layout.splits)):
+        assert rel_err(grad[idx], numeric[idx]) < 1e-5, name
+
+
+def test_prediction_objective_gradients(fitted):
+    models, Y, Y_test = fitted
+    rng = np.random.default_rng(3)
+    mask = rng.random(Y.shape[1]) < 0.6
+    gp = models["gplvm"]
+    args = gp._row_setup(gp.alpha_[:, mask], (Y_test[0] - gp.mean_)[mask])
+    z = gp.latents_[2] + 0.05
+    # step 1e-3: the predictive variance s^2(z) = s_f^2 + 1/beta - k^T K^-1 k carries rounding
+    # noise that smaller steps amplify; the 4th-order stencil keeps truncation error ~1e-12
+    for fun in (gp._row_mean_fit, gp._row_density):
+        assert rel_err(fun(z, *args)[1], central_diff(lambda v: fun(v, *args)[0], z, 1e-3)) < 1e-5
+    bg = models["bgplvm"]
+    args = bg._row_setup(bg.B_[:, mask], (Y_test[0] - bg.mean_)[mask])
+    x = np.concatenate([bg.latent_mean_[2] + 0.05, np.log(bg.latent_variance_[2]) + 0.1])
+    assert rel_err(bg._row_bound(x, *args)[1], central_diff(lambda v: bg._row_bound(v, *args)[0], x)) < 1e-5
+
+
+# ----------------------------------------------------------------------------- PPCA
+
+def test_ppca_equals_dense_gaussian_and_conditional():
+    rng = np.random.default_rng(4)
+    draw = linear_data(rng, 0, d=20, q=3, noise=0.3)
+    Y, Y_test = draw(15), draw(6)
+    model = PPCA().fit(Y)
+    C = model.components_ @ model.components_.T + model.noise_variance_ * np.eye(20)
+    dense = multivariate_normal(model.mean_, C).logpdf(Y_test)
+    np.testing.assert_allclose(model.log_likelihood(Y_test), dense, rtol=1e-10)
+    assert model.score(Y_test) == pytest.approx(dense.mean(), rel=1e-10)
+    # closed form of eq. 5.19 on the shrunk covariance (dense, small D)
+    S = np.cov(Y.T, bias=True)
+    s = ledoit_wolf_shrinkage(Y - Y.mean(0))
+    S_shrunk = (1 - s) * S + s * np.trace(S) / 20 * np.eye(20)
+    eig = np.sort(np.linalg.eigvalsh(S_shrunk))[::-1]
+    q = model.latent_dim
+    assert model.noise_variance_ == pytest.approx(eig[q:].mean(), rel=1e-10)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvalsh(C))[::-1][:q], eig[:q], rtol=1e-10)
+    # 80 % rule
+    assert np.sum(eig[:q]) / eig.sum() >= 0.8 > np.sum(eig[: q - 1]) / eig.sum()
+    # completion = conditional Gaussian mean
+    mask = rng.random((6, 20)) < 0.5
+    mask[:, 0] = True
+    completed = model.complete(np.where(mask, Y_test, np.nan), mask)
+    for i in range(6):
+        o, h = mask[i], ~mask[i]
+        expected = model.mean_[h] + C[np.ix_(h, o)] @ np.linalg.solve(C[np.ix_(o, o)], (Y_test[i] - model.mean_)[o])
+        np.testing.assert_allclose(completed[i, h], expected, rtol=1e-8, atol=1e-10)
+        np.testing.assert_array_equal(completed[i, o], Y_test[i, o])
+
+
+def test_ppca_matches_scikit_learn():
+    sk_cov = pytest.importorskip("sklearn.covariance")
+    sk_dec = pytest.importorskip("sklearn.decomposition")
+    rng = np.random.default_rng(5)
+    # N << D: Ledoit-Wolf shrinkage value, and with q = N - 1 the PPCA covariance IS the
+    # Ledoit-Wolf covariance (all discarded eigenvalues equal the shrinkage floor)
+    draw = linear_data(rng, 0, d=150, q=3, noise=0.2)
+    Y, Y_test = draw(12), draw(5)
+    assert ledoit_wolf_shrinkage(Y - Y.mean(0)) == pytest.approx(sk_cov.ledoit_wolf_shrinkage(Y), rel=1e-12)
+    full = PPCA(n_components=11).fit(Y)
+    assert full.score(Y_test) == pytest.approx(sk_cov.LedoitWolf().fit(Y).score(Y_test), rel=1e-9)
+    # N > D, shrinkage off: sklearn's PCA.score (ddof = 1) on data rescaled so its unbiased
+    # covariance equals our ML covariance; both average discarded eigenvalues over D - q
+    n, d = 60, 8
+    Y = rng.standard_normal((n, d)) * np.arange(1, d + 1)
+    Y_test = rng.standard_normal((20, d)) * np.arange(1, d + 1)
+    mean = Y.mean(0)
+    Y_scaled = mean + (Y - mean) * np.sqrt((n - 1) / n)
+    ours = PPCA(n_components=3, shrinkage=0).fit(Y)
+    theirs = sk_dec.PCA(n_components=3).fit(Y_scaled)
+    assert ours.score(Y_test) == pytest.approx(theirs.score(Y_test), rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- Bayesian GP-LVM bound
+
+def _gplvm_exact(Y, X, variance, alpha, beta):
+    """Exact log p(Y | X) of a GP-LVM with ARD kernel (dense)."""
+    K = ard_rbf(X, X, variance, alpha) + np.eye(len(X)) / beta
+    return sum(multivariate_normal(np.zeros(len(X)), K).logpdf(Y[:, j]) for j in range(Y.shape[1]))
+
+
+def test_bgplvm_bound_below_exact_gplvm_likelihood():
+    rng = np.random.default_rng(6)
+    n, d, q = 12, 4, 2
+    Y = curve_data(rng, 0, d=d, noise=0.1)(n)
+    Y = Y - Y.mean(0)
+    mu = rng.standard_normal((n, q))
+    variance, alpha, beta = 0.8, np.array([0.7, 1.4]), 20.0
+
+    def data_term(S, Z):
+        layout = BoundLayout(n, q, len(Z))
+        x = layout.pack(mu, np.log(S), Z, np.log(variance), np.log(alpha), np.log(beta))
+        F, _ = bgplvm_bound(x, layout, Y, d, 1e-9)
+        return F + 0.5 * np.sum(mu**2 + S - np.log(S) - 1.0)       # bound on E_q log p(Y | X)
+
+    exact = _gplvm_exact(Y, mu, variance, alpha, beta)
+    tiny = np.full((n, q), 1e-12)
+    # q(X) -> point mass, inducing inputs = latents: the bound becomes exact
+    assert data_term(tiny, mu.copy()) == pytest.approx(exact, rel=1e-5)
+    # fewer inducing inputs: strictly below
+    assert data_term(tiny, mu[:5].copy()) < exact - 1e-3
+    # q(X) with variance: bound <= E_q[log p(Y | X)] (Monte Carlo, 400 draws)
+    S = np.full((n, q), 0.05)
+    draws = [_gplvm_exact(Y, mu + np.sqrt(S) * rng.standard_normal((n, q)), variance, alpha, beta) for _ in range(400)]
+    expected, stderr = np.mean(draws), np.std(draws) / np.sqrt(len(draws))
+    assert data_term(S, mu[:6].copy()) < expected - 3 * stderr
+
+
+def test_bgplvm_point_bound_sums_to_training_bound(fitted):
+    """The per-point bound used by score/complete, summed over the training points at their
+    q(x_n), minus KL(q(u) || p(u)), is the collapsed training bound."""
+    models, Y, _ = fitted
+    bg = models["bgplvm"]
+    Yc = Y - bg.mean_
+    total = 0.0
+    for i in range(len(Y)):
+        x = np.concatenate([bg.latent_mean_[i], np.log(bg.latent_variance_[i])])
+        total -= bg._row_bound(x, *bg._row_setup(bg.B_, Yc[i]))[0]
+    Kmm = (ard_rbf(bg.inducing_, bg.inducing_, bg.kernel_variance_, bg.inverse_lengthscales_)
+           + bg.jitter_ * bg.kernel_variance_ * np.eye(len(bg.inducing_)))
+    A = Kmm + bg.beta_ * bg._train_psi.psi2
+    kl_u = 0.5 * (Y.shape[1] * (np.trace(np.linalg.solve(A, Kmm)) - len(Kmm)
+                                + np.linalg.slogdet(A)[1] - np.linalg.slogdet(Kmm)[1])
+                  + np.sum(bg.B_ * (Kmm @ bg.B_)))
+    assert total - kl_u == pytest.approx(bg.elbo_, rel=1e-6)
+
+
+def test_ard_switches_off_unused_dimensions():
+    rng = np.random.default_rng(0)
+    Y = curve_data(rng, 0, d=12, noise=0.05)(40)
+    model = BayesianGPLVM(n_components=3, n_inducing=10, max_iter=400, random_state=0).fit(Y)
+    alpha = np.sort(model.inverse_lengthscales_)
+    assert alpha[1] < 1e-3 * alpha[2]
+    assert alpha[0] < 1e-3 * alpha[2]
+
+
+# ----------------------------------------------------------------------------- completion
+
+@pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])
+def test_completion_recovers_hidden_coordinates(kind):
+    rng = np.random.default_rng(7)
+    if kind == "ppca":
+        draw = linear_data(rng, 0, d=30, q=2, noise=0.01)
+        model = PPCA(n_components=2)
+    else:
+        draw = curve_data(rng, 0, d=12, noise=0.01)
+        model = (GPLVM(n_components=1, max_iter=300) if kind == "gplvm"
+                 else BayesianGPLVM(n_components=1, n_inducing=10, max_iter=300, random_state=0))
+    Y, Y_test = draw(40), draw(10)
+    model.fit(Y)
+    mask = np.ones(Y_test.shape, bool)
+    mask[:, : Y.shape[1] // 3] = False                      # hide the first third of every row
+    completed = model.complete(np.where(mask, Y_test, np.nan), mask)
+    np.testing.assert_array_equal(completed[mask], Y_test[mask])
+    error = np.mean((completed - Y_test)[~mask] ** 2)
+    hidden_variance = np.mean(np.var(Y_test[:, ~mask[0]], axis=0))
+    assert error < 0.02 * hidden_variance
+
+
+# ----------------------------------------------------------------------------- API behaviour
+
+@pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])
+def test_common_api_shapes(fitted, kind):
+    models, Y, Y_test = fitted
+    model = models[kind]
+    q, d = model.latent_dim, Y.shape[1]
+    assert model.sample(5, np.random.default_rng(0)).shape == (5, d)
+    Z = model.encode(Y_test)
+    assert Z.shape == (len(Y_test), q)
+    assert model.decode(Z).shape == (len(Y_test), d)
+    assert np.isfinite(model.score(Y_test))
+    # decode(encode(y)) is close to y for training shapes
+    assert np.mean((model.decode(model.encode(Y[:5])) - Y[:5]) ** 2) < 0.1 * np.mean(np.var(Y, 0))
+
+
+@pytest.mark.parametrize("kind", ["gplvm", "bgplvm"])
+def test_fixed_seeds_reproduce(kind):
+    rng = np.random.default_rng(8)
+    Y = curve_data(rng, 0, d=8)(15)
+    make = (lambda: GPLVM(n_components=2, max_iter=100, random_state=3)) if kind == "gplvm" else \
+        (lambda: BayesianGPLVM(n_components=2, n_inducing=6, max_iter=100, random_state=3))
+    a, b = make().fit(Y), make().fit(Y)
+    for key, value in a.to_arrays().items():
+        np.testing.assert_array_equal(value, b.to_arrays()[key], err_msg=key)
+    np.testing.assert_array_equal(a.sample(4, np.random.default_rng(5)), b.sample(4, np.random.default_rng(5)))
+    assert not np.array_equal(a.sample(4, np.random.default_rng(5)), a.sample(4, np.random.default_rng(6)))
+
+
+def test_ppca_sampling_reproducible():
+    Y = np.random.default_rng(9).standard_normal((10, 20))
+    model = PPCA(sample_noise=True).fit(Y)
+    np.testing.assert_array_equal(model.sample(3, 11), model.sample(3, np.random.default_rng(11)))
+
+
+@pytest.mark.parametrize("cls", [PPCA, GPLVM, BayesianGPLVM])
+def test_bad_inputs_raise_clear_errors(cls):
+    rng = np.random.default_rng(10)
+    Y = rng.standard_normal((6, 9))
+    with pytest.raises(ModelInputError, match="at least 2"):
+        cls().fit(Y[:1])
+    bad = Y.copy()
+    bad[2, 3] = np.nan
+    with pytest.raises(ModelInputError, match="NaN"):
+        cls().fit(bad)
+    with pytest.raises(ModelInputError, match="smaller than the number of shapes"):
+        cls(n_components=6).fit(Y)
+    with pytest.raises(ValueError):                      # ModelInputError is a ValueError
+        cls(n_components=0).fit(Y)
+    kwargs = {} if cls is PPCA else {"max_iter": 20}
+    model = cls(n_components=2, **kwargs).fit(Y)
+    wrong = rng.standard_normal((2, 8))
+    for call in (model.encode, model.score):
+        with pytest.raises(ModelInputError, match="D = 9"):
+            call(wrong)
+    with pytest.raises(ModelInputError, match="D = 9"):
+        model.complete(wrong, np.ones(wrong.shape, bool))
+    with pytest.raises(ModelInputError, match="observed_mask"):
+        model.complete(Y[:2], np.ones((2, 9), int))
+    with pytest.raises(ModelInputError, match="observe no coordinate"):
+        model.complete(Y[:2], np.zeros((2, 9), bool))
+    with pytest.raises(ModelInputError, match="latents"):
+        model.decode(np.zeros((2, 3)))
+    with pytest.raises(ModelInputError, match="not fitted"):
+        cls().encode(Y)
+
+
+def test_progress_and_cancel():
+    Y = np.random.default_rng(11).standard_normal((8, 10))
+    for cls in (PPCA, GPLVM, BayesianGPLVM):
+        seen = []
+        cls(n_components=2).fit(Y, progress=lambda f, msg: seen.append((f, msg)))
+        assert seen and seen[-1][0] == 1.0 and all(0.0 <= f <= 1.0 for f, _ in seen)
+
+        def cancel(fraction, message):
+            raise Cancelled("stop")
+        with pytest.raises(Cancelled):
+            cls(n_components=2).fit(Y, progress=cancel)
+
+
+# ----------------------------------------------------------------------------- serialisation
+
+@pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])
+def test_arrays_round_trip(fitted, kind):
+    models, Y, Y_test = fitted
+    model = models[kind]
+    arrays = model.to_arrays()
+    assert all(isinstance(v, np.ndarray) and v.dtype.kind in "fiuU" for v in arrays.values())
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    buffer.seek(0)
+    with np.load(buffer, allow_pickle=False) as stored:
+        loaded = model_from_arrays({k: stored[k] for k in stored.files})
+    assert type(loaded) is MODEL_TYPES[kind]
+    mask = np.ones(Y_test.shape, bool)
+    mask[:, :4] = False
+    np.testing.assert_array_equal(loaded.decode(model.encode(Y_test)), model.decode(model.encode(Y_test)))
+    np.testing.assert_array_equal(loaded.encode(Y_test), model.encode(Y_test))
+    np.testing.assert_array_equal(loaded.complete(Y_test, mask), model.complete(Y_test, mask))
+    assert loaded.score(Y_test) == model.score(Y_test)
+    np.testing.assert_array_equal(loaded.sample(3, 1), model.sample(3, 1))
+
+
+@pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])
+def test_from_arrays_refuses_bad_input(fitted, kind):
+    models, _, _ = fitted
+    cls, good = MODEL_TYPES[kind], models[kind].to_arrays()
+    with pytest.raises(ModelFileError, match="missing"):
+        cls.from_arrays({k: v for k, v in good.items() if k != "mean_"})
+    with pytest.raises(ModelFileError, match="unexpected"):
+        cls.from_arrays({**good, "extra": np.zeros(2)})
+    with pytest.raises(ModelFileError, match="mean_"):
+        cls.from_arrays({**good, "mean_": good["mean_"][:-1]})              # D disagrees
+    with pytest.raises(ModelFileError, match="mean_"):
+        cls.from_arrays({**good, "mean_": good["mean_"][None]})             # wrong ndim
+    with pytest.raises(ModelFileError, match="dtype"):
+        cls.from_arrays({**good, "mean_": good["mean_"].astype(str)})
+    with pytest.raises(ModelFileError, match="objects"):
+        cls.from_arrays({**good, "mean_": good["mean_"].astype(object)})
+    with pytest.raises(ModelFileError, match="NaN"):
+        cls.from_arrays({**good, "mean_": np.full_like(good["mean_"], np.nan)})
+    with pytest.raises(ModelFileError, match="not"):
+        cls.from_arrays({**good, "model_type": np.array("other")})
+    with pytest.raises(ModelFileError, match="unknown model_type"):
+        model_from_arrays({**good, "model_type": np.array("other")})
