@@ -1,0 +1,54 @@
+"""Shared fixtures of the core-tier intake tests (no bpy)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.mesh import Mesh  # noqa: E402
+
+PSB = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb"
+if not PSB.is_dir():
+    PSB = Path("/work/shared/data/psb")
+
+
+@pytest.fixture(scope="session")
+def small_vases():
+    """Six coarse procedural vases in random input poses (yaw, scale, translation)."""
+    return make_vases(6, seed=1, resolution=(12, 18))
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+def random_mesh(rng: np.random.Generator, n_vertices: int = 40, n_faces: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Random vertices and non-degenerate triangles (no repeated index)."""
+    vertices = rng.normal(size=(n_vertices, 3))
+    faces = []
+    while len(faces) < n_faces:
+        f = rng.choice(n_vertices, 3, replace=False)
+        faces.append(f)
+    return vertices, np.asarray(faces, dtype=np.int64)
+
+
+def unit_cube() -> Mesh:
+    """Closed unit cube [0, 1]^3, 12 outward-facing triangles."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    return Mesh(np.asarray(box.vertices) + 0.5, np.asarray(box.faces), name="cube")
+
+
+def psb_class(name: str) -> Path:
+    folder = PSB / name
+    if not folder.is_dir() or not any(folder.glob("*.off")):
+        pytest.skip(f"real data folder {folder} is absent")
+    return folder

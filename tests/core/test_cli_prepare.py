@@ -1,0 +1,222 @@
+"""PreparedCollection persistence (safe .npz) and the `shapegen prepare` command."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shapegen_core.collection import PREPARED_FORMAT, PreparedCollection, prepare_meshes
+from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.errors import CollectionError, ModelFileError
+from shapegen_core.npzfile import save_npz
+
+SHAPEGEN = Path(sys.executable).parent / "shapegen"
+
+
+@pytest.fixture(scope="module")
+def prepared(small_vases):
+    return prepare_meshes([s.mesh for s in small_vases[:3]], n_landmarks=50, align="pca", seed=4)
+
+
+@pytest.fixture(scope="module")
+def saved(prepared, tmp_path_factory):
+    return prepared.save(tmp_path_factory.mktemp("saved") / "prepared.npz")
+
+
+# ---------------------------------------------------------------------------- round trip
+def test_save_load_round_trip(prepared, saved):
+    back = PreparedCollection.load(saved)
+    assert back.names == prepared.names
+    for a, b in zip(prepared.shapes, back.shapes):
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+        np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
+        np.testing.assert_allclose(a.transform.matrix, b.transform.matrix, rtol=0, atol=1e-15)
+        assert a.orientation_changed == b.orientation_changed
+    for i, (a, b) in enumerate(zip(prepared.landmarks, back.landmarks)):
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.face_index, b.face_index)
+        np.testing.assert_array_equal(a.barycentric, b.barycentric)
+        assert a.radius == b.radius
+        np.testing.assert_allclose(back.landmarks_input(i), prepared.landmarks_input(i), atol=1e-12)
+    assert back.settings["align"] == "pca" and back.settings["n_landmarks"] == "50"
+    assert [p.name for p in saved.parent.iterdir()] == ["prepared.npz"]  # no temporary left
+
+
+def test_prepare_meshes_needs_two_unique_shapes(small_vases):
+    with pytest.raises(CollectionError, match=r"at least 2 meshes.*\(vase_000\)"):
+        prepare_meshes([small_vases[0].mesh], n_landmarks=20)
+    with pytest.raises(CollectionError, match="repeated"):
+        prepare_meshes([small_vases[0].mesh, small_vases[0].mesh], n_landmarks=20)
+
+
+# ---------------------------------------------------------------------------- refused files
+def _rewrite(saved: Path, target: Path, **changes) -> Path:
+    with np.load(saved) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(changes)
+    with open(target, "wb") as handle:
+        np.savez(handle, **arrays)
+    return target
+
+
+def test_truncated_file_refused(saved, tmp_path):
+    raw = saved.read_bytes()
+    for cut in (0, 10, len(raw) // 2, len(raw) - 5):
+        path = tmp_path / f"cut{cut}.npz"
+        path.write_bytes(raw[:cut])
+        with pytest.raises(ModelFileError, match=f"^{path}: "):
+            PreparedCollection.load(path)
+
+
+def test_corrupted_member_refused(saved, tmp_path):
+    raw = bytearray(saved.read_bytes())
+    middle = len(raw) // 3
+    raw[middle:middle + 8] = bytes(8)
+    path = tmp_path / "corrupt.npz"
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ModelFileError, match=f"^{path}: "):
+        PreparedCollection.load(path)
+
+
+def test_foreign_npz_refused(tmp_path):
+    path = tmp_path / "foreign.npz"
+    np.savez(path, weights=np.zeros((3, 3)))
+    with pytest.raises(ModelFileError, match="not a ShapeGen file"):
+        PreparedCollection.load(path)
+    other = save_npz(tmp_path / "model.npz", "shapegen.model", 1, {"x": np.zeros(2)})
+    with pytest.raises(ModelFileError, match="is a 'shapegen.model' file, expected 'shapegen.prepared'"):
+        PreparedCollection.load(other)
+
+
+def test_pickled_object_array_refused(saved, tmp_path):
+    path = _rewrite(saved, tmp_path / "pickled.npz", names=np.array([{"evil": 1}, None, 3], dtype=object))
+    with pytest.raises(ModelFileError, match="needs pickle to load; refused"):
+        PreparedCollection.load(path)
+    with pytest.raises(TypeError, match="refusing to write a pickle"):
+        save_npz(tmp_path / "x.npz", PREPARED_FORMAT, 1, {"a": np.array([None], dtype=object)})
+
+
+def test_wrong_version_refused(saved, tmp_path):
+    path = _rewrite(saved, tmp_path / "v2.npz", format_version=np.asarray(2))
+    with pytest.raises(ModelFileError, match="version 2 is not supported"):
+        PreparedCollection.load(path)
+    path = _rewrite(saved, tmp_path / "vtext.npz", format_version=np.asarray("one"))
+    with pytest.raises(ModelFileError, match="not an integer version"):
+        PreparedCollection.load(path)
+
+
+def test_inconsistent_or_bad_content_refused(saved, tmp_path):
+    with np.load(saved) as data:
+        faces, offsets = data["faces"].copy(), data["vertex_offsets"].copy()
+    faces[0, 0] = 10**6
+    with pytest.raises(ModelFileError, match="is invalid"):
+        PreparedCollection.load(_rewrite(saved, tmp_path / "faces.npz", faces=faces))
+    offsets[-1] += 1
+    with pytest.raises(ModelFileError, match="inconsistent"):
+        PreparedCollection.load(_rewrite(saved, tmp_path / "offsets.npz", vertex_offsets=offsets))
+    with pytest.raises(ModelFileError, match="missing array 'landmarks'"):
+        with np.load(saved) as data:
+            arrays = {k: data[k] for k in data.files if k != "landmarks"}
+        np.savez(tmp_path / "missing.npz", **arrays)
+        PreparedCollection.load(tmp_path / "missing.npz")
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    with pytest.raises(ModelFileError, match="single .npy array"):
+        PreparedCollection.load(tmp_path / "array.npy")
+    with pytest.raises(ModelFileError, match="no such file"):
+        PreparedCollection.load(tmp_path / "absent.npz")
+
+
+# ---------------------------------------------------------------------------- CLI
+def _run(*args, timeout=120):
+    if not SHAPEGEN.exists():
+        pytest.skip(f"{SHAPEGEN} is not installed in this environment")
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    return subprocess.run([str(SHAPEGEN), *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+@pytest.fixture(scope="module")
+def vase_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("vases")
+    write_collection(make_vases(3, seed=2, resolution=(10, 14)), folder, "obj")
+    return folder
+
+
+def test_cli_prepare_writes_the_file(vase_folder, tmp_path):
+    out = tmp_path / "out" / "prepared.npz"
+    result = _run("prepare", vase_folder, "-o", out, "--landmarks", "40", "--align", "pca",
+                  "--scale", "bbox", "--seed", "3")
+    assert result.returncode == 0, result.stderr
+    assert f"prepared 3 shapes -> {out}" in result.stdout
+    loaded = PreparedCollection.load(out)
+    assert loaded.names == ["vase_000", "vase_001", "vase_002"]
+    assert all(abs(len(l) - 40) <= 1 for l in loaded.landmarks)
+    assert loaded.settings["scale"] == "bbox" and loaded.settings["seed"] == "3"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["prepared.npz"]
+
+
+@pytest.mark.parametrize("problem,fragment", [
+    ("nan", "vertex 0 has a NaN or infinite coordinate"),
+    ("empty", "file is empty"),
+    ("range", "a face refers to a vertex that does not exist"),
+])
+def test_cli_bad_file_exits_2_with_one_line_naming_it(vase_folder, tmp_path, problem, fragment):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for path in vase_folder.iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    content = {"nan": "v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "empty": "",
+               "range": "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 7\n"}[problem]
+    (folder / "broken.obj").write_text(content)
+    out = tmp_path / "prepared.npz"
+    out.write_bytes(b"previous good result")
+    result = _run("prepare", folder, "-o", out, "--landmarks", "40")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert str(folder / "broken.obj") in lines[0] and fragment in lines[0]
+    assert "Traceback" not in result.stderr
+    # the previous output is untouched and nothing half-written is left beside it
+    assert out.read_bytes() == b"previous good result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "prepared.npz"]
+
+
+@pytest.mark.parametrize("content,fragment", [(None, "no mesh files found"), ("one", "at least 2 meshes")])
+def test_cli_bad_folder_exits_2(vase_folder, tmp_path, content, fragment):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    if content == "one":
+        first = sorted(vase_folder.iterdir())[0]
+        (folder / first.name).write_bytes(first.read_bytes())
+    out = tmp_path / "prepared.npz"
+    result = _run("prepare", folder, "-o", out)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(folder) in lines[0] and fragment in lines[0], result.stderr
+    assert not out.exists()
+
+
+def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
+    """A failure while writing (here: the compressor raising) leaves neither the output
+    nor a temporary file."""
+    import shapegen_core.npzfile as npzfile
+
+    def broken(handle, **arrays):
+        handle.write(b"PK\x03\x04 partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(npzfile.np, "savez_compressed", broken)
+    with pytest.raises(OSError, match="disk full"):
+        prepared.save(tmp_path / "prepared.npz")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_usage_error_exits_2(tmp_path):
+    result = _run("prepare", tmp_path)  # missing -o
+    assert result.returncode == 2 and "-o/--output" in result.stderr
