@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import ModelFileError
 
-__all__ = ["save_npz", "load_npz", "ArraySpec"]
+__all__ = ["save_npz", "load_npz", "validate_arrays", "ArraySpec"]
 
 
 class ArraySpec:
@@ -106,11 +106,20 @@ def load_npz(
         raise ModelFileError(
             f"{label}: {file_format} version {found_version} is not supported (this ShapeGen reads version {version})"
         )
+    validate_arrays(arrays, spec, label)
+    return arrays
+
+
+def validate_arrays(arrays: Mapping[str, np.ndarray], spec: Mapping[str, ArraySpec], label: str) -> None:
+    """Check that `arrays` holds every key of `spec` with the right dtype kind, shape and
+    (where asked) finite values; raise ModelFileError starting with `label` otherwise."""
     sizes: dict[str, int] = {}
     for key, expected in spec.items():
         if key not in arrays:
             raise ModelFileError(f"{label}: missing array {key!r}")
-        array = arrays[key]
+        array = np.asarray(arrays[key])
+        if array.dtype.kind == "O":
+            raise ModelFileError(f"{label}: array {key!r} holds Python objects; refused")
         if array.dtype.kind not in expected.kinds:
             raise ModelFileError(
                 f"{label}: array {key!r} has dtype {array.dtype}, expected kind {expected.kinds!r}"
@@ -133,4 +142,3 @@ def load_npz(
                     )
         if expected.finite and array.dtype.kind == "f" and not np.isfinite(array).all():
             raise ModelFileError(f"{label}: array {key!r} contains NaN or infinite values")
-    return arrays

@@ -281,11 +281,25 @@ class BayesianGPLVM(ShapeModel):
         Z = self._check_latents(Z)
         return self.mean_ + ard_rbf(Z, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_) @ self.B_
 
-    def sample(self, n: int, rng=None) -> np.ndarray:
-        """x ~ N(0, I) (the prior, §5.3.4.1) mapped by the predictive mean, (n, D)."""
+    def decode_features(self, Z) -> np.ndarray:
+        """decode(Z) = mean_ + decode_features(Z) @ decode_basis(): k(z, Z_ind), (n, M)."""
         self._check_fitted()
-        rng = as_generator(rng)
-        return self.decode(rng.standard_normal((self._check_count(n), self.latent_dim)))
+        Z = self._check_latents(Z)
+        return ard_rbf(Z, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
+
+    def decode_basis(self) -> np.ndarray:
+        """(M, D): the predictive-mean weights B."""
+        self._check_fitted()
+        return self.B_
+
+    def sample_latents(self, n: int, rng=None) -> np.ndarray:
+        """x ~ N(0, I), the prior (§5.3.4.1), (n, Q)."""
+        self._check_fitted()
+        return as_generator(rng).standard_normal((self._check_count(n), self.latent_dim))
+
+    def sample(self, n: int, rng=None) -> np.ndarray:
+        """Prior latents (`sample_latents`) mapped by the predictive mean, (n, D)."""
+        return self.decode(self.sample_latents(n, rng))
 
     def _row_setup(self, B_o: np.ndarray, r_o: np.ndarray):
         """Per-row constants of the per-point bound for observed residual r_o = (y - mean)_o.

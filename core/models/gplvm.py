@@ -154,13 +154,27 @@ class GPLVM(ShapeModel):
         self._check_fitted()
         return self.mean_ + self._kernel(self._check_latents(Z), self.latents_) @ self.alpha_
 
-    def sample(self, n: int, rng=None) -> np.ndarray:
-        """z from the leave-one-out-bandwidth Gaussian KDE over the latents (§5.4.3), decoded."""
+    def decode_features(self, Z) -> np.ndarray:
+        """decode(Z) = mean_ + decode_features(Z) @ decode_basis(): k(z, Z_train), (n, N)."""
+        self._check_fitted()
+        return self._kernel(self._check_latents(Z), self.latents_)
+
+    def decode_basis(self) -> np.ndarray:
+        """(N, D): K^-1 Y."""
+        self._check_fitted()
+        return self.alpha_
+
+    def sample_latents(self, n: int, rng=None) -> np.ndarray:
+        """z from the leave-one-out-bandwidth Gaussian KDE over the latents (§5.4.3), (n, Q)."""
         self._check_fitted()
         rng = as_generator(rng)
         n = self._check_count(n)
         centres = self.latents_[rng.integers(0, self.latents_.shape[0], n)]
-        return self.decode(centres + self.kde_bandwidth_ * rng.standard_normal(centres.shape))
+        return centres + self.kde_bandwidth_ * rng.standard_normal(centres.shape)
+
+    def sample(self, n: int, rng=None) -> np.ndarray:
+        """z from the KDE over the latents (`sample_latents`), decoded."""
+        return self.decode(self.sample_latents(n, rng))
 
     @staticmethod
     def _row_setup(A_o: np.ndarray, r_o: np.ndarray):

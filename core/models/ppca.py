@@ -136,11 +136,26 @@ class PPCA(ShapeModel):
         self._check_fitted()
         return self.mean_ + self._check_latents(Z) @ self.components_.T
 
+    def sample_latents(self, n: int, rng=None) -> np.ndarray:
+        """z ~ N(0, I), (n, q)."""
+        self._check_fitted()
+        return as_generator(rng).standard_normal((self._check_count(n), self.latent_dim))
+
+    def decode_features(self, Z) -> np.ndarray:
+        """decode(Z) = mean_ + decode_features(Z) @ decode_basis(): here the latents themselves."""
+        self._check_fitted()
+        return self._check_latents(Z)
+
+    def decode_basis(self) -> np.ndarray:
+        """(q, D): W^T."""
+        self._check_fitted()
+        return self.components_.T
+
     def sample(self, n: int, rng=None) -> np.ndarray:
         """n shapes y = mu + W z, z ~ N(0, I) (+ N(0, s^2 I) if sample_noise)."""
         self._check_fitted()
         rng = as_generator(rng)
-        Y = self.decode(rng.standard_normal((self._check_count(n), self.latent_dim)))
+        Y = self.decode(self.sample_latents(n, rng))
         if self.sample_noise:
             Y += np.sqrt(self.noise_variance_) * rng.standard_normal(Y.shape)
         return Y

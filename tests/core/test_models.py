@@ -383,3 +383,25 @@ def test_from_arrays_refuses_bad_input(fitted, kind):
         cls.from_arrays({**good, "model_type": np.array("other")})
     with pytest.raises(ModelFileError, match="unknown model_type"):
         model_from_arrays({**good, "model_type": np.array("other")})
+
+
+@pytest.mark.parametrize("name", ["ppca", "gplvm", "bgplvm"])
+def test_decode_is_mean_plus_features_times_basis_and_sampling_uses_latents(name):
+    """The affine decomposition the mesh fast path relies on, and sample = decode(sample_latents)."""
+    from shapegen_core.models import MODEL_TYPES
+
+    rng = np.random.default_rng(0)
+    latent = rng.standard_normal((12, 2))
+    Y = np.tanh(latent @ rng.standard_normal((2, 30))) + 0.01 * rng.standard_normal((12, 30))
+    kwargs = {"n_components": 2}
+    if name == "bgplvm":
+        kwargs.update(n_inducing=6, max_iter=60)
+    if name == "gplvm":
+        kwargs.update(max_iter=60)
+    model = MODEL_TYPES[name](**kwargs).fit(Y)
+    Z = rng.standard_normal((5, 2))
+    np.testing.assert_allclose(model.mean_ + model.decode_features(Z) @ model.decode_basis(), model.decode(Z),
+                               atol=1e-10)
+    a = model.sample(4, np.random.default_rng(7))
+    b = model.decode(model.sample_latents(4, np.random.default_rng(7)))
+    np.testing.assert_allclose(a, b, atol=1e-12)
