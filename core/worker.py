@@ -1,0 +1,131 @@
+"""Worker process entry for `jobs.BackgroundJob`: `python worker.py TASK JSON_ARGUMENTS`.
+
+Runs one task from `TASKS`, reporting progress as JSON lines on stdout and honouring a
+"cancel" line on stdin (see jobs.py for the protocol). Never imports bpy.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import traceback
+from pathlib import Path
+
+if __name__ == "__main__" and not __package__:
+    # started as a script: import this file's folder as a package so relative imports work
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    import importlib
+
+    _module = importlib.import_module(f"{Path(__file__).resolve().parent.name}.worker")
+    sys.exit(_module.main(sys.argv[1:]))
+
+# Note: nothing below imports the core at module level. Process pools started by a task
+# (correspondence runs shapes in parallel, spawn context) re-run this file by path as
+# "__mp_main__", without a package; it must then only define functions.
+
+
+def _emit(**message) -> None:
+    sys.stdout.write(json.dumps(message) + "\n")
+    sys.stdout.flush()
+
+
+class _CancelFlag:
+    """Set when the parent writes "cancel" on stdin (or closes it)."""
+
+    def __init__(self):
+        self._event = threading.Event()
+        threading.Thread(target=self._listen, daemon=True).start()
+
+    def _listen(self) -> None:
+        for line in sys.stdin:
+            if line.strip() == "cancel":
+                self._event.set()
+                return
+        # stdin closed: the parent is gone; stop as soon as possible
+        self._event.set()
+
+    def __call__(self) -> bool:
+        return self._event.is_set()
+
+
+def task_fit(arguments: dict, progress, should_cancel) -> str:
+    """Fit a GenerativeShapeModel from meshes in an .npz (see pipeline / blender convert)."""
+    from .correspond import CorrespondenceSettings
+    from .deform import DeformSettings
+    from .mesh import Mesh
+    from .npzfile import ArraySpec, load_npz
+    from .errors import Cancelled
+    from .pipeline import FitSettings, fit_meshes
+
+    arrays = load_npz(arguments["meshes"], "shapegen.meshes", 1, {
+        "names": ArraySpec("U", ("M",)),
+        "vertices": ArraySpec("f", (None, 3)),
+        "faces": ArraySpec("i", (None, 3)),
+        "vertex_offsets": ArraySpec("i", ("M+1",)),
+        "face_offsets": ArraySpec("i", ("M+1",)),
+    })
+    vo, fo = arrays["vertex_offsets"], arrays["face_offsets"]
+    meshes = [Mesh.from_polygons(arrays["vertices"][vo[i]:vo[i + 1]], arrays["faces"][fo[i]:fo[i + 1]], name=str(n))
+              for i, n in enumerate(arrays["names"])]
+    options = dict(arguments.get("settings", {}))
+    correspondence = CorrespondenceSettings(**options.pop("correspondence", {}))
+    deform = DeformSettings(**options.pop("deform", {}))
+    settings = FitSettings(correspondence=correspondence, deform=deform, **options)
+    model = fit_meshes(meshes, settings, progress=lambda f, stage: _emit(event="progress", fraction=f, stage=stage),
+                       should_cancel=should_cancel)
+    if should_cancel():
+        raise Cancelled("fit cancelled")
+    output = Path(arguments["output"])
+    model.save(output)
+    return str(output)
+
+
+def task_selftest(arguments: dict, progress, should_cancel) -> str:
+    """A tiny task for tests of the job machinery: counts, sleeps, can fail or crash."""
+    import time
+
+    from .errors import Cancelled, ShapeGenError
+
+    steps = int(arguments.get("steps", 10))
+    for i in range(steps):
+        if should_cancel():
+            raise Cancelled("selftest cancelled")
+        progress((i + 1) / steps, f"step {i + 1} of {steps}")
+        time.sleep(float(arguments.get("sleep", 0.01)))
+        if arguments.get("fail_at") == i:
+            raise ShapeGenError(f"selftest failed on purpose at step {i}")
+        if arguments.get("crash_at") == i:
+            import os
+
+            os._exit(3)  # a hard crash: no message, non-zero exit
+    output = Path(arguments["output"])
+    output.write_text("ok")
+    return str(output)
+
+
+TASKS = {"fit": task_fit, "selftest": task_selftest}
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 2 or argv[0] not in TASKS:
+        _emit(event="failed", error=f"usage: worker.py TASK JSON (tasks: {', '.join(TASKS)})")
+        return 2
+    from .errors import Cancelled, ShapeGenError
+
+    task, arguments = TASKS[argv[0]], json.loads(argv[1])
+    should_cancel = _CancelFlag()
+    try:
+        output = task(arguments, lambda f, stage: _emit(event="progress", fraction=f, stage=stage), should_cancel)
+    except Cancelled:
+        _emit(event="cancelled")
+        return 0
+    except ShapeGenError as exc:
+        _emit(event="failed", error=str(exc))
+        return 1
+    except Exception as exc:  # an unexpected bug: report it with its type, keep the trace on stderr
+        traceback.print_exc()
+        _emit(event="failed", error=f"{type(exc).__name__}: {exc}")
+        return 1
+    _emit(event="done", output=output)
+    return 0

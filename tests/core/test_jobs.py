@@ -1,0 +1,57 @@
+"""Background jobs: a real child process, progress, failure, crash and cancel."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from shapegen_core.jobs import BackgroundJob
+
+
+def test_progress_reaches_one_and_output_is_reported(tmp_path):
+    output = tmp_path / "out.txt"
+    status = BackgroundJob("selftest", {"steps": 5, "output": str(output)}).start().wait(60)
+    assert status.state == "done" and status.fraction == 1.0
+    assert status.output == str(output) and output.read_text() == "ok"
+
+
+def test_a_task_error_becomes_a_message(tmp_path):
+    status = BackgroundJob("selftest", {"steps": 5, "fail_at": 2, "output": str(tmp_path / "x")}).start().wait(60)
+    assert status.state == "failed" and "failed on purpose at step 2" in status.error
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_hard_crash_is_reported_with_the_exit_code(tmp_path):
+    status = BackgroundJob("selftest", {"steps": 5, "crash_at": 1, "output": str(tmp_path / "x")}).start().wait(60)
+    assert status.state == "failed" and "exited with code 3" in status.error
+
+
+def test_cancel_stops_the_worker_and_writes_nothing(tmp_path):
+    job = BackgroundJob("selftest", {"steps": 10_000, "sleep": 0.01, "output": str(tmp_path / "x")}).start()
+    deadline = time.monotonic() + 30
+    while job.poll().fraction == 0.0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert 0.0 < job.poll().fraction < 1.0
+    job.cancel()
+    status = job.wait(60)
+    assert status.state == "cancelled"
+    assert not (tmp_path / "x").exists()
+
+
+def test_unknown_task_fails_cleanly(tmp_path):
+    status = BackgroundJob("no-such-task", {}).start().wait(60)
+    assert status.state == "failed" and "usage" in status.error
+
+
+def test_poll_never_blocks(tmp_path):
+    job = BackgroundJob("selftest", {"steps": 50, "sleep": 0.02, "output": str(tmp_path / "x")}).start()
+    longest = 0.0
+    while not job.poll().finished:
+        begin = time.perf_counter()
+        job.poll()
+        longest = max(longest, time.perf_counter() - begin)
+        time.sleep(0.005)
+    assert longest < 0.05
+    with pytest.raises(RuntimeError):
+        job.start()

@@ -1,0 +1,75 @@
+"""The fitted whole: fit → save → load → sample / complete / mesh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shapegen_core.datasets import make_vases
+from shapegen_core.errors import ModelFileError, ShapeGenError
+from shapegen_core.npzfile import save_npz
+from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    shapes = make_vases(6, seed=2, resolution=(14, 18))
+    model = fit_meshes([s.mesh for s in shapes], FitSettings(n_landmarks=80, model="ppca", jobs=1))
+    path = tmp_path_factory.mktemp("model") / "model.npz"
+    model.save(path)
+    return model, path
+
+
+def test_round_trip_reproduces_samples_and_meshes(fitted):
+    model, path = fitted
+    loaded = GenerativeShapeModel.load(path)
+    assert loaded.names == model.names and loaded.model_type == "ppca"
+    a, za = model.sample(3, np.random.default_rng(4))
+    b, zb = loaded.sample(3, np.random.default_rng(4))
+    np.testing.assert_allclose(a, b, atol=1e-12)
+    np.testing.assert_allclose(za, zb)
+    np.testing.assert_allclose(model.mesh_from_landmarks(a[0]).vertices,
+                               loaded.mesh_from_landmarks(b[0]).vertices, atol=1e-9)
+
+
+def test_a_training_shape_meshes_to_its_own_mesh(fitted):
+    model, _ = fitted
+    for index in (0, 3):
+        name = model.names[index]
+        mesh = model.mesh_from_landmarks(model.correspondence.points[index], template=name)
+        np.testing.assert_allclose(mesh.vertices, model.meshes[index].vertices, atol=1e-9)
+        assert model.choose_template(model.correspondence.points[index], "nearest-data") == index
+
+
+def test_completion_keeps_observed_landmarks(fitted):
+    model, _ = fitted
+    partial = model.correspondence.points[:2].copy()
+    top = partial[..., 2] > np.median(partial[..., 2])
+    partial[top] = np.nan
+    done = model.complete(partial)
+    assert np.isfinite(done).all()
+    np.testing.assert_allclose(done[~top], model.correspondence.points[:2][~top])
+
+
+def test_bad_template_and_bad_landmarks_are_clear_errors(fitted):
+    model, _ = fitted
+    with pytest.raises(ShapeGenError, match="no training shape named 'nope'"):
+        model.mesh_from_landmarks(model.correspondence.points[0], template="nope")
+    with pytest.raises(ShapeGenError, match="landmarks"):
+        model.mesh_from_landmarks(model.correspondence.points[0][:-3])
+
+
+def test_foreign_and_truncated_model_files_are_refused(fitted, tmp_path):
+    _, path = fitted
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: 2000])
+    with pytest.raises(ModelFileError, match="truncated.npz"):
+        GenerativeShapeModel.load(truncated)
+    foreign = tmp_path / "foreign.npz"
+    save_npz(foreign, "shapegen.prepared", 1, {"a": np.zeros(3)})
+    with pytest.raises(ModelFileError, match="expected 'shapegen.model'"):
+        GenerativeShapeModel.load(foreign)
+    plain = tmp_path / "plain.npz"
+    np.savez(plain, x=np.zeros(3))
+    with pytest.raises(ModelFileError, match="no format tag"):
+        GenerativeShapeModel.load(plain)
