@@ -3,9 +3,13 @@
 1. Generate a class of procedural vases (core/datasets.py: varied triangulations, random
    input poses) and write them as OBJ files.
 2. Install the built extension (dist/) into a throwaway Blender user folder, as a user
-   would, and drive its operators: Import Training Collection → Prepare.
-3. Render the prepared (aligned, scaled, landmarked) shapes with Blender's Workbench
-   engine into OUTPUT/intake.png.
+   would, and drive its operators: Import Training Collection → Prepare. Render the
+   prepared (aligned, scaled, landmarked) shapes into OUTPUT/intake.png.
+3. Fit: correspondence (groupwise non-rigid ICP) → Bayesian GP-LVM, with the core shipped
+   inside the installed extension; save OUTPUT/model.npz.
+4. Generate: 8 samples and a morph row (straight latent line between the two training
+   shapes farthest apart in latent space), meshed by embedded deformation, rendered by
+   Blender beside the training shapes into the contact sheet OUTPUT/shapegen_demo.png.
 """
 
 from __future__ import annotations
@@ -72,7 +76,7 @@ def frame_camera(bpy, objects, resolution=(1600, 1000)):
     scene.render.resolution_x, scene.render.resolution_y = resolution
 
 
-def layout_for_front_view(objects, columns: int = 6):
+def layout_for_front_view(objects, columns: int = 8):
     """Re-place shapes on a grid in the x–z plane (rows stacked upwards) for a front view."""
     import math
 
@@ -103,7 +107,7 @@ def render_png(bpy, path: Path):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--output", type=Path, default=ROOT / "demo_output")
-    parser.add_argument("--shapes", type=int, default=12, help="training shapes to generate")
+    parser.add_argument("--shapes", type=int, default=20, help="training shapes to generate")
     parser.add_argument("--landmarks", type=int, default=800)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -148,10 +152,101 @@ def main(argv=None) -> int:
     counts = [len(o["shapegen_landmarks"]) // 3 for o in shape_objects]
     print(f"demo: landmarks per shape {min(counts)}-{max(counts)} (requested {args.landmarks})")
     print(f"demo: wrote {png} ({time.perf_counter() - start:.1f} s in all)")
+    contact_sheet(bpy, module, source, output, args)
     import addon_utils
 
     addon_utils.disable(module, default_set=True)
     return 0
+
+
+def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
+    """Fit BGP-LVM on the imported collection, sample, morph, render one PNG."""
+    import numpy as np
+
+    pipeline = importlib.import_module(f"{module}.core.pipeline")
+    jobs = importlib.import_module(f"{module}.core.jobs")
+    npzfile = importlib.import_module(f"{module}.core.npzfile")
+    convert = importlib.import_module(f"{module}.shapegen_addon.convert")
+    start = time.perf_counter()
+    meshes = [convert.object_to_mesh(o) for o in sorted(source.objects, key=lambda o: o.name)]
+    # the fit runs in a worker process, as Blender's Fit does (a child of Blender cannot
+    # import bpy, and only a plain process can start the correspondence process pool)
+    npzfile.save_npz(output / "training_meshes.npz", "shapegen.meshes", 1, {
+        "names": np.asarray([m.name for m in meshes]),
+        "vertices": np.concatenate([m.vertices for m in meshes]),
+        "faces": np.concatenate([m.faces for m in meshes]),
+        "vertex_offsets": np.cumsum([0] + [m.n_vertices for m in meshes]),
+        "face_offsets": np.cumsum([0] + [m.n_faces for m in meshes]),
+    })
+    job = jobs.BackgroundJob("fit", {
+        "meshes": str(output / "training_meshes.npz"), "output": str(output / "model.npz"),
+        "settings": {"n_landmarks": args.landmarks, "model": "bgplvm", "seed": args.seed},
+    }).start()
+    report = _print_progress("fit")
+    while not (status := job.poll()).finished:
+        report(status.fraction, status.stage)
+        time.sleep(0.1)
+    if status.state != "done":
+        sys.exit(f"demo: fit {status.state}: {status.error}")
+    model = pipeline.GenerativeShapeModel.load(output / "model.npz")
+    print(f"demo: fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(meshes)} shapes "
+          f"x {model.n_landmarks} landmarks in {time.perf_counter() - start:.1f} s -> {output / 'model.npz'}")
+
+    rng = np.random.default_rng(args.seed)
+    samples, _ = model.sample(8, rng)
+    latents = model.training_latents()
+    distance = ((latents[:, None] - latents[None]) ** 2).sum(axis=2)
+    a, b = np.unravel_index(np.argmax(distance), distance.shape)
+    line = np.linspace(0, 1, 8)[:, None] * (latents[b] - latents[a]) + latents[a]
+    morph = model.decode(line)
+    rows = {
+        "training": [model.meshes[i] for i in range(min(8, len(model.meshes)))],
+        "samples": [model.mesh_from_landmarks(lm, name=f"sample {i}") for i, lm in enumerate(samples)],
+        f"morph {model.names[a]} to {model.names[b]}": [
+            model.mesh_from_landmarks(lm, name=f"morph {k}") for k, lm in enumerate(morph)],
+    }
+    colours = {"training": (0.8, 0.82, 0.86, 1.0), "samples": (0.45, 0.65, 0.95, 1.0)}
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    sheet = bpy.data.collections.new("ShapeGen Demo")
+    bpy.context.scene.collection.children.link(sheet)
+    step_x = 1.3 * max(np.ptp(m.vertices[:, :2], axis=0).max() for row in rows.values() for m in row)
+    step_z = 1.25 * max(np.ptp(m.vertices[:, 2]) for row in rows.values() for m in row)
+    objects = []
+    for r, (label, row) in enumerate(rows.items()):
+        z = (len(rows) - 1 - r) * step_z
+        for c, mesh in enumerate(row):
+            obj = bpy.data.objects.new(mesh.name or label, convert.mesh_data_from_arrays(mesh.name, mesh.vertices, mesh.faces))
+            obj.location = (c * step_x, 0.0, z)
+            t = c / max(1, len(row) - 1)
+            obj.color = colours.get(label, (0.95, 0.55 + 0.2 * t, 0.25 + 0.5 * t, 1.0))
+            sheet.objects.link(obj)
+            objects.append(obj)
+        text = bpy.data.curves.new(f"label {label}", "FONT")
+        text.body = label
+        text.size = 0.1 * step_z
+        text.align_x = "RIGHT"
+        label_obj = bpy.data.objects.new(f"label {label}", text)
+        label_obj.location = (-0.45 * step_x, 0.0, z + 0.3 * step_z)
+        label_obj.rotation_euler = (np.pi / 2, 0.0, 0.0)
+        label_obj.color = (0.95, 0.95, 0.95, 1.0)
+        sheet.objects.link(label_obj)
+        objects.append(label_obj)
+    bpy.context.view_layer.update()
+    frame_camera(bpy, objects, resolution=(1800, 900))
+    png = output / "shapegen_demo.png"
+    render_png(bpy, png)
+    print(f"demo: wrote {png} (8 training shapes, 8 samples, 8-step morph)")
+
+
+def _print_progress(prefix: str):
+    state = {"step": -1}
+
+    def report(fraction: float, stage: str) -> None:
+        if int(10 * fraction) > state["step"]:
+            state["step"] = int(10 * fraction)
+            print(f"demo: [{prefix}] {100 * fraction:5.1f} %  {stage}", flush=True)
+
+    return report
 
 
 if __name__ == "__main__":

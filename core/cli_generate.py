@@ -1,0 +1,312 @@
+"""`shapegen fit | info | sample | complete | morph`: fitting and generation commands.
+
+Registered into the main parser by `cli.build_parser` (`add_generate_commands`). Every
+command reads or writes the one fitted-model file (`pipeline.GenerativeShapeModel`).
+Outputs are written to a temporary folder first and moved into place only when every
+file succeeded, so an error never leaves a half-written result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ShapeGenError
+
+__all__ = ["add_generate_commands"]
+
+MESH_FORMATS = ("obj", "ply", "glb", "stl", "off")
+
+
+class CommandError(ShapeGenError, ValueError):
+    """A command-line argument that cannot be used (names the argument)."""
+
+
+def _progress(prefix: str):
+    state = {"step": -1}
+
+    def report(fraction: float, stage: str) -> None:
+        step = int(20 * fraction)
+        if step > state["step"]:
+            state["step"] = step
+            print(f"[{prefix}] {100 * fraction:5.1f} %  {stage}", file=sys.stderr, flush=True)
+
+    return report
+
+
+def _load_model(path: Path):
+    from .pipeline import GenerativeShapeModel
+
+    return GenerativeShapeModel.load(path)
+
+
+class _StagedOutput:
+    """A folder written completely in a sibling temporary folder, then moved into place."""
+
+    def __init__(self, target: Path):
+        self.target = Path(target)
+
+    def __enter__(self) -> Path:
+        if self.target.exists() and any(self.target.iterdir()):
+            raise CommandError(f"{self.target}: output folder exists and is not empty")
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", dir=self.target.parent))
+        return self.staging
+
+    def __exit__(self, kind, value, traceback):
+        if kind is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            return False
+        if self.target.exists():
+            self.target.rmdir()
+        os.replace(self.staging, self.target)
+        return False
+
+
+def _write_mesh(mesh, path: Path) -> None:
+    from .io import write_mesh
+
+    write_mesh(mesh, path)
+
+
+# ---------------------------------------------------------------------------- fit
+def _meshes_for_correspondence(corr, meshes_dir: Path):
+    """Normalised training meshes for a correspondence file: re-read the inputs from
+    `meshes_dir` and apply the transforms recorded in the file."""
+    from .io import read_folder
+    from .preprocess import ShapeTransform
+
+    by_name = {m.name: m for m in read_folder(meshes_dir)}
+    missing = [n for n in corr.names if n not in by_name]
+    if missing:
+        raise CommandError(f"{meshes_dir}: no mesh file for shape(s) {missing[:5]} of the correspondence")
+    meshes = []
+    for name, matrix in zip(corr.names, corr.transforms):
+        mesh = by_name[name]
+        meshes.append(mesh.with_vertices(ShapeTransform.from_matrix(matrix).to_normalised(mesh.vertices)))
+    return meshes
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .collection import PreparedCollection
+    from .correspond import Correspondence, CorrespondenceSettings
+    from .deform import DeformSettings
+    from .io import read_folder
+    from .pipeline import FitSettings, GenerativeShapeModel, _make_model, _scalar_settings, fit_meshes
+
+    start = time.perf_counter()
+    settings = FitSettings(
+        n_landmarks=args.landmarks, up_axis=args.up, align=args.align, scale=args.scale, seed=args.seed,
+        model=args.model, latent_dim=args.latent_dim, template=args.template, jobs=args.jobs,
+        correspondence=CorrespondenceSettings(), deform=DeformSettings(final_alpha=args.stiffness),
+    )
+    source = Path(args.source)
+    report = _progress("fit")
+    if source.is_dir():
+        model = fit_meshes(read_folder(source), settings, progress=report)
+    elif source.suffix == ".npz":
+        from .npzfile import load_npz
+
+        try:
+            kind = str(np.load(source, allow_pickle=False)["format"])
+        except Exception:
+            kind = ""
+        if kind == "shapegen.prepared":
+            model = fit_meshes(PreparedCollection.load(source), settings, progress=report)
+        else:
+            corr = Correspondence.load(source)  # refuses anything that is not a correspondence file
+            if args.meshes is None:
+                raise CommandError(
+                    f"{source}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
+                    "was computed from) so the training meshes can be meshed")
+            meshes = _meshes_for_correspondence(corr, args.meshes)
+            estimator = _make_model(settings)
+            estimator.fit(corr.landmark_matrix(), progress=lambda f, s: report(f, f"{args.model}: {s}"))
+            from . import __version__
+
+            model = GenerativeShapeModel(meshes, corr, estimator, settings=_scalar_settings(settings),
+                                         deform_settings=settings.deform,
+                                         metadata={"created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                                   "n_shapes": str(len(meshes)), "shapegen_version": __version__})
+    else:
+        raise CommandError(f"{source}: expected a folder of meshes, a prepared .npz or a correspondence .npz")
+    model.save(args.output)
+    outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
+    for name, reason in zip(model.names, model.correspondence.outlier_reasons):
+        if reason:
+            print(f"outlier: {name}: {reason}", file=sys.stderr)
+    print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
+          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s); "
+          f"{time.perf_counter() - start:.1f} s")
+    return 0
+
+
+# ---------------------------------------------------------------------------- info
+def cmd_info(args: argparse.Namespace) -> int:
+    model = _load_model(args.model)
+    corr = model.correspondence
+    info = {
+        "file": str(args.model),
+        "model": model.model_type,
+        "latent_dim": model.latent_dim,
+        "shapes": len(model.names),
+        "landmarks": model.n_landmarks,
+        "graph_edges": int(len(corr.edges)),
+        "template": corr.template_name,
+        "outliers": [n for n, o in zip(model.names, corr.outliers) if o],
+        "median_residual_percent_of_diagonal": round(100 * float(np.median(corr.residuals)), 4),
+        "training_mesh_vertices": [m.n_vertices for m in model.meshes],
+        "deform": {k: getattr(model.deform_settings, k) for k in ("final_alpha", "start_alpha", "n_stages", "gamma", "k_blend")},
+        "metadata": model.metadata,
+        "names": model.names,
+    }
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    for key, value in info.items():
+        if key == "names":
+            value = ", ".join(value[:20]) + (" ..." if len(value) > 20 else "")
+        print(f"{key:>38}: {value}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- sample
+def cmd_sample(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    if args.n < 1:
+        raise CommandError(f"-n must be at least 1, got {args.n}")
+    model = _load_model(args.model)
+    rng = np.random.default_rng(args.seed)
+    landmarks, latents = model.sample(args.n, rng)
+    names = [f"sample_{i:04d}" for i in range(args.n)]
+    templates = [model.names[model.choose_template(lm, args.template)] for lm in landmarks]
+    with _StagedOutput(args.output) as staging:
+        for name, lm, template in zip(names, landmarks, templates):
+            mesh = model.mesh_from_landmarks(lm, template=template, smooth=args.smooth, exact=args.exact, name=name)
+            _write_mesh(mesh, staging / f"{name}.{args.format}")
+        arrays = {"names": np.asarray(names), "landmarks": landmarks, "templates": np.asarray(templates),
+                  "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
+        if latents is not None:
+            arrays["latents"] = latents
+        from .npzfile import save_npz
+
+        save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
+    seconds = time.perf_counter() - start
+    print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz -> {args.output} "
+          f"({seconds:.1f} s, {1000 * seconds / args.n:.1f} ms per sample)")
+    return 0
+
+
+# ---------------------------------------------------------------------------- complete
+def cmd_complete(args: argparse.Namespace) -> int:
+    from .npzfile import ArraySpec, load_npz, save_npz
+
+    model = _load_model(args.model)
+    arrays = load_npz(args.partial, "shapegen.partial", 1,
+                      {"landmarks": ArraySpec("f", (None, None, 3), finite=False)})
+    partial = arrays["landmarks"]
+    if partial.ndim == 2:
+        partial = partial[None]
+    if partial.shape[1] != model.n_landmarks:
+        raise CommandError(f"{args.partial}: has {partial.shape[1]} landmarks per shape, the model "
+                           f"{model.n_landmarks}")
+    completed = model.complete(partial)
+    with _StagedOutput(args.output) as staging:
+        save_npz(staging / "completed.npz", "shapegen.samples", 1,
+                 {"landmarks": completed, "observed": np.isfinite(partial).all(axis=2)})
+        for i, lm in enumerate(completed):
+            mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"completed_{i:04d}")
+            _write_mesh(mesh, staging / f"completed_{i:04d}.{args.format}")
+    missing = int((~np.isfinite(partial).all(axis=2)).sum())
+    print(f"completed {len(completed)} shape(s) ({missing} missing landmarks filled) -> {args.output}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- morph
+def cmd_morph(args: argparse.Namespace) -> int:
+    if args.n < 2:
+        raise CommandError(f"-n must be at least 2 (both ends), got {args.n}")
+    model = _load_model(args.model)
+    index_a, index_b = model.shape_index(args.name_a), model.shape_index(args.name_b)
+    latents = model.training_latents()
+    weights = np.linspace(0.0, 1.0, args.n)[:, None]
+    line = (1 - weights) * latents[index_a] + weights * latents[index_b]
+    landmarks = model.decode(line)
+    with _StagedOutput(args.output) as staging:
+        for k, (lm, w) in enumerate(zip(landmarks, weights[:, 0])):
+            mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"morph_{k:03d}")
+            _write_mesh(mesh, staging / f"morph_{k:03d}.{args.format}")
+        from .npzfile import save_npz
+
+        save_npz(staging / "landmarks.npz", "shapegen.samples", 1,
+                 {"landmarks": landmarks, "latents": line, "weights": weights[:, 0],
+                  "ends": np.asarray([args.name_a, args.name_b])})
+    print(f"wrote {args.n} meshes on the latent line {args.name_a} -> {args.name_b} -> {args.output}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- parser
+def add_generate_commands(sub, positive_int) -> None:
+    from .landmarks import DEFAULT_LANDMARKS
+    from .models import MODEL_TYPES
+    from .preprocess import SCALE_MODES, UP_AXES
+
+    p = sub.add_parser("fit", help="fit a generative shape model (folder, prepared .npz or correspondence .npz)")
+    p.add_argument("source", type=Path, help="folder of meshes, prepared .npz, or correspondence .npz (+ --meshes)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output model .npz")
+    p.add_argument("--model", choices=tuple(MODEL_TYPES), default="bgplvm", help="shape model (default %(default)s)")
+    p.add_argument("--latent-dim", type=positive_int, default=None, help="latent dimension (default: 80 %% variance rule)")
+    p.add_argument("--landmarks", type=positive_int, default=DEFAULT_LANDMARKS, help="landmarks per shape (default %(default)s)")
+    p.add_argument("--template", default=None, help="correspondence template shape (default: Chamfer medoid)")
+    p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
+    p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
+    p.add_argument("--align", choices=("consensus", "pca", "none"), default="consensus", help="orientation rule")
+    p.add_argument("--scale", choices=SCALE_MODES, default="variance", help="scaling rule (default %(default)s)")
+    p.add_argument("--stiffness", type=float, default=1.0, help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
+    p.add_argument("--jobs", type=positive_int, default=None, help="worker processes (default: all cores)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("info", help="describe a fitted model file")
+    p.add_argument("model", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_info)
+
+    def mesh_options(p):
+        p.add_argument("--format", choices=MESH_FORMATS, default="obj", help="mesh file format (default %(default)s)")
+        p.add_argument("--template", default=None,
+                       help="template mesh: a training shape NAME, nearest-data (default) or nearest-latent")
+        p.add_argument("--smooth", type=int, default=0, help="curvature-flow smoothing iterations (default 0)")
+
+    p = sub.add_parser("sample", help="sample N new meshes (+ landmarks.npz)")
+    p.add_argument("model", type=Path)
+    p.add_argument("-n", type=int, required=True, help="number of samples")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output folder (must be new or empty)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
+    mesh_options(p)
+    p.set_defaults(func=cmd_sample)
+
+    p = sub.add_parser("complete", help="complete partial landmark sets (NaN where missing) and mesh them")
+    p.add_argument("model", type=Path)
+    p.add_argument("partial", type=Path, help=".npz (format shapegen.partial) with 'landmarks' (n, L, 3), NaN = missing")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    mesh_options(p)
+    p.set_defaults(func=cmd_complete)
+
+    p = sub.add_parser("morph", help="meshes on the straight latent line between two training shapes")
+    p.add_argument("model", type=Path)
+    p.add_argument("name_a")
+    p.add_argument("name_b")
+    p.add_argument("-n", type=int, default=8, help="meshes on the line, ends included (default %(default)s)")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    mesh_options(p)
+    p.set_defaults(func=cmd_morph)

@@ -1,0 +1,104 @@
+"""`shapegen fit | info | sample | complete | morph` as a user runs them (subprocesses)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.npzfile import load_npz, save_npz, ArraySpec
+
+SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
+
+
+def run(*args):
+    return subprocess.run([SHAPEGEN, *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cli")
+    write_collection(make_vases(6, seed=5, resolution=(14, 18)), folder / "data")
+    result = run("fit", folder / "data", "-o", folder / "model.npz", "--model", "ppca", "--landmarks", 60, "--jobs", 1)
+    assert result.returncode == 0, result.stderr
+    assert "fitted ppca" in result.stdout
+    return folder / "model.npz"
+
+
+def test_info_describes_the_model(model_file):
+    result = run("info", model_file, "--json")
+    assert result.returncode == 0, result.stderr
+    info = json.loads(result.stdout)
+    assert info["model"] == "ppca" and info["shapes"] == 6 and abs(info["landmarks"] - 60) <= 2
+
+
+def test_sample_writes_meshes_and_landmarks_that_load_back(model_file, tmp_path):
+    out = tmp_path / "samples"
+    result = run("sample", model_file, "-n", 3, "-o", out, "--seed", 3, "--format", "ply")
+    assert result.returncode == 0, result.stderr
+    arrays = load_npz(out / "landmarks.npz", "shapegen.samples", 1, {"landmarks": ArraySpec("f", (3, None, 3))})
+    templates = [str(t) for t in np.load(out / "landmarks.npz")["templates"]]
+    for i in range(3):
+        mesh = trimesh.load(out / f"sample_{i:04d}.ply", process=False)
+        # every sample is a deformed training mesh: same counts as its template
+        source = trimesh.load(model_file.parent / "data" / f"{templates[i]}.obj", process=False)
+        assert len(mesh.vertices) == len(source.vertices) and len(mesh.faces) == len(source.faces)
+    again = tmp_path / "again"
+    run("sample", model_file, "-n", 3, "-o", again, "--seed", 3, "--format", "ply")
+    np.testing.assert_array_equal(np.load(again / "landmarks.npz")["landmarks"], arrays["landmarks"])
+
+
+def test_sample_refuses_a_non_empty_folder_and_unknown_template_writes_nothing(model_file, tmp_path):
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "keep.txt").write_text("mine")
+    result = run("sample", model_file, "-n", 2, "-o", busy)
+    assert result.returncode == 2 and "not empty" in result.stderr
+    assert sorted(p.name for p in busy.iterdir()) == ["keep.txt"]
+    fresh = tmp_path / "fresh"
+    result = run("sample", model_file, "-n", 2, "-o", fresh, "--template", "no_such_vase")
+    assert result.returncode == 2 and "no_such_vase" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))
+
+
+def test_complete_fills_missing_landmarks(model_file, tmp_path):
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    model = GenerativeShapeModel.load(model_file)
+    partial = model.correspondence.points[:2].copy()
+    partial[:, :10] = np.nan
+    save_npz(tmp_path / "partial.npz", "shapegen.partial", 1, {"landmarks": partial})
+    result = run("complete", model_file, tmp_path / "partial.npz", "-o", tmp_path / "done")
+    assert result.returncode == 0, result.stderr
+    done = np.load(tmp_path / "done" / "completed.npz")["landmarks"]
+    assert np.isfinite(done).all()
+    np.testing.assert_allclose(done[:, 10:], partial[:, 10:])
+    assert (tmp_path / "done" / "completed_0001.obj").is_file()
+
+
+def test_morph_ends_at_the_two_training_shapes(model_file, tmp_path):
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    model = GenerativeShapeModel.load(model_file)
+    a, b = model.names[0], model.names[4]
+    result = run("morph", model_file, a, b, "-n", 4, "-o", tmp_path / "morph")
+    assert result.returncode == 0, result.stderr
+    landmarks = np.load(tmp_path / "morph" / "landmarks.npz")["landmarks"]
+    assert landmarks.shape[0] == 4
+    ends = model.decode(model.training_latents()[[0, 4]])
+    np.testing.assert_allclose(landmarks[[0, -1]], ends, atol=1e-9)
+
+
+def test_a_corrupt_model_file_is_one_line_naming_it(tmp_path):
+    bad = tmp_path / "model.npz"
+    bad.write_bytes(b"not a zip")
+    result = run("sample", bad, "-n", 1, "-o", tmp_path / "out")
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
