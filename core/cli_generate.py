@@ -179,6 +179,61 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- sample
+def _mesh_and_write(model, items, folder: Path, file_format: str, smooth: int, exact: bool) -> None:
+    """Mesh (name, landmarks, template) items and write them; OBJ files of one template
+    share a pre-formatted face block (io.ObjWriter)."""
+    from .io import ObjWriter
+
+    writers = {}
+    for name, landmarks, template in items:
+        mesh = model.mesh_from_landmarks(landmarks, template=template, smooth=smooth, exact=exact, name=name)
+        path = folder / f"{name}.{file_format}"
+        if file_format == "obj":
+            if template not in writers:
+                writers[template] = ObjWriter(mesh.faces)
+            writers[template].write(mesh.vertices, path)
+        else:
+            _write_mesh(mesh, path)
+
+
+_WORKER_MODEL = None
+
+
+def _init_sample_worker(model_path: str) -> None:
+    global _WORKER_MODEL
+    import os
+
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    _WORKER_MODEL = _load_model(Path(model_path))
+
+
+def _sample_chunk(items, folder: str, file_format: str, smooth: int, exact: bool) -> int:
+    _mesh_and_write(_WORKER_MODEL, items, Path(folder), file_format, smooth, exact)
+    return len(items)
+
+
+def _write_samples(args, model, names, landmarks, templates, folder: Path) -> None:
+    """Mesh and write every sample, in `args.jobs` processes when there are many."""
+    import concurrent.futures as futures
+    import multiprocessing
+
+    items = list(zip(names, landmarks, templates))
+    jobs = args.jobs or (os.cpu_count() or 1)
+    if jobs == 1 or len(items) < 64:
+        _mesh_and_write(model, items, folder, args.format, args.smooth, args.exact)
+        return
+    # chunks grouped by template so each worker factorises few templates
+    items.sort(key=lambda item: item[2])
+    chunks = [items[i::jobs] for i in range(jobs)]
+    context = multiprocessing.get_context("spawn")
+    with futures.ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
+                                     initargs=(str(args.model),)) as pool:
+        done = [pool.submit(_sample_chunk, chunk, str(folder), args.format, args.smooth, args.exact)
+                for chunk in chunks if chunk]
+        for future in done:
+            future.result()
+
+
 def cmd_sample(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.n < 1:
@@ -189,9 +244,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
     names = [f"sample_{i:04d}" for i in range(args.n)]
     templates = [model.names[model.choose_template(lm, args.template)] for lm in landmarks]
     with _StagedOutput(args.output) as staging:
-        for name, lm, template in zip(names, landmarks, templates):
-            mesh = model.mesh_from_landmarks(lm, template=template, smooth=args.smooth, exact=args.exact, name=name)
-            _write_mesh(mesh, staging / f"{name}.{args.format}")
+        _write_samples(args, model, names, landmarks, templates, staging)
         arrays = {"names": np.asarray(names), "landmarks": landmarks, "templates": np.asarray(templates),
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
         if latents is not None:
@@ -292,6 +345,8 @@ def add_generate_commands(sub, positive_int) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (must be new or empty)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
+    p.add_argument("--jobs", type=positive_int, default=None,
+                   help="worker processes for 64+ samples (default: all cores)")
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 
