@@ -1,0 +1,298 @@
+"""Correspondence benchmark (issue 3): quality against ground truth, speed, and peers.
+
+    python bench/correspondence.py [--quick]
+
+Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three parts:
+
+1. Procedural vases (core/datasets.py, 5k–30k-vertex targets, varied triangulations):
+   true error = mean distance landmark → ground-truth point / bounding-box diagonal, and
+   time per shape, for: ours (groupwise); ours pairwise; without the bidirectional term;
+   one α (no relaxation); snapping to vertices; no normal compatibility (the thesis's
+   plain closest points); naive (bounding-box scaling + closest point); trimesh's
+   nricp_amberg on the same pairs. Two error measures: "vs template" (landmark i must sit
+   at the template landmark's surface coordinates (s, θ)), and "consensus" (landmark i must
+   sit at the same (s, θ) on every shape; does not penalise moving away from the template,
+   which groupwise re-estimation does by design).
+2. 131 vases (the thesis's count), 800 landmarks, groupwise, 2 processes: wall time.
+3. PSB (shared/data/psb/*, up axis y): label-transfer accuracy = share of landmarks whose
+   part label matches the reference (template) shape's, and time per shape.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from shapegen_core.collection import prepare_meshes  # noqa: E402
+from shapegen_core.correspond import (  # noqa: E402
+    CorrespondenceSettings,
+    TargetSurface,
+    correspond,
+    knn_graph,
+    register,
+    registration_frame,
+)
+from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.io import read_folder  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUTPUT = ROOT / "bench_output"
+PSB = ROOT.parent / "shared" / "data" / "psb"
+LANDMARKS = 800
+
+
+# ---------------------------------------------------------------------------- errors
+def error_vs_template(shapes, template_index, template_landmarks, points_input) -> np.ndarray:
+    """Per shape: mean |p_i − shape point at the template landmark's (s, θ)| / diagonal."""
+    st = shapes[template_index].surface_coordinates(template_landmarks.face_index, template_landmarks.barycentric)
+    return np.array([np.linalg.norm(points_input[m] - shapes[m].points_at(st), axis=1).mean()
+                     / shapes[m].mesh.bbox_diagonal() for m in range(len(shapes))])
+
+
+def error_consensus(shapes, face_index, barycentric, points_input) -> np.ndarray:
+    """Per shape: mean |p_i − shape point at landmark i's consensus (s, θ)| / diagonal.
+    The consensus is robust: the median s, and θ the circular mean moved by the median
+    wrapped deviation (one shape with a flipped landmark must not move everyone's)."""
+    st = np.stack([shapes[m].surface_coordinates(face_index[m], barycentric[m]) for m in range(len(shapes))])
+    mean_theta = np.angle(np.exp(1j * st[:, :, 1]).mean(axis=0))
+    deviation = np.angle(np.exp(1j * (st[:, :, 1] - mean_theta)))
+    consensus = np.stack([np.median(st[:, :, 0], axis=0), mean_theta + np.median(deviation, axis=0)], axis=1)
+    return np.array([np.linalg.norm(points_input[m] - shapes[m].points_at(consensus), axis=1).mean()
+                     / shapes[m].mesh.bbox_diagonal() for m in range(len(shapes))])
+
+
+# ---------------------------------------------------------------------------- methods (pairwise)
+def ours_pairwise(prepared, template_index, settings):
+    """Register the template to every shape; returns (points, face, bary, seconds per shape)."""
+    lm = prepared.landmarks[template_index]
+    centre, scale = registration_frame(lm.points)
+    frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
+    edges = knn_graph(lm.points, settings.k_neighbours)
+    normals = prepared.shapes[template_index].mesh.face_normals()[lm.face_index]
+    points, faces, barys = [], [], []
+    start = time.perf_counter()
+    for shape, target_lm in zip(prepared.shapes, prepared.landmarks):
+        mesh = shape.mesh
+        result = register(frame(lm.points), edges, TargetSurface(frame(mesh.vertices), mesh.faces),
+                          frame(target_lm.points), settings, normals, mesh.face_normals()[target_lm.face_index])
+        points.append(result.placed.points * scale + centre)
+        faces.append(result.placed.face_index)
+        barys.append(result.placed.barycentric)
+    seconds = (time.perf_counter() - start) / len(prepared)
+    return np.stack(points), np.stack(faces), np.stack(barys), seconds
+
+
+def naive_baseline(prepared, template_index):
+    """Bounding-box scaling of the template landmarks onto each shape + closest point."""
+    lm = prepared.landmarks[template_index]
+    lo, hi = prepared.shapes[template_index].mesh.bounds()
+    points, faces, barys = [], [], []
+    start = time.perf_counter()
+    for shape in prepared.shapes:
+        tlo, thi = shape.mesh.bounds()
+        moved = tlo + (lm.points - lo) * (thi - tlo) / (hi - lo)
+        placed = TargetSurface(shape.mesh.vertices, shape.mesh.faces).closest(moved)
+        points.append(placed.points)
+        faces.append(placed.face_index)
+        barys.append(placed.barycentric)
+    seconds = (time.perf_counter() - start) / len(prepared)
+    return np.stack(points), np.stack(faces), np.stack(barys), seconds
+
+
+def nricp_baseline(prepared, template_index, targets):
+    """trimesh.registration.nricp_amberg deforming the template mesh onto each target;
+    landmarks follow their triangle (barycentrics), then go to the closest target point."""
+    import trimesh
+    from trimesh.registration import nricp_amberg
+
+    template = prepared.shapes[template_index].mesh
+    lm = prepared.landmarks[template_index]
+    source = trimesh.Trimesh(template.vertices, template.faces, process=False)
+    out = {}
+    for m in targets:
+        mesh = prepared.shapes[m].mesh
+        target = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        start = time.perf_counter()
+        deformed = nricp_amberg(source, target)
+        moved = np.einsum("nk,nkd->nd", lm.barycentric, deformed[template.faces[lm.face_index]])
+        placed = TargetSurface(mesh.vertices, mesh.faces).closest(moved)
+        out[m] = (placed.points, placed.face_index, placed.barycentric, time.perf_counter() - start)
+    return out
+
+
+# ---------------------------------------------------------------------------- part 1
+def procedural(quick: bool, log) -> dict:
+    n = 6 if quick else 16
+    shapes = make_vases(n, seed=11, resolution=(65, 130))
+    vertices = [s.mesh.n_vertices for s in shapes]
+    log(f"\n== procedural vases: {n} shapes, {min(vertices)}–{max(vertices)} vertices, {LANDMARKS} landmarks")
+    start = time.perf_counter()
+    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=LANDMARKS, seed=0)
+    log(f"prepare: {time.perf_counter() - start:.1f} s")
+    to_input = lambda pts: np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, pts)])  # noqa: E731
+
+    start = time.perf_counter()
+    group = correspond(prepared, CorrespondenceSettings(), jobs=1)
+    group_seconds = (time.perf_counter() - start) / n
+    t = group.names.index(group.template_name)
+    template_lm = prepared.landmarks[t]
+    rows = {}
+
+    def record(name, points, faces, barys, seconds):
+        pin = to_input(points)
+        vs = error_vs_template(shapes, t, template_lm, pin)
+        cons = error_consensus(shapes, faces, barys, pin)
+        rows[name] = {"error_vs_template_pct": 100 * float(vs.mean()), "error_consensus_pct": 100 * float(cons.mean()),
+                      "seconds_per_shape": float(seconds)}
+        log(f"{name:34s} vs-template {100 * vs.mean():6.3f} %   consensus {100 * cons.mean():6.3f} %   "
+            f"{seconds:7.2f} s/shape")
+
+    record("ours (groupwise, jobs=1)", group.points, group.face_index, group.barycentric, group_seconds)
+    variants = {
+        "ours pairwise": CorrespondenceSettings(groupwise_rounds=0),
+        "- bidirectional term (λ=0)": CorrespondenceSettings(groupwise_rounds=0, bidirectional_weight=0.0),
+        "- relaxation (one α = 5)": CorrespondenceSettings(groupwise_rounds=0, alpha_steps=1),
+        "- surface (snap to vertices)": CorrespondenceSettings(groupwise_rounds=0, snap_to_vertices=True),
+        "- normals (plain closest points)": CorrespondenceSettings(groupwise_rounds=0, normal_max_angle=None),
+        "thesis Alg. 3 (update_template)": CorrespondenceSettings(groupwise_rounds=0, update_template=True),
+    }
+    for name, settings in variants.items():
+        record(name, *ours_pairwise(prepared, t, settings))
+    record("naive (bbox + closest point)", *naive_baseline(prepared, t))
+
+    pairs = [m for m in range(n) if m != t][: (2 if quick else 4)]
+    log(f"nricp_amberg on {len(pairs)} pairs (template {prepared.shapes[t].mesh.n_vertices} vertices) ...")
+    theirs = nricp_baseline(prepared, t, pairs)
+    ours_same = ours_pairwise(prepared, t, CorrespondenceSettings(groupwise_rounds=0))
+    st = shapes[t].surface_coordinates(template_lm.face_index, template_lm.barycentric)
+    err = lambda m, p: np.linalg.norm(prepared.shapes[m].transform.to_input(p) - shapes[m].points_at(st), axis=1).mean() / shapes[m].mesh.bbox_diagonal()  # noqa: E731
+    nricp_err = np.mean([err(m, theirs[m][0]) for m in pairs])
+    nricp_time = np.mean([theirs[m][3] for m in pairs])
+    ours_err = np.mean([err(m, ours_same[0][m]) for m in pairs])
+    rows["nricp_amberg (same pairs)"] = {"error_vs_template_pct": 100 * float(nricp_err), "seconds_per_shape": float(nricp_time)}
+    rows["ours pairwise (same pairs)"] = {"error_vs_template_pct": 100 * float(ours_err), "seconds_per_shape": float(ours_same[3])}
+    log(f"{'nricp_amberg (same pairs)':34s} vs-template {100 * nricp_err:6.3f} %   {nricp_time:7.2f} s/shape")
+    log(f"{'ours pairwise (same pairs)':34s} vs-template {100 * ours_err:6.3f} %   {ours_same[3]:7.2f} s/shape")
+
+    naive = rows["naive (bbox + closest point)"]["error_vs_template_pct"]
+    ours = rows["ours (groupwise, jobs=1)"]
+    ratios = {
+        "speedup_vs_nricp": float(nricp_time / ours_same[3]),
+        "error_ratio_nricp_over_ours": float(nricp_err / ours_err),
+        "naive_over_ours_vs_template": float(naive / ours["error_vs_template_pct"]),
+        "naive_over_ours_consensus": float(rows["naive (bbox + closest point)"]["error_consensus_pct"] / ours["error_consensus_pct"]),
+    }
+    log("ratios: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
+    log(f"targets: ≤ 1 s/shape (ours pairwise {ours_same[3]:.2f} s); ≥ 20× nricp ({ratios['speedup_vs_nricp']:.1f}×) "
+        f"at ≤ its error ({ratios['error_ratio_nricp_over_ours']:.2f}); error ≤ 0.4 % "
+        f"({ours['error_vs_template_pct']:.2f} %); ≥ 4× below naive ({ratios['naive_over_ours_vs_template']:.2f}×)")
+    return {"shapes": n, "vertices": [min(vertices), max(vertices)], "methods": rows, "ratios": ratios,
+            "outliers": int(group.outliers.sum())}
+
+
+# ---------------------------------------------------------------------------- part 2
+def collection_timing(quick: bool, log) -> dict:
+    n = 30 if quick else 131
+    shapes = make_vases(n, seed=21)
+    start = time.perf_counter()
+    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=LANDMARKS, seed=0)
+    prepare_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    result = correspond(prepared, CorrespondenceSettings(), jobs=2)
+    seconds = time.perf_counter() - start
+    log(f"\n== {n} vases, {LANDMARKS} landmarks, groupwise, 2 processes: correspond {seconds:.1f} s "
+        f"(target ≤ 120 s for 131), prepare {prepare_seconds:.1f} s, outliers {int(result.outliers.sum())}")
+    return {"shapes": n, "correspond_seconds": seconds, "prepare_seconds": prepare_seconds,
+            "outliers": int(result.outliers.sum())}
+
+
+# ---------------------------------------------------------------------------- part 3
+def face_labels(off_path: Path, mesh) -> np.ndarray:
+    """Part label of every face of `mesh` (as read by core.io) from `<stem>_labels.txt`:
+    blocks of a part-name line followed by a line of 1-based face ids of the file."""
+    import trimesh
+
+    lines = [l.strip() for l in (off_path.parent / f"{off_path.stem}_labels.txt").read_text().splitlines() if l.strip()]
+    original = trimesh.load(str(off_path), force="mesh", process=False, maintain_order=True).faces
+    labels = np.full(len(original), "?", dtype=object)
+    for name, ids in zip(lines[0::2], lines[1::2]):
+        labels[np.asarray(ids.split(), dtype=np.int64) - 1] = name
+    index = {tuple(f): i for i, f in enumerate(original.tolist())}
+    return np.array([labels[index[tuple(f)]] if tuple(f) in index else "?" for f in mesh.faces.tolist()])
+
+
+def psb(quick: bool, log) -> dict:
+    out = {}
+    landmarks = 400 if quick else LANDMARKS
+    log(f"\n== PSB label transfer ({landmarks} landmarks, groupwise, 2 processes)")
+    for folder in sorted(p for p in PSB.iterdir() if p.is_dir()):
+        meshes = read_folder(folder)
+        if quick:
+            meshes = meshes[:8]
+        labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
+        prepared = prepare_meshes(meshes, n_landmarks=landmarks, up_axis="y", seed=0)
+        start = time.perf_counter()
+        result = correspond(prepared, CorrespondenceSettings(), jobs=2)
+        seconds = (time.perf_counter() - start) / len(meshes)
+        ref = result.names.index(result.template_name)
+        ref_labels = labels[result.template_name][result.face_index[ref]]
+        accuracy = [np.mean(labels[name][result.face_index[m]] == ref_labels)
+                    for m, name in enumerate(result.names) if m != ref]
+        plain = correspond(prepared, CorrespondenceSettings(normal_max_angle=None), template=result.template_name, jobs=2)
+        plain_ref = labels[result.template_name][plain.face_index[ref]]
+        plain_accuracy = [np.mean(labels[name][plain.face_index[m]] == plain_ref)
+                          for m, name in enumerate(plain.names) if m != ref]
+        lm = prepared.landmarks[ref]
+        lo, hi = prepared.shapes[ref].mesh.bounds()
+        naive = []
+        for m, shape in enumerate(prepared.shapes):
+            if m == ref:
+                continue
+            tlo, thi = shape.mesh.bounds()
+            placed = TargetSurface(shape.mesh.vertices, shape.mesh.faces).closest(tlo + (lm.points - lo) * (thi - tlo) / (hi - lo))
+            naive.append(np.mean(labels[shape.name][placed.face_index] == labels[result.template_name][lm.face_index]))
+        out[folder.name] = {"accuracy": float(np.mean(accuracy)), "accuracy_plain_closest": float(np.mean(plain_accuracy)),
+                            "naive_accuracy": float(np.mean(naive)), "seconds_per_shape": seconds,
+                            "shapes": len(meshes), "outliers": int(result.outliers.sum())}
+        log(f"{folder.name:10s} label transfer {100 * np.mean(accuracy):5.1f} % (plain closest points "
+            f"{100 * np.mean(plain_accuracy):5.1f} %, naive {100 * np.mean(naive):5.1f} %), "
+            f"{seconds:.2f} s/shape, {int(result.outliers.sum())} outlier(s), template {result.template_name}")
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer shapes (a few minutes)")
+    parser.add_argument("--parts", default="1,2,3", help="which parts to run (default all)")
+    args = parser.parse_args()
+    OUTPUT.mkdir(exist_ok=True)
+    lines = []
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+        lines.append(text)
+
+    report = {"quick": args.quick, "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
+              "numpy": np.__version__}
+    parts = args.parts.split(",")
+    if "1" in parts:
+        report["procedural"] = procedural(args.quick, log)
+    if "2" in parts:
+        report["collection"] = collection_timing(args.quick, log)
+    if "3" in parts and PSB.is_dir():
+        report["psb"] = psb(args.quick, log)
+    (OUTPUT / "correspondence.json").write_text(json.dumps(report, indent=2))
+    (OUTPUT / "correspondence.txt").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
