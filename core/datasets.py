@@ -4,8 +4,9 @@ test/benchmark fixtures with ground-truth correspondence).
 Vases (`make_vases`): thick-walled jugs made by revolving a profile around z, with an
 elliptical cross-section and a pouring lip. Every surface point has surface coordinates
 (s, θ): s ∈ [0, 1] runs along the profile (bottom centre → base rim → outer wall up →
-rim → inner wall down → inner floor centre) with the same breakpoints on every shape,
-θ is the angle around the axis measured from the lip. Equal (s, θ) on two vases is
+rim → inner wall down → inner floor centre) with the same breakpoints on every shape and
+the belly and neck at fixed s along each wall (`_wall_height`); θ is the angle around the
+axis measured from the lip. Equal (s, θ) on two vases is
 their true correspondence, so correspondence error can be measured exactly
 (method.md §5 **beyond**).
 
@@ -77,6 +78,15 @@ def _outer_radius(p: VaseParameters, t: np.ndarray) -> np.ndarray:
     return PchipInterpolator(knots, radii)(np.clip(t, 0.0, 1.0))
 
 
+def _wall_height(p: VaseParameters, u: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """Height fraction t of wall coordinate u ∈ [0, 1], piecewise linear so that the
+    profile's features sit at the same u on every vase: u = 1/3 is the belly, u = 2/3 the
+    neck (the inner wall starts at the floor instead of the base). Equal surface
+    coordinates therefore mean the same part (belly to belly), which is what a geometric
+    correspondence can recover."""
+    return np.interp(u, [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0], [floor, p.belly_level, p.neck_level, 1.0])
+
+
 def _profile(p: VaseParameters, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Profile point (radius, height) at profile coordinate s, and a weight in [0, 1] of how
     much the lip bulge applies there."""
@@ -95,15 +105,16 @@ def _profile(p: VaseParameters, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     z[m] = 0.0
     # outer wall: up
     m = seg == 1
-    r[m] = _outer_radius(p, u[m])
-    z[m] = u[m] * p.height
+    t = _wall_height(p, u[m])
+    r[m] = _outer_radius(p, t)
+    z[m] = t * p.height
     # rim: outer → inner edge
     m = seg == 2
     r[m] = p.lip_radius - u[m] * p.wall
     z[m] = p.height
     # inner wall: down to the floor
     m = seg == 3
-    t = 1.0 - u[m] * (1.0 - floor_t)
+    t = _wall_height(p, 1.0 - u[m], floor=floor_t)
     r[m] = _outer_radius(p, t) - p.wall
     z[m] = t * p.height
     # inner floor: edge → centre
