@@ -81,6 +81,31 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     return str(output)
 
 
+def task_correspond(arguments: dict, progress, should_cancel) -> str:
+    """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
+    from .collection import PreparedCollection
+    from .correspond import CorrespondenceSettings, correspond
+    from .errors import Cancelled
+
+    prepared = PreparedCollection.load(arguments["prepared"])
+    settings = CorrespondenceSettings(**arguments.get("settings", {}))
+    total = len(prepared) * (settings.groupwise_rounds + 1)
+    done = {"count": 0}
+
+    def report(shape: str, stage: str, iteration: int) -> None:
+        if stage == "registered":
+            done["count"] += 1
+        progress(min(1.0, done["count"] / total), f"{stage} {shape}")
+
+    result = correspond(prepared, settings, template=arguments.get("template") or None,
+                        jobs=arguments.get("jobs"), progress=report, should_cancel=should_cancel)
+    if should_cancel():
+        raise Cancelled("correspondence cancelled")
+    output = Path(arguments["output"])
+    result.save(output)
+    return str(output)
+
+
 def task_selftest(arguments: dict, progress, should_cancel) -> str:
     """A tiny task for tests of the job machinery: counts, sleeps, can fail or crash."""
     import time
@@ -104,7 +129,7 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     return str(output)
 
 
-TASKS = {"fit": task_fit, "selftest": task_selftest}
+TASKS = {"fit": task_fit, "correspond": task_correspond, "selftest": task_selftest}
 
 
 def main(argv: list[str]) -> int:

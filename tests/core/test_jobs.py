@@ -55,3 +55,19 @@ def test_poll_never_blocks(tmp_path):
     assert longest < 0.05
     with pytest.raises(RuntimeError):
         job.start()
+
+
+def test_correspond_task_writes_a_correspondence_file(tmp_path):
+    from shapegen_core.collection import prepare_meshes
+    from shapegen_core.correspond import Correspondence
+    from shapegen_core.datasets import make_vases
+
+    prepared = prepare_meshes([s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))], n_landmarks=60)
+    prepared.save(tmp_path / "prepared.npz")
+    status = BackgroundJob("correspond", {
+        "prepared": str(tmp_path / "prepared.npz"), "output": str(tmp_path / "corr.npz"), "jobs": 1,
+        "settings": {"groupwise_rounds": 0},
+    }).start().wait(300)
+    assert status.state == "done", status.error
+    corr = Correspondence.load(tmp_path / "corr.npz")
+    assert corr.names == prepared.names and corr.points.shape[0] == 3
