@@ -34,7 +34,7 @@ from .mesh import Mesh
 from .models import MODEL_TYPES, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz
 
-__all__ = ["FitSettings", "GenerativeShapeModel", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
+__all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "TEMPLATE_CHOICES", "fit_meshes"]
 
 MODEL_FILE_FORMAT = "shapegen.model"
@@ -215,6 +215,17 @@ class GenerativeShapeModel:
             self._linear_maps[index] = LinearMeshMap(self.deformer(index))
         return self._linear_maps[index]
 
+    def mean_template(self) -> int:
+        """Index of the training shape nearest (in data space) to the model's mean shape:
+        the natural template for meshes that move through the latent space."""
+        mean = np.asarray(self.model.mean_, dtype=np.float64).reshape(self.n_landmarks, 3)
+        return self.choose_template(mean, "nearest-data")
+
+    def latent_mesher(self, index: int, dtype=np.float32) -> "LatentMesher":
+        """The template `index` mesh as an affine function of the model's decode features
+        (the live-slider path; see `LatentMesher`)."""
+        return LatentMesher(self, index, dtype)
+
     def mesh_from_landmarks(self, landmarks: np.ndarray, template: str | None = None,
                             smooth: int = 0, exact: bool = False, name: str = "sample") -> Mesh:
         """Mesh the landmark set (L, 3) by embedded deformation of a template mesh.
@@ -300,6 +311,44 @@ class GenerativeShapeModel:
                    settings=dict(zip(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())),
                    deform_settings=DeformSettings(**deform_values),
                    metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())))
+
+
+class LatentMesher:
+    """Mesh vertices of one template as a direct function of a latent vector z.
+
+    Every model decodes as decode(z) = mean_ + features(z) @ basis (`decode_features`,
+    `decode_basis`) and the fast mesher is affine in the landmarks (`LinearMeshMap`), so
+
+        vertices(z) = vertices(mean_) + features(z) @ linear_part(basis)
+
+    exactly (for this template). The mesh-sized basis (K × 3V) is computed once; each new
+    z then costs one small feature evaluation and one (K × 3V) product. Results are flat
+    (3V,) arrays in `dtype` (float32 by default: what Blender stores), ready for a bulk
+    vertex write.
+    """
+
+    def __init__(self, shape_model: GenerativeShapeModel, index: int, dtype=np.float32):
+        linear = shape_model.linear_map(index)
+        model = shape_model.model
+        n_landmarks = shape_model.n_landmarks
+        self.template_index = int(index)
+        self.template_name = shape_model.names[index]
+        self.latent_dim = shape_model.latent_dim
+        self.n_vertices = shape_model.meshes[index].n_vertices
+        self.offset = np.ascontiguousarray(
+            linear.vertices(np.asarray(model.mean_, dtype=np.float64).reshape(n_landmarks, 3)).ravel(), dtype=dtype)
+        basis = np.asarray(model.decode_basis(), dtype=np.float64).reshape(-1, n_landmarks, 3)
+        self.basis = np.ascontiguousarray(linear.linear_part(basis).reshape(len(basis), -1), dtype=dtype)
+        self._features = model.decode_features
+
+    def flat_vertices(self, z: np.ndarray) -> np.ndarray:
+        """(3V,) vertex coordinates for one latent vector z (Q,)."""
+        features = np.asarray(self._features(np.asarray(z, dtype=np.float64).reshape(1, -1))[0], dtype=self.basis.dtype)
+        return self.offset + features @ self.basis
+
+    def vertices(self, z: np.ndarray) -> np.ndarray:
+        """(V, 3) vertex coordinates for one latent vector z (Q,)."""
+        return self.flat_vertices(z).reshape(-1, 3)
 
 
 def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progress: Progress | None = None,

@@ -1,26 +1,40 @@
 """ShapeGen's Blender layer: converts scene data, calls the core, shows results.
 
-Modules: `properties` (scene settings), `operators` (one per user action), `panels`
-(sidebar UI), `convert` (bpy <-> core data), `preview` (landmark markers, layout).
-Each exports its classes in `CLASSES`; registration order: properties, operators, panels.
+Modules exporting classes (`CLASSES`), registered in this order:
+`properties` (scene settings), `operators` (Data: import, prepare), `correspondence`
+(Find Correspondences on a prepared collection, landmark-index colours), `fitting` (Fit in a
+worker process, Cancel, Load / Export Model), `generate` (Sample, Interpolate, Modes to
+Shape Keys), `explore` (live object sliders, Randomise, Reset, Snap, Bake, Latent Map),
+`panels` (sidebar UI).
+Helpers: `convert` (bpy <-> core data), `preview` (landmark markers, layout), `store`
+(the model packed in the .blend, load_post restore), `jobs` (bpy-free job manager),
+`picture` (numpy drawing of the latent map).
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import operators, panels, properties
+from . import correspondence, explore, fitting, generate, operators, panels, properties, store
+from .jobs import MANAGER
 
-_CLASSES = (*properties.CLASSES, *operators.CLASSES, *panels.CLASSES)
+_CLASSES = (*properties.CLASSES, *operators.CLASSES, *correspondence.CLASSES, *fitting.CLASSES,
+            *generate.CLASSES, *explore.CLASSES, *panels.CLASSES)
 
 
 def register():
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
     properties.register_properties()
+    store.register_handlers()
 
 
 def unregister():
+    fitting.unregister_timer()
+    correspondence.unregister_timer()
+    MANAGER.kill()
+    store.unregister_handlers()
+    explore.forget_cache()
     properties.unregister_properties()
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)

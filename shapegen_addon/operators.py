@@ -20,8 +20,8 @@ from mathutils import Matrix
 
 from ..core.errors import ShapeGenError
 from .convert import import_mesh_file, object_to_mesh
-from .preview import (LANDMARKS_KEY, SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers,
-                      grid_offsets)
+from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
+                      SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
 
 __all__ = ["CLASSES"]
 
@@ -171,6 +171,10 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
             copy[SOURCE_KEY] = obj.name
             copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
             copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
+            # where each landmark lies on the (loop-triangulated) mesh, for correspondence
+            copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
+            copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
+            copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
             target.objects.link(copy)
             add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
         counts = [len(l) for l in prepared.landmarks]

@@ -1,10 +1,28 @@
-"""The sidebar panel: View3D › Sidebar › ShapeGen, one sub-panel per stage."""
+"""The sidebar panel: View3D › Sidebar › ShapeGen, one sub-panel per stage:
+Data, Correspondence, Model (fit with progress and Cancel), Generate, Explore.
+
+Panels only draw: they read `scene.shapegen`, the model's summary properties on its Text
+datablock (no model decoding while drawing) and the job manager's runtime status.
+"""
 
 from __future__ import annotations
 
 import bpy
 
+from .jobs import MANAGER
+
 __all__ = ["CLASSES"]
+
+
+def _model_text(context):
+    return context.scene.shapegen.model_text
+
+
+class _SubPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ShapeGen"
+    bl_parent_id = "SHAPEGEN_PT_main"
 
 
 class SHAPEGEN_PT_main(bpy.types.Panel):
@@ -18,13 +36,9 @@ class SHAPEGEN_PT_main(bpy.types.Panel):
         self.layout.label(text="Learn shapes from a collection", icon="MESH_MONKEY")
 
 
-class SHAPEGEN_PT_data(bpy.types.Panel):
+class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
     bl_label = "Data"
     bl_idname = "SHAPEGEN_PT_data"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "ShapeGen"
-    bl_parent_id = "SHAPEGEN_PT_main"
 
     def draw(self, context):
         layout = self.layout
@@ -42,4 +56,136 @@ class SHAPEGEN_PT_data(bpy.types.Panel):
         layout.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
 
 
-CLASSES = (SHAPEGEN_PT_main, SHAPEGEN_PT_data)
+class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
+    bl_label = "Correspondence"
+    bl_idname = "SHAPEGEN_PT_correspondence"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.shapegen
+        column = layout.column(align=True)
+        column.prop(settings, "n_landmarks")
+        column.prop(settings, "stiffness")
+        column.prop(settings, "mesh_stiffness")
+        layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")
+        layout.label(text="Colours show the landmark index: same colour, same part", icon="INFO")
+        text = _model_text(context)
+        if text is None:
+            layout.label(text="No model yet: Fit corresponds the landmarks again", icon="INFO")
+            return
+        box = layout.box()
+        box.label(text=f"{text.get('shapegen_n_landmarks', '?')} landmarks on "
+                       f"{text.get('shapegen_n_shapes', '?')} shapes", icon="STICKY_UVS_LOC")
+        box.label(text=f"Template: {text.get('shapegen_template', '?')}")
+        median = text.get("shapegen_residual_median")
+        if median is not None:
+            box.label(text=f"Median residual: {100 * median:.2f} % of the diagonal")
+        outliers = list(text.get("shapegen_outliers", []))
+        if outliers:
+            box.label(text=f"{len(outliers)} outlier(s):", icon="ERROR")
+            for line in outliers[:8]:
+                box.label(text=str(line))
+            if len(outliers) > 8:
+                box.label(text=f"... and {len(outliers) - 8} more")
+        else:
+            box.label(text="No outliers", icon="CHECKMARK")
+
+
+class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
+    bl_label = "Model"
+    bl_idname = "SHAPEGEN_PT_model"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.shapegen
+        column = layout.column(align=True)
+        column.prop(settings, "fit_model")
+        column.prop(settings, "latent_dim")
+        if MANAGER.running:
+            status = MANAGER.last_status
+            fraction = status.fraction if status else settings.job_fraction
+            stage = (status.stage if status and status.stage else settings.job_stage) or "starting"
+            layout.label(text=f"Running: {MANAGER.label}", icon="SORTTIME")
+            layout.progress(factor=fraction, type="BAR", text=f"{int(100 * fraction)} %  {stage}")
+            layout.operator("shapegen.fit_cancel", icon="CANCEL")
+        else:
+            layout.operator("shapegen.fit", icon="PLAY")
+        if settings.job_message:
+            icon = {"FAILED": "ERROR", "CANCELLED": "CANCEL", "DONE": "CHECKMARK"}.get(settings.job_state, "INFO")
+            layout.label(text=settings.job_message, icon=icon)
+        text = _model_text(context)
+        box = layout.box()
+        if text is None:
+            box.label(text="No fitted model", icon="INFO")
+        else:
+            box.label(text=str(text.get("shapegen_model_name", text.name)), icon="OUTLINER_OB_POINTCLOUD")
+            box.label(text=f"{text.get('shapegen_model_type', '?')}, {text.get('shapegen_latent_dim', '?')} "
+                           f"latent dimensions, {text.get('shapegen_n_shapes', '?')} shapes")
+            box.label(text=f"Stored in the .blend: Text '{text.name}'")
+        row = layout.row(align=True)
+        row.operator("shapegen.load_model", icon="FILE_FOLDER")
+        row.operator("shapegen.export_model", icon="EXPORT")
+
+
+class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
+    bl_label = "Generate"
+    bl_idname = "SHAPEGEN_PT_generate"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.shapegen
+        column = layout.column(align=True)
+        column.prop(settings, "sample_count")
+        column.prop(settings, "seed")
+        column.prop(settings, "sample_template")
+        layout.operator("shapegen.sample", icon="MOD_ARRAY")
+        layout.separator()
+        column = layout.column(align=True)
+        column.prop(settings, "interpolate_a")
+        column.prop(settings, "interpolate_b")
+        column.prop(settings, "interpolate_steps")
+        column.prop(settings, "interpolate_mode")
+        if settings.interpolate_mode == "SHAPE_KEYS":
+            column.prop(settings, "interpolate_frames")
+        layout.operator("shapegen.interpolate", icon="IPO_LINEAR")
+        layout.separator()
+        row = layout.row()
+        text = _model_text(context)
+        row.enabled = text is not None and text.get("shapegen_model_type") == "ppca"
+        row.operator("shapegen.modes_to_shape_keys", icon="SHAPEKEY_DATA")
+
+
+class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
+    bl_label = "Explore"
+    bl_idname = "SHAPEGEN_PT_explore"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.shapegen
+        layout.operator("shapegen.explore", icon="HIDE_OFF")
+        live = settings.live_object
+        if live is not None and "shapegen_live" in live:
+            column = layout.column(align=True)
+            for item in settings.latents:
+                column.prop(item, "value", text=item.name, slider=True)
+            row = layout.row(align=True)
+            row.operator("shapegen.explore_randomise", icon="FILE_REFRESH")
+            row.prop(settings, "explore_seed", text="")
+            row = layout.row(align=True)
+            row.operator("shapegen.explore_reset", icon="LOOP_BACK")
+            row.operator("shapegen.explore_snap", text="Snap", icon="SNAP_ON")
+            layout.operator("shapegen.explore_bake", icon="CHECKMARK")
+        layout.separator()
+        row = layout.row(align=True)
+        row.prop(settings, "map_size")
+        row.operator("shapegen.latent_map", icon="IMAGE_DATA")
+        image = bpy.data.images.get("ShapeGen Latent Map")
+        if image is not None:
+            preview = image.preview_ensure()
+            if preview is not None:
+                layout.template_icon(icon_value=preview.icon_id, scale=8.0)
+            layout.label(text=f"Image '{image.name}': open it in an Image Editor", icon="IMAGE")
+
+
+CLASSES = (SHAPEGEN_PT_main, SHAPEGEN_PT_data, SHAPEGEN_PT_correspondence, SHAPEGEN_PT_model,
+           SHAPEGEN_PT_generate, SHAPEGEN_PT_explore)

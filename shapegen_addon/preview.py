@@ -16,11 +16,15 @@ import numpy as np
 from .convert import mesh_data_from_arrays
 
 __all__ = ["marker_mesh_arrays", "add_landmark_markers", "grid_offsets", "landmark_material",
-           "LANDMARKS_KEY", "TRANSFORM_KEY", "SOURCE_KEY"]
+           "LANDMARKS_KEY", "TRANSFORM_KEY", "SOURCE_KEY", "LANDMARK_FACES_KEY", "LANDMARK_BARYCENTRIC_KEY",
+           "LANDMARK_RADIUS_KEY"]
 
 LANDMARKS_KEY = "shapegen_landmarks"  # flat float list (L*3), the shape object's local frame
 TRANSFORM_KEY = "shapegen_transform"  # 16 floats, row-major: input (world) -> normalised
 SOURCE_KEY = "shapegen_source"  # name of the user's original object
+LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each landmark
+LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
+LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
 
 _OCTAHEDRON_VERTICES = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64

@@ -1,9 +1,17 @@
-"""Scene-level settings of the ShapeGen panel (`scene.shapegen`)."""
+"""Scene-level settings of the ShapeGen panel (`scene.shapegen`).
+
+Everything the sidebar shows lives here and is saved with the .blend: data and fit
+settings, the fitted model (a pointer to the Text datablock that holds it, see store.py),
+the last job's outcome, the latent sliders of the live object and the generate options.
+The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
+`job_state` / `job_fraction` / `job_stage` so the panel and scripts can read it.
+"""
 
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (CollectionProperty, EnumProperty, FloatProperty, IntProperty,
+                       PointerProperty, StringProperty)
 
 from ..core.landmarks import DEFAULT_LANDMARKS
 
@@ -32,6 +40,47 @@ CENTRE_ITEMS = [
 ]
 
 
+MODEL_ITEMS = [
+    ("ppca", "PPCA", "Probabilistic PCA: linear, fast; its modes can become native shape keys"),
+    ("gplvm", "GP-LVM", "Gaussian-process latent variable model: non-linear"),
+    ("bgplvm", "Bayesian GP-LVM", "Variational Bayesian GP-LVM: non-linear, picks its dimensions (ARD)"),
+]
+JOB_STATE_ITEMS = [
+    ("IDLE", "Idle", "No fit has run"),
+    ("RUNNING", "Running", "A fit runs in the background"),
+    ("DONE", "Done", "The last fit finished; its model is in use"),
+    ("FAILED", "Failed", "The last fit failed; the earlier model (if any) is kept"),
+    ("CANCELLED", "Cancelled", "The last fit was cancelled; the earlier model (if any) is kept"),
+]
+TEMPLATE_ITEMS = [
+    ("nearest-data", "Nearest Shape", "Deform the training mesh nearest to the sample's landmarks"),
+    ("nearest-latent", "Nearest in Latent Space", "Deform the training mesh nearest in latent space"),
+]
+INTERPOLATION_ITEMS = [
+    ("OBJECTS", "Objects", "K in-between objects in a row"),
+    ("SHAPE_KEYS", "Shape Key Animation", "One object morphing over frames (shape keys)"),
+]
+
+
+def _on_latent_changed(self, context):
+    from . import explore
+
+    explore.on_slider_changed(self.id_data)
+
+
+class ShapeGenLatent(bpy.types.PropertyGroup):
+    """One latent dimension of the live object: z_k = centre + value × scale, where centre
+    and scale are the training latents' mean and standard deviation in that dimension."""
+
+    value: FloatProperty(
+        name="Value", default=0.0, soft_min=-3.0, soft_max=3.0, precision=3,
+        description="Position along this latent dimension, in training standard deviations",
+        update=_on_latent_changed,
+    )
+    centre: FloatProperty(name="Centre", default=0.0, options={"HIDDEN"})
+    scale: FloatProperty(name="Scale", default=1.0, options={"HIDDEN"})
+
+
 class ShapeGenSettings(bpy.types.PropertyGroup):
     source_collection: PointerProperty(
         name="Collection", type=bpy.types.Collection,
@@ -51,8 +100,53 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
                                    description="Grid spacing of prepared shapes, in shape sizes")
     last_import_directory: StringProperty(name="Last Folder", subtype="DIR_PATH")
 
+    # --- fit (Correspondence + Model sub-panels)
+    stiffness: FloatProperty(
+        name="Stiffness", default=5.0, min=0.01, soft_max=100.0,
+        description="Final stiffness of the correspondence (thesis: 5 vases and teapots, 10 cars); "
+                    "higher keeps the template's shape, lower follows each shape closely",
+    )
+    mesh_stiffness: FloatProperty(
+        name="Meshing Stiffness", default=3.0, min=0.01, soft_max=100.0,
+        description="Stiffness of the embedded deformation that meshes generated landmarks "
+                    "(thesis: 3 vases, 5 cars, 10 teapots)",
+    )
+    fit_model: EnumProperty(name="Model", items=MODEL_ITEMS, default="bgplvm")
+    latent_dim: IntProperty(
+        name="Latent Dimension", default=0, min=0, soft_max=20,
+        description="Dimensions of the latent space (0: automatic, 80 % of the variance)",
+    )
 
-CLASSES = (ShapeGenSettings,)
+    # --- the fitted model (packed in a Text datablock, see store.py) and the last job
+    model_text: PointerProperty(
+        name="Model", type=bpy.types.Text,
+        description="Text datablock holding the fitted model (base64 of the model .npz)",
+    )
+    job_state: EnumProperty(name="Fit State", items=JOB_STATE_ITEMS, default="IDLE")
+    job_fraction: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    job_stage: StringProperty(name="Stage")
+    job_message: StringProperty(name="Message", description="Outcome of the last fit (why it failed, ...)")
+
+    # --- generate
+    sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="Shapes to sample")
+    sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, default="nearest-data")
+    interpolate_a: PointerProperty(name="From", type=bpy.types.Object,
+                                   description="First shape (a training shape or a ShapeGen sample)")
+    interpolate_b: PointerProperty(name="To", type=bpy.types.Object,
+                                   description="Second shape (a training shape or a ShapeGen sample)")
+    interpolate_steps: IntProperty(name="Steps", default=5, min=1, soft_max=50,
+                                   description="In-between shapes")
+    interpolate_mode: EnumProperty(name="Output", items=INTERPOLATION_ITEMS, default="OBJECTS")
+    interpolate_frames: IntProperty(name="Frames per Step", default=10, min=1, soft_max=100)
+
+    # --- explore
+    latents: CollectionProperty(type=ShapeGenLatent)
+    live_object: PointerProperty(name="Live Object", type=bpy.types.Object)
+    explore_seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the next Randomise")
+    map_size: IntProperty(name="Map Size", default=256, min=64, max=2048, description="Latent map size in pixels")
+
+
+CLASSES = (ShapeGenLatent, ShapeGenSettings)
 
 
 def register_properties():

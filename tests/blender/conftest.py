@@ -76,3 +76,72 @@ def core(extension):
     """The core package as shipped inside the installed extension."""
     return sys.modules[f"{extension}.core"] if f"{extension}.core" in sys.modules else __import__(
         f"{extension}.core", fromlist=["*"])
+
+
+# ---------------------------------------------------------------- workflow fixtures (issue 6)
+import importlib  # noqa: E402
+import json  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+#: tiny fits keep the Blender tier fast: 6 coarse vases, 100 landmarks, a short ICP schedule
+FAST_FIT = {"jobs": 1, "correspondence": {"alpha_steps": 2, "max_iterations": 6, "groupwise_rounds": 0}}
+VASE_SEED = 1
+VASE_RESOLUTION = (14, 20)
+
+
+def addon_module(extension: str, name: str):
+    """A module of the installed extension, e.g. addon_module(extension, "shapegen_addon.store")."""
+    return importlib.import_module(f"{extension}.{name}")
+
+
+def add_vase_collection(extension: str, n: int = 6, name: str = "vases") -> bpy.types.Collection:
+    """n procedural vases as mesh objects (named like the core's shapes) in a new collection,
+    chosen as the panel's training collection."""
+    datasets = addon_module(extension, "core.datasets")
+    convert = addon_module(extension, "shapegen_addon.convert")
+    collection = bpy.data.collections.new(name)
+    bpy.context.scene.collection.children.link(collection)
+    for shape in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION):
+        obj = bpy.data.objects.new(shape.name, convert.mesh_data_from_arrays(shape.name, shape.mesh.vertices,
+                                                                             shape.mesh.faces))
+        collection.objects.link(obj)
+    bpy.context.scene.shapegen.source_collection = collection
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 100
+    settings.latent_dim = 2
+    return collection
+
+
+@pytest.fixture(scope="session")
+def model_files(extension, tmp_path_factory):
+    """One small fitted model file per model type, fitted in-process with the extension's
+    core (the worker path is tested separately): {"ppca": path, "gplvm": ..., "bgplvm": ...}."""
+    datasets = addon_module(extension, "core.datasets")
+    pipeline = addon_module(extension, "core.pipeline")
+    correspond = addon_module(extension, "core.correspond")
+    meshes = [s.mesh for s in datasets.make_vases(6, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
+    folder = tmp_path_factory.mktemp("models")
+    files = {}
+    for kind in ("ppca", "gplvm", "bgplvm"):
+        settings = pipeline.FitSettings(
+            n_landmarks=100, model=kind, latent_dim=2, jobs=1,
+            correspondence=correspond.CorrespondenceSettings(**FAST_FIT["correspondence"]))
+        files[kind] = pipeline.fit_meshes(meshes, settings).save(folder / f"vases_{kind}.npz")
+    return files
+
+
+def load_model(kind: str, model_files) -> None:
+    assert bpy.ops.shapegen.load_model(filepath=str(model_files[kind])) == {"FINISHED"}
+
+
+def vertices(obj, evaluated: bool = False) -> np.ndarray:
+    if evaluated:
+        obj = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    co = np.empty(len(obj.data.vertices) * 3)
+    obj.data.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def fast_fit_json(**more) -> str:
+    return json.dumps({**FAST_FIT, **more})

@@ -11,7 +11,11 @@ import addon_utils
 import bpy
 
 ROOT = Path(__file__).resolve().parents[2]
-OPERATORS = ("import_collection", "prepare")
+OPERATORS = ("import_collection", "prepare", "find_correspondences", "fit", "fit_cancel", "load_model", "export_model", "sample",
+             "interpolate", "modes_to_shape_keys", "explore", "explore_randomise", "explore_reset",
+             "explore_snap", "explore_bake", "latent_map")
+PANELS = ("SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model", "SHAPEGEN_PT_generate",
+          "SHAPEGEN_PT_explore")
 
 
 def test_manifest_validates_with_blenders_own_builder():
@@ -29,7 +33,8 @@ def test_installed_extension_is_registered(extension):
         assert hasattr(bpy.ops.shapegen, name)
         assert getattr(bpy.ops.shapegen, name).get_rna_type() is not None
     assert hasattr(bpy.types.Scene, "shapegen")
-    assert "SHAPEGEN_PT_data" in dir(bpy.types)
+    for name in PANELS:
+        assert name in dir(bpy.types)
     # the installed copy is the one running, not the source tree
     module = importlib.import_module(extension)
     assert "extensions" in Path(module.__file__).parts
@@ -47,6 +52,9 @@ def test_unregister_and_register_again_cleanly(extension):
     assert extension not in bpy.context.preferences.addons
     assert not hasattr(bpy.types.Scene, "shapegen")
     assert "SHAPEGEN_PT_data" not in dir(bpy.types)
+    # no handler of the add-on stays behind (it would run on every file load)
+    for handlers in (bpy.app.handlers.load_post, bpy.app.handlers.load_pre):
+        assert not [h for h in handlers if "shapegen" in getattr(h, "__module__", "")]
     addon_utils.enable(extension, default_set=True)
     assert extension in bpy.context.preferences.addons
     assert hasattr(bpy.types.Scene, "shapegen")

@@ -1,0 +1,257 @@
+"""Generate: sample new shapes, interpolate between two shapes, PPCA modes as shape keys.
+
+Every generated object is an ordinary mesh object tagged with custom properties
+(`shapegen_latent`, `shapegen_model`, `shapegen_model_id`, `shapegen_template`, and
+`shapegen_seed` for samples), so later operators (Interpolate, Latent Map) can find its
+latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
+`mesh_from_landmarks`, `LatentMesher`); nothing here is an algorithm.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from bpy.props import EnumProperty, IntProperty, StringProperty
+
+from ..core.errors import ShapeGenError
+from . import store
+from .convert import mesh_data_from_arrays
+from .explore import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, tag_object
+from .preview import SOURCE_KEY, grid_offsets
+from .properties import INTERPOLATION_ITEMS
+
+__all__ = ["CLASSES", "object_latent", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
+
+SAMPLES_COLLECTION = "ShapeGen Samples"
+INTERPOLATION_COLLECTION = "ShapeGen Interpolation"
+MODES_COLLECTION = "ShapeGen Modes"
+
+
+def ensure_collection(scene: bpy.types.Scene, name: str) -> bpy.types.Collection:
+    """The collection `name` linked to the scene (created when missing)."""
+    collection = bpy.data.collections.get(name)
+    if collection is None:
+        collection = bpy.data.collections.new(name)
+    if collection.name not in scene.collection.children:
+        scene.collection.children.link(collection)
+    return collection
+
+
+def shape_size(model) -> float:
+    """Largest bounding-box side over the training meshes (grid spacing unit)."""
+    return max(float(np.ptp(m.vertices, axis=0).max()) for m in model.meshes)
+
+
+def object_latent(model, scene: bpy.types.Scene, obj: bpy.types.Object) -> np.ndarray:
+    """The latent vector of `obj` under `model`: its `shapegen_latent` tag (a sample, baked
+    or live object of this model), else the encoded landmarks of the training shape it is
+    (by name, or by the `shapegen_source` tag of a prepared copy)."""
+    if LATENT_KEY in obj and obj.get(MODEL_ID_KEY) == store.model_id(scene):
+        z = np.asarray(obj[LATENT_KEY], dtype=np.float64)
+        if z.shape == (model.latent_dim,):
+            return z
+    for name in (obj.name, obj.get(SOURCE_KEY)):
+        if isinstance(name, str) and name in model.names:
+            return model.training_latents()[model.names.index(name)]
+    raise ShapeGenError(f"'{obj.name}' has no latent vector in model '{store.model_name(scene)}': pick a "
+                        "training shape (named like one of the model's shapes) or a ShapeGen sample of this model")
+
+
+class _NeedsModel:
+    @classmethod
+    def poll(cls, context):
+        if context.scene.shapegen.model_text is None:
+            cls.poll_message_set("No fitted model in this scene: fit or load one first")
+            return False
+        return True
+
+
+class SHAPEGEN_OT_sample(_NeedsModel, bpy.types.Operator):
+    """Sample new shapes from the model into the "ShapeGen Samples" collection, on a grid"""
+
+    bl_idname = "shapegen.sample"
+    bl_label = "Sample"
+    bl_options = {"REGISTER", "UNDO"}
+
+    count: IntProperty(name="Count", default=0, min=0, max=1000,
+                       description="Shapes to sample (0: the panel's Count)")
+    seed: IntProperty(name="Seed", default=-1, min=-1,
+                      description="First seed; shape i uses seed + i (-1: the panel's Seed)")
+
+    def execute(self, context):
+        scene = context.scene
+        settings = scene.shapegen
+        try:
+            model = store.require_model(scene)
+            count = self.count or settings.sample_count
+            first_seed = settings.seed if self.seed < 0 else self.seed
+            # everything that can fail runs before the scene is touched
+            results = []
+            for i in range(count):
+                landmarks, latents = model.sample(1, np.random.default_rng(first_seed + i))
+                index = model.choose_template(landmarks[0], settings.sample_template)
+                mesh = model.mesh_from_landmarks(landmarks[0], template=model.names[index])
+                z = latents[0] if latents is not None else model.encode(landmarks)[0]
+                results.append((first_seed + i, z, model.names[index], mesh))
+        except ShapeGenError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        collection = ensure_collection(scene, SAMPLES_COLLECTION)
+        spacing = settings.preview_spacing * shape_size(model)
+        offsets = grid_offsets(count, spacing)
+        if len(collection.objects):  # a new batch goes on rows below the earlier ones
+            offsets[:, 1] += min(o.location.y for o in collection.objects) - spacing
+        name = store.model_name(scene)
+        for (seed, z, template, mesh), offset in zip(results, offsets):
+            label = f"{name} sample {seed}"
+            obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, mesh.vertices, mesh.faces))
+            obj.location = offset
+            tag_object(obj, scene, z, template, seed=seed)
+            collection.objects.link(obj)
+        self.report({"INFO"}, f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
+                    f"(seeds {first_seed}-{first_seed + count - 1})")
+        return {"FINISHED"}
+
+
+class SHAPEGEN_OT_interpolate(_NeedsModel, bpy.types.Operator):
+    """In-between shapes of two objects (training shapes or samples), linear in the latent
+    space: K new objects in a row, or one object with a shape-key animation"""
+
+    bl_idname = "shapegen.interpolate"
+    bl_label = "Interpolate"
+    bl_options = {"REGISTER", "UNDO"}
+
+    object_a: StringProperty(name="From", default="", description="First object (empty: the panel's From)")
+    object_b: StringProperty(name="To", default="", description="Second object (empty: the panel's To)")
+    steps: IntProperty(name="Steps", default=0, min=0, max=500, description="In-between shapes (0: the panel's)")
+    mode: EnumProperty(name="Output", items=[("PANEL", "Panel", "The panel's choice")] + INTERPOLATION_ITEMS,
+                       default="PANEL")
+
+    def _objects(self, context):
+        settings = context.scene.shapegen
+        found = []
+        for name, pointer, label in ((self.object_a, settings.interpolate_a, "From"),
+                                     (self.object_b, settings.interpolate_b, "To")):
+            obj = bpy.data.objects.get(name) if name else pointer
+            if obj is None:
+                raise ShapeGenError(f"No object named '{name}'" if name else f"Choose the '{label}' object first")
+            found.append(obj)
+        if found[0] == found[1]:
+            raise ShapeGenError(f"'From' and 'To' are the same object ('{found[0].name}')")
+        return found
+
+    def execute(self, context):
+        scene = context.scene
+        settings = scene.shapegen
+        steps = self.steps or settings.interpolate_steps
+        mode = settings.interpolate_mode if self.mode == "PANEL" else self.mode
+        try:
+            model = store.require_model(scene)
+            first, second = self._objects(context)
+            z_a, z_b = object_latent(model, scene, first), object_latent(model, scene, second)
+            # one template for the whole path, so every shape has the same vertices
+            midpoint = model.decode(0.5 * (z_a + z_b))[0]
+            index = model.choose_template(midpoint, settings.sample_template)
+            mesher = model.latent_mesher(index, dtype=np.float64)
+            ts = np.linspace(0.0, 1.0, steps + 2)
+            shapes = [mesher.vertices((1 - t) * z_a + t * z_b) for t in ts]
+        except ShapeGenError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        faces = model.meshes[index].faces
+        collection = ensure_collection(scene, INTERPOLATION_COLLECTION)
+        base = f"{first.name} to {second.name}"
+        spacing = settings.preview_spacing * shape_size(model)
+        if mode == "OBJECTS":
+            for k in range(1, steps + 1):
+                label = f"{base} {k}"
+                obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, shapes[k], faces))
+                obj.location = (k * spacing, 0.0, 0.0)
+                tag_object(obj, scene, (1 - ts[k]) * z_a + ts[k] * z_b, model.names[index])
+                obj["shapegen_interpolation"] = float(ts[k])
+                collection.objects.link(obj)
+            self.report({"INFO"}, f"{steps} in-between shape(s) of '{first.name}' and '{second.name}' in "
+                        f"'{collection.name}'")
+            return {"FINISHED"}
+
+        obj = bpy.data.objects.new(f"{base} morph", mesh_data_from_arrays(f"{base} morph", shapes[0], faces))
+        collection.objects.link(obj)
+        tag_object(obj, scene, z_a, model.names[index])
+        obj.shape_key_add(name="Basis", from_mix=False)
+        frames = settings.interpolate_frames
+        start = scene.frame_start
+        for k in range(1, len(shapes)):
+            key = obj.shape_key_add(name=f"t={ts[k]:.3f}", from_mix=False)
+            key.data.foreach_set("co", shapes[k].astype(np.float32).ravel())
+            # crossfade: key k rises from 0 at step k-1 to 1 at step k and falls to 0 at step k+1
+            for frame, value in ((start + (k - 1) * frames, 0.0), (start + k * frames, 1.0),
+                                 (start + (k + 1) * frames, 0.0)):
+                if value == 0.0 and k == len(shapes) - 1 and frame > start + k * frames:
+                    continue  # the last shape holds
+                key.value = value
+                key.keyframe_insert("value", frame=frame)
+        for fcurve in _fcurves(obj.data.shape_keys):
+            for point in fcurve.keyframe_points:
+                point.interpolation = "LINEAR"
+        for key in obj.data.shape_keys.key_blocks[1:]:
+            key.value = 0.0
+        scene.frame_end = max(scene.frame_end, start + (len(shapes) - 1) * frames)
+        self.report({"INFO"}, f"'{obj.name}': {len(shapes) - 1} shape keys animated over frames "
+                    f"{start}-{start + (len(shapes) - 1) * frames}")
+        return {"FINISHED"}
+
+
+def _fcurves(id_data) -> list:
+    """The F-curves animating `id_data` (slotted actions of Blender 4.4+, or legacy ones)."""
+    animation = getattr(id_data, "animation_data", None)
+    if animation is None or animation.action is None:
+        return []
+    action = animation.action
+    try:
+        from bpy_extras.anim_utils import action_get_channelbag_for_slot
+
+        bag = action_get_channelbag_for_slot(action, animation.action_slot)
+        if bag is not None:
+            return list(bag.fcurves)
+    except (ImportError, AttributeError):
+        pass
+    return list(getattr(action, "fcurves", []))
+
+
+class SHAPEGEN_OT_modes_to_shape_keys(_NeedsModel, bpy.types.Operator):
+    """PPCA modes as native shape keys on the template mesh (key k = mean shape + mode k,
+    range ±3): plain Blender data that keeps working without the add-on"""
+
+    bl_idname = "shapegen.modes_to_shape_keys"
+    bl_label = "Modes to Shape Keys"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            model = store.require_model(scene)
+            if model.model_type != "ppca":
+                raise ShapeGenError(f"Modes as shape keys need a PPCA model (this one is {model.model_type}: "
+                                    "its decode is not linear in the latents); use Explore instead")
+            index = model.mean_template()
+            mesher = model.latent_mesher(index, dtype=np.float64)
+            mean = mesher.offset.reshape(-1, 3)
+            modes = mesher.basis.reshape(model.latent_dim, -1, 3)  # PPCA: basis row k = W_k on the mesh
+        except ShapeGenError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        name = f"{store.model_name(scene)} modes"
+        obj = bpy.data.objects.new(name, mesh_data_from_arrays(name, mean, model.meshes[index].faces))
+        ensure_collection(scene, MODES_COLLECTION).objects.link(obj)
+        tag_object(obj, scene, np.zeros(model.latent_dim), model.names[index])
+        obj.shape_key_add(name="Mean", from_mix=False)
+        for k, mode in enumerate(modes):
+            key = obj.shape_key_add(name=f"Mode {k + 1}", from_mix=False)
+            key.data.foreach_set("co", (mean + mode).astype(np.float32).ravel())
+            key.slider_min, key.slider_max = -3.0, 3.0
+            key.value = 0.0
+        self.report({"INFO"}, f"'{obj.name}': {model.latent_dim} mode shape keys (range ±3)")
+        return {"FINISHED"}
+
+
+CLASSES = (SHAPEGEN_OT_sample, SHAPEGEN_OT_interpolate, SHAPEGEN_OT_modes_to_shape_keys)

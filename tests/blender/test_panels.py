@@ -1,0 +1,105 @@
+"""The sidebar panels draw without errors in every state (no model, model + live object,
+a running job). Headless Blender never draws, so each panel's draw() runs against a
+recording layout that checks every property, operator and icon it names exists."""
+
+from __future__ import annotations
+
+import bpy
+import pytest
+from conftest import addon_module, load_model
+
+PANELS = ("SHAPEGEN_PT_main", "SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model",
+          "SHAPEGEN_PT_generate", "SHAPEGEN_PT_explore")
+ICONS = set(bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items.keys())
+
+
+class RecordingLayout:
+    def __init__(self, calls: list):
+        self.calls = calls
+        self.enabled = True
+        self.active = True
+
+    def _icon(self, icon):
+        assert icon in ICONS, f"unknown icon {icon!r}"
+
+    def prop(self, data, name, **options):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self._icon(options.get("icon", "NONE"))
+        self.calls.append(("prop", name))
+
+    def operator(self, idname, **options):
+        category, name = idname.split(".")
+        assert hasattr(bpy.types, f"{category.upper()}_OT_{name}"), f"no operator {idname}"
+        self._icon(options.get("icon", "NONE"))
+        self.calls.append(("operator", idname))
+
+    def label(self, text="", icon="NONE", **options):
+        self._icon(icon)
+        self.calls.append(("label", text))
+
+    def progress(self, factor=0.0, type="BAR", text=""):
+        assert 0.0 <= factor <= 1.0
+        self.calls.append(("progress", text))
+
+    def template_icon(self, icon_value=0, scale=1.0):
+        self.calls.append(("icon", icon_value))
+
+    def separator(self, **options):
+        pass
+
+    def column(self, **options):
+        return RecordingLayout(self.calls)
+
+    row = box = column
+
+
+class Context:
+    def __init__(self):
+        self.scene = bpy.context.scene
+        self.space_data = None
+
+
+def _draw_all() -> list:
+    calls = []
+    for name in PANELS:
+        panel = getattr(bpy.types, name)
+        panel.draw(type("Fake", (), {"layout": RecordingLayout(calls)})(), Context())
+    return calls
+
+
+def test_panels_draw_without_a_model():
+    calls = _draw_all()
+    assert ("operator", "shapegen.fit") in calls and ("label", "No fitted model") in calls
+
+
+def test_panels_draw_with_a_model_a_live_object_and_a_map(model_files):
+    load_model("ppca", model_files)
+    bpy.ops.shapegen.explore()
+    bpy.ops.shapegen.latent_map(size=64)
+    calls = _draw_all()
+    sliders = [c for c in calls if c == ("prop", "value")]
+    assert len(sliders) == 2
+    for idname in ("shapegen.explore_randomise", "shapegen.explore_snap", "shapegen.explore_bake",
+                   "shapegen.sample", "shapegen.interpolate", "shapegen.modes_to_shape_keys"):
+        assert ("operator", idname) in calls
+
+
+def test_model_panel_shows_progress_and_cancel_while_a_job_runs(extension, tmp_path):
+    jobs = addon_module(extension, "shapegen_addon.jobs")
+    core_jobs = addon_module(extension, "core.jobs")
+    job = core_jobs.BackgroundJob("selftest", {"steps": 50, "sleep": 0.1, "output": str(tmp_path / "out")})
+    jobs.MANAGER.start(job, lambda status, prepared: None, label="selftest")
+    try:
+        calls = _draw_all()
+    finally:
+        jobs.MANAGER.kill()
+    assert any(kind == "progress" for kind, _ in calls)
+    assert ("operator", "shapegen.fit_cancel") in calls and ("operator", "shapegen.fit") not in calls
+
+
+@pytest.mark.parametrize("name", ["fit", "fit_cancel", "load_model", "export_model", "sample", "interpolate",
+                                  "modes_to_shape_keys", "explore", "explore_randomise", "explore_reset",
+                                  "explore_snap", "explore_bake", "latent_map"])
+def test_every_operator_has_a_description(name):
+    cls = getattr(bpy.types, f"SHAPEGEN_OT_{name}")
+    assert cls.bl_idname == f"shapegen.{name}" and (cls.__doc__ or "").strip()

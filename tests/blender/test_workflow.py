@@ -1,0 +1,204 @@
+"""Fit in the background through the installed extension (issue 6).
+
+Timers never fire in the bpy module, so these tests drive the add-on's polling loop
+(`fitting.poll_fit`) themselves, exactly as the UI timer would.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import bpy
+import pytest
+from conftest import add_vase_collection, addon_module, fast_fit_json, load_model
+
+
+@pytest.fixture
+def fitting(extension):
+    module = addon_module(extension, "shapegen_addon.fitting")
+    yield module
+    manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
+    manager.kill()  # never leave a worker behind
+
+
+def _pump(fitting, until, timeout=120.0):
+    """Poll like the UI timer until `until(status)` holds; returns (statuses, longest poll)."""
+    statuses, longest = [], 0.0
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        start = time.perf_counter()
+        status = fitting.poll_fit()
+        longest = max(longest, time.perf_counter() - start)
+        statuses.append(status)
+        if until(status):
+            return statuses, longest
+        time.sleep(0.02)
+    raise AssertionError(f"timed out; last status {statuses[-1] if statuses else None}")
+
+
+def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, fitting):
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model = "ppca"
+    objects_before = {o.name for o in bpy.data.objects}
+    assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert settings.job_state == "RUNNING"
+    # Fit is disabled while the job runs, and says why; Cancel is available
+    assert not bpy.ops.shapegen.fit.poll()
+    assert bpy.ops.shapegen.fit_cancel.poll()
+    with pytest.raises(RuntimeError, match="already running"):
+        bpy.ops.shapegen.fit()
+    assert settings.model_text is None  # nothing is applied before the job ends
+
+    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished)
+    fractions = [s.fraction for s in statuses]
+    assert fractions == sorted(fractions)  # progress only moves forward
+    assert statuses[-1].state == "done" and fractions[-1] == 1.0
+    assert any(0.0 < f < 1.0 for f in fractions)  # intermediate progress was seen
+    assert settings.job_state == "DONE" and settings.job_fraction == 1.0
+    assert "Fitted ppca to 6 shapes" in settings.job_message
+    text = settings.model_text
+    assert text is not None and text["shapegen_model_type"] == "ppca" and text["shapegen_latent_dim"] == 2
+    assert len(settings.latents) == 2
+    assert {o.name for o in bpy.data.objects} == objects_before  # the fit adds no objects
+    assert bpy.ops.shapegen.fit.poll()  # enabled again
+    model = addon_module(extension, "shapegen_addon.store").get_model(bpy.context.scene)
+    assert sorted(model.names) == sorted(o.name for o in collection.objects)
+
+
+def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, fitting, model_files):
+    load_model("ppca", model_files)
+    add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    earlier = settings.model_text
+    earlier_id = earlier["shapegen_model_id"]
+    texts_before = {t.name for t in bpy.data.texts}
+    objects_before = {o.name for o in bpy.data.objects}
+    slow = json.dumps({"jobs": 1, "correspondence": {"alpha_steps": 5, "max_iterations": 40, "groupwise_rounds": 2}})
+    assert bpy.ops.shapegen.fit(extra_settings=slow) == {"FINISHED"}
+    _pump(fitting, lambda s: s is not None and s.fraction > 0.0)  # the worker is busy
+    assert bpy.ops.shapegen.fit_cancel() == {"FINISHED"}
+    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished, timeout=30)
+    assert statuses[-1].state == "cancelled"
+    assert settings.job_state == "CANCELLED"
+    assert "cancelled" in settings.job_message and "earlier model is kept" in settings.job_message
+    assert settings.model_text == earlier and earlier["shapegen_model_id"] == earlier_id
+    assert {t.name for t in bpy.data.texts} == texts_before
+    assert {o.name for o in bpy.data.objects} == objects_before
+    assert not bpy.ops.shapegen.fit_cancel.poll() and bpy.ops.shapegen.fit.poll()
+
+
+def test_a_worker_crash_becomes_a_report(extension, fitting):
+    add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
+    assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
+    _pump(fitting, lambda s: s is not None and s.fraction > 0.0)
+    manager.job.kill()  # the worker dies without a word (as a segfault or the OOM killer would)
+    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished, timeout=30)
+    assert statuses[-1].state == "failed"
+    assert settings.job_state == "FAILED"
+    assert "worker exited with code" in settings.job_message and "no model was made" in settings.job_message
+    assert settings.model_text is None and len(bpy.data.texts) == 0
+
+
+def test_a_failing_fit_reports_the_workers_reason(extension, fitting):
+    add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    settings.latent_dim = 9  # more latent dimensions than the 6 shapes allow: the core refuses
+    with pytest.raises(RuntimeError, match="latent dimension 9 must be smaller than the number of shapes"):
+        bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
+    assert settings.job_state == "FAILED" and settings.model_text is None
+
+
+def test_fit_refuses_bad_input_before_starting_a_worker(extension, fitting):
+    manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
+    with pytest.raises(RuntimeError, match="Choose a training collection first"):
+        bpy.ops.shapegen.fit()
+    collection = add_vase_collection(extension, n=2)
+    bpy.data.objects.remove(collection.objects[0])
+    with pytest.raises(RuntimeError, match="has 1 mesh object"):
+        bpy.ops.shapegen.fit()
+    add_vase_collection(extension, n=3, name="more vases")
+    with pytest.raises(RuntimeError, match="not a JSON object"):
+        bpy.ops.shapegen.fit(extra_settings="[1, 2]")
+    with pytest.raises(RuntimeError, match="Invalid fit settings.*unknown model"):
+        bpy.ops.shapegen.fit(extra_settings='{"model": "nope"}')
+    with pytest.raises(RuntimeError, match="Invalid fit settings"):
+        bpy.ops.shapegen.fit(extra_settings='{"correspondence": {"no_such_option": 1}}')
+    with pytest.raises(RuntimeError, match="No collection named 'missing'"):
+        bpy.ops.shapegen.fit(collection_name="missing")
+    assert not manager.running and bpy.context.scene.shapegen.job_state == "IDLE"
+
+
+def test_cancel_without_a_job_explains_itself():
+    with pytest.raises(RuntimeError, match="No fit is running"):
+        bpy.ops.shapegen.fit_cancel()
+
+
+def test_load_and_export_model_round_trip(extension, model_files, tmp_path):
+    load_model("gplvm", model_files)
+    text = bpy.context.scene.shapegen.model_text
+    assert text.name == "vases_gplvm.shapegen" and text.use_fake_user
+    assert text.as_string().startswith("ShapeGen model 'vases_gplvm'\ngplvm, 2 latent dimensions")
+    assert text["shapegen_model_npz"] == model_files["gplvm"].read_bytes()
+    out = tmp_path / "exported.npz"
+    assert bpy.ops.shapegen.export_model(filepath=str(out)) == {"FINISHED"}
+    assert out.read_bytes() == model_files["gplvm"].read_bytes()  # packed byte for byte
+    # loading another model replaces the first and removes its now unused Text
+    load_model("ppca", model_files)
+    assert [t.name for t in bpy.data.texts] == ["vases_ppca.shapegen"]
+
+
+def test_load_model_errors_are_clear(tmp_path):
+    with pytest.raises(RuntimeError, match="no such model file"):
+        bpy.ops.shapegen.load_model(filepath=str(tmp_path / "missing.npz"))
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip file")
+    with pytest.raises(RuntimeError, match="not a readable .npz file"):
+        bpy.ops.shapegen.load_model(filepath=str(bad))
+    assert bpy.context.scene.shapegen.model_text is None and len(bpy.data.texts) == 0
+    with pytest.raises(RuntimeError, match="No fitted model in this scene"):
+        bpy.ops.shapegen.export_model(filepath=str(tmp_path / "x.npz"))
+
+
+def test_job_manager_setup_prepare_and_cancel_before_the_worker_starts(extension, tmp_path):
+    """The bpy-free manager: a failing setup is a failed job, a cancel during setup stops
+    the worker as soon as it starts, prepare's result reaches on_finish."""
+    import threading
+
+    jobs = addon_module(extension, "shapegen_addon.jobs")
+    core_jobs = addon_module(extension, "core.jobs")
+    manager = jobs.JobManager()
+    finished = []
+
+    def run(**options):
+        job = core_jobs.BackgroundJob("selftest", {"steps": 20, "sleep": 0.05, "output": str(tmp_path / "out")})
+        manager.start(job, lambda status, prepared: finished.append((status, prepared)), **options)
+
+    def wait():
+        deadline = time.monotonic() + 30
+        while manager.running and time.monotonic() < deadline:
+            manager.poll()
+            time.sleep(0.01)
+        assert not manager.running
+
+    def boom():
+        raise OSError("disk full")
+
+    run(setup=boom)
+    wait()
+    assert finished[-1][0].state == "failed" and "disk full" in finished[-1][0].error
+
+    gate = threading.Event()
+    run(setup=lambda: gate.wait(10))
+    assert manager.running and manager.poll().state == "running"
+    manager.cancel()
+    gate.set()
+    wait()
+    assert finished[-1][0].state == "cancelled"
+
+    run(prepare=lambda status: (tmp_path / "out").read_text())
+    wait()
+    assert finished[-1][0].state == "done" and finished[-1][1] == "ok"
