@@ -31,7 +31,6 @@ def register():
 
 def unregister():
     fitting.unregister_timer()
-    correspondence.unregister_timer()
     MANAGER.kill()
     store.unregister_handlers()
     explore.forget_cache()

@@ -27,15 +27,15 @@ from ..core.jobs import BackgroundJob, JobStatus
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import mesh_data_from_arrays, object_to_mesh
+from .fitting import poll_fit, start_polling
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       TRANSFORM_KEY, marker_mesh_arrays)
 
-__all__ = ["CLASSES", "prepared_objects", "landmark_index_colours", "poll_correspondence"]
+__all__ = ["CLASSES", "prepared_objects", "landmark_index_colours"]
 
 CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local
 COLOUR_ATTRIBUTE = "landmark_index_colour"
-POLL_INTERVAL = 0.1
 
 
 def prepared_objects(collection: bpy.types.Collection) -> list[bpy.types.Object]:
@@ -110,18 +110,6 @@ def _job_scene():
     return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
 
 
-def poll_correspondence() -> JobStatus | None:
-    """Poll the running correspondence job once (main thread); mirrors progress."""
-    if not MANAGER.running:
-        return MANAGER.last_status
-    status = MANAGER.poll()
-    scene = _job_scene()
-    if status is not None and not status.finished and scene is not None:
-        scene.shapegen.job_fraction = min(max(status.fraction, 0.0), 1.0)
-        scene.shapegen.job_stage = status.stage
-    return status
-
-
 def _load(status: JobStatus):
     if status.state != "done":
         return None
@@ -166,18 +154,6 @@ def _finish(status: JobStatus, result) -> None:
                             f"(template {result.template_name}); "
                             + (f"outliers: {', '.join(outliers)}" if outliers else "no outliers"))
     print(f"ShapeGen: {settings.job_message}")
-
-
-def _timer() -> float | None:
-    try:
-        poll_correspondence()
-    except Exception as exc:
-        print(f"ShapeGen: polling the correspondence job failed: {exc}")
-    for window in getattr(bpy.context.window_manager, "windows", []):
-        for area in window.screen.areas:
-            if area.type == "VIEW_3D":
-                area.tag_redraw()
-    return POLL_INTERVAL if MANAGER.running else None
 
 
 class SHAPEGEN_OT_find_correspondences(bpy.types.Operator):
@@ -242,22 +218,16 @@ class SHAPEGEN_OT_find_correspondences(bpy.types.Operator):
         settings.job_message = ""
         if self.wait:
             while MANAGER.running:
-                poll_correspondence()
+                poll_fit()  # polls whichever job the manager runs
                 time.sleep(0.05)
             if settings.job_state != "DONE":
                 self.report({"ERROR"}, settings.job_message)
                 return {"CANCELLED"}
             self.report({"INFO"}, settings.job_message)
             return {"FINISHED"}
-        if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
-            bpy.app.timers.register(_timer, first_interval=POLL_INTERVAL)
+        start_polling()
         self.report({"INFO"}, f"Finding correspondences across {len(objects)} shapes in the background")
         return {"FINISHED"}
-
-
-def unregister_timer() -> None:
-    if bpy.app.timers.is_registered(_timer):
-        bpy.app.timers.unregister(_timer)
 
 
 CLASSES = (SHAPEGEN_OT_find_correspondences,)

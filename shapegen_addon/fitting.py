@@ -192,6 +192,13 @@ def _timer() -> float | None:
     return POLL_INTERVAL if MANAGER.running else None
 
 
+def start_polling() -> None:
+    """Poll `jobs.MANAGER` from a timer while a job runs (UI only: timers never fire in
+    background mode, where callers loop over `poll_fit()` themselves)."""
+    if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
+        bpy.app.timers.register(_timer, first_interval=POLL_INTERVAL)
+
+
 def unregister_timer() -> None:
     if bpy.app.timers.is_registered(_timer):
         bpy.app.timers.unregister(_timer)
@@ -280,8 +287,7 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
                 return {"CANCELLED"}
             self.report({"INFO"}, settings.job_message)
             return {"FINISHED"}
-        if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
-            bpy.app.timers.register(_timer, first_interval=POLL_INTERVAL)
+        start_polling()
         self.report({"INFO"}, f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
         return {"FINISHED"}
 
