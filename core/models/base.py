@@ -202,8 +202,12 @@ def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- optimiser
 
 def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,
-          bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6):
+          bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6,
+          ftol: float = 1e-12):
     """Minimise objective(x) -> (value, gradient) with scipy's L-BFGS-B.
+
+    It stops after `max_iter` iterations, when the projected gradient is below `gtol` or when an
+    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps).
 
     `progress(fraction, message)` is called once per iteration; if it raises (e.g. Cancelled)
     the exception propagates and the fit stops (cooperative cancel).
@@ -237,7 +241,7 @@ def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, me
         failures_before = failures[0]
         result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
                           options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
-                                   "gtol": gtol, "ftol": 1e-12, "maxcor": 20})
+                                   "gtol": gtol, "ftol": ftol, "maxcor": 20})
         improved = result.fun < best - 1e-9 * max(abs(best), 1.0) if np.isfinite(best) else np.isfinite(result.fun)
         if not np.isfinite(result.fun):
             raise np.linalg.LinAlgError(f"{message}: the objective is not computable at the starting point")

@@ -54,12 +54,14 @@ def ard_rbf_grads(G: np.ndarray, Z: np.ndarray, K: np.ndarray, alpha: np.ndarray
 class PsiStatistics:
     """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under an ARD RBF kernel, with gradients.
 
-    `psi2n` is kept per point (N, M, M); the bound uses Psi2 = psi2n.sum(0).
+    `psi2n` is kept per point (N, M, M); the bound uses Psi2 = psi2n.sum(0). Nothing of size
+    N x M x M x Q is formed: psi2 and its gradients go through batched (M x Q) products of
+    d = mu_n - Z and the symmetry of dF/dPsi2.
     """
 
     def __init__(self, mu: np.ndarray, S: np.ndarray, Z: np.ndarray, variance: float, alpha: np.ndarray):
         self.mu, self.S, self.Z, self.variance, self.alpha = mu, S, Z, variance, alpha
-        n = mu.shape[0]
+        n, q = mu.shape
         self.psi0 = n * variance
         # psi1
         self.den1 = alpha * S + 1.0                                   # (N, Q)
@@ -67,15 +69,17 @@ class PsiStatistics:
         log_psi1 = (np.log(variance) - 0.5 * np.log(self.den1).sum(1)[:, None]
                     - 0.5 * np.einsum("nmq,nq->nm", self.diff1**2, alpha / self.den1))
         self.psi1 = np.exp(log_psi1)
-        # psi2
+        # psi2: with d_a = mu_n - z_a, mu_n - zbar_ab = (d_a + d_b) / 2 and z_a - z_b = d_b - d_a, so
+        # log psi2^n_ab = 2 log s_f^2 - 1/2 sum_q log den2_nq + u_na + u_nb + sum_q w_nq d_naq d_nbq,
+        # u_na = -sum_q (a_q + c_nq) d_naq^2 / 4, w = (a - c) / 2, c = a / den2: one batched
+        # (M x Q) (Q x M) product per point instead of N x M x M x Q arrays
         self.den2 = 2.0 * alpha * S + 1.0                             # (N, Q)
-        self.dz = Z[:, None, :] - Z[None, :, :]                       # (M, M, Q)
-        zbar = 0.5 * (Z[:, None, :] + Z[None, :, :])                  # (M, M, Q)
-        self.dbar = mu[:, None, None, :] - zbar[None]                 # (N, M, M, Q)
-        log_psi2n = (2.0 * np.log(variance) - 0.5 * np.log(self.den2).sum(1)[:, None, None]
-                     - 0.25 * np.einsum("abq,q->ab", self.dz**2, alpha)[None]
-                     - np.einsum("nabq,nq->nab", self.dbar**2, alpha / self.den2))
-        self.psi2n = np.exp(log_psi2n)
+        c = alpha / self.den2
+        d1 = self.diff1
+        u = -0.25 * np.einsum("nmq,nq->nm", d1**2, alpha + c)
+        cross = np.matmul(d1 * (0.5 * (alpha - c))[:, None, :], d1.transpose(0, 2, 1))
+        const = 2.0 * np.log(variance) - 0.5 * np.log(self.den2).sum(1)
+        self.psi2n = np.exp(cross + (u + 0.5 * const[:, None])[:, :, None] + (u + 0.5 * const[:, None])[:, None, :])
 
     @property
     def psi2(self) -> np.ndarray:
@@ -84,9 +88,10 @@ class PsiStatistics:
     def gradients(self, g0, g1: np.ndarray, g2: np.ndarray):
         """Chain rule from dF/dpsi0 (scalar, per point psi0_n = s_f^2), dF/dpsi1 (N, M) and a
         symmetric dF/dPsi2 (M, M) to (d mu, d S, d Z, d log s_f^2, d alpha)."""
-        a, S = self.alpha, self.S
+        a, S, Z = self.alpha, self.S, self.Z
+        n = self.mu.shape[0]
         # psi0: sum_n s_f^2
-        g0 = np.broadcast_to(np.asarray(g0, dtype=float), (self.mu.shape[0],))
+        g0 = np.broadcast_to(np.asarray(g0, dtype=float), (n,))
         dlogvar = float(g0.sum() * self.variance)
         # psi1
         T1 = g1 * self.psi1                                             # (N, M)
@@ -98,18 +103,25 @@ class PsiStatistics:
         d_Z = np.einsum("nm,nmq->mq", T1, self.diff1 * (a / self.den1)[:, None, :])
         d_alpha = -0.5 * np.sum(T1_rows * S / self.den1 + T1_diff2 / self.den1**2, 0)
         dlogvar += T1.sum()
-        # psi2 (g2 symmetric, shared by all points)
+        # psi2 (g2 symmetric, shared by all points). With D_abq = mu_nq - zbar_abq =
+        # (d_aq + d_bq) / 2 and the symmetry of T2 = g2 * psi2^n, the sums over a, b of T2 D and
+        # T2 D^2 and, for d Z, the sums over b of T2 D reduce to T2 d (one batched product)
         T2 = g2[None] * self.psi2n                                      # (N, M, M)
         T2_tot = T2.sum((1, 2))[:, None]
-        T2_dbar = np.einsum("nab,nabq->nq", T2, self.dbar)
-        T2_dbar2 = np.einsum("nab,nabq->nq", T2, self.dbar**2)
+        T2_sum = T2.sum(0)
+        T2_rows = T2.sum(2)                                             # (N, M)
+        d1 = self.diff1
+        Td = np.matmul(T2, d1)                                          # (N, M, Q)
+        T2_dbar = np.einsum("nm,nmq->nq", T2_rows, d1)
+        T2_dbar2 = 0.5 * (np.einsum("nm,nmq->nq", T2_rows, d1**2) + np.einsum("nmq,nmq->nq", d1, Td))
+        dZ2 = 0.5 * np.einsum("nmq,nq->mq", T2_rows[:, :, None] * d1 + Td, 1.0 / self.den2)
         d_mu += -2.0 * a / self.den2 * T2_dbar
         d_S += -a / self.den2 * T2_tot + 2.0 * a**2 / self.den2**2 * T2_dbar2
-        T2_sum = T2.sum(0)
+        sum_rows = T2_sum.sum(1)
+        TZ = T2_sum @ Z
         d_alpha += (-np.sum(T2_tot * S / self.den2, 0)
-                    - 0.25 * np.einsum("ab,abq->q", T2_sum, self.dz**2)
+                    - 0.5 * (sum_rows @ Z**2 - np.sum(Z * TZ, 0))
                     - np.sum(T2_dbar2 / self.den2**2, 0))
-        d_Z += (-a * np.einsum("ab,abq->aq", T2_sum, self.dz)
-                + 2.0 * a * np.einsum("nab,nabq->aq", T2, self.dbar / self.den2[:, None, None, :]))
+        d_Z += -a * (sum_rows[:, None] * Z - TZ) + 2.0 * a * dZ2
         dlogvar += 2.0 * T2.sum()
         return d_mu, d_S, d_Z, dlogvar, d_alpha

@@ -25,9 +25,13 @@ class PPCA(ShapeModel):
 
     Parameters
     ----------
-    n_components : int or None
+    n_components : int, None or "heldout"
         Latent dimension q; None = smallest q explaining `variance_fraction` of the (shrunk)
-        variance (thesis §5.4.1, 80 %).
+        variance (thesis §5.4.1, 80 %); "heldout" = the q with the highest mean held-out
+        log-likelihood in K-fold cross-validation (method.md §4 **beyond**; K = min(5, N) folds
+        of a fixed shuffle, q from 1 to the smallest training fold size - 1, the same shrinkage
+        setting in every fold). The per-q scores are kept in `heldout_scores_` (q -> mean
+        log-likelihood per held-out shape).
     shrinkage : "ledoit-wolf" or float in [0, 1]
         Weight d of (tr S / D) I in the shrunk covariance; 0 = plain ML PPCA (Tipping & Bishop).
     variance_fraction : float
@@ -69,15 +73,7 @@ class PPCA(ShapeModel):
         mean = Y.mean(0)
         Yc = Y - mean
         _, eigvals, axes = principal_axes(Yc)
-        if self.shrinkage == "ledoit-wolf":
-            shrinkage = ledoit_wolf_shrinkage(Yc)
-        else:
-            try:
-                shrinkage = float(self.shrinkage)
-            except (TypeError, ValueError):
-                raise ModelInputError(f"shrinkage must be 'ledoit-wolf' or a number in [0, 1], got {self.shrinkage!r}") from None
-            if not 0.0 <= shrinkage <= 1.0:
-                raise ModelInputError(f"shrinkage must be in [0, 1], got {shrinkage}")
+        shrinkage = self._shrinkage_value(Yc)
         spectrum, floor = shrunk_spectrum(eigvals, d, shrinkage)
         total = eigvals.sum()
         if self.n_components is None:
@@ -86,12 +82,39 @@ class PPCA(ShapeModel):
             q = latent_dim_for_variance(spectrum, total, self.variance_fraction)
             q = min(q, n - 1, d - 1, spectrum.size)
             q = max(q, 1)
+        elif isinstance(self.n_components, str) and self.n_components == "heldout":
+            self.heldout_scores_ = self._heldout_scores(Y)
+            q = max(self.heldout_scores_, key=self.heldout_scores_.get)
         else:
             q = check_latent_dim(self.n_components, n, d)
             if q > spectrum.size:
                 raise ModelInputError(f"latent dimension {q} exceeds the data's {spectrum.size} directions")
-        # eq. 5.19 on the shrunk covariance: discarded eigenvalues are spectrum[q:] and the
-        # D - rank directions off the data span, each of value `floor`
+        self._set_parameters(mean, eigvals.sum(), spectrum, axes, q)
+        self.shrinkage_ = float(shrinkage)
+        self.eigenvalues_ = spectrum
+        self.n_samples_ = n
+        self._prepare()
+        if progress is not None:
+            progress(1.0, "PPCA: done")
+        return self
+
+    _HELDOUT_FOLDS = 5
+
+    def _shrinkage_value(self, Yc: np.ndarray) -> float:
+        if isinstance(self.shrinkage, str) and self.shrinkage == "ledoit-wolf":
+            return ledoit_wolf_shrinkage(Yc)
+        try:
+            shrinkage = float(self.shrinkage)
+        except (TypeError, ValueError):
+            raise ModelInputError(f"shrinkage must be 'ledoit-wolf' or a number in [0, 1], got {self.shrinkage!r}") from None
+        if not 0.0 <= shrinkage <= 1.0:
+            raise ModelInputError(f"shrinkage must be in [0, 1], got {shrinkage}")
+        return shrinkage
+
+    def _set_parameters(self, mean, total, spectrum, axes, q) -> None:
+        """mean_, components_, noise_variance_ from the shrunk spectrum (eq. 5.19): the
+        discarded eigenvalues are spectrum[q:] and the D - rank directions off the data span."""
+        d = mean.shape[0]
         noise_variance = (total - spectrum[:q].sum()) / (d - q)
         if not noise_variance > 1e-12 * total / d:
             raise ModelInputError(
@@ -101,13 +124,38 @@ class PPCA(ShapeModel):
         self.mean_ = mean
         self.components_ = axes[:, :q] * np.sqrt(np.maximum(spectrum[:q] - noise_variance, 0.0))
         self.noise_variance_ = float(noise_variance)
-        self.shrinkage_ = float(shrinkage)
-        self.eigenvalues_ = spectrum
-        self.n_samples_ = n
-        self._prepare()
-        if progress is not None:
-            progress(1.0, "PPCA: done")
-        return self
+
+    def _heldout_scores(self, Y: np.ndarray) -> dict[int, float]:
+        """Mean held-out log-likelihood per shape for each candidate q (K-fold, fixed shuffle)."""
+        n, d = Y.shape
+        if n < 3:
+            raise ModelInputError(f"n_components='heldout' needs at least 3 shapes for cross-validation, got {n}")
+        k = min(self._HELDOUT_FOLDS, n)
+        folds = np.array_split(np.random.default_rng(0).permutation(n), k)
+        q_max = min(n - max(len(f) for f in folds) - 1, d - 1)
+        totals = np.zeros(q_max)
+        valid = np.ones(q_max, bool)
+        for held in folds:
+            train = np.setdiff1d(np.arange(n), held)
+            # one thin SVD per fold; every q from its spectrum
+            mean = Y[train].mean(0)
+            Yc = Y[train] - mean
+            _, eigvals, axes = principal_axes(Yc)
+            spectrum, _ = shrunk_spectrum(eigvals, d, self._shrinkage_value(Yc))
+            model = PPCA.__new__(PPCA)
+            for q in range(1, q_max + 1):
+                if not valid[q - 1]:
+                    continue
+                try:
+                    model._set_parameters(mean, eigvals.sum(), spectrum, axes, q)
+                except ModelInputError:           # zero noise variance (no shrinkage)
+                    valid[q - 1] = False
+                    continue
+                model._prepare()
+                totals[q - 1] += model.log_likelihood(Y[held]).sum()
+        if not valid.any():
+            raise ModelInputError("n_components='heldout': no latent dimension could be fitted in every fold")
+        return {q: float(totals[q - 1] / n) for q in range(1, q_max + 1) if valid[q - 1]}
 
     def _prepare(self) -> None:
         """Cache M = W^T W + s^2 I (q x q) used by Woodbury / posterior formulas."""
@@ -190,8 +238,10 @@ class PPCA(ShapeModel):
 
     # ------------------------------------------------------------------ arrays
     def _array_value(self, key: str):
-        if key == "param_n_components":
-            return -1 if self.n_components is None else int(self.n_components)
+        if key == "param_n_components":   # -1: variance rule, -2: held-out likelihood
+            if self.n_components is None:
+                return -1
+            return -2 if self.n_components == "heldout" else int(self.n_components)
         if key == "param_shrinkage":
             return str(self.shrinkage)
         if key == "param_variance_fraction":
@@ -212,7 +262,7 @@ class PPCA(ShapeModel):
                 shrink = float(shrink)
             except ValueError:
                 raise ModelFileError(f"PPCA arrays: param_shrinkage {shrink!r} is not 'ledoit-wolf' or a number") from None
-        self.__init__(n_components=None if nc < 0 else nc,
+        self.__init__(n_components=None if nc == -1 else "heldout" if nc == -2 else nc,
                       shrinkage=shrink,
                       variance_fraction=float(a["param_variance_fraction"]),
                       sample_noise=bool(a["param_sample_noise"]))

@@ -13,9 +13,9 @@ from scipy.stats import multivariate_normal
 from shapegen_core.errors import Cancelled, ModelFileError
 from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, model_from_arrays
 from shapegen_core.models.base import ModelInputError, ledoit_wolf_shrinkage
-from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound
+from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales, profile_scale
 from shapegen_core.models.gplvm import gplvm_log_likelihood
-from shapegen_core.models.kernels import ard_rbf
+from shapegen_core.models.kernels import PsiStatistics, ard_rbf
 
 # ----------------------------------------------------------------------------- data
 
@@ -100,6 +100,61 @@ def test_bgplvm_gradient_every_block():
         assert rel_err(grad[idx], numeric[idx]) < 1e-5, name
 
 
+def test_psi_statistics_match_direct_formulas():
+    """psi1 / psi2^n (computed without N x M x M x Q arrays) equal T&L 2010 eq. 15 term by term."""
+    rng = np.random.default_rng(12)
+    n, m, q = 5, 4, 3
+    mu, S, Z = rng.standard_normal((n, q)), rng.uniform(0.05, 1.0, (n, q)), rng.standard_normal((m, q))
+    variance, alpha = 1.7, rng.uniform(0.2, 3.0, q)
+    psi = PsiStatistics(mu, S, Z, variance, alpha)
+    for i in range(n):
+        for a in range(m):
+            den1 = alpha * S[i] + 1
+            assert psi.psi1[i, a] == pytest.approx(
+                variance * np.prod(den1 ** -0.5 * np.exp(-alpha * (mu[i] - Z[a]) ** 2 / (2 * den1))), rel=1e-12)
+            for b in range(m):
+                den2, zbar = 2 * alpha * S[i] + 1, 0.5 * (Z[a] + Z[b])
+                direct = variance**2 * np.prod(den2 ** -0.5 * np.exp(-alpha * (Z[a] - Z[b]) ** 2 / 4
+                                                                     - alpha * (mu[i] - zbar) ** 2 / den2))
+                assert psi.psi2n[i, a, b] == pytest.approx(direct, rel=1e-12)
+
+
+def test_profiled_scale_gradient_and_invariance():
+    """The optimiser's coordinates (latent scale per dimension profiled out): exact chain-rule
+    gradient, the data term is unchanged and the KL part is at its optimum over the scale."""
+    rng = np.random.default_rng(13)
+    n, d, q, m = 9, 5, 2, 4
+    Y = rng.standard_normal((n, d))
+    layout = BoundLayout(n, q, m)
+    x_t = layout.pack(rng.standard_normal((n, q)), np.log(rng.uniform(0.1, 0.5, (n, q))),
+                      rng.standard_normal((m, q)), np.log(1.3), np.log(rng.uniform(0.5, 2, q)), np.log(3.0))
+
+    def value_and_grad(v):
+        x, chain = profile_scale(v, layout)
+        F, g = bgplvm_bound(x, layout, Y, d, 1e-6)
+        return F, chain(g)
+    _, grad = value_and_grad(x_t)
+    numeric = central_diff(lambda v: value_and_grad(v)[0], x_t)
+    names = ["mu", "log S", "Z inducing", "log s_f^2", "log alpha", "log beta"]
+    for name, idx in zip(names, np.split(np.arange(x_t.size), layout.splits)):
+        assert rel_err(grad[idx], numeric[idx]) < 1e-5, name
+    # the mapped point has sum_n (mu^2 + S) = N per dimension, and the bound there is >= the
+    # bound at the unmapped point (same data term, optimal KL)
+    x, _ = profile_scale(x_t, layout)
+    mu, log_S = layout.unpack(x)[:2]
+    np.testing.assert_allclose(np.sum(mu**2 + np.exp(log_S), 0), n, rtol=1e-12)
+    assert bgplvm_bound(x, layout, Y, d, 1e-6)[0] >= bgplvm_bound(x_t, layout, Y, d, 1e-6)[0] - 1e-9
+    # and the map is idempotent (a fixed point once the scale is optimal)
+    np.testing.assert_allclose(profile_scale(x, layout)[0], x, rtol=1e-12, atol=1e-12)
+
+
+def test_block_scales_are_inverse_sqrt_curvature():
+    """On a separable quadratic with block curvatures c_b the preconditioner is 1 / sqrt(c_b)."""
+    curv = np.repeat([4.0, 1e4, 0.25], [3, 2, 4])
+    scales = block_scales(lambda x: (0.5 * np.sum(curv * x**2), curv * x), np.ones(curv.size), [3, 5])
+    np.testing.assert_allclose(scales, 1.0 / np.sqrt(curv), rtol=1e-8)
+
+
 def test_prediction_objective_gradients(fitted):
     models, Y, Y_test = fitted
     rng = np.random.default_rng(3)
@@ -147,6 +202,28 @@ def test_ppca_equals_dense_gaussian_and_conditional():
         expected = model.mean_[h] + C[np.ix_(h, o)] @ np.linalg.solve(C[np.ix_(o, o)], (Y_test[i] - model.mean_)[o])
         np.testing.assert_allclose(completed[i, h], expected, rtol=1e-8, atol=1e-10)
         np.testing.assert_array_equal(completed[i, o], Y_test[i, o])
+
+
+def test_ppca_heldout_latent_dim():
+    """n_components='heldout' picks the q of the generating model (ML PPCA), scores every
+    candidate q, reproduces, and survives the array round trip; the default stays the 80 % rule."""
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        Y = linear_data(rng, 0, d=30, q=3, noise=0.05)(40)
+        model = PPCA(n_components="heldout", shrinkage=0).fit(Y)
+        assert model.latent_dim == 3
+        scores = model.heldout_scores_
+        assert sorted(scores) == list(range(1, 1 + len(scores))) and len(scores) >= 5
+        assert max(scores, key=scores.get) == 3 and scores[3] > scores[2] + 1.0
+    again = PPCA(n_components="heldout", shrinkage=0).fit(Y)
+    np.testing.assert_array_equal(again.components_, model.components_)
+    restored = model_from_arrays(model.to_arrays())
+    assert restored.n_components == "heldout" and restored.latent_dim == 3
+    assert PPCA().n_components is None
+    with pytest.raises(ModelInputError, match="at least 3"):
+        PPCA(n_components="heldout").fit(Y[:2])
+    with pytest.raises(ModelInputError, match="integer"):
+        PPCA(n_components="best").fit(Y)
 
 
 def test_ppca_matches_scikit_learn():
