@@ -323,7 +323,7 @@ def add_generate_commands(sub, positive_int) -> None:
     p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
     p.add_argument("--align", choices=("consensus", "pca", "none"), default="consensus", help="orientation rule")
     p.add_argument("--scale", choices=SCALE_MODES, default="variance", help="scaling rule (default %(default)s)")
-    p.add_argument("--stiffness", type=float, default=1.0, help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
+    p.add_argument("--stiffness", type=float, default=2.0, help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
     p.add_argument("--jobs", type=positive_int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.set_defaults(func=cmd_fit)
