@@ -139,7 +139,7 @@ def test_groupwise_beats_pairwise_on_the_procedural_class():
     pairwise = correspond(prepared, CorrespondenceSettings(groupwise_rounds=0), template=template, jobs=1)
     groupwise = correspond(prepared, CorrespondenceSettings(groupwise_rounds=1), template=template, jobs=1)
     e_pair, e_group = _consensus_error(shapes, pairwise), _consensus_error(shapes, groupwise)
-    # deterministic seeds: a strict improvement is the claim (measured 1.84 % vs 1.88 %)
+    # deterministic seeds: a strict improvement is the claim (measured 1.83 % vs 1.86 % at the default iteration caps 4/20)
     assert e_group < e_pair, f"groupwise {e_group:.4f} vs pairwise {e_pair:.4f}"
     assert e_group < 0.03
 
@@ -198,6 +198,39 @@ def test_closest_point_on_surface_agrees_with_trimesh():
     np.testing.assert_allclose(np.linalg.norm(ours.points - queries, axis=1), ours.distance, atol=1e-12)
     rebuilt = np.einsum("nk,nkd->nd", ours.barycentric, vertices[faces[ours.face_index]])
     np.testing.assert_allclose(rebuilt, ours.points, atol=1e-12)
+
+
+def test_tracked_closest_points_stay_exact_while_points_move():
+    """The Verlet-list tracker used inside ICP gives the exact answers of a brute-force
+    search (plain and normal-compatible) on a mesh mixing tiny and huge triangles."""
+    rng = np.random.default_rng(3)
+    vase = make_vases(1, seed=2, resolution=(14, 14), pose=False)[0].mesh
+    big = np.array([[2.0, -4, 0], [2.0, 4, 0], [2.0, 0, 5]])
+    vertices = np.vstack([vase.vertices, big])
+    faces = np.vstack([vase.faces, [[len(vase.vertices), len(vase.vertices) + 1, len(vase.vertices) + 2]]])
+    surface = TargetSurface(vertices, faces)
+    tracker = surface.tracker()
+    points = np.vstack([vase.sample_surface(150, rng).points, rng.uniform(-1, 2.5, size=(50, 3))])
+    velocity = rng.normal(scale=0.05, size=points.shape)
+    normals = rng.normal(size=points.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    triangles = vertices[faces]
+    for step in range(8):
+        points = points + velocity * 0.7**step
+        use = normals if step % 2 else None
+        got = tracker.closest(points, use, 0.0)
+        every = np.repeat(points, len(faces), axis=0)
+        closest, _ = corr.closest_points_on_triangles(every, np.tile(triangles, (len(points), 1, 1)))
+        brute = np.linalg.norm(closest - every, axis=1).reshape(len(points), len(faces))
+        if use is not None:
+            brute = np.where(use @ surface.face_normals.T >= 0.0, brute, np.inf)
+        found = np.isfinite(got.distance)
+        assert found.mean() > 0.9
+        np.testing.assert_allclose(got.distance[found], brute.min(axis=1)[found], atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(got.points - points, axis=1)[found], got.distance[found], atol=1e-12)
+        stateless = surface.closest(points, use, 0.0)
+        both = found & np.isfinite(stateless.distance)
+        np.testing.assert_allclose(got.distance[both], stateless.distance[both], atol=1e-12)
 
 
 def test_normal_equation_solve_matches_dense_least_squares():
