@@ -76,15 +76,13 @@ def decompose(shapes, template_index, template_landmarks, face_index, barycentri
     """Where the vs-template error comes from (shapes other than the template, % of the
     diagonal): the profile part (landmark moved to its true θ, keeping its s) and the
     angular part (true s, its θ); the mean error per surface part (PROFILE_BREAKS, by the
-    true s); the median signed θ error (a rotation about the vase axis shows here); and
-    the error of the *affine* angular correspondence (true s; θ mapped as the affine map
-    between the two elliptical sections maps it), i.e. how far the polar-angle ground
-    truth is from what an affine-consistent registration recovers."""
+    true s); and the median signed θ error (a rotation about the vase axis shows here).
+    The sections use the eccentric angle (core/datasets.py), so an affine map between
+    two sections keeps θ: the angular ground truth is affine-consistent by construction."""
     t = template_index
     st_true = shapes[t].surface_coordinates(template_landmarks.face_index, template_landmarks.barycentric)
     part = np.clip(np.searchsorted(PROFILE_BREAKS, st_true[:, 0], side="right") - 1, 0, len(PARTS) - 1)
-    e_t = shapes[t].params.ellipticity
-    out = {"total": [], "profile (s)": [], "angle (θ)": [], "median signed Δθ (deg)": [], "affine-angle reference": []}
+    out = {"total": [], "profile (s)": [], "angle (θ)": [], "median signed Δθ (deg)": []}
     per_part = []
     for m, shape in enumerate(shapes):
         if m == t:
@@ -98,9 +96,6 @@ def decompose(shapes, template_index, template_landmarks, face_index, barycentri
         out["profile (s)"].append(100 * error(shape.points_at(np.c_[st[:, 0], st_true[:, 1]])).mean())
         out["angle (θ)"].append(100 * error(shape.points_at(np.c_[st_true[:, 0], st[:, 1]])).mean())
         out["median signed Δθ (deg)"].append(float(np.degrees(np.median(np.angle(np.exp(1j * (st[:, 1] - st_true[:, 1])))))))
-        e_m = shape.params.ellipticity
-        theta = np.arctan2((1 - e_m) / (1 - e_t) * np.sin(st_true[:, 1]), (1 + e_m) / (1 + e_t) * np.cos(st_true[:, 1]))
-        out["affine-angle reference"].append(100 * error(shape.points_at(np.c_[st_true[:, 0], theta])).mean())
         per_part.append([100 * total[part == k].mean() if (part == k).any() else np.nan for k in range(len(PARTS))])
     summary = {k: float(np.mean(v)) for k, v in out.items()}
     summary["per part"] = dict(zip(PARTS, np.nanmean(np.array(per_part), axis=0).tolist()))
@@ -216,9 +211,7 @@ def procedural(quick: bool, log) -> dict:
             f"{d['angle (θ)']:.3f}, median signed Δθ {d['median signed Δθ (deg)']:+.2f}°; per part "
             + ", ".join(f"{k} {v:.2f}" for k, v in d["per part"].items()))
     d = diagnosis["ours (groupwise)"]
-    log(f"  affine-angle reference (true s, θ by the affine map between the sections): "
-        f"{d['affine-angle reference']:.3f} % — the polar-angle ground truth's own disagreement with an "
-        f"affine-consistent correspondence; landmark share per part: "
+    log("  landmark share per part: "
         + ", ".join(f"{k} {100 * v:.0f} %" for k, v in d["landmark share per part"].items()))
 
     pairs = [m for m in range(n) if m != t][: (2 if quick else 4)]
