@@ -52,6 +52,10 @@ def gplvm_log_likelihood(params: np.ndarray, YYt: np.ndarray, n_features: int, l
     return value, grad
 
 
+#: Lower bound of the RBF length-scale, in units of the (unit-spread, N(0, I)-prior) latents.
+MIN_LENGTHSCALE = 0.25
+
+
 class GPLVM(ShapeModel):
     """GP-LVM shape model with an RBF kernel.
 
@@ -109,11 +113,21 @@ class GPLVM(ShapeModel):
         data_var = np.trace(YYt) / (n * d)
         Z0 = pca_latents(Yc, q)
         x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(100.0 / data_var)]])
-        # noise variance kept >= 1e-8 of the data variance so K stays positive definite
-        bounds = [(None, None)] * (n * q) + [(None, None), (None, None), (None, np.log(1e8 / data_var))]
+        # noise variance kept >= 1e-8 of the data variance so K stays positive definite;
+        # length-scale kept >= MIN_LENGTHSCALE (latents start at unit spread and carry the
+        # N(0, I) prior below): without both, few shapes (N = 6, Q = 2) let the optimiser
+        # collapse to a white-noise kernel that memorises each shape and decodes every new
+        # latent to the mean shape (measured: ℓ = 0.03 with latents spread 1–4)
+        bounds = ([(None, None)] * (n * q)
+                  + [(None, None), (np.log(MIN_LENGTHSCALE), None), (None, np.log(1e8 / data_var))])
 
         def objective(x):
             value, grad = gplvm_log_likelihood(x, YYt, d, q)
+            # MAP with the unit Gaussian latent prior of Lawrence (2005): −½ Σ ‖z_n‖²
+            z = x[: n * q]
+            value = value - 0.5 * float(z @ z)
+            grad = grad.copy()
+            grad[: n * q] -= z
             return -value, -grad
 
         result = lbfgs(objective, x0, max_iter=self.max_iter, progress=progress,
@@ -125,7 +139,7 @@ class GPLVM(ShapeModel):
         self.kernel_variance_ = float(np.exp(log_var))
         self.lengthscale_ = float(np.exp(log_ls))
         self.noise_variance_ = float(np.exp(-log_beta))
-        self.log_likelihood_ = float(-result.fun)
+        self.log_likelihood_ = float(gplvm_log_likelihood(x, YYt, d, q)[0])  # eq. 5.34, without the prior
         self.n_iter_ = int(result.nit)
         self.optimizer_message_ = str(result.message)
         self._prepare()
