@@ -819,30 +819,29 @@ class Correspondence:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Correspondence":
-        spec = {
-            "names": ArraySpec("U", ("M",)),
-            "points": ArraySpec("f", ("M", "L", 3)),
-            "points_input": ArraySpec("f", ("M", "L", 3)),
-            "face_index": ArraySpec("i", ("M", "L")),
-            "barycentric": ArraySpec("f", ("M", "L", 3)),
-            "edges": ArraySpec("i", ("E", 2)),
-            "template_points": ArraySpec("f", ("L", 3)),
-            "template_name": ArraySpec("U", ()),
-            "transforms": ArraySpec("f", ("M", 4, 4)),
-            "residuals": ArraySpec("f", ("M",)),
-            "iterations": ArraySpec("i", ("M",)),
-            "outliers": ArraySpec("b", ("M",)),
-            "outlier_reasons": ArraySpec("U", ("M",)),
-            "settings_keys": ArraySpec("U", ("S",)),
-            "settings_values": ArraySpec("U", ("S",)),
-        }
-        a = load_npz(path, CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, spec)
+        """Read a file written by `save`; refuses anything else (ModelFileError naming it)."""
+        arrays = load_npz(path, CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, CORRESPONDENCE_SPEC)
+        return cls._from_validated(arrays, str(path))
+
+    @classmethod
+    def from_arrays(cls, arrays, source: str = "correspondence arrays") -> "Correspondence":
+        """Rebuild from `to_arrays()` output held in memory (e.g. inside a model file),
+        with the same validation as `load`; errors start with `source`."""
+        from .npzfile import validate_arrays
+
+        arrays = {k: np.asarray(v) for k, v in dict(arrays).items()}
+        validate_arrays(arrays, CORRESPONDENCE_SPEC, source)
+        return cls._from_validated(arrays, source)
+
+    @classmethod
+    def _from_validated(cls, a: dict, label: str) -> "Correspondence":
+        """Checks beyond dtypes and shapes (graph indices, unique names), then build."""
         n_landmarks = a["points"].shape[1]
         edges = a["edges"]
         if edges.size and (edges.min() < 0 or edges.max() >= n_landmarks):
-            raise ModelFileError(f"{path}: landmark graph refers to landmarks outside [0, {n_landmarks})")
+            raise ModelFileError(f"{label}: landmark graph refers to landmarks outside [0, {n_landmarks})")
         if len(set(a["names"].tolist())) != len(a["names"]):
-            raise ModelFileError(f"{path}: shape names are not unique")
+            raise ModelFileError(f"{label}: shape names are not unique")
         return cls(
             names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
             face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
@@ -853,34 +852,25 @@ class Correspondence:
         )
 
 
-    @classmethod
-    def from_arrays(cls, arrays, source: str = "correspondence arrays") -> "Correspondence":
-        """Rebuild from `to_arrays()` output held in memory (e.g. inside a model file),
-        with the same validation as `load`; errors start with `source`."""
-        import tempfile
+#: Arrays of a correspondence file / of `Correspondence.to_arrays()`, as checked on load.
+CORRESPONDENCE_SPEC = {
+    "names": ArraySpec("U", ("M",)),
+    "points": ArraySpec("f", ("M", "L", 3)),
+    "points_input": ArraySpec("f", ("M", "L", 3)),
+    "face_index": ArraySpec("i", ("M", "L")),
+    "barycentric": ArraySpec("f", ("M", "L", 3)),
+    "edges": ArraySpec("i", ("E", 2)),
+    "template_points": ArraySpec("f", ("L", 3)),
+    "template_name": ArraySpec("U", ()),
+    "transforms": ArraySpec("f", ("M", 4, 4)),
+    "residuals": ArraySpec("f", ("M",)),
+    "iterations": ArraySpec("i", ("M",)),
+    "outliers": ArraySpec("b", ("M",)),
+    "outlier_reasons": ArraySpec("U", ("M",)),
+    "settings_keys": ArraySpec("U", ("S",)),
+    "settings_values": ArraySpec("U", ("S",)),
+}
 
-        from .npzfile import validate_arrays
-
-        arrays = {k: np.asarray(v) for k, v in dict(arrays).items()}
-        spec = {
-            "names": ArraySpec("U", ("M",)), "points": ArraySpec("f", ("M", "L", 3)),
-            "points_input": ArraySpec("f", ("M", "L", 3)), "face_index": ArraySpec("i", ("M", "L")),
-            "barycentric": ArraySpec("f", ("M", "L", 3)), "edges": ArraySpec("i", ("E", 2)),
-            "template_points": ArraySpec("f", ("L", 3)), "template_name": ArraySpec("U", ()),
-            "transforms": ArraySpec("f", ("M", 4, 4)), "residuals": ArraySpec("f", ("M",)),
-            "iterations": ArraySpec("i", ("M",)), "outliers": ArraySpec("b", ("M",)),
-            "outlier_reasons": ArraySpec("U", ("M",)), "settings_keys": ArraySpec("U", ("S",)),
-            "settings_values": ArraySpec("U", ("S",)),
-        }
-        validate_arrays(arrays, spec, source)
-        with tempfile.TemporaryDirectory() as folder:
-            # one validation path: the same checks as a file on disk
-            path = Path(folder) / "correspondence.npz"
-            save_npz(path, CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, {k: arrays[k] for k in spec})
-            try:
-                return cls.load(path)
-            except ModelFileError as exc:
-                raise ModelFileError(str(exc).replace(str(path), source)) from None
 
 def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> int:
     """Index of the set with the smallest summed symmetric Chamfer distance (mean squared
