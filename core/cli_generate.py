@@ -100,7 +100,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .correspond import Correspondence, CorrespondenceSettings
     from .deform import DeformSettings
     from .io import read_folder
-    from .pipeline import FitSettings, GenerativeShapeModel, _make_model, _scalar_settings, fit_meshes
+    from .pipeline import FitSettings, fit_meshes, fit_shape_model
 
     start = time.perf_counter()
     settings = FitSettings(
@@ -128,14 +128,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                     f"{source}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
                     "was computed from) so the training meshes can be meshed")
             meshes = _meshes_for_correspondence(corr, args.meshes)
-            estimator = _make_model(settings)
-            estimator.fit(corr.landmark_matrix(), progress=lambda f, s: report(f, f"{args.model}: {s}"))
-            from . import __version__
-
-            model = GenerativeShapeModel(meshes, corr, estimator, settings=_scalar_settings(settings),
-                                         deform_settings=settings.deform,
-                                         metadata={"created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                                                   "n_shapes": str(len(meshes)), "shapegen_version": __version__})
+            model = fit_shape_model(meshes, corr, settings, progress=report)
     else:
         raise CommandError(f"{source}: expected a folder of meshes, a prepared .npz or a correspondence .npz")
     model.save(args.output)

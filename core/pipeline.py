@@ -35,7 +35,7 @@ from .models import MODEL_TYPES, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
-           "TEMPLATE_CHOICES", "fit_meshes"]
+           "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
 
 MODEL_FILE_FORMAT = "shapegen.model"
 MODEL_FILE_VERSION = 1
@@ -390,15 +390,33 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
     corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=settings.jobs,
                       progress=correspondence_progress, should_cancel=cancelled)
     check()
+    return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings, progress=report,
+                           should_cancel=cancelled, span=(0.75, 1.0), started=start)
+
+
+def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSettings = FitSettings(),
+                    progress: Progress | None = None, should_cancel: Callable[[], bool] | None = None,
+                    span: tuple[float, float] = (0.0, 1.0), started: float | None = None) -> GenerativeShapeModel:
+    """The shape-model stage (§5.3) on a finished correspondence of `meshes` (normalised
+    frame): fit `settings.model` to the landmark matrix and bundle the fitted whole.
+    Progress is reported within `span`; `started` (perf_counter) dates the fit's start."""
+    report = progress or (lambda fraction, stage: None)
+    cancelled = should_cancel or (lambda: False)
+    start = time.perf_counter() if started is None else started
+    low, high = span
+
+    def check():
+        if cancelled():
+            raise Cancelled("fit cancelled")
+
     model = _make_model(settings)
     model.fit(corr.landmark_matrix(),
-              progress=lambda f, msg: (check(), report(0.75 + 0.25 * f, f"{settings.model}: {msg}")))
+              progress=lambda f, msg: (check(), report(low + (high - low) * f, f"{settings.model}: {msg}")))
     check()
-    report(1.0, "fitted")
-    metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",
-                "n_shapes": str(n_shapes)}
+    report(high, "fitted")
     from . import __version__
-    metadata["shapegen_version"] = __version__
-    return GenerativeShapeModel([s.mesh for s in prepared.shapes], corr, model,
-                                settings=_scalar_settings(settings), deform_settings=settings.deform,
-                                metadata=metadata)
+
+    metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",
+                "n_shapes": str(len(meshes)), "shapegen_version": __version__}
+    return GenerativeShapeModel(list(meshes), corr, model, settings=_scalar_settings(settings),
+                                deform_settings=settings.deform, metadata=metadata)

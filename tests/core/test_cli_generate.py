@@ -102,3 +102,17 @@ def test_a_corrupt_model_file_is_one_line_naming_it(tmp_path):
     result = run("sample", bad, "-n", 1, "-o", tmp_path / "out")
     assert result.returncode == 2
     assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
+
+
+def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_file, tmp_path):
+    data = model_file.parent / "data"
+    corr = tmp_path / "corr.npz"
+    result = run("correspond", data, "-o", corr, "--landmarks", 60, "--jobs", 1)
+    assert result.returncode == 0, result.stderr
+    result = run("fit", corr, "-o", tmp_path / "m.npz", "--model", "ppca")
+    assert result.returncode == 2 and "--meshes" in result.stderr
+    assert not (tmp_path / "m.npz").exists()
+    result = run("fit", corr, "-o", tmp_path / "m.npz", "--model", "ppca", "--meshes", data)
+    assert result.returncode == 0, result.stderr
+    info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
+    assert info["model"] == "ppca" and info["shapes"] == 6 and info["metadata"]["n_shapes"] == "6"
