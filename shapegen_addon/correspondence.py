@@ -13,8 +13,6 @@ Fig. 4.2–4.4): the same colour should sit on the same part of every shape.
 from __future__ import annotations
 
 import json
-import tempfile
-import time
 from pathlib import Path
 
 import bpy
@@ -22,12 +20,11 @@ import numpy as np
 from bpy.props import BoolProperty, StringProperty
 
 from ..core.collection import PreparedCollection
-from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import mesh_data_from_arrays, object_to_mesh
-from .fitting import poll_fit, start_polling
+from .fitting import run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       TRANSFORM_KEY, marker_mesh_arrays)
@@ -199,35 +196,15 @@ class SHAPEGEN_OT_find_correspondences(bpy.types.Operator):
         except (TypeError, ValueError) as exc:
             self.report({"ERROR"}, f"Invalid correspondence settings: {exc}")
             return {"CANCELLED"}
-        folder = Path(tempfile.mkdtemp(prefix="shapegen-correspond-"))
-        try:
+        def start(folder: Path) -> None:
             to_prepared_collection(objects).save(folder / "prepared.npz")
             job = BackgroundJob("correspond", {"prepared": str(folder / "prepared.npz"), "settings": options,
                                                "output": str(folder / "correspondence.npz")})
             MANAGER.start(job, _finish, label=f"correspond '{collection.name}'", folder=folder,
                           payload={"scene": context.scene.name, "collection": collection.name}, prepare=_load)
-        except (ShapeGenError, OSError) as exc:
-            import shutil
 
-            shutil.rmtree(folder, ignore_errors=True)
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        settings.job_state = "RUNNING"
-        settings.job_fraction = 0.0
-        settings.job_stage = "starting"
-        settings.job_message = ""
-        if self.wait:
-            while MANAGER.running:
-                poll_fit()  # polls whichever job the manager runs
-                time.sleep(0.05)
-            if settings.job_state != "DONE":
-                self.report({"ERROR"}, settings.job_message)
-                return {"CANCELLED"}
-            self.report({"INFO"}, settings.job_message)
-            return {"FINISHED"}
-        start_polling()
-        self.report({"INFO"}, f"Finding correspondences across {len(objects)} shapes in the background")
-        return {"FINISHED"}
+        return run_worker_job(self, settings, "shapegen-correspond-", start, wait=self.wait,
+                              started=f"Finding correspondences across {len(objects)} shapes in the background")
 
 
 CLASSES = (SHAPEGEN_OT_find_correspondences,)

@@ -191,15 +191,6 @@ def tag_object(obj: bpy.types.Object, scene: bpy.types.Scene, z, template: str, 
 
 
 # ------------------------------------------------------------------------------ operators
-class _NeedsModel:
-    @classmethod
-    def poll(cls, context):
-        if context.scene.shapegen.model_text is None:
-            cls.poll_message_set("No fitted model in this scene: fit or load one first")
-            return False
-        return True
-
-
 class _NeedsLive:
     @classmethod
     def poll(cls, context):
@@ -223,7 +214,7 @@ def _run(operator, function) -> set[str]:
     return {"FINISHED"}
 
 
-class SHAPEGEN_OT_explore(_NeedsModel, bpy.types.Operator):
+class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
     """Create the live object (a template mesh driven by the latent sliders), or rebuild it"""
 
     bl_idname = "shapegen.explore"
@@ -324,7 +315,7 @@ class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
         return _run(self, work)
 
 
-class SHAPEGEN_OT_latent_map(_NeedsModel, bpy.types.Operator):
+class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
     """Draw the training shapes' latent vectors as a 2-D map (image "ShapeGen Latent Map"):
     training shapes blue, outliers red, ShapeGen samples green, the live object white"""
 

@@ -199,6 +199,41 @@ def start_polling() -> None:
         bpy.app.timers.register(_timer, first_interval=POLL_INTERVAL)
 
 
+def run_worker_job(operator, settings, prefix: str, start, *, wait: bool, started: str) -> set[str]:
+    """The shared tail of the operators that run core work in a worker (Fit, Find
+    Correspondences): `start(folder)` writes the job's inputs into a fresh temporary folder
+    and starts it on `MANAGER`; if that fails the folder is removed and the error reported.
+    Then the job state is mirrored into `settings`, and the operator either blocks until
+    the job has ended (`wait`: scripts and background mode, where timers never fire) or
+    leaves it to the UI timer."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        start(folder)
+    except (ShapeGenError, OSError) as exc:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
+        operator.report({"ERROR"}, str(exc))
+        return {"CANCELLED"}
+    settings.job_state = "RUNNING"
+    settings.job_fraction = 0.0
+    settings.job_stage = "starting"
+    settings.job_message = ""
+    if wait:
+        status = MANAGER.last_status
+        while MANAGER.running:
+            status = poll_fit()
+            time.sleep(0.05)
+        if status is None or status.state != "done" or settings.job_state != "DONE":
+            operator.report({"ERROR"}, settings.job_message)
+            return {"CANCELLED"}
+        operator.report({"INFO"}, settings.job_message)
+        return {"FINISHED"}
+    start_polling()
+    operator.report({"INFO"}, started)
+    return {"FINISHED"}
+
+
 def unregister_timer() -> None:
     if bpy.app.timers.is_registered(_timer):
         bpy.app.timers.unregister(_timer)
@@ -257,8 +292,7 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
             self.report({"ERROR"}, f"Extra settings are not a JSON object: {exc}")
             return {"CANCELLED"}
         options = fit_settings_dict(settings, extra)
-        folder = Path(tempfile.mkdtemp(prefix="shapegen-fit-"))
-        try:
+        def start(folder: Path) -> None:
             _check_settings(options)
             gathered = gather_meshes(objects)
             meshes = folder / "meshes.npz"
@@ -267,29 +301,9 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
             MANAGER.start(job, _finish, label=f"fit '{collection.name}'", folder=folder,
                           payload={"scene": scene.name, "name": collection.name}, prepare=_load_result,
                           setup=lambda: save_meshes(gathered, meshes))
-        except (ShapeGenError, OSError) as exc:
-            import shutil
 
-            shutil.rmtree(folder, ignore_errors=True)
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        settings.job_state = "RUNNING"
-        settings.job_fraction = 0.0
-        settings.job_stage = "starting"
-        settings.job_message = ""
-        if self.wait:
-            status = MANAGER.last_status
-            while MANAGER.running:
-                status = poll_fit()
-                time.sleep(0.05)
-            if status is None or status.state != "done" or settings.job_state != "DONE":
-                self.report({"ERROR"}, settings.job_message)
-                return {"CANCELLED"}
-            self.report({"INFO"}, settings.job_message)
-            return {"FINISHED"}
-        start_polling()
-        self.report({"INFO"}, f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
-        return {"FINISHED"}
+        return run_worker_job(self, settings, "shapegen-fit-", start, wait=self.wait,
+                              started=f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
 
 
 class SHAPEGEN_OT_fit_cancel(bpy.types.Operator):

@@ -57,16 +57,7 @@ def object_latent(model, scene: bpy.types.Scene, obj: bpy.types.Object) -> np.nd
                         "training shape (named like one of the model's shapes) or a ShapeGen sample of this model")
 
 
-class _NeedsModel:
-    @classmethod
-    def poll(cls, context):
-        if context.scene.shapegen.model_text is None:
-            cls.poll_message_set("No fitted model in this scene: fit or load one first")
-            return False
-        return True
-
-
-class SHAPEGEN_OT_sample(_NeedsModel, bpy.types.Operator):
+class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
     """Sample new shapes from the model into the "ShapeGen Samples" collection, on a grid"""
 
     bl_idname = "shapegen.sample"
@@ -113,7 +104,7 @@ class SHAPEGEN_OT_sample(_NeedsModel, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SHAPEGEN_OT_interpolate(_NeedsModel, bpy.types.Operator):
+class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
     """In-between shapes of two objects (training shapes or samples), linear in the latent
     space: K new objects in a row, or one object with a shape-key animation"""
 
@@ -218,7 +209,7 @@ def _fcurves(id_data) -> list:
     return list(getattr(action, "fcurves", []))
 
 
-class SHAPEGEN_OT_modes_to_shape_keys(_NeedsModel, bpy.types.Operator):
+class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
     """PPCA modes as native shape keys on the template mesh (key k = mean shape + mode k,
     range ±3): plain Blender data that keeps working without the add-on"""
 

@@ -35,10 +35,21 @@ from bpy.app.handlers import persistent
 from ..core.errors import ModelFileError, ShapeGenError
 from ..core.pipeline import GenerativeShapeModel
 
-__all__ = ["pack_model", "get_model", "require_model", "model_id", "model_name", "store_fitted_model",
+__all__ = ["NeedsModel", "pack_model", "get_model", "require_model", "model_id", "model_name", "store_fitted_model",
            "forget_cache", "register_handlers", "unregister_handlers", "MODEL_ID_KEY"]
 
 MODEL_ID_KEY = "shapegen_model_id"
+
+
+class NeedsModel:
+    """Operator mixin: poll() is False, with the reason, while the scene has no model."""
+
+    @classmethod
+    def poll(cls, context):
+        if context.scene.shapegen.model_text is None:
+            cls.poll_message_set("No fitted model in this scene: fit or load one first")
+            return False
+        return True
 MODEL_NAME_KEY = "shapegen_model_name"
 MODEL_FILE_KEY = "shapegen_model_npz"  # bytes: the model .npz file
 
