@@ -17,6 +17,7 @@ import numpy as np
 
 from .errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, Landmarks, select_landmarks
+from . import meshset
 from .mesh import Mesh
 from .npzfile import ArraySpec, load_npz, save_npz
 from .preprocess import PreparedShape, ShapeTransform, prepare_collection
@@ -46,15 +47,10 @@ class PreparedCollection:
 
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
-        v_off = np.cumsum([0] + [s.mesh.n_vertices for s in self.shapes])
-        f_off = np.cumsum([0] + [s.mesh.n_faces for s in self.shapes])
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
         return {
             "names": np.asarray(self.names, dtype=str),
-            "vertices": np.concatenate([s.mesh.vertices for s in self.shapes]),
-            "faces": np.concatenate([s.mesh.faces for s in self.shapes]),
-            "vertex_offsets": v_off.astype(np.int64),
-            "face_offsets": f_off.astype(np.int64),
+            **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
             "transforms": np.stack([s.transform.matrix for s in self.shapes]),
             "orientation_changed": np.asarray([s.orientation_changed for s in self.shapes]),
             "landmarks": np.concatenate([l.points for l in self.landmarks]),
@@ -73,10 +69,7 @@ class PreparedCollection:
     def load(cls, path: str | os.PathLike) -> "PreparedCollection":
         spec = {
             "names": ArraySpec("U", ("M",)),
-            "vertices": ArraySpec("f", (None, 3)),
-            "faces": ArraySpec("i", (None, 3)),
-            "vertex_offsets": ArraySpec("i", ("M+1",)),
-            "face_offsets": ArraySpec("i", ("M+1",)),
+            **meshset.spec(),
             "transforms": ArraySpec("f", ("M", 4, 4)),
             "orientation_changed": ArraySpec("b", ("M",)),
             "landmarks": ArraySpec("f", ("Ltot", 3)),
@@ -89,19 +82,14 @@ class PreparedCollection:
         }
         a = load_npz(path, PREPARED_FORMAT, PREPARED_VERSION, spec)
         m = len(a["names"])
-        if len(a["vertex_offsets"]) != m + 1:
-            raise ModelFileError(f"{path}: offsets do not match the number of shapes ({m})")
-        for key, total in (("vertex_offsets", len(a["vertices"])), ("face_offsets", len(a["faces"])),
-                           ("landmark_offsets", len(a["landmarks"]))):
-            off = a[key]
-            if off[0] != 0 or off[-1] != total or np.any(np.diff(off) < 0):
-                raise ModelFileError(f"{path}: array {key!r} is inconsistent with the data it indexes")
+        lo = a["landmark_offsets"]
+        if len(lo) != m + 1 or lo[0] != 0 or lo[-1] != len(a["landmarks"]) or np.any(np.diff(lo) < 0):
+            raise ModelFileError(f"{path}: array 'landmark_offsets' is inconsistent with the data it indexes")
+        meshes = meshset.unpack(a, a["names"].tolist(), str(path))
         shapes, landmarks = [], []
-        vo, fo, lo = a["vertex_offsets"], a["face_offsets"], a["landmark_offsets"]
-        for i in range(m):
-            name = str(a["names"][i])
+        for i, mesh in enumerate(meshes):
+            name = mesh.name
             try:
-                mesh = Mesh(a["vertices"][vo[i]:vo[i + 1]], a["faces"][fo[i]:fo[i + 1]], name=name)
                 transform = ShapeTransform.from_matrix(a["transforms"][i])
             except ValueError as exc:
                 raise ModelFileError(f"{path}: shape {name!r} is invalid: {exc}") from None

@@ -37,7 +37,10 @@ class ArraySpec:
         self.finite = finite  # refuse NaN / inf (False for e.g. partial shapes with NaN gaps)
 
 
-def save_npz(path: str | os.PathLike, file_format: str, version: int, arrays: Mapping[str, np.ndarray]) -> Path:
+def save_npz(path: str | os.PathLike, file_format: str, version: int, arrays: Mapping[str, np.ndarray],
+             compress: bool = True) -> Path:
+    """Write a tagged .npz atomically (see module docstring). `compress=False` for
+    throwaway hand-offs where speed matters more than size."""
     path = Path(path)
     payload = {}
     for key, value in arrays.items():
@@ -51,7 +54,7 @@ def save_npz(path: str | os.PathLike, file_format: str, version: int, arrays: Ma
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         with open(tmp, "wb") as handle:
-            np.savez_compressed(handle, **payload)
+            (np.savez_compressed if compress else np.savez)(handle, **payload)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

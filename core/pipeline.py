@@ -30,6 +30,7 @@ from .collection import PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import Cancelled, ModelFileError, ShapeGenError
+from . import meshset
 from .mesh import Mesh
 from .models import MODEL_TYPES, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz
@@ -248,10 +249,7 @@ class GenerativeShapeModel:
     def to_arrays(self) -> dict[str, np.ndarray]:
         arrays = {f"corr__{k}": v for k, v in self.correspondence.to_arrays().items()}
         arrays.update({f"model__{k}": v for k, v in self.model.to_arrays().items()})
-        arrays["mesh_vertices"] = np.concatenate([m.vertices for m in self.meshes])
-        arrays["mesh_faces"] = np.concatenate([m.faces for m in self.meshes])
-        arrays["mesh_vertex_offsets"] = np.cumsum([0] + [m.n_vertices for m in self.meshes]).astype(np.int64)
-        arrays["mesh_face_offsets"] = np.cumsum([0] + [m.n_faces for m in self.meshes]).astype(np.int64)
+        arrays.update(meshset.pack([m.vertices for m in self.meshes], [m.faces for m in self.meshes], prefix="mesh_"))
         deform = {f.name: getattr(self.deform_settings, f.name) for f in fields(self.deform_settings)}
         arrays["deform_keys"] = np.asarray(list(deform), dtype=str)
         arrays["deform_values"] = np.asarray(list(deform.values()), dtype=np.float64)
@@ -267,10 +265,7 @@ class GenerativeShapeModel:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "GenerativeShapeModel":
         spec = {
-            "mesh_vertices": ArraySpec("f", (None, 3)),
-            "mesh_faces": ArraySpec("i", (None, 3)),
-            "mesh_vertex_offsets": ArraySpec("i", ("M+1",)),
-            "mesh_face_offsets": ArraySpec("i", ("M+1",)),
+            **meshset.spec(prefix="mesh_"),
             "deform_keys": ArraySpec("U", ("K",)),
             "deform_values": ArraySpec("f", ("K",)),
             "settings_keys": ArraySpec("U", ("S",)),
@@ -286,18 +281,7 @@ class GenerativeShapeModel:
             model = model_from_arrays(model_arrays)
         except ModelFileError as exc:
             raise ModelFileError(f"{path}: {exc}") from None
-        vo, fo = arrays["mesh_vertex_offsets"], arrays["mesh_face_offsets"]
-        m = len(correspondence.names)
-        if len(vo) != m + 1 or vo[0] != 0 or vo[-1] != len(arrays["mesh_vertices"]) \
-                or fo[0] != 0 or fo[-1] != len(arrays["mesh_faces"]) or np.any(np.diff(vo) < 0) or np.any(np.diff(fo) < 0):
-            raise ModelFileError(f"{path}: mesh offsets do not match the {m} shapes")
-        meshes = []
-        for i, name in enumerate(correspondence.names):
-            try:
-                meshes.append(Mesh(arrays["mesh_vertices"][vo[i]:vo[i + 1]],
-                                   arrays["mesh_faces"][fo[i]:fo[i + 1]], name=name))
-            except ShapeGenError as exc:
-                raise ModelFileError(f"{path}: training mesh {name!r} is invalid: {exc}") from None
+        meshes = meshset.unpack(arrays, correspondence.names, str(path), prefix="mesh_")
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")

@@ -53,21 +53,11 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     """Fit a GenerativeShapeModel from meshes in an .npz (see pipeline / blender convert)."""
     from .correspond import CorrespondenceSettings
     from .deform import DeformSettings
-    from .mesh import Mesh
-    from .npzfile import ArraySpec, load_npz
     from .errors import Cancelled
+    from .meshset import load_mesh_set
     from .pipeline import FitSettings, fit_meshes
 
-    arrays = load_npz(arguments["meshes"], "shapegen.meshes", 1, {
-        "names": ArraySpec("U", ("M",)),
-        "vertices": ArraySpec("f", (None, 3)),
-        "faces": ArraySpec("i", (None, 3)),
-        "vertex_offsets": ArraySpec("i", ("M+1",)),
-        "face_offsets": ArraySpec("i", ("M+1",)),
-    })
-    vo, fo = arrays["vertex_offsets"], arrays["face_offsets"]
-    meshes = [Mesh.from_polygons(arrays["vertices"][vo[i]:vo[i + 1]], arrays["faces"][fo[i]:fo[i + 1]], name=str(n))
-              for i, n in enumerate(arrays["names"])]
+    meshes = load_mesh_set(arguments["meshes"])
     options = dict(arguments.get("settings", {}))
     correspondence = CorrespondenceSettings(**options.pop("correspondence", {}))
     deform = DeformSettings(**options.pop("deform", {}))

@@ -165,19 +165,14 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
 
     pipeline = importlib.import_module(f"{module}.core.pipeline")
     jobs = importlib.import_module(f"{module}.core.jobs")
-    npzfile = importlib.import_module(f"{module}.core.npzfile")
+    meshset = importlib.import_module(f"{module}.core.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")
     start = time.perf_counter()
     meshes = [convert.object_to_mesh(o) for o in sorted(source.objects, key=lambda o: o.name)]
     # the fit runs in a worker process, as Blender's Fit does (a child of Blender cannot
     # import bpy, and only a plain process can start the correspondence process pool)
-    npzfile.save_npz(output / "training_meshes.npz", "shapegen.meshes", 1, {
-        "names": np.asarray([m.name for m in meshes]),
-        "vertices": np.concatenate([m.vertices for m in meshes]),
-        "faces": np.concatenate([m.faces for m in meshes]),
-        "vertex_offsets": np.cumsum([0] + [m.n_vertices for m in meshes]),
-        "face_offsets": np.cumsum([0] + [m.n_faces for m in meshes]),
-    })
+    meshset.save_mesh_set(output / "training_meshes.npz", [m.name for m in meshes],
+                          [m.vertices for m in meshes], [m.faces for m in meshes])
     job = jobs.BackgroundJob("fit", {
         "meshes": str(output / "training_meshes.npz"), "output": str(output / "model.npz"),
         "settings": {"n_landmarks": args.landmarks, "model": "bgplvm", "seed": args.seed},

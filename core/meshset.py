@@ -1,0 +1,78 @@
+"""Many meshes in a few arrays: concatenated vertices and faces plus offsets.
+
+One layout for every file that holds a collection of meshes (prepared collections, model
+files, and the "shapegen.meshes" hand-off from Blender to a worker): `pack` writes it,
+`unpack` checks the offsets against the data and cuts the meshes out again.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import ModelFileError, ShapeGenError
+from .mesh import Mesh
+from .npzfile import ArraySpec, load_npz, save_npz
+
+__all__ = ["pack", "unpack", "save_mesh_set", "load_mesh_set", "MESHES_FORMAT", "MESHES_VERSION"]
+
+MESHES_FORMAT = "shapegen.meshes"
+MESHES_VERSION = 1
+
+
+def pack(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray], prefix: str = "") -> dict[str, np.ndarray]:
+    """`{prefix}vertices`, `{prefix}faces` (concatenated, indices local to each mesh) and
+    `{prefix}vertex_offsets`, `{prefix}face_offsets` (M + 1 each)."""
+    return {
+        f"{prefix}vertices": np.concatenate([np.asarray(v) for v in vertices]),
+        f"{prefix}faces": np.concatenate([np.asarray(f) for f in faces]),
+        f"{prefix}vertex_offsets": np.cumsum([0] + [len(v) for v in vertices]).astype(np.int64),
+        f"{prefix}face_offsets": np.cumsum([0] + [len(f) for f in faces]).astype(np.int64),
+    }
+
+
+def spec(prefix: str = "") -> dict[str, ArraySpec]:
+    """The ArraySpecs of `pack`'s arrays (for load_npz)."""
+    return {
+        f"{prefix}vertices": ArraySpec("f", (None, 3)),
+        f"{prefix}faces": ArraySpec("i", (None, 3)),
+        f"{prefix}vertex_offsets": ArraySpec("i", ("M+1",)),
+        f"{prefix}face_offsets": ArraySpec("i", ("M+1",)),
+    }
+
+
+def unpack(arrays, names: Sequence[str], label: str, prefix: str = "",
+           build: Callable[..., Mesh] = Mesh) -> list[Mesh]:
+    """The meshes of `pack`'s arrays, named `names`. Offsets that do not match the shape
+    count or the data, and invalid meshes, raise ModelFileError starting with `label`.
+    `build` makes each mesh: `Mesh` (data already clean) or `Mesh.from_polygons`."""
+    vertices, faces = arrays[f"{prefix}vertices"], arrays[f"{prefix}faces"]
+    vo, fo = arrays[f"{prefix}vertex_offsets"], arrays[f"{prefix}face_offsets"]
+    m = len(names)
+    for offsets, total, what in ((vo, len(vertices), "vertex"), (fo, len(faces), "face")):
+        if len(offsets) != m + 1 or offsets[0] != 0 or offsets[-1] != total or np.any(np.diff(offsets) < 0):
+            raise ModelFileError(f"{label}: {what} offsets do not match the {m} shapes and their data")
+    meshes = []
+    for i, name in enumerate(names):
+        try:
+            meshes.append(build(vertices[vo[i]:vo[i + 1]], faces[fo[i]:fo[i + 1]], name=str(name)))
+        except ShapeGenError as exc:
+            raise ModelFileError(f"{label}: mesh {str(name)!r} is invalid: {exc}") from None
+    return meshes
+
+
+def save_mesh_set(path: str | os.PathLike, names: Sequence[str], vertices: Sequence[np.ndarray],
+                  faces: Sequence[np.ndarray], compress: bool = True) -> Path:
+    """A "shapegen.meshes" file: names plus `pack`'s arrays."""
+    arrays = {"names": np.asarray(list(names), dtype=str), **pack(vertices, faces)}
+    return save_npz(path, MESHES_FORMAT, MESHES_VERSION, arrays, compress=compress)
+
+
+def load_mesh_set(path: str | os.PathLike) -> list[Mesh]:
+    """The meshes of a "shapegen.meshes" file, validated (polygons as written by Blender:
+    degenerate triangles dropped and counted, see Mesh.from_polygons)."""
+    arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, {"names": ArraySpec("U", ("M",)), **spec()})
+    return unpack(arrays, arrays["names"].tolist(), str(path), build=Mesh.from_polygons)
