@@ -52,6 +52,7 @@ __all__ = [
     "CorrespondenceSettings",
     "Correspondence",
     "Registration",
+    "Anchors",
     "TargetSurface",
     "SurfacePoints",
     "correspond",
@@ -672,6 +673,26 @@ def _cos(settings: CorrespondenceSettings) -> float:
     return float(np.cos(np.radians(settings.normal_max_angle)))
 
 
+@dataclass(frozen=True)
+class Anchors:
+    """Known correspondences: template point `indices[k]` belongs at `positions[k]` on the
+    target. Each adds `weight` ‖A_i x_i − p_k‖² to the data term at every iteration (the
+    landmark term of Amberg et al. 2007, as in trimesh's `nricp_amberg`), so a user's
+    hand-placed pairs (or a benchmark's ground truth) steer the registration."""
+
+    indices: np.ndarray  # (K,) template point indices
+    positions: np.ndarray  # (K, 3) target positions, in the registration frame
+    weight: float = 10.0
+
+    def __post_init__(self):
+        indices = np.asarray(self.indices)
+        positions = np.asarray(self.positions, dtype=np.float64)
+        if indices.ndim != 1 or positions.shape != (len(indices), 3) or not np.isfinite(positions).all():
+            raise ValueError(f"anchors need K indices and K finite 3-D positions, got {indices.shape} and {positions.shape}")
+        if not self.weight > 0:
+            raise ValueError(f"anchor weight must be > 0, got {self.weight}")
+
+
 def register(
     template: np.ndarray,
     edges: np.ndarray,
@@ -682,16 +703,19 @@ def register(
     target_landmark_normals: np.ndarray | None = None,
     on_iteration: Callable[[int], None] | None = None,
     should_cancel: Callable[[], bool] | None = None,
+    anchors: Anchors | None = None,
 ) -> Registration:
     """Iterative stiffness relaxation (Alg. 3) of `template` (L, 3) onto `target`.
 
     All coordinates in one frame (see `correspond` for the frame used). Per iteration:
     closest target points v_n(i) of the current template points, closest current template
-    point m(j) of each target landmark u_j, one sparse solve (4.31), move the points.
-    With `update_template` the next solve starts from the moved points (the thesis's
-    Alg. 3); otherwise from the original template (Amberg et al.). Raises Cancelled
-    between iterations when `should_cancel()` is true."""
+    point m(j) of each target landmark u_j, (known pairs from `anchors`,) one sparse solve
+    (4.31), move the points. With `update_template` the next solve starts from the moved
+    points (the thesis's Alg. 3); otherwise from the original template (Amberg et al.).
+    Raises Cancelled between iterations when `should_cancel()` is true."""
     base = np.asarray(template, dtype=np.float64)
+    if anchors is not None and (np.asarray(anchors.indices) >= len(base)).any():
+        raise ValueError(f"anchor indices must be < {len(base)} (the template's point count)")
     base_normals = None if template_normals is None else np.asarray(template_normals, dtype=np.float64)
     points, normals = base.copy(), base_normals
     n_points = len(points)
@@ -713,6 +737,10 @@ def register(
                 rows = np.r_[rows, nearest]
                 goals = np.vstack([goals, target_landmarks])
                 weights = np.r_[weights, lam * w_back]
+            if anchors is not None:
+                rows = np.r_[rows, anchors.indices]
+                goals = np.vstack([goals, anchors.positions])
+                weights = np.r_[weights, np.full(len(anchors.indices), anchors.weight)]
             if settings.update_template:  # Alg. 3: affines act on the current points
                 base, base_normals = points, normals
             blocks, rhs = data_blocks(base, rows, goals, weights, n_points)

@@ -17,6 +17,7 @@ from shapegen_core.cli import main
 from shapegen_core.collection import PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
     AffineSolver,
+    Anchors,
     Correspondence,
     CorrespondenceSettings,
     TargetSurface,
@@ -120,6 +121,33 @@ def test_known_affine_plus_smooth_bend_is_recovered():
     naive_error = np.linalg.norm(naive - truth, axis=1).mean() / target.bbox_diagonal()
     # point-to-point ICP leaves some tangential slide on smooth shapes (measured ~1.4 %)
     assert error < 0.03 and error < 0.25 * naive_error, f"error {error:.4f}, naive {naive_error:.4f}"
+
+
+def test_anchors_pull_their_points_to_the_given_positions_and_help_the_rest():
+    """Known pairs (Anchors) on two different vases: anchored points land on their true
+    positions, and the unanchored points get closer to the truth than without anchors."""
+    a, b = make_vases(2, seed=5, resolution=(24, 36), pose=False)
+    lm_a, lm_b = select_landmarks(a.mesh, 300, seed=0), select_landmarks(b.mesh, 300, seed=1)
+    truth = b.points_at(a.surface_coordinates(lm_a.face_index, lm_a.barycentric))
+    centre, scale = registration_frame(lm_a.points)
+    frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
+    chosen = np.random.default_rng(0).choice(len(truth), 30, replace=False)
+    rest = np.setdiff1d(np.arange(len(truth)), chosen)
+
+    def run(anchors):
+        result = register(frame(lm_a.points), knn_graph(lm_a.points, 6), TargetSurface(frame(b.mesh.vertices), b.mesh.faces),
+                          frame(lm_b.points), CorrespondenceSettings(), a.mesh.face_normals()[lm_a.face_index],
+                          b.mesh.face_normals()[lm_b.face_index], anchors=anchors)
+        return np.linalg.norm(result.deformed * scale + centre - truth, axis=1)
+
+    free = run(None)
+    anchored = run(Anchors(chosen, frame(truth[chosen]), weight=1e4))
+    assert anchored[chosen].max() < 0.02 * free[chosen].mean() + 1e-6 * b.mesh.bbox_diagonal()
+    assert anchored[rest].mean() < free[rest].mean()
+    with pytest.raises(ValueError, match="anchor indices"):
+        run(Anchors(np.array([len(truth)]), np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="finite"):
+        Anchors(np.array([0]), np.array([[np.nan, 0.0, 0.0]]))
 
 
 def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():
