@@ -34,10 +34,11 @@ def pack(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray], prefix: st
     }
 
 
-def spec(prefix: str = "") -> dict[str, ArraySpec]:
-    """The ArraySpecs of `pack`'s arrays (for load_npz)."""
+def spec(prefix: str = "", finite: bool = True) -> dict[str, ArraySpec]:
+    """The ArraySpecs of `pack`'s arrays (for load_npz). `finite=False` leaves NaN checks
+    to the per-mesh validation of `unpack`, whose error names the mesh, not just the file."""
     return {
-        f"{prefix}vertices": ArraySpec("f", (None, 3)),
+        f"{prefix}vertices": ArraySpec("f", (None, 3), finite=finite),
         f"{prefix}faces": ArraySpec("i", (None, 3)),
         f"{prefix}vertex_offsets": ArraySpec("i", ("M+1",)),
         f"{prefix}face_offsets": ArraySpec("i", ("M+1",)),
@@ -74,5 +75,5 @@ def save_mesh_set(path: str | os.PathLike, names: Sequence[str], vertices: Seque
 def load_mesh_set(path: str | os.PathLike) -> list[Mesh]:
     """The meshes of a "shapegen.meshes" file, validated (polygons as written by Blender:
     degenerate triangles dropped and counted, see Mesh.from_polygons)."""
-    arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, {"names": ArraySpec("U", ("M",)), **spec()})
+    arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, {"names": ArraySpec("U", ("M",)), **spec(finite=False)})
     return unpack(arrays, arrays["names"].tolist(), str(path), build=Mesh.from_polygons)

@@ -71,6 +71,29 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     return str(output)
 
 
+def task_prepare(arguments: dict, progress, should_cancel) -> str:
+    """Align, scale and landmark meshes from an .npz (core.meshset) into a prepared
+    collection .npz (PreparedCollection.save); `settings` are prepare_meshes' options.
+    Cancel is checked at every progress step (after each shape's stage)."""
+    from .collection import prepare_meshes
+    from .errors import Cancelled
+    from .meshset import load_mesh_set
+
+    meshes = load_mesh_set(arguments["meshes"])
+
+    def report(fraction: float, stage: str) -> None:
+        if should_cancel():
+            raise Cancelled("prepare cancelled")
+        progress(fraction, stage)
+
+    prepared = prepare_meshes(meshes, progress=report, **arguments.get("settings", {}))
+    if should_cancel():
+        raise Cancelled("prepare cancelled")
+    output = Path(arguments["output"])
+    prepared.save(output)
+    return str(output)
+
+
 def task_correspond(arguments: dict, progress, should_cancel) -> str:
     """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
     from .collection import PreparedCollection
@@ -119,7 +142,7 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     return str(output)
 
 
-TASKS = {"fit": task_fit, "correspond": task_correspond, "selftest": task_selftest}
+TASKS = {"prepare": task_prepare, "fit": task_fit, "correspond": task_correspond, "selftest": task_selftest}
 
 
 def main(argv: list[str]) -> int:

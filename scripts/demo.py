@@ -135,7 +135,7 @@ def main(argv=None) -> int:
     settings.n_landmarks = args.landmarks
     settings.seed = args.seed
     source = settings.source_collection
-    bpy.ops.shapegen.prepare()
+    bpy.ops.shapegen.prepare(wait=True)
     prepared = bpy.data.collections[f"{source.name} Prepared"]
     print(f"demo: prepared {len(shapes)} shapes in {time.perf_counter() - start:.1f} s")
 

@@ -302,16 +302,17 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
 
 
 class SHAPEGEN_OT_fit_cancel(bpy.types.Operator):
-    """Stop the running background job (a fit); the scene and any earlier model stay as they are"""
+    """Stop the running background job (Prepare, Find Correspondences or Fit); the scene and
+    any earlier model stay as they are"""
 
     bl_idname = "shapegen.fit_cancel"
-    bl_label = "Cancel Fit"
+    bl_label = "Cancel"
     bl_options = {"REGISTER"}
 
     @classmethod
     def poll(cls, context):
         if not MANAGER.running:
-            cls.poll_message_set("No fit is running")
+            cls.poll_message_set("No background job is running")
             return False
         return True
 
@@ -320,7 +321,7 @@ class SHAPEGEN_OT_fit_cancel(bpy.types.Operator):
         scene = _job_scene()
         if scene is not None:
             scene.shapegen.job_stage = "cancelling"
-        self.report({"INFO"}, "Cancelling the fit")
+        self.report({"INFO"}, f"Cancelling {MANAGER.label}")
         return {"FINISHED"}
 
 

@@ -6,7 +6,8 @@ Data section:
   objects named after the files (Blender's own importers; OFF through the core reader).
 * `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
-  never modified.
+  never modified. Meshes are read and validated here; the slow part runs in a worker
+  (core.worker "prepare") through `jobs.MANAGER`, like Fit.
 """
 
 from __future__ import annotations
@@ -15,11 +16,15 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import StringProperty
+from bpy.props import BoolProperty, StringProperty
 from mathutils import Matrix
 
 from ..core.errors import ShapeGenError
+from ..core.jobs import BackgroundJob, JobStatus
+from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
+from .fitting import run_worker_job
+from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
 
@@ -91,8 +96,92 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
         return {"FINISHED"}
 
 
+# ------------------------------------------------------------------------------ prepare
+def _prepare_scene() -> bpy.types.Scene | None:
+    return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
+
+
+def _load_prepared(status: JobStatus):
+    """prepare step of the job (helper thread, no bpy): load and validate the result."""
+    if status.state != "done":
+        return None
+    from ..core.collection import PreparedCollection
+
+    return PreparedCollection.load(status.output)
+
+
+def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
+                              prepared, preview_spacing: float) -> bpy.types.Collection:
+    """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
+    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
+    landmark markers. The user's objects are not modified."""
+    target = bpy.data.collections.new(_unique_collection_name(f"{source.name} Prepared"))
+    scene.collection.children.link(target)
+    target[PREPARED_KEY] = True
+    target["shapegen_source_collection"] = source.name
+    for key, value in prepared.settings.items():
+        target[f"shapegen_{key}"] = value
+    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
+    offsets = grid_offsets(len(prepared), preview_spacing * size)
+    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
+        data = obj.data.copy()
+        data.name = f"{obj.name} prepared"
+        data.transform(obj.matrix_world)  # input coordinates = the original's world frame
+        data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
+        copy = bpy.data.objects.new(f"{obj.name} prepared", data)
+        copy.location = offset
+        copy[SOURCE_KEY] = obj.name
+        copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
+        copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
+        # where each landmark lies on the (loop-triangulated) mesh, for correspondence
+        copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
+        copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
+        copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
+        target.objects.link(copy)
+        add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
+    return target
+
+
+def _finish_prepare(status: JobStatus, prepared) -> None:
+    """on_finish of the prepare job (main thread, once): build the prepared collection, or
+    say why not. Nothing is created when the job failed or was cancelled, or when the
+    user deleted or edited a source object while it ran."""
+    payload = MANAGER.payload
+    scene = _prepare_scene()
+    if scene is None:
+        print(f"ShapeGen: preparing '{payload.get('source')}' ended ({status.state}) but its scene is gone")
+        return
+    settings = scene.shapegen
+    source = bpy.data.collections.get(payload.get("source", ""))
+    objects = [bpy.data.objects.get(name) for name in payload.get("objects", [])]
+    changed = [name for name, obj, count in zip(payload.get("objects", []), objects, payload.get("vertex_counts", []))
+               if obj is None or obj.type != "MESH" or len(obj.data.vertices) != count]
+    if status.state != "done" or isinstance(prepared, Exception) or source is None or changed:
+        settings.job_state = "CANCELLED" if status.state == "cancelled" else "FAILED"
+        reason = (str(prepared) if isinstance(prepared, Exception) else status.error if status.state != "done"
+                  else f"collection '{payload.get('source')}' was deleted" if source is None
+                  else f"object(s) deleted or edited while preparing: {', '.join(changed)}")
+        settings.job_message = f"Prepare {status.state}: {reason or status.state}; nothing was created"
+    else:
+        target = build_prepared_collection(scene, source, objects, prepared, settings.preview_spacing)
+        counts = [len(l) for l in prepared.landmarks]
+        turned = sum(s.orientation_changed for s in prepared.shapes)
+        settings.job_state = "DONE"
+        settings.job_fraction = 1.0
+        settings.job_stage = "prepared"
+        settings.job_message = (f"Prepared {len(prepared)} shapes into '{target.name}': "
+                                f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus")
+        if not bpy.app.background and not payload.get("wait"):
+            try:  # the scene changed after the operator returned: give the user an undo step
+                bpy.ops.ed.undo_push(message="ShapeGen Prepare")
+            except RuntimeError as exc:
+                print(f"ShapeGen: no undo step for Prepare ({exc})")
+    print(f"ShapeGen: {settings.job_message}")
+
+
 class SHAPEGEN_OT_prepare(bpy.types.Operator):
-    """Align, scale and landmark the chosen collection into a new "Prepared" collection (originals untouched)"""
+    """Align, scale and landmark the chosen collection into a new "Prepared" collection, in
+    the background (originals untouched; progress and Cancel in the panel)"""
 
     bl_idname = "shapegen.prepare"
     bl_label = "Prepare"
@@ -102,9 +191,14 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
         name="Collection", default="",
         description="Collection to prepare (empty: the panel's chosen collection)",
     )
+    wait: BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
+                       description="Block until preparing ends (scripts and background mode)")
 
     @classmethod
     def poll(cls, context):
+        if MANAGER.running:
+            cls.poll_message_set(f"A job is running ({MANAGER.label}): wait for it or cancel it")
+            return False
         settings = context.scene.shapegen
         if settings.source_collection is None:
             cls.poll_message_set("Choose a training collection first")
@@ -112,8 +206,6 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from ..core.collection import prepare_meshes
-
         settings = context.scene.shapegen
         source = (bpy.data.collections.get(self.collection_name) if self.collection_name
                   else settings.source_collection)
@@ -133,55 +225,33 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
                         f"('{mesh_objects[0].name}'); a shape model needs at least 2")
             return {"CANCELLED"}
 
-        # 1. everything that can fail happens before the scene is touched
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
+        # 1. read and validate here (bulk reads, fast): a bad object is named at once and
+        #    the scene is never touched; the slow part (alignment, landmarks) runs in a worker
         try:
             meshes = [object_to_mesh(o) for o in mesh_objects]
-            prepared = prepare_meshes(
-                meshes, n_landmarks=settings.n_landmarks, up_axis=settings.up_axis,
-                align=settings.align, scale=settings.scale, centre=settings.centre,
-                seed=settings.seed, progress=lambda f, msg: wm.progress_update(int(100 * f)),
-            )
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        finally:
-            wm.progress_end()
         for mesh in meshes:
             if mesh.report.summary() != "clean":
                 self.report({"INFO"}, f"{mesh.name}: {mesh.report.summary()}")
+        options = {"n_landmarks": settings.n_landmarks, "up_axis": settings.up_axis, "align": settings.align,
+                   "scale": settings.scale, "centre": settings.centre, "seed": settings.seed}
+        payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
+                   "vertex_counts": [len(o.data.vertices) for o in mesh_objects], "wait": self.wait}
 
-        # 2. build the new collection: copies in the normalised frame, laid out on a grid
-        target = bpy.data.collections.new(_unique_collection_name(f"{source.name} Prepared"))
-        context.scene.collection.children.link(target)
-        target[PREPARED_KEY] = True
-        target["shapegen_source_collection"] = source.name
-        for key, value in prepared.settings.items():
-            target[f"shapegen_{key}"] = value
-        size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
-        offsets = grid_offsets(len(prepared), settings.preview_spacing * size)
-        for obj, shape, landmarks, offset in zip(mesh_objects, prepared.shapes, prepared.landmarks, offsets):
-            data = obj.data.copy()
-            data.name = f"{obj.name} prepared"
-            data.transform(obj.matrix_world)  # input coordinates = the original's world frame
-            data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
-            copy = bpy.data.objects.new(f"{obj.name} prepared", data)
-            copy.location = offset
-            copy[SOURCE_KEY] = obj.name
-            copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
-            copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
-            # where each landmark lies on the (loop-triangulated) mesh, for correspondence
-            copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
-            copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
-            copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
-            target.objects.link(copy)
-            add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
-        counts = [len(l) for l in prepared.landmarks]
-        turned = sum(s.orientation_changed for s in prepared.shapes)
-        self.report({"INFO"}, f"Prepared {len(prepared)} shapes into '{target.name}': "
-                    f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus")
-        return {"FINISHED"}
+        # 2. the worker; `_finish_prepare` builds the collection on the main thread
+        def start(folder: Path) -> None:
+            mesh_file = folder / "meshes.npz"
+            job = BackgroundJob("prepare", {"meshes": str(mesh_file), "settings": options,
+                                            "output": str(folder / "prepared.npz")})
+            MANAGER.start(job, _finish_prepare, label=f"prepare '{source.name}'", folder=folder, payload=payload,
+                          prepare=_load_prepared,
+                          setup=lambda: save_mesh_set(mesh_file, [m.name for m in meshes], [m.vertices for m in meshes],
+                                                      [m.faces for m in meshes], compress=False))
+
+        return run_worker_job(self, settings, "shapegen-prepare-", start, wait=self.wait,
+                              started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
 
 
 CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare)

@@ -36,6 +36,21 @@ class SHAPEGEN_PT_main(bpy.types.Panel):
         self.layout.label(text="Learn shapes from a collection", icon="MESH_MONKEY")
 
 
+def _draw_job(layout, settings) -> None:
+    """The background job's progress bar and Cancel while it runs, then its last message
+    (one job at a time: Prepare, Find Correspondences or Fit)."""
+    if MANAGER.running:
+        status = MANAGER.last_status
+        fraction = status.fraction if status else settings.job_fraction
+        stage = (status.stage if status and status.stage else settings.job_stage) or "starting"
+        layout.label(text=f"Running: {MANAGER.label}", icon="SORTTIME")
+        layout.progress(factor=fraction, type="BAR", text=f"{int(100 * fraction)} %  {stage}")
+        layout.operator("shapegen.fit_cancel", icon="CANCEL")
+    if settings.job_message:
+        icon = {"FAILED": "ERROR", "CANCELLED": "CANCEL", "DONE": "CHECKMARK"}.get(settings.job_state, "INFO")
+        layout.label(text=settings.job_message, icon=icon)
+
+
 class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
     bl_label = "Data"
     bl_idname = "SHAPEGEN_PT_data"
@@ -54,6 +69,8 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         column.prop(settings, "seed")
         column.prop(settings, "preview_spacing")
         layout.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
+        if MANAGER.running and MANAGER.label.startswith("prepare"):
+            _draw_job(layout, settings)
 
 
 class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
@@ -101,18 +118,9 @@ class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
         column = layout.column(align=True)
         column.prop(settings, "fit_model")
         column.prop(settings, "latent_dim")
-        if MANAGER.running:
-            status = MANAGER.last_status
-            fraction = status.fraction if status else settings.job_fraction
-            stage = (status.stage if status and status.stage else settings.job_stage) or "starting"
-            layout.label(text=f"Running: {MANAGER.label}", icon="SORTTIME")
-            layout.progress(factor=fraction, type="BAR", text=f"{int(100 * fraction)} %  {stage}")
-            layout.operator("shapegen.fit_cancel", icon="CANCEL")
-        else:
+        if not MANAGER.running:
             layout.operator("shapegen.fit", icon="PLAY")
-        if settings.job_message:
-            icon = {"FAILED": "ERROR", "CANCELLED": "CANCEL", "DONE": "CHECKMARK"}.get(settings.job_state, "INFO")
-            layout.label(text=settings.job_message, icon=icon)
+        _draw_job(layout, settings)
         text = _model_text(context)
         box = layout.box()
         if text is None:

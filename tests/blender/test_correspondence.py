@@ -19,7 +19,7 @@ def prepared(extension, tmp_path):
         trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False).export(folder / f"{shape.name}.obj")
     bpy.ops.shapegen.import_collection(directory=str(folder))
     bpy.context.scene.shapegen.n_landmarks = 80
-    assert bpy.ops.shapegen.prepare() == {"FINISHED"}
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     return bpy.data.collections["vases Prepared"]
 
 

@@ -4,12 +4,14 @@ Import Training Collection (Blender's own importers) and Prepare."""
 from __future__ import annotations
 
 import importlib
+import time
 
 import bpy
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
+from conftest import addon_module
 
 
 @pytest.fixture
@@ -70,7 +72,7 @@ def test_prepare_aligns_scales_and_landmarks_without_touching_originals(vase_fol
     settings.n_landmarks = 150
     source = settings.source_collection
     before = {o.name: _vertices(o).copy() for o in source.objects}
-    assert bpy.ops.shapegen.prepare() == {"FINISHED"}
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
 
     for obj in source.objects:  # originals untouched
         np.testing.assert_array_equal(_vertices(obj), before[obj.name])
@@ -109,17 +111,17 @@ def test_prepare_skips_non_mesh_objects_and_refuses_empty_or_single(vase_folder)
     source = settings.source_collection
     empty = bpy.data.objects.new("an empty", None)
     source.objects.link(empty)
-    assert bpy.ops.shapegen.prepare() == {"FINISHED"}  # skipped with a warning
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}  # skipped with a warning
 
     lonely = bpy.data.collections.new("lonely")
     bpy.context.scene.collection.children.link(lonely)
     lonely.objects.link(bpy.data.objects.new("only an empty", None))
     settings.source_collection = lonely
     with pytest.raises(RuntimeError, match="no mesh objects"):
-        bpy.ops.shapegen.prepare()
+        bpy.ops.shapegen.prepare(wait=True)
     lonely.objects.link(source.objects[0])
     with pytest.raises(RuntimeError, match="only one mesh object"):
-        bpy.ops.shapegen.prepare()
+        bpy.ops.shapegen.prepare(wait=True)
 
 
 def test_prepare_names_the_object_with_bad_geometry(vase_folder):
@@ -132,8 +134,67 @@ def test_prepare_names_the_object_with_bad_geometry(vase_folder):
     settings.source_collection.objects.link(bad)
     n_collections = len(bpy.data.collections)
     with pytest.raises(RuntimeError, match="no faces: mesh has no faces"):
-        bpy.ops.shapegen.prepare()
+        bpy.ops.shapegen.prepare(wait=True)
     assert len(bpy.data.collections) == n_collections  # nothing half-created
+
+
+@pytest.fixture
+def fitting(extension):
+    module = addon_module(extension, "shapegen_addon.fitting")
+    yield module
+    addon_module(extension, "shapegen_addon.jobs").MANAGER.kill()  # never leave a worker behind
+
+
+def _pump(fitting, timeout=120.0):
+    """Poll like the UI timer (timers never fire in the bpy module) until the job ends."""
+    deadline = time.monotonic() + timeout
+    statuses = []
+    while time.monotonic() < deadline:
+        statuses.append(fitting.poll_fit())
+        if statuses[-1] is not None and statuses[-1].finished and not fitting.MANAGER.running:
+            return statuses
+        time.sleep(0.02)
+    raise AssertionError(f"timed out; last status {statuses[-1] if statuses else None}")
+
+
+def test_prepare_runs_in_a_worker_and_the_scene_changes_only_when_it_ends(vase_folder, fitting):
+    folder, shapes = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 120
+    n_collections = len(bpy.data.collections)
+    assert bpy.ops.shapegen.prepare() == {"FINISHED"}  # returns at once: the worker runs
+    assert fitting.MANAGER.running and settings.job_state == "RUNNING"
+    assert len(bpy.data.collections) == n_collections
+    assert not bpy.ops.shapegen.prepare.poll() and not bpy.ops.shapegen.fit.poll()  # one job at a time
+    statuses = _pump(fitting)
+    assert statuses[-1].state == "done" and settings.job_state == "DONE"
+    assert any(0 < s.fraction < 1 for s in statuses if s is not None)  # progress came through
+    assert f"Prepared {len(shapes)} shapes into 'vases Prepared'" in settings.job_message
+    prepared = bpy.data.collections["vases Prepared"]
+    assert len([o for o in prepared.objects if "shapegen_landmarks" in o]) == len(shapes)
+
+
+def test_cancelling_or_deleting_a_source_while_preparing_creates_nothing(vase_folder, fitting):
+    folder, _ = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 120
+    n_collections = len(bpy.data.collections)
+
+    assert bpy.ops.shapegen.prepare() == {"FINISHED"}
+    assert bpy.ops.shapegen.fit_cancel() == {"FINISHED"}
+    assert _pump(fitting)[-1].state == "cancelled"
+    assert settings.job_state == "CANCELLED" and "nothing was created" in settings.job_message
+    assert len(bpy.data.collections) == n_collections
+
+    assert bpy.ops.shapegen.prepare() == {"FINISHED"}
+    victim = sorted(o.name for o in settings.source_collection.objects)[1]
+    bpy.data.objects.remove(bpy.data.objects[victim])
+    assert _pump(fitting)[-1].state == "done"  # the worker finished; the result is refused
+    assert settings.job_state == "FAILED" and victim in settings.job_message
+    assert "nothing was created" in settings.job_message
+    assert len(bpy.data.collections) == n_collections
 
 
 def test_operators_push_undo_steps():

@@ -133,7 +133,7 @@ def test_fit_refuses_bad_input_before_starting_a_worker(extension, fitting):
 
 
 def test_cancel_without_a_job_explains_itself():
-    with pytest.raises(RuntimeError, match="No fit is running"):
+    with pytest.raises(RuntimeError, match="No background job is running"):
         bpy.ops.shapegen.fit_cancel()
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from shapegen_core.jobs import BackgroundJob
@@ -71,3 +72,30 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
     assert status.state == "done", status.error
     corr = Correspondence.load(tmp_path / "corr.npz")
     assert corr.names == prepared.names and corr.points.shape[0] == 3
+
+
+def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
+    from shapegen_core.collection import PreparedCollection, prepare_meshes
+    from shapegen_core.datasets import make_vases
+    from shapegen_core.meshset import save_mesh_set
+
+    meshes = [s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))]
+    save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
+                  [m.faces for m in meshes])
+    options = {"n_landmarks": 60, "seed": 2}
+    status = BackgroundJob("prepare", {"meshes": str(tmp_path / "meshes.npz"), "settings": options,
+                                       "output": str(tmp_path / "prepared.npz")}).start().wait(300)
+    assert status.state == "done", status.error
+    in_worker = PreparedCollection.load(tmp_path / "prepared.npz")
+    here = prepare_meshes(meshes, **options)
+    assert in_worker.names == here.names
+    for a, b in zip(in_worker.landmarks, here.landmarks):
+        np.testing.assert_allclose(a.points, b.points, atol=1e-12)
+
+    vertices = [m.vertices.copy() for m in meshes]
+    vertices[1][5] = np.nan
+    save_mesh_set(tmp_path / "bad.npz", [m.name for m in meshes], vertices, [m.faces for m in meshes])
+    status = BackgroundJob("prepare", {"meshes": str(tmp_path / "bad.npz"), "settings": options,
+                                       "output": str(tmp_path / "bad_prepared.npz")}).start().wait(300)
+    assert status.state == "failed" and meshes[1].name in status.error and "NaN" in status.error
+    assert not (tmp_path / "bad_prepared.npz").exists()
