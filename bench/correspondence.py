@@ -187,7 +187,9 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     * an oracle: the landmarks at the belly and neck (wall coordinate within `band` of 1/3
       and 2/3, the smooth features) get their TRUE positions as `Anchors` (weight 1000):
       the error that remains is what NICP's smooth interpolation between perfectly placed
-      features costs."""
+      features costs;
+    * started AT the ground truth (`initial_points`), 30 iterations at the last α (and at
+      α = 1): how far the method walks away from the truth on its own."""
     settings = CorrespondenceSettings(groupwise_rounds=0)
     lm = prepared.landmarks[template_index]
     centre, scale = registration_frame(lm.points)
@@ -202,6 +204,7 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     anchored = (np.abs(wall - 1 / 3) < band) | (np.abs(wall - 2 / 3) < band)
     part = np.clip(np.searchsorted(PROFILE_BREAKS, st[:, 0], side="right") - 1, 0, len(PARTS) - 1)
     ratios, free_err, oracle_err, oracle_parts = [], [], [], []
+    from_truth = {alpha: [] for alpha in (settings.alphas[-1], 1.0)}
     for m, shape in enumerate(prepared.shapes):
         if m == template_index:
             continue
@@ -219,14 +222,22 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
         error = np.linalg.norm(oracle - truth, axis=1) / diagonal
         oracle_err.append(100 * error[~anchored].mean())
         oracle_parts.append([100 * error[part == k].mean() for k in range(len(PARTS))])
+        for alpha, errors in from_truth.items():
+            stay = CorrespondenceSettings(groupwise_rounds=0, alpha_start=alpha, alpha_end=alpha, alpha_steps=1,
+                                          tolerance=0.0, max_iterations_per_alpha=30, max_iterations=30)
+            walked = register(*args[:4], stay, *args[5:], initial_points=truth).placed.points
+            errors.append(100 * np.linalg.norm(walked - truth, axis=1).mean() / diagonal)
     out = {"energy_truth_over_ours": [float(r) for r in ratios], "anchored_landmarks": int(anchored.sum()),
            "unanchored_error_free_pct": float(np.mean(free_err)), "unanchored_error_oracle_pct": float(np.mean(oracle_err)),
-           "oracle_error_per_part_pct": dict(zip(PARTS, np.mean(oracle_parts, axis=0).tolist()))}
+           "oracle_error_per_part_pct": dict(zip(PARTS, np.mean(oracle_parts, axis=0).tolist())),
+           "started_at_truth_error_pct": {f"alpha {a:g}": float(np.mean(e)) for a, e in from_truth.items()}}
     log(f"objective check (pairwise): stiffness energy of the ground truth / of ours = "
         + ", ".join(f"{r:.1f}" for r in ratios) + " (> 1: NICP's objective prefers ours)")
     log(f"oracle: {int(anchored.sum())} belly/neck landmarks anchored at their TRUE positions: error of the other "
         f"landmarks {np.mean(oracle_err):.2f} % (free {np.mean(free_err):.2f} %); per part "
         + ", ".join(f"{k} {v:.2f}" for k, v in out["oracle_error_per_part_pct"].items()))
+    log("started at the ground truth, 30 iterations: error "
+        + ", ".join(f"{k} → {v:.2f} %" for k, v in out["started_at_truth_error_pct"].items()))
     return out
 
 

@@ -704,6 +704,7 @@ def register(
     on_iteration: Callable[[int], None] | None = None,
     should_cancel: Callable[[], bool] | None = None,
     anchors: Anchors | None = None,
+    initial_points: np.ndarray | None = None,
 ) -> Registration:
     """Iterative stiffness relaxation (Alg. 3) of `template` (L, 3) onto `target`.
 
@@ -712,12 +713,20 @@ def register(
     point m(j) of each target landmark u_j, (known pairs from `anchors`,) one sparse solve
     (4.31), move the points. With `update_template` the next solve starts from the moved
     points (the thesis's Alg. 3); otherwise from the original template (Amberg et al.).
-    Raises Cancelled between iterations when `should_cancel()` is true."""
+    `initial_points` (L, 3): a warm start, where the template points begin (e.g. an earlier
+    registration's `deformed`); the affines still act on `template`. Raises Cancelled
+    between iterations when `should_cancel()` is true."""
     base = np.asarray(template, dtype=np.float64)
     if anchors is not None and (np.asarray(anchors.indices) >= len(base)).any():
         raise ValueError(f"anchor indices must be < {len(base)} (the template's point count)")
     base_normals = None if template_normals is None else np.asarray(template_normals, dtype=np.float64)
     points, normals = base.copy(), base_normals
+    if initial_points is not None:
+        initial_points = np.asarray(initial_points, dtype=np.float64)
+        if initial_points.shape != base.shape or not np.isfinite(initial_points).all():
+            raise ValueError(f"initial_points must be finite with the template's shape {base.shape}, "
+                             f"got {initial_points.shape}")
+        points = initial_points.copy()
     n_points = len(points)
     solver = AffineSolver(edges, n_points, settings.gamma)
     finder = target.tracker()  # closest points with candidate faces kept between iterations

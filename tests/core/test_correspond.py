@@ -150,6 +150,26 @@ def test_anchors_pull_their_points_to_the_given_positions_and_help_the_rest():
         Anchors(np.array([0]), np.array([[np.nan, 0.0, 0.0]]))
 
 
+def test_a_warm_start_is_where_the_points_begin():
+    """initial_points = the template itself is the default start (identical result); a
+    warm start from a finished registration's deformed points converges at once to the same
+    placement; a wrong shape is refused."""
+    a, b = make_vases(2, seed=6, resolution=(20, 28), pose=False)
+    lm_a, lm_b = select_landmarks(a.mesh, 200, seed=0), select_landmarks(b.mesh, 200, seed=1)
+    centre, scale = registration_frame(lm_a.points)
+    frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
+    args = (frame(lm_a.points), knn_graph(lm_a.points, 6), TargetSurface(frame(b.mesh.vertices), b.mesh.faces),
+            frame(lm_b.points), CorrespondenceSettings(), a.mesh.face_normals()[lm_a.face_index],
+            b.mesh.face_normals()[lm_b.face_index])
+    cold = register(*args)
+    np.testing.assert_array_equal(register(*args, initial_points=args[0]).placed.points, cold.placed.points)
+    last_alpha = CorrespondenceSettings(alpha_steps=1)
+    warm = register(*args[:4], last_alpha, *args[5:], initial_points=cold.deformed)
+    assert np.linalg.norm(warm.placed.points - cold.placed.points, axis=1).mean() < 0.1 * lm_a.radius / scale
+    with pytest.raises(ValueError, match="initial_points"):
+        register(*args, initial_points=args[0][:-1])
+
+
 def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():
     coarse = make_vases(1, seed=3, resolution=(18, 18), pose=False)[0]
     fine = make_vases(1, seed=3, resolution=(40, 40), pose=False)[0]
