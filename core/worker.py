@@ -50,19 +50,22 @@ class _CancelFlag:
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
-    """Fit a GenerativeShapeModel from meshes in an .npz (see pipeline / blender convert)."""
+    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz) or from an
+    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare)."""
+    from .collection import PreparedCollection
     from .correspond import CorrespondenceSettings
     from .deform import DeformSettings
     from .errors import Cancelled
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, fit_meshes
 
-    meshes = load_mesh_set(arguments["meshes"])
+    source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
+              else load_mesh_set(arguments["meshes"]))
     options = dict(arguments.get("settings", {}))
     correspondence = CorrespondenceSettings(**options.pop("correspondence", {}))
     deform = DeformSettings(**options.pop("deform", {}))
     settings = FitSettings(correspondence=correspondence, deform=deform, **options)
-    model = fit_meshes(meshes, settings, progress=lambda f, stage: _emit(event="progress", fraction=f, stage=stage),
+    model = fit_meshes(source, settings, progress=lambda f, stage: _emit(event="progress", fraction=f, stage=stage),
                        should_cancel=should_cancel)
     if should_cancel():
         raise Cancelled("fit cancelled")

@@ -84,6 +84,44 @@ def gather_meshes(objects) -> list[tuple[str, np.ndarray, np.ndarray]]:
     return [(o.name, *object_triangles(o)[:2]) for o in objects]
 
 
+#: Prepare settings that must match for Fit to reuse a prepared collection.
+PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")
+
+
+def reusable_prepared(collection, objects, options: dict):
+    """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
+    when Prepare ran on them with the same settings as this fit (`options`) and none has
+    changed since: every copy equals its source's world coordinates under its stored
+    transform (bulk reads, well under 1 ms per 100k vertices). Else None (Fit prepares
+    again in the worker). Returns (prepared bpy collection, copies in `objects` order)."""
+    from .correspondence import prepared_objects
+    from .preview import TRANSFORM_KEY
+
+    candidates = [c for c in bpy.data.collections
+                  if c.get("shapegen_prepared") and c.get("shapegen_source_collection") == collection.name
+                  and all(str(c.get(f"shapegen_{k}")) == str(options[k]) for k in PREPARE_SETTINGS)]
+    for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
+        copies = {o.get("shapegen_source"): o for o in prepared_objects(prepared)}
+        if set(copies) != {o.name for o in objects}:
+            continue
+        ordered = [copies[o.name] for o in objects]
+        if all(_unchanged(source, copy, TRANSFORM_KEY) for source, copy in zip(objects, ordered)):
+            return prepared, ordered
+    return None
+
+
+def _unchanged(source, copy, transform_key: str) -> bool:
+    """True when the prepared `copy` still equals `source` mapped by its stored transform."""
+    if len(source.data.vertices) != len(copy.data.vertices) or len(source.data.polygons) != len(copy.data.polygons):
+        return False
+    world = object_triangles(source, world=True)[0]
+    local = object_triangles(copy, world=False)[0]
+    matrix = np.asarray(copy[transform_key], dtype=np.float64).reshape(4, 4)
+    mapped = world @ matrix[:3, :3].T + matrix[:3, 3]
+    size = max(float(np.ptp(local, axis=0).max()), 1e-12)
+    return bool(np.abs(mapped - local).max() <= 1e-5 * size)
+
+
 def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:
     """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshset). No bpy: runs
     on the job's setup thread. Uncompressed: it is a throwaway hand-off; compressing
@@ -144,7 +182,8 @@ def _finish(status: JobStatus, loaded) -> None:
             settings.job_stage = "fitted"
             settings.job_message = (f"Fitted {model.model_type} to {len(model.names)} shapes of "
                                     f"'{payload['name']}': {model.latent_dim} latent dimensions, "
-                                    f"{model.n_landmarks} landmarks ({seconds:.1f} s)")
+                                    f"{model.n_landmarks} landmarks ({seconds:.1f} s"
+                                    + (f", reusing '{payload['reused']}')" if payload.get("reused") else ")"))
     elif status.state == "cancelled":
         settings.job_state = "CANCELLED"
         settings.job_message = "Fit cancelled; " + ("the earlier model is kept" if settings.model_text
@@ -287,15 +326,25 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
             self.report({"ERROR"}, f"Extra settings are not a JSON object: {exc}")
             return {"CANCELLED"}
         options = fit_settings_dict(settings, extra)
+        reuse = reusable_prepared(collection, objects, options)
+
         def start(folder: Path) -> None:
             _check_settings(options)
-            gathered = gather_meshes(objects)
-            meshes = folder / "meshes.npz"
-            job = BackgroundJob("fit", {"meshes": str(meshes), "settings": options,
-                                        "output": str(folder / "model.npz")})
+            payload = {"scene": scene.name, "name": collection.name}
+            if reuse is not None:  # Prepare's result is current: the worker starts at correspondence
+                from .correspondence import to_prepared_collection
+
+                prepared = to_prepared_collection(reuse[1])
+                prepared.settings = {k: options[k] for k in PREPARE_SETTINGS}
+                inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name
+                setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
+            else:
+                gathered = gather_meshes(objects)
+                inputs = {"meshes": str(folder / "meshes.npz")}
+                setup = lambda: save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
+            job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})
             MANAGER.start(job, _finish, label=f"fit '{collection.name}'", folder=folder,
-                          payload={"scene": scene.name, "name": collection.name}, prepare=_load_result,
-                          setup=lambda: save_meshes(gathered, meshes))
+                          payload=payload, prepare=_load_result, setup=setup)
 
         return run_worker_job(self, settings, "shapegen-fit-", start, wait=self.wait,
                               started=f"Fitting {len(objects)} shapes of '{collection.name}' in the background")

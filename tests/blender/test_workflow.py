@@ -10,6 +10,7 @@ import json
 import time
 
 import bpy
+import numpy as np
 import pytest
 from conftest import add_vase_collection, addon_module, fast_fit_json, load_model
 
@@ -65,6 +66,38 @@ def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, fittin
     assert bpy.ops.shapegen.fit.poll()  # enabled again
     model = addon_module(extension, "shapegen_addon.store").get_model(bpy.context.scene)
     assert sorted(model.names) == sorted(o.name for o in collection.objects)
+
+
+def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension, fitting):
+    """Prepare's result with the panel's settings is what Fit starts from (no second
+    Prepare in the worker); after a source object is edited, or with other settings, Fit
+    prepares again."""
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model = "ppca"
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    prepared = bpy.data.collections["vases Prepared"]
+    copies = {o["shapegen_source"]: o for o in prepared.objects if "shapegen_landmarks" in o}
+
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert "reusing 'vases Prepared'" in settings.job_message
+    store = addon_module(extension, "shapegen_addon.store")
+    model = store.get_model(bpy.context.scene)
+    assert sorted(model.names) == sorted(o.name for o in collection.objects)
+    for name in model.names:  # the model's meshes are exactly the prepared copies
+        copy = copies[name]
+        local = np.empty(len(copy.data.vertices) * 3)
+        copy.data.vertices.foreach_get("co", local)
+        np.testing.assert_allclose(model.meshes[model.shape_index(name)].vertices, local.reshape(-1, 3), atol=1e-6)
+
+    settings.seed += 1  # other Prepare settings: not reused
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert "reusing" not in settings.job_message
+    settings.seed -= 1
+    source = sorted(collection.objects, key=lambda o: o.name)[2]
+    source.data.vertices[0].co.z += 0.05  # an edit after Prepare: stale
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert "reusing" not in settings.job_message
 
 
 def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, fitting, model_files):
