@@ -24,7 +24,7 @@ from ..core.jobs import BackgroundJob, JobStatus
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import mesh_data_from_arrays, object_to_mesh
-from .fitting import run_worker_job
+from .fitting import job_scene, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       TRANSFORM_KEY, marker_mesh_arrays)
@@ -103,10 +103,6 @@ def add_correspondence_markers(parent: bpy.types.Object, points: np.ndarray, col
 
 
 # ------------------------------------------------------------------------------ job
-def _job_scene():
-    return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
-
-
 def _load(status: JobStatus):
     if status.state != "done":
         return None
@@ -116,7 +112,7 @@ def _load(status: JobStatus):
 
 
 def _finish(status: JobStatus, result) -> None:
-    scene = _job_scene()
+    scene = job_scene()
     if scene is None:
         return
     settings = scene.shapegen

@@ -131,7 +131,8 @@ def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) ->
 
 
 # ------------------------------------------------------------------------------ polling
-def _job_scene() -> bpy.types.Scene | None:
+def job_scene() -> bpy.types.Scene | None:
+    """The scene the running (or last) job of `MANAGER` belongs to, if it still exists."""
     return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
 
 
@@ -142,7 +143,7 @@ def poll_fit() -> JobStatus | None:
     `jobs.MANAGER` (a fit, or another section's) is polled the same way."""
     if not MANAGER.running:
         return MANAGER.last_status
-    scene = _job_scene()
+    scene = job_scene()
     status = MANAGER.poll()
     if status is not None and not status.finished and scene is not None:
         settings = scene.shapegen
@@ -162,7 +163,7 @@ def _finish(status: JobStatus, loaded) -> None:
     """on_finish of the fit job: called once, on the main thread, from poll_fit, with
     `_load_result`'s return value (or the exception it raised)."""
     payload = MANAGER.payload
-    scene = _job_scene()
+    scene = job_scene()
     if scene is None:
         print(f"ShapeGen: the fit of '{payload.get('name')}' ended ({status.state}) but its scene is gone")
         return
@@ -367,7 +368,7 @@ class SHAPEGEN_OT_fit_cancel(bpy.types.Operator):
 
     def execute(self, context):
         MANAGER.cancel()
-        scene = _job_scene()
+        scene = job_scene()
         if scene is not None:
             scene.shapegen.job_stage = "cancelling"
         self.report({"INFO"}, f"Cancelling {MANAGER.label}")

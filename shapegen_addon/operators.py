@@ -23,7 +23,7 @@ from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
-from .fitting import run_worker_job
+from .fitting import job_scene, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
@@ -97,10 +97,6 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
 
 
 # ------------------------------------------------------------------------------ prepare
-def _prepare_scene() -> bpy.types.Scene | None:
-    return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
-
-
 def _load_prepared(status: JobStatus):
     """prepare step of the job (helper thread, no bpy): load and validate the result."""
     if status.state != "done":
@@ -147,7 +143,7 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     say why not. Nothing is created when the job failed or was cancelled, or when the
     user deleted or edited a source object while it ran."""
     payload = MANAGER.payload
-    scene = _prepare_scene()
+    scene = job_scene()
     if scene is None:
         print(f"ShapeGen: preparing '{payload.get('source')}' ended ({status.state}) but its scene is gone")
         return
