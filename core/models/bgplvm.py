@@ -30,13 +30,13 @@ E_q(x*)[f] = psi1(mu*, S*) B.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
 from ..errors import ModelFileError
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
                    check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
-from .kernels import PsiStatistics, ard_rbf, ard_rbf_grads
+from .kernels import PsiStatistics, ard_rbf
 
 __all__ = ["BayesianGPLVM", "bgplvm_bound", "BoundLayout", "gram_root", "profile_scale", "block_scales"]
 
@@ -48,12 +48,14 @@ class BoundLayout:
 
     def __init__(self, n: int, q: int, m: int):
         self.n, self.q, self.m = n, q, m
-        sizes = [n * q, n * q, m * q, 1, q, 1]
-        self.splits = np.cumsum(sizes)[:-1]
-        self.size = int(sum(sizes))
+        ends = np.cumsum([n * q, n * q, m * q, 1, q, 1])
+        self.splits = ends[:-1]
+        self.size = int(ends[-1])
+        self._blocks = [slice(int(lo), int(hi)) for lo, hi in zip([0, *ends[:-1]], ends)]
 
     def unpack(self, x):
-        mu, log_S, Z, log_var, log_alpha, log_beta = np.split(x, self.splits)
+        """Views (mu, log S, Z, log s_f^2, log a, log beta) into x."""
+        mu, log_S, Z, log_var, log_alpha, log_beta = (x[block] for block in self._blocks)
         n, q, m = self.n, self.q, self.m
         return mu.reshape(n, q), log_S.reshape(n, q), Z.reshape(m, q), log_var[0], log_alpha, log_beta[0]
 
@@ -63,19 +65,19 @@ class BoundLayout:
 
 
 def _factors(Kmm: np.ndarray, Psi2: np.ndarray, beta: float):
-    """Factors for A = K_mm + beta Psi2 (M x M), kept well-conditioned:
-    L = chol K_mm, X = L^-1 Psi2 L^-T = V diag(lam) V^T (lam clipped at 0: X is PSD and only
-    rounding makes it otherwise), B = I + beta X = L^-1 A L^-T.
-    Returns (L^-1, X, B^-1, B^-1/2 = diag((1 + beta lam)^-1/2) V^T, log|B|); then
-    K_mm^-1 = L^-T L^-1 and A^-1 = L^-T B^-1 L^-1."""
-    m = Kmm.shape[0]
-    L_inv = solve_triangular(np.linalg.cholesky(Kmm), np.eye(m), lower=True)
-    X = L_inv @ Psi2 @ L_inv.T
-    lam, V = np.linalg.eigh(0.5 * (X + X.T))
+    """Factors of A = K_mm + beta Psi2 (M x M) in one well-conditioned frame:
+    L = chol K_mm, L^-1 Psi2 L^-T = V diag(lam) V^T (lam clipped at 0: it is PSD and only
+    rounding makes it otherwise), P = V^T L^-1, b = 1 + beta lam. Then
+    K_mm^-1 = P^T P, A^-1 = P^T diag(1 / b) P, tr(K_mm^-1 Psi2) = sum lam, log|A K_mm^-1| = sum log b.
+    Returns (P, lam, b)."""
+    L, info = dpotrf(Kmm, lower=1, clean=1)
+    if info == 0:
+        L_inv, info = dtrtri(L, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("K_mm is not positive definite")
+    lam, V = np.linalg.eigh(L_inv @ Psi2 @ L_inv.T)
     lam = np.maximum(lam, 0.0)
-    X = (V * lam) @ V.T
-    b = 1.0 + beta * lam
-    return L_inv, X, (V / b) @ V.T, V.T / np.sqrt(b)[:, None], float(np.sum(np.log(b)))
+    return V.T @ L_inv, lam, 1.0 + beta * lam
 
 
 def gram_root(YYt: np.ndarray) -> np.ndarray:
@@ -90,46 +92,37 @@ def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_featu
 
     Y enters through any `Y_root` with Y_root Y_root^T = Y Y^T (Y itself, or `gram_root(Y Y^T)`,
     N x N, so the cost does not grow with D). K_mm carries a jitter of `jitter * s_f^2` on its
-    diagonal. The data term is computed as a sum of squares, tr(A^-1 Psi1^T Y Y^T Psi1) =
-    |B^-1/2 L^-1 Psi1^T Y_root|^2, and the K_mm / Psi2 gradients in the L^-1 frame, which keeps
-    the value accurate when K_mm is ill-conditioned.
+    diagonal. Everything M x M is taken in the frame P = V^T L^-1 of `_factors`, where A is
+    diagonal: with G = P Psi1^T Y_root and H = diag(1 / b) G,
+      tr(A^-1 Psi1^T Y Y^T Psi1) = sum(G * H) (a sum of squares), tr(K_mm^-1 Psi2) = sum lam,
+      dF/dK_mm = -beta^2 / 2 P^T (D diag(lam^2 / b) + H H^T) P,
+      dF/dPsi2 = beta^2 / 2 P^T (D diag(lam / b) - beta H H^T) P,
+      dF/dPsi1 = beta^2 Y Y^T Psi1 A^-1 = beta^2 Y_root H^T P,
+    which keeps the value accurate when K_mm is ill-conditioned.
     """
     mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
-    n, m, d = layout.n, layout.m, n_features
+    n, d = layout.n, n_features
     S, variance, alpha, beta = np.exp(log_S), np.exp(log_var), np.exp(log_alpha), np.exp(log_beta)
-    psi = PsiStatistics(mu, S, Z, variance, alpha)
-    Psi1, Psi2 = psi.psi1, psi.psi2
-    Kmm = ard_rbf(Z, Z, variance, alpha) + jitter * variance * np.eye(m)
-    L_inv, X, B_inv, B_half_inv, log_det_B = _factors(Kmm, Psi2, beta)
-    F_root = L_inv @ (Psi1.T @ Y_root)                            # L^-1 Psi1^T Y, (M, r)
-    E = B_half_inv @ F_root
-    tr_YYt = np.sum(Y_root**2)
-    tr_E2 = np.sum(E**2)                                          # tr(A^-1 Psi1^T Y Y^T Psi1)
-    tr_X = np.trace(X)                                            # tr(K_mm^-1 Psi2)
-    kl = 0.5 * np.sum(mu**2 + S - log_S - 1.0)
-    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * log_det_B - 0.5 * beta * tr_YYt
+    psi = PsiStatistics(mu, S, Z, variance, alpha, jitter)
+    P, lam, b = _factors(psi.Kmm, psi.psi2, beta)
+    G = P @ (psi.psi1.T @ Y_root)                                 # (M, r)
+    H = G / b[:, None]
+    tr_YYt = np.sum(Y_root * Y_root)
+    tr_E2 = np.sum(G * H)                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
+    tr_X = np.sum(lam)                                            # tr(K_mm^-1 Psi2)
+    kl = 0.5 * np.sum(mu * mu + S - log_S - 1.0)
+    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * np.sum(np.log(b)) - 0.5 * beta * tr_YYt
          + 0.5 * beta**2 * tr_E2 - 0.5 * beta * d * psi.psi0 + 0.5 * beta * d * tr_X - kl)
-    # dF/dA = L^-T inner_A L^-1,  A^-1 P A^-1 = L^-T Q1 L^-1 with Q1 = B^-1 F F^T B^-1
-    B_inv_F = B_inv @ F_root
-    Q1 = B_inv_F @ B_inv_F.T
-    inner_A = -0.5 * d * B_inv - 0.5 * beta**2 * Q1
-    # dF/dK_mm = D/2 K^-1 + dF/dA - beta D/2 K^-1 Psi2 K^-1, using (I - B^-1) = beta B^-1 X
-    inner_K = -0.5 * beta**2 * d * (B_inv @ X @ X) - 0.5 * beta**2 * Q1
-    # dF/dPsi2 = beta dF/dA + beta D/2 K^-1
-    inner_P2 = 0.5 * beta**2 * d * (B_inv @ X) - 0.5 * beta**3 * Q1
-    G_Kmm = L_inv.T @ (0.5 * (inner_K + inner_K.T)) @ L_inv
-    G_Psi2 = L_inv.T @ (0.5 * (inner_P2 + inner_P2.T)) @ L_inv
-    G_Psi1 = beta**2 * (Y_root @ (B_inv_F.T @ L_inv))            # beta^2 Y Y^T Psi1 A^-1
-    g_psi0 = -0.5 * beta * d
+    HP = H.T @ P                                                  # Y_root^T Psi1 A^-1, (r, M)
+    HH = HP.T @ HP                                                # A^-1 Psi1^T Y Y^T Psi1 A^-1
+    G_Kmm = -0.5 * beta**2 * ((P.T * (d * lam**2 / b)) @ P + HH)
+    G_Psi2 = 0.5 * beta**2 * ((P.T * (d * lam / b)) @ P - beta * HH)
+    G_Psi1 = beta**2 * (Y_root @ HP)
+    # dF/dbeta: the explicit terms, plus tr(dF/dA Psi2) = -D/2 sum lam / b - beta^2 / 2 sum lam H^2
     dF_dbeta = (0.5 * n * d / beta - 0.5 * tr_YYt + beta * tr_E2 - 0.5 * d * psi.psi0
-                + 0.5 * d * tr_X + np.sum(inner_A * X))
-    d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(g_psi0, G_Psi1, G_Psi2)
-    dZ_k, dalpha_k, dlogvar_k = ard_rbf_grads(G_Kmm, Z, Kmm, alpha)   # jitter on the diagonal: no dZ, d alpha
-    d_mu = d_mu - mu
-    d_logS = d_S * S - 0.5 * (S - 1.0)
-    grad = layout.pack(d_mu, d_logS, d_Z + dZ_k, d_logvar + dlogvar_k, (d_alpha + dalpha_k) * alpha,
-                       dF_dbeta * beta)
-    return F, grad
+                + 0.5 * d * np.sum(lam * (1.0 - 1.0 / b)) - 0.5 * beta**2 * np.sum(lam @ (H * H)))
+    d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(-0.5 * beta * d, G_Psi1, G_Psi2, G_Kmm)
+    return F, layout.pack(d_mu - mu, d_S * S - 0.5 * (S - 1.0), d_Z, d_logvar, d_alpha * alpha, dF_dbeta * beta)
 
 
 def profile_scale(x: np.ndarray, layout: BoundLayout):
@@ -337,12 +330,10 @@ class BayesianGPLVM(ShapeModel):
     def _prepare(self) -> None:
         """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters)."""
         self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
-                                        self.kernel_variance_, self.inverse_lengthscales_)
-        Kmm = (ard_rbf(self.inducing_, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
-               + self.jitter_ * self.kernel_variance_ * np.eye(self.inducing_.shape[0]))
-        L_inv, _, B_inv, _, _ = _factors(Kmm, self._train_psi.psi2, self.beta_)
-        self._A_inv = L_inv.T @ B_inv @ L_inv
-        self._posterior_term = L_inv.T @ (B_inv - np.eye(B_inv.shape[0])) @ L_inv   # A^-1 - K_mm^-1
+                                        self.kernel_variance_, self.inverse_lengthscales_, self.jitter_)
+        P, _, b = _factors(self._train_psi.Kmm, self._train_psi.psi2, self.beta_)
+        self._A_inv = P.T @ (P / b[:, None])
+        self._posterior_term = P.T @ (P * (1.0 / b - 1.0)[:, None])               # A^-1 - K_mm^-1
 
     @property
     def latent_dim(self) -> int:
