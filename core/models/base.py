@@ -203,11 +203,13 @@ def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
 
 def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,
           bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6,
-          ftol: float = 1e-12):
+          ftol: float = 1e-12, stall: tuple[int, float] | None = None):
     """Minimise objective(x) -> (value, gradient) with scipy's L-BFGS-B.
 
-    It stops after `max_iter` iterations, when the projected gradient is below `gtol` or when an
-    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps).
+    It stops after `max_iter` iterations, when the projected gradient is below `gtol`, when an
+    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps) or,
+    with stall = (k, rtol), when the last k iterations together lowered it by at most
+    rtol |value|.
 
     `progress(fraction, message)` is called once per iteration; if it raises (e.g. Cancelled)
     the exception propagates and the fit stops (cooperative cancel).
@@ -216,17 +218,23 @@ def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, me
     count = [0]
     failures = [0]
 
-    def callback(_xk):
+    history = []
+
+    def callback(intermediate_result):
         count[0] += 1
         if progress is not None:
             progress(lo + (hi - lo) * min(count[0] / max_iter, 1.0), message)
+        if stall is not None:
+            history.append(intermediate_result.fun)
+            k, rtol = stall
+            if len(history) > k and history[-k - 1] - history[-1] <= rtol * abs(history[-1]):
+                raise StopIteration
 
     def guarded(x):
         # a trial step far outside the sane region can make a kernel matrix numerically
         # indefinite; report +inf so the line search backs off
         try:
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                value, grad = objective(x)
+            value, grad = objective(x)
             if np.isfinite(value) and np.all(np.isfinite(grad)):
                 return value, grad
         except (np.linalg.LinAlgError, ValueError):
@@ -239,9 +247,10 @@ def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, me
     # from the last good point while it still makes progress and iterations remain
     for _ in range(20):
         failures_before = failures[0]
-        result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
-                          options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
-                                   "gtol": gtol, "ftol": ftol, "maxcor": 20})
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
+                              options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
+                                       "gtol": gtol, "ftol": ftol, "maxcor": 20})
         improved = result.fun < best - 1e-9 * max(abs(best), 1.0) if np.isfinite(best) else np.isfinite(result.fun)
         if not np.isfinite(result.fun):
             raise np.linalg.LinAlgError(f"{message}: the objective is not computable at the starting point")

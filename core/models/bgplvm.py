@@ -202,6 +202,11 @@ class BayesianGPLVM(ShapeModel):
     model_type = "bgplvm"
     # L-BFGS-B relative-decrease tolerance: scipy's (and GPy's) default factr = 1e7
     _FTOL = 1e7 * np.finfo(float).eps
+    # the final run also stops once 10 iterations together gained less than 1e-6 |F|
+    _STALL = (10, 1e-6)
+    # iterations per starting point before the better one continues; noise warm-up of start (a)
+    _START_ITERS = 80
+    _WARM_UP = 30
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -250,61 +255,62 @@ class BayesianGPLVM(ShapeModel):
         YYt = Yc @ Yc.T                                       # the only use of D-sized data
         Y_root = gram_root(YYt)                               # N x r, Y_root Y_root^T = Y Y^T
         data_var = np.trace(YYt) / (n * d)
-        mu0 = pca_latents(Yc, q)
-        Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
-        layout = BoundLayout(n, q, m)
-        x0 = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
-                         np.log(100.0 / data_var))
         jitter = float(self.jitter)
         if not 0.0 < jitter < 1.0:
             raise ModelInputError(f"jitter must be in (0, 1), got {self.jitter!r}")
+        layout = BoundLayout(n, q, m)
         bounds = ([(None, None)] * (n * q) + [(np.log(1e-10), np.log(1e3))] * (n * q) + [(None, None)] * (m * q)
                   + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
                   + [(None, np.log(1e8 / data_var))])
 
-        def objective(x_tilde):
-            x, chain = profile_scale(x_tilde, layout)
-            value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
-            return -value, -chain(grad)
+        def run(x_start, n_iter, span, message, noise_fixed=False, stall=None):
+            """L-BFGS-B on the bound from x_start, in scale-profiled (`profile_scale`) and
+            preconditioned (`block_scales`) coordinates; returns (x, F, iterations)."""
+            def objective(x_tilde):
+                x, chain = profile_scale(x_tilde, layout)
+                value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
+                return -value, -chain(grad)
+            scales = block_scales(objective, x_start, layout.splits)
 
-        def scaled(fun, origin, scales):
-            """fun in the preconditioned coordinates y = (x - origin) / scales."""
-            def wrapped(y):
-                value, grad = fun(origin + scales * y)
+            def preconditioned(y):
+                value, grad = objective(x_start + scales * y)
                 return value, grad * scales
-            return wrapped
+            y_bounds = [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
+                        for (lo, hi), o, sc in zip(bounds, x_start, scales)]
+            if noise_fixed:
+                y_bounds[-1] = (0.0, 0.0)
+            result = lbfgs(preconditioned, np.zeros(layout.size), max_iter=max(n_iter, 1), progress=progress,
+                           message=message, bounds=y_bounds, progress_span=span, ftol=self._FTOL, stall=stall)
+            x, _ = profile_scale(x_start + scales * result.x, layout)
+            return x, -float(result.fun), int(result.nit), str(result.message)
 
-        def scaled_bounds(bnds, origin, scales):
-            return [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
-                    for (lo, hi), o, sc in zip(bnds, origin, scales)]
-
-        # warm-up with the noise fixed at 1 % of the data variance, so the latents and kernel
-        # explain the data before beta may grow (avoids the all-noise local optimum)
-        free = np.ones(layout.size, bool)
-        free[-1] = False
-        n_warm = int(min(max(self.max_iter // 10, 1), 200))
-
-        def objective_fixed_noise(x_free):
-            x = x0.copy()
-            x[free] = x_free
-            value, grad = objective(x)
-            return value, grad[free]
-
-        origin = x0[free]                                     # free = all but log beta, the last entry
-        scales = block_scales(objective_fixed_noise, origin, layout.splits)
-        warm = lbfgs(scaled(objective_fixed_noise, origin, scales), np.zeros(free.sum()), max_iter=n_warm,
-                     progress=progress, message="Bayesian GP-LVM: warm-up (noise fixed)",
-                     bounds=scaled_bounds([b for b, keep in zip(bounds, free) if keep], origin, scales),
-                     progress_span=(0.0, 0.1), ftol=self._FTOL)
-        x0[free] = origin + scales * warm.x
-        scales = block_scales(objective, x0, layout.splits)
-        result = lbfgs(scaled(objective, x0, scales), np.zeros(layout.size),
-                       max_iter=max(self.max_iter - warm.nit, 1), progress=progress,
-                       message="Bayesian GP-LVM: optimising the bound", bounds=scaled_bounds(bounds, x0, scales),
-                       progress_span=(0.1, 0.95), ftol=self._FTOL)
-        result.nit += warm.nit
-        result.x, _ = profile_scale(x0 + scales * result.x, layout)
-        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(result.x)
+        # two starting points (the bound has several local optima; neither start wins on all
+        # data): (a) PCA latents (relative scales kept), noise first held at 1 % of the data
+        # variance for `_WARM_UP` iterations; (b) GPy's: PCA of the column-standardised data,
+        # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
+        # iterations; the better one continues until the bound stalls or `max_iter`.
+        column_std = Yc.std(0)
+        standardised = pca_latents(Yc / np.where(column_std > 0, column_std, 1.0), q)
+        starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP),
+                  (standardised / np.maximum(standardised.std(0), 1e-12), 1.0, 0)]
+        n_start = int(min(self._START_ITERS, self.max_iter))
+        candidates = []
+        for i, (mu0, snr, n_warm) in enumerate(starts):
+            Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
+            x = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
+                            np.log(snr / data_var))
+            span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
+            nit = 0
+            if n_warm:
+                x, _, nit, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
+                                   noise_fixed=True)
+            x, value, more, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
+            candidates.append((value, x, nit + more))
+        value, x, nit = max(candidates, key=lambda c: c[0])
+        n_total = sum(c[2] for c in candidates)
+        x, value, more, message = run(x, self.max_iter - nit, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
+                                      stall=self._STALL)
+        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
         self.mean_ = mean
         self.latent_mean_ = mu.copy()
         self.latent_variance_ = np.exp(log_S)
@@ -313,9 +319,9 @@ class BayesianGPLVM(ShapeModel):
         self.inverse_lengthscales_ = np.exp(log_alpha)
         self.noise_variance_ = float(np.exp(-log_beta))
         self.jitter_ = float(jitter)
-        self.elbo_ = float(-result.fun)
-        self.n_iter_ = int(result.nit)
-        self.optimizer_message_ = str(result.message)
+        self.elbo_ = value
+        self.n_iter_ = n_total + more
+        self.optimizer_message_ = message
         self._prepare()
         # B = beta A^-1 Psi1^T Y: the one pass over D after the fit
         self.B_ = (self.beta_ * self._A_inv) @ (self._train_psi.psi1.T @ Yc)
