@@ -107,11 +107,11 @@ def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_featu
     P, lam, b = _factors(psi.Kmm, psi.psi2, beta)
     G = P @ (psi.psi1.T @ Y_root)                                 # (M, r)
     H = G / b[:, None]
-    tr_YYt = np.sum(Y_root * Y_root)
-    tr_E2 = np.sum(G * H)                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
-    tr_X = np.sum(lam)                                            # tr(K_mm^-1 Psi2)
-    kl = 0.5 * np.sum(mu * mu + S - log_S - 1.0)
-    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * np.sum(np.log(b)) - 0.5 * beta * tr_YYt
+    tr_YYt = (Y_root * Y_root).sum()
+    tr_E2 = (G * H).sum()                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
+    tr_X = lam.sum()                                            # tr(K_mm^-1 Psi2)
+    kl = 0.5 * (mu * mu + S - log_S - 1.0).sum()
+    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * np.log(b).sum() - 0.5 * beta * tr_YYt
          + 0.5 * beta**2 * tr_E2 - 0.5 * beta * d * psi.psi0 + 0.5 * beta * d * tr_X - kl)
     HP = H.T @ P                                                  # Y_root^T Psi1 A^-1, (r, M)
     HH = HP.T @ HP                                                # A^-1 Psi1^T Y Y^T Psi1 A^-1
@@ -120,7 +120,7 @@ def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_featu
     G_Psi1 = beta**2 * (Y_root @ HP)
     # dF/dbeta: the explicit terms, plus tr(dF/dA Psi2) = -D/2 sum lam / b - beta^2 / 2 sum lam H^2
     dF_dbeta = (0.5 * n * d / beta - 0.5 * tr_YYt + beta * tr_E2 - 0.5 * d * psi.psi0
-                + 0.5 * d * np.sum(lam * (1.0 - 1.0 / b)) - 0.5 * beta**2 * np.sum(lam @ (H * H)))
+                + 0.5 * d * lam @ (1.0 - 1.0 / b) - 0.5 * beta**2 * (lam @ (H * H)).sum())
     d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(-0.5 * beta * d, G_Psi1, G_Psi2, G_Kmm)
     return F, layout.pack(d_mu - mu, d_S * S - 0.5 * (S - 1.0), d_Z, d_logvar, d_alpha * alpha, dF_dbeta * beta)
 
@@ -139,7 +139,7 @@ def profile_scale(x: np.ndarray, layout: BoundLayout):
     """
     mu_t, log_S_t, Z_t, log_var, log_alpha_t, log_beta = layout.unpack(x)
     S_t = np.exp(log_S_t)
-    total = np.sum(mu_t**2 + S_t, 0)                                  # (Q,)
+    total = (mu_t**2 + S_t).sum(0)                                  # (Q,)
     log_c = 0.5 * (np.log(layout.n) - np.log(total))
     c = np.exp(log_c)
     mu, Z = mu_t * c, Z_t * c
@@ -147,7 +147,7 @@ def profile_scale(x: np.ndarray, layout: BoundLayout):
 
     def chain(grad):
         g_mu, g_logS, g_Z, g_logvar, g_logalpha, g_logbeta = layout.unpack(grad)
-        g_logc = np.sum(mu * g_mu, 0) + 2.0 * np.sum(g_logS, 0) + np.sum(Z * g_Z, 0) - 2.0 * g_logalpha
+        g_logc = (mu * g_mu).sum(0) + 2.0 * g_logS.sum(0) + (Z * g_Z).sum(0) - 2.0 * g_logalpha
         return layout.pack(c * g_mu - g_logc * mu_t / total, g_logS - 0.5 * g_logc * S_t / total,
                            c * g_Z, g_logvar, g_logalpha, g_logbeta)
     return x_actual, chain

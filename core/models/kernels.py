@@ -64,17 +64,17 @@ class PsiStatistics:
         log_var = np.log(variance)
         z_bar = (0.5 * (Z[:, None, :] + Z[None, :, :])).reshape(m * m, q)
         self.delta_sq = ((Z[:, None, :] - Z[None, :, :]) ** 2).reshape(m * m, q)
-        self.features1 = np.hstack([Z, Z * Z, np.ones((m, 1))])                     # (M, 2Q + 1)
-        self.features2 = np.hstack([z_bar, z_bar * z_bar, np.ones((m * m, 1))])     # (M^2, 2Q + 1)
+        self.features1 = np.concatenate([Z, Z * Z, np.ones((m, 1))], 1)                # (M, 2Q + 1)
+        self.features2 = np.concatenate([z_bar, z_bar * z_bar, np.ones((m * m, 1))], 1)# (M^2, 2Q + 1)
         self.inv_den1 = 1.0 / (alpha * S + 1.0)
         self.inv_den2 = 1.0 / (2.0 * alpha * S + 1.0)
         self.w = alpha * self.inv_den1
         self.c = alpha * self.inv_den2
         w_mu, c_mu = self.w * mu, self.c * mu
-        k1 = log_var + np.sum(0.5 * np.log(self.inv_den1) - 0.5 * w_mu * mu, 1)
-        k2 = 2.0 * log_var + np.sum(0.5 * np.log(self.inv_den2) - c_mu * mu, 1)
-        self.coef1 = np.hstack([w_mu, -0.5 * self.w, k1[:, None]])
-        self.coef2 = np.hstack([2.0 * c_mu, -self.c, k2[:, None]])
+        k1 = log_var + (0.5 * np.log(self.inv_den1) - 0.5 * w_mu * mu).sum(1)
+        k2 = 2.0 * log_var + (0.5 * np.log(self.inv_den2) - c_mu * mu).sum(1)
+        self.coef1 = np.concatenate([w_mu, -0.5 * self.w, k1[:, None]], 1)
+        self.coef2 = np.concatenate([2.0 * c_mu, -self.c, k2[:, None]], 1)
         u = self.delta_sq @ alpha                                                   # (M^2,)
         self.psi1 = np.exp(self.coef1 @ self.features1.T)
         self.psi2n = np.exp(self.coef2 @ self.features2.T - 0.25 * u).reshape(n, m, m)
@@ -109,14 +109,14 @@ class PsiStatistics:
         d_mu = w * (T1_z - r1 * mu) + 2.0 * c * (T2_z - t2 * mu)
         # dw/dS = -w^2, dc/dS = -2 c^2, dw/da = 1 / den1^2, dc/da = 1 / den2^2
         d_S = -w**2 * d_w - 0.5 * w * r1 - 2.0 * c**2 * d_c - c * t2
-        d_alpha = np.sum(d_w * self.inv_den1**2 - 0.5 * r1 * S * self.inv_den1
-                         + d_c * self.inv_den2**2 - t2 * S * self.inv_den2, 0)
+        d_alpha = (d_w * self.inv_den1**2 - 0.5 * r1 * S * self.inv_den1
+                   + d_c * self.inv_den2**2 - t2 * S * self.inv_den2).sum(0)
         U = 0.25 * T2.sum(0).reshape(m, m)
-        d_logvar = g0 * n * self.variance + np.sum(r1) + 2.0 * np.sum(t2)
+        d_logvar = g0 * n * self.variance + r1.sum() + 2.0 * t2.sum()
         if g_kmm is not None:
             T_K = g_kmm * self.Kmm
             U += 0.5 * T_K
-            d_logvar += np.sum(T_K)
+            d_logvar += T_K.sum()
         d_alpha -= U.ravel() @ self.delta_sq
         # Z: through u, z (psi1) and zbar, zbar^2 (psi2; T2 symmetric in a, b)
         E1 = T1.T @ self.coef1
