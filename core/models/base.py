@@ -199,6 +199,14 @@ def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     return Z / (scale if scale > 0 else 1.0)
 
 
+def standardised_pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
+    """GPy's latent initialisation: PCA of the column-standardised data, each of the q
+    scores scaled to unit standard deviation."""
+    column_std = Yc.std(0)
+    Z = pca_latents(Yc / np.where(column_std > 0, column_std, 1.0), q)
+    return Z / np.maximum(Z.std(0), 1e-12)
+
+
 # ----------------------------------------------------------------------------- optimiser
 
 def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,

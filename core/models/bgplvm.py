@@ -35,7 +35,8 @@ from scipy.optimize import minimize
 
 from ..errors import ModelFileError
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
-                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
+                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents,
+                   standardised_pca_latents)
 from .kernels import PsiStatistics, ard_rbf
 
 __all__ = ["BayesianGPLVM", "bgplvm_bound", "BoundLayout", "gram_root", "profile_scale", "block_scales"]
@@ -289,10 +290,7 @@ class BayesianGPLVM(ShapeModel):
         # variance for `_WARM_UP` iterations; (b) GPy's: PCA of the column-standardised data,
         # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
         # iterations; the better one continues until the bound stalls or `max_iter`.
-        column_std = Yc.std(0)
-        standardised = pca_latents(Yc / np.where(column_std > 0, column_std, 1.0), q)
-        starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP),
-                  (standardised / np.maximum(standardised.std(0), 1e-12), 1.0, 0)]
+        starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP), (standardised_pca_latents(Yc, q), 1.0, 0)]
         n_start = int(min(self._START_ITERS, self.max_iter))
         candidates = []
         for i, (mu0, snr, n_warm) in enumerate(starts):

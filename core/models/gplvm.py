@@ -20,7 +20,8 @@ from scipy.special import logsumexp
 
 from ..errors import ModelFileError
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
-                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
+                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents,
+                   standardised_pca_latents)
 from .kernels import rbf, sq_dists
 
 __all__ = ["GPLVM", "gplvm_log_likelihood"]
@@ -74,6 +75,8 @@ class GPLVM(ShapeModel):
     """
 
     model_type = "gplvm"
+    # iterations per starting point before the better one continues
+    _START_ITERS = 60
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -111,8 +114,6 @@ class GPLVM(ShapeModel):
             progress(0.0, "GP-LVM: PCA initialisation")
         YYt = Yc @ Yc.T                                      # the only use of D-sized data
         data_var = np.trace(YYt) / (n * d)
-        Z0 = pca_latents(Yc, q)
-        x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(100.0 / data_var)]])
         # noise variance kept >= 1e-8 of the data variance so K stays positive definite;
         # length-scale kept >= MIN_LENGTHSCALE (latents start at unit spread and carry the
         # N(0, I) prior below): without both, few shapes (N = 6, Q = 2) let the optimiser
@@ -130,8 +131,22 @@ class GPLVM(ShapeModel):
             grad[: n * q] -= z
             return -value, -grad
 
-        result = lbfgs(objective, x0, max_iter=self.max_iter, progress=progress,
-                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.0, 0.95))
+        # two starting points (the likelihood has several local optima; neither start wins on
+        # all data): (a) PCA latents (relative scales kept), noise 1 % of the data variance;
+        # (b) GPy's: PCA of the column-standardised data, each latent scaled to unit variance,
+        # noise 10 %. Each runs `_START_ITERS` iterations; the better one continues.
+        starts = [(pca_latents(Yc, q), 100.0), (standardised_pca_latents(Yc, q), 10.0)]
+        n_start = int(min(self._START_ITERS, self.max_iter))
+        candidates = []
+        for i, (Z0, snr) in enumerate(starts):
+            x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(snr / data_var)]])
+            result = lbfgs(objective, x0, max_iter=n_start, progress=progress, message="GP-LVM: starting points",
+                           bounds=bounds, progress_span=(0.1 * i / len(starts), 0.1 * (i + 1) / len(starts)))
+            candidates.append(result)
+        best = min(candidates, key=lambda r: r.fun)
+        result = lbfgs(objective, best.x, max_iter=max(self.max_iter - best.nit, 1), progress=progress,
+                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.1, 0.95))
+        n_iter = sum(r.nit for r in candidates) + result.nit
         x = result.x
         self.mean_ = mean
         self.latents_ = x[: n * q].reshape(n, q).copy()
@@ -140,7 +155,7 @@ class GPLVM(ShapeModel):
         self.lengthscale_ = float(np.exp(log_ls))
         self.noise_variance_ = float(np.exp(-log_beta))
         self.log_likelihood_ = float(gplvm_log_likelihood(x, YYt, d, q)[0])  # eq. 5.34, without the prior
-        self.n_iter_ = int(result.nit)
+        self.n_iter_ = int(n_iter)
         self.optimizer_message_ = str(result.message)
         self._prepare()
         self.alpha_ = self._K_inv @ Yc                       # K^-1 Y for the posterior mean
