@@ -203,11 +203,11 @@ class BayesianGPLVM(ShapeModel):
     model_type = "bgplvm"
     # L-BFGS-B relative-decrease tolerance: scipy's (and GPy's) default factr = 1e7
     _FTOL = 1e7 * np.finfo(float).eps
-    # the final run also stops once 10 iterations together gained less than 1e-6 |F|
-    _STALL = (10, 1e-6)
+    # the final run also stops once 10 iterations together gained less than 3e-6 |F|
+    _STALL = (10, 3e-6)
     # iterations per starting point before the better one continues; noise warm-up of start (a)
-    _START_ITERS = 80
-    _WARM_UP = 30
+    _START_ITERS = 40
+    _WARM_UP = 15
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -264,14 +264,17 @@ class BayesianGPLVM(ShapeModel):
                   + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
                   + [(None, np.log(1e8 / data_var))])
 
-        def run(x_start, n_iter, span, message, noise_fixed=False, stall=None):
-            """L-BFGS-B on the bound from x_start, in scale-profiled (`profile_scale`) and
-            preconditioned (`block_scales`) coordinates; returns (x, F, iterations)."""
-            def objective(x_tilde):
-                x, chain = profile_scale(x_tilde, layout)
-                value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
-                return -value, -chain(grad)
-            scales = block_scales(objective, x_start, layout.splits)
+        def objective(x_tilde):
+            """-F in scale-profiled coordinates (`profile_scale`)."""
+            x, chain = profile_scale(x_tilde, layout)
+            value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
+            return -value, -chain(grad)
+
+        def run(x_start, n_iter, span, message, scales=None, noise_fixed=False, stall=None):
+            """L-BFGS-B on the bound from x_start, preconditioned by `scales` (default:
+            `block_scales` at x_start). Returns (x, F, iterations, message, scales)."""
+            if scales is None:
+                scales = block_scales(objective, x_start, layout.splits)
 
             def preconditioned(y):
                 value, grad = objective(x_start + scales * y)
@@ -283,13 +286,13 @@ class BayesianGPLVM(ShapeModel):
             result = lbfgs(preconditioned, np.zeros(layout.size), max_iter=max(n_iter, 1), progress=progress,
                            message=message, bounds=y_bounds, progress_span=span, ftol=self._FTOL, stall=stall)
             x, _ = profile_scale(x_start + scales * result.x, layout)
-            return x, -float(result.fun), int(result.nit), str(result.message)
+            return x, -float(result.fun), int(result.nit), str(result.message), scales
 
         # two starting points (the bound has several local optima; neither start wins on all
         # data): (a) PCA latents (relative scales kept), noise first held at 1 % of the data
         # variance for `_WARM_UP` iterations; (b) GPy's: PCA of the column-standardised data,
         # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
-        # iterations; the better one continues until the bound stalls or `max_iter`.
+        # iterations; the better one continues until the bound stalls (`_STALL`) or `max_iter`.
         starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP), (standardised_pca_latents(Yc, q), 1.0, 0)]
         n_start = int(min(self._START_ITERS, self.max_iter))
         candidates = []
@@ -298,16 +301,16 @@ class BayesianGPLVM(ShapeModel):
             x = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
                             np.log(snr / data_var))
             span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
-            nit = 0
+            nit, scales = 0, None
             if n_warm:
-                x, _, nit, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
-                                   noise_fixed=True)
-            x, value, more, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
+                x, _, nit, _, scales = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
+                                           noise_fixed=True)
+            x, value, more, _, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points", scales)
             candidates.append((value, x, nit + more))
         value, x, nit = max(candidates, key=lambda c: c[0])
         n_total = sum(c[2] for c in candidates)
-        x, value, more, message = run(x, self.max_iter - nit, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
-                                      stall=self._STALL)
+        x, value, more, message, _ = run(x, self.max_iter - nit, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
+                                         stall=self._STALL)
         mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
         self.mean_ = mean
         self.latent_mean_ = mu.copy()
