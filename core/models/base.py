@@ -189,9 +189,19 @@ def default_latent_dim(Yc: np.ndarray, fraction: float = 0.8) -> int:
 
 def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     """PCA initialisation of latents (§5.3.3): the first q principal scores, scaled so the first
-    has unit standard deviation (relative scales kept, which ARD needs)."""
-    scores, _, _ = principal_axes(Yc)
-    Z = scores[:, :q]
+    has unit standard deviation (relative scales kept, which ARD needs).
+
+    The scores U s come from the N x N Gram matrix Yc Yc^T = U s^2 U^T (cheaper than the SVD
+    of Yc for N << D), with the signs of `principal_axes` (largest |entry| of V = Yc^T U / s
+    positive)."""
+    r = min(Yc.shape)
+    eigvals, U = np.linalg.eigh(Yc @ Yc.T)
+    eigvals, U = eigvals[::-1][: min(q, r)], U[:, ::-1][:, : min(q, r)]
+    s = np.sqrt(np.maximum(eigvals, 0.0))
+    axes = Yc.T @ (U / np.where(s > 0, s, 1.0))
+    flip = np.sign(axes[np.argmax(np.abs(axes), axis=0), np.arange(axes.shape[1])])
+    flip[flip == 0] = 1.0
+    Z = U * (s * flip)
     if Z.shape[1] < q:  # fewer non-trivial directions than q: pad with tiny deterministic values
         pad = 1e-3 * np.linspace(-1, 1, Yc.shape[0])[:, None] * np.ones((1, q - Z.shape[1]))
         Z = np.hstack([Z, pad])
