@@ -3,9 +3,10 @@
 Y (N x D, centred) = f(Z) + noise with independent GPs per coordinate:
   K = s_f^2 exp(-|z - z'|^2 / (2 l^2)) + beta^-1 I                       (eq. 5.38)
   log p(Y | Z) = -(N D / 2) log 2 pi - (D / 2) log|K| - 1/2 tr(K^-1 Y Y^T)   (eq. 5.34)
-maximised over Z and (log s_f^2, log l, log beta) by L-BFGS-B with analytic gradients
-(eq. 5.35 generalised: dL/dK = 1/2 (K^-1 Y Y^T K^-1 - D K^-1)). Y Y^T is formed once, so an
-iteration costs O(N^3 + N^2 Q), whatever D. Z is initialised by PCA.
+maximised (with the N(0, I) latent prior, MAP) over Z and (log s_f^2, log l, log beta) by
+L-BFGS-B with analytic gradients (eq. 5.35 generalised: dL/dK = 1/2 (K^-1 Y Y^T K^-1 - D K^-1)).
+Y Y^T is formed once, so an iteration costs O(N^3 + N^2 Q), whatever D. Z is initialised by
+PCA; two starting points run briefly and the better one continues (`GPLVM.fit`).
 
 Sampling (§5.4.3): Gaussian KDE over the learnt Z, spherical bandwidth chosen by leave-one-out
 log-likelihood over a grid, mapped through the GP posterior mean (eq. 5.42).
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 from scipy.special import logsumexp
 
@@ -38,10 +40,15 @@ def gplvm_log_likelihood(params: np.ndarray, YYt: np.ndarray, n_features: int, l
     variance, ls2, noise = np.exp(log_var), np.exp(2.0 * log_ls), np.exp(-log_beta)
     r2 = sq_dists(Z, Z)
     Kf = variance * np.exp(-0.5 * r2 / ls2)
-    K = Kf + noise * np.eye(n)
-    chol = cho_factor(K, lower=True)
-    K_inv = cho_solve(chol, np.eye(n))
-    log_det = 2.0 * np.sum(np.log(np.diag(chol[0])))
+    K = Kf.copy()
+    K.flat[:: n + 1] += noise
+    L, info = dpotrf(K, lower=1, clean=1)                     # K = L L^T
+    if info == 0:
+        L_inv, info = dtrtri(L, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("K is not positive definite")
+    K_inv = L_inv.T @ L_inv
+    log_det = 2.0 * np.log(L.diagonal()).sum()
     K_inv_YYt = K_inv @ YYt
     value = -0.5 * (n * n_features * _LOG_2PI + n_features * log_det + np.trace(K_inv_YYt))
     G = 0.5 * (K_inv_YYt @ K_inv - n_features * K_inv)        # dL/dK (symmetric)
@@ -65,7 +72,8 @@ class GPLVM(ShapeModel):
     n_components : int or None
         Latent dimension Q; None = the PPCA 80 % explained-variance rule (§5.4.1).
     max_iter : int
-        L-BFGS-B iterations for Z and the hyperparameters.
+        At most this many L-BFGS-B iterations for Z and the hyperparameters (both starting
+        points and the final run together).
     n_restarts : int
         Starting latents per row in encode / complete / score (best training latents).
     variance_fraction : float
@@ -75,8 +83,10 @@ class GPLVM(ShapeModel):
     """
 
     model_type = "gplvm"
-    # iterations per starting point before the better one continues
+    # iterations per starting point before the better one continues; the final run stops once
+    # 10 iterations together gained less than 1e-9 |objective| (not on one small step)
     _START_ITERS = 60
+    _STALL = (10, 1e-9)
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -145,7 +155,8 @@ class GPLVM(ShapeModel):
             candidates.append(result)
         best = min(candidates, key=lambda r: r.fun)
         result = lbfgs(objective, best.x, max_iter=max(self.max_iter - best.nit, 1), progress=progress,
-                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.1, 0.95))
+                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.1, 0.95),
+                       ftol=0.0, stall=self._STALL)
         n_iter = sum(r.nit for r in candidates) + result.nit
         x = result.x
         self.mean_ = mean
