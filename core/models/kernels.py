@@ -16,6 +16,8 @@ psi-statistics for q(X) = prod_n N(mu_n, diag S_n) (Titsias & Lawrence 2010, eq.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 __all__ = ["sq_dists", "rbf", "ard_rbf", "PsiStatistics"]
@@ -38,6 +40,16 @@ def ard_rbf(A: np.ndarray, B: np.ndarray, variance: float, alpha: np.ndarray) ->
     return variance * np.exp(-0.5 * sq_dists(A * r, B * r))
 
 
+@lru_cache(maxsize=8)
+def _pair_operators(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M^2, M) matrices mapping Z to (z_a + z_b) / 2 and to z_a - z_b for all pairs (a, b)."""
+    first = np.repeat(np.eye(m), m, axis=0)                     # row (a, b) -> e_a
+    second = np.tile(np.eye(m), (m, 1))                         # row (a, b) -> e_b
+    mean_pairs, diff_pairs = 0.5 * (first + second), first - second
+    mean_pairs.flags.writeable = diff_pairs.flags.writeable = False
+    return mean_pairs, diff_pairs
+
+
 class PsiStatistics:
     """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under an ARD RBF kernel, and
     K_mm = K(Z, Z) + jitter s_f^2 I, with gradients.
@@ -46,7 +58,7 @@ class PsiStatistics:
     (w = a / (a S + 1), c = a / (2 a S + 1), N x Q; zbar_ab = (z_a + z_b) / 2):
 
       log psi1_nm   = [w mu, -w / 2, k1] . [z_m, z_m^2, 1],
-      log psi2^n_ab = [2 c mu, -c, k2] . [zbar_ab, zbar_ab^2, 1] - 1/4 u_ab,
+      log psi2^n_ab = [2 c mu, -c, k2, -1/4] . [zbar_ab, zbar_ab^2, 1, u_ab],
       log K_ab      = log s_f^2 - 1/2 u_ab,      u_ab = sum_q a_q (z_aq - z_bq)^2,
       k1 = log s_f^2 - 1/2 sum_q (log(a S + 1) + w mu^2),  k2 = 2 log s_f^2 - sum_q (1/2 log(2 a S + 1) + c mu^2),
 
@@ -62,10 +74,16 @@ class PsiStatistics:
         m = Z.shape[0]
         self.psi0 = n * variance
         log_var = np.log(variance)
-        z_bar = (0.5 * (Z[:, None, :] + Z[None, :, :])).reshape(m * m, q)
-        self.delta_sq = ((Z[:, None, :] - Z[None, :, :]) ** 2).reshape(m * m, q)
+        mean_pairs, diff_pairs = _pair_operators(m)
+        self.delta_sq = np.square(diff_pairs @ Z)                                    # (z_a - z_b)^2, (M^2, Q)
+        u = self.delta_sq @ alpha                                                   # (M^2,)
         self.features1 = np.concatenate([Z, Z * Z, np.ones((m, 1))], 1)                # (M, 2Q + 1)
-        self.features2 = np.concatenate([z_bar, z_bar * z_bar, np.ones((m * m, 1))], 1)# (M^2, 2Q + 1)
+        # [zbar, zbar^2, 1, u] (M^2, 2Q + 2): the u column carries the -u/4 of log psi2
+        self.features2 = np.empty((m * m, 2 * q + 2))
+        z_bar = np.matmul(mean_pairs, Z, out=self.features2[:, :q])
+        np.square(z_bar, out=self.features2[:, q: 2 * q])
+        self.features2[:, 2 * q] = 1.0
+        self.features2[:, 2 * q + 1] = u
         self.inv_den1 = 1.0 / (alpha * S + 1.0)
         self.inv_den2 = 1.0 / (2.0 * alpha * S + 1.0)
         self.w = alpha * self.inv_den1
@@ -74,10 +92,9 @@ class PsiStatistics:
         k1 = log_var + (0.5 * np.log(self.inv_den1) - 0.5 * w_mu * mu).sum(1)
         k2 = 2.0 * log_var + (0.5 * np.log(self.inv_den2) - c_mu * mu).sum(1)
         self.coef1 = np.concatenate([w_mu, -0.5 * self.w, k1[:, None]], 1)
-        self.coef2 = np.concatenate([2.0 * c_mu, -self.c, k2[:, None]], 1)
-        u = self.delta_sq @ alpha                                                   # (M^2,)
+        self.coef2 = np.concatenate([2.0 * c_mu, -self.c, k2[:, None], np.full((n, 1), -0.25)], 1)
         self.psi1 = np.exp(self.coef1 @ self.features1.T)
-        self.psi2n = np.exp(self.coef2 @ self.features2.T - 0.25 * u).reshape(n, m, m)
+        self.psi2n = np.exp(self.coef2 @ self.features2.T).reshape(n, m, m)
         self.Kmm = (variance * np.exp(-0.5 * u)).reshape(m, m)
         self.Kmm.flat[:: m + 1] += jitter * variance
 
@@ -103,7 +120,7 @@ class PsiStatistics:
         S1 = T1 @ self.features1                                                     # sums of T1 z, T1 z^2, T1
         S2 = T2 @ self.features2                                                     # sums of T2 zbar, zbar^2, T2
         T1_z, T1_z2, r1 = S1[:, :q], S1[:, q:2 * q], S1[:, 2 * q:]
-        T2_z, T2_z2, t2 = S2[:, :q], S2[:, q:2 * q], S2[:, 2 * q:]
+        T2_z, T2_z2, t2 = S2[:, :q], S2[:, q:2 * q], S2[:, 2 * q: 2 * q + 1]
         d_w = mu * T1_z - 0.5 * T1_z2 - 0.5 * r1 * mu**2                             # dF/dw = -Q1 / 2
         d_c = 2.0 * mu * T2_z - T2_z2 - t2 * mu**2                                   # dF/dc = -Q2
         d_mu = w * (T1_z - r1 * mu) + 2.0 * c * (T2_z - t2 * mu)
