@@ -12,8 +12,11 @@ It is maximised over mu, log S, Z, log s_f^2, log a (inverse squared length-scal
 by L-BFGS-B with analytic gradients. Y enters only through Y Y^T (formed once, N x N), so an
 iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`fit`): the latent scale of
 each dimension, which only the KL term pins down, is profiled out (`profile_scale`); the blocks
-are preconditioned by their measured curvature (`block_scales`); L-BFGS-B stops at a relative
-decrease below 1e7 eps (scipy's and GPy's default) or after `max_iter` iterations.
+are preconditioned by their measured curvature (`block_scales`). The bound has several local
+optima, so two starting points (PCA latents with a noise warm-up; GPy's standardised PCA with
+noise = data variance) run 40 iterations each and the better one continues; it stops when 10
+iterations together gain less than 3e-6 |F|, at a single-iteration relative decrease below
+1e7 eps (scipy's and GPy's default), or after `max_iter` iterations in all.
 
 Prediction uses the optimal q(u_d) = N(K_mm B_d, K_mm A^-1 K_mm) with B = beta A^-1 Psi1^T Y
 (M x D, one pass over D after the fit). For a new, possibly partial, shape y* with observed
@@ -187,8 +190,8 @@ class BayesianGPLVM(ShapeModel):
     n_inducing : int
         Inducing inputs M (thesis: 20); capped at N.
     max_iter : int
-        At most this many L-BFGS-B iterations (thesis: 2000 SCG iterations); the fit usually
-        stops earlier, at a relative decrease of the bound below 1e7 eps per iteration.
+        At most this many L-BFGS-B iterations, starting points included (thesis: 2000 SCG
+        iterations); the fit usually stops earlier, once the bound stalls (module docstring).
     n_restarts : int
         Starting points per row in encode / complete / score (best training q(x_n)).
     variance_fraction : float
