@@ -69,19 +69,26 @@ class BoundLayout:
 
 
 def _factors(Kmm: np.ndarray, Psi2: np.ndarray, beta: float):
-    """Factors of A = K_mm + beta Psi2 (M x M) in one well-conditioned frame:
-    L = chol K_mm, L^-1 Psi2 L^-T = V diag(lam) V^T (lam clipped at 0: it is PSD and only
-    rounding makes it otherwise), P = V^T L^-1, b = 1 + beta lam. Then
-    K_mm^-1 = P^T P, A^-1 = P^T diag(1 / b) P, tr(K_mm^-1 Psi2) = sum lam, log|A K_mm^-1| = sum log b.
-    Returns (P, lam, b)."""
-    L, info = dpotrf(Kmm, lower=1, clean=1)
+    """Factors of A = K_mm + beta Psi2 (M x M) through Cholesky factors only:
+    K_mm = L L^T, X = L^-1 Psi2 L^-T (PSD), B = I + beta X = L^-1 A L^-T = R R^T, P = R^-1 L^-1.
+    Then K_mm^-1 = L^-T L^-1, A^-1 = P^T P, log|A K_mm^-1| = log|B| = 2 sum log diag R.
+    Returns (L^-1, R^-1, X, P, log|B|)."""
+    L_inv = _inverse_cholesky(Kmm, "K_mm")
+    X = L_inv @ Psi2 @ L_inv.T
+    B = beta * X
+    B.flat[:: B.shape[0] + 1] += 1.0
+    R_inv, log_det_B = _inverse_cholesky(B, "I + beta L^-1 Psi2 L^-T", log_det=True)
+    return L_inv, R_inv, X, R_inv @ L_inv, log_det_B
+
+
+def _inverse_cholesky(matrix: np.ndarray, name: str, log_det: bool = False):
+    """L^-1 for matrix = L L^T (lower), and log|matrix| if asked; LinAlgError if not PD."""
+    L, info = dpotrf(matrix, lower=1, clean=1)
     if info == 0:
         L_inv, info = dtrtri(L, lower=1)
     if info != 0:
-        raise np.linalg.LinAlgError("K_mm is not positive definite")
-    lam, V = np.linalg.eigh(L_inv @ Psi2 @ L_inv.T)
-    lam = np.maximum(lam, 0.0)
-    return V.T @ L_inv, lam, 1.0 + beta * lam
+        raise np.linalg.LinAlgError(f"{name} is not positive definite")
+    return (L_inv, 2.0 * np.log(L.diagonal()).sum()) if log_det else L_inv
 
 
 def gram_root(YYt: np.ndarray) -> np.ndarray:
@@ -96,35 +103,39 @@ def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_featu
 
     Y enters through any `Y_root` with Y_root Y_root^T = Y Y^T (Y itself, or `gram_root(Y Y^T)`,
     N x N, so the cost does not grow with D). K_mm carries a jitter of `jitter * s_f^2` on its
-    diagonal. Everything M x M is taken in the frame P = V^T L^-1 of `_factors`, where A is
-    diagonal: with G = P Psi1^T Y_root and H = diag(1 / b) G,
-      tr(A^-1 Psi1^T Y Y^T Psi1) = sum(G * H) (a sum of squares), tr(K_mm^-1 Psi2) = sum lam,
-      dF/dK_mm = -beta^2 / 2 P^T (D diag(lam^2 / b) + H H^T) P,
-      dF/dPsi2 = beta^2 / 2 P^T (D diag(lam / b) - beta H H^T) P,
-      dF/dPsi1 = beta^2 Y Y^T Psi1 A^-1 = beta^2 Y_root H^T P,
-    which keeps the value accurate when K_mm is ill-conditioned.
+    diagonal. With the factors of `_factors` (A^-1 = P^T P, B = L^-1 A L^-T = R R^T) and
+    G = P Psi1^T Y_root, V = R^-1 X, W = V L^-1:
+      tr(A^-1 Psi1^T Y Y^T Psi1) = |G|^2 (a sum of squares), tr(K_mm^-1 Psi2) = tr X,
+      dF/dK_mm = -beta^2 / 2 (D W^T W + A^-1 Psi1^T Y Y^T Psi1 A^-1)    (K^-1 - A^-1 = beta L^-T B^-1 X L^-1),
+      dF/dPsi2 = beta^2 / 2 (D P^T W - beta A^-1 Psi1^T Y Y^T Psi1 A^-1),
+      dF/dPsi1 = beta^2 Y Y^T Psi1 A^-1 = beta^2 Y_root G^T P,
+    all without differences of large terms, which keeps F accurate when K_mm is ill-conditioned.
     """
     mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
     n, d = layout.n, n_features
     S, variance, alpha, beta = np.exp(log_S), np.exp(log_var), np.exp(log_alpha), np.exp(log_beta)
     psi = PsiStatistics(mu, S, Z, variance, alpha, jitter)
-    P, lam, b = _factors(psi.Kmm, psi.psi2, beta)
+    L_inv, R_inv, X, P, log_det_B = _factors(psi.Kmm, psi.psi2, beta)
     G = P @ (psi.psi1.T @ Y_root)                                 # (M, r)
-    H = G / b[:, None]
     tr_YYt = (Y_root * Y_root).sum()
-    tr_E2 = (G * H).sum()                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
-    tr_X = lam.sum()                                            # tr(K_mm^-1 Psi2)
+    tr_E2 = (G * G).sum()                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
+    tr_X = np.trace(X)                                            # tr(K_mm^-1 Psi2)
     kl = 0.5 * (mu * mu + S - log_S - 1.0).sum()
-    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * np.log(b).sum() - 0.5 * beta * tr_YYt
+    F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * log_det_B - 0.5 * beta * tr_YYt
          + 0.5 * beta**2 * tr_E2 - 0.5 * beta * d * psi.psi0 + 0.5 * beta * d * tr_X - kl)
-    HP = H.T @ P                                                  # Y_root^T Psi1 A^-1, (r, M)
-    HH = HP.T @ HP                                                # A^-1 Psi1^T Y Y^T Psi1 A^-1
-    G_Kmm = -0.5 * beta**2 * ((P.T * (d * lam**2 / b)) @ P + HH)
-    G_Psi2 = 0.5 * beta**2 * ((P.T * (d * lam / b)) @ P - beta * HH)
-    G_Psi1 = beta**2 * (Y_root @ HP)
-    # dF/dbeta: the explicit terms, plus tr(dF/dA Psi2) = -D/2 sum lam / b - beta^2 / 2 sum lam H^2
+    V = R_inv @ X
+    W = V @ L_inv
+    GP = G.T @ P                                                  # Y_root^T Psi1 A^-1, (r, M)
+    GG = GP.T @ GP                                                # A^-1 Psi1^T Y Y^T Psi1 A^-1
+    PW = P.T @ W                                                  # L^-T B^-1 X L^-1 (symmetric)
+    G_Kmm = -0.5 * beta**2 * (d * (W.T @ W) + GG)
+    G_Psi2 = 0.5 * beta**2 * (0.5 * d * (PW + PW.T) - beta * GG)
+    G_Psi1 = beta**2 * (Y_root @ GP)
+    # dF/dbeta: the explicit terms, plus tr(dF/dA Psi2) with D/2 tr((I - B^-1) X) = beta D/2 |V|^2
+    # and tr(A^-1 Psi1^T Y Y^T Psi1 A^-1 Psi2) = tr(K1^T X K1), K1 = R^-T G
+    K1 = R_inv.T @ G
     dF_dbeta = (0.5 * n * d / beta - 0.5 * tr_YYt + beta * tr_E2 - 0.5 * d * psi.psi0
-                + 0.5 * d * lam @ (1.0 - 1.0 / b) - 0.5 * beta**2 * (lam @ (H * H)).sum())
+                + 0.5 * beta * d * (V * V).sum() - 0.5 * beta**2 * (K1 * (X @ K1)).sum())
     d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(-0.5 * beta * d, G_Psi1, G_Psi2, G_Kmm)
     return F, layout.pack(d_mu - mu, d_S * S - 0.5 * (S - 1.0), d_Z, d_logvar, d_alpha * alpha, dF_dbeta * beta)
 
@@ -341,9 +352,10 @@ class BayesianGPLVM(ShapeModel):
         """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters)."""
         self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
                                         self.kernel_variance_, self.inverse_lengthscales_, self.jitter_)
-        P, _, b = _factors(self._train_psi.Kmm, self._train_psi.psi2, self.beta_)
-        self._A_inv = P.T @ (P / b[:, None])
-        self._posterior_term = P.T @ (P * (1.0 / b - 1.0)[:, None])               # A^-1 - K_mm^-1
+        L_inv, R_inv, X, P, _ = _factors(self._train_psi.Kmm, self._train_psi.psi2, self.beta_)
+        self._A_inv = P.T @ P
+        posterior = -self.beta_ * (P.T @ (R_inv @ X @ L_inv))                     # A^-1 - K_mm^-1
+        self._posterior_term = 0.5 * (posterior + posterior.T)
 
     @property
     def latent_dim(self) -> int:
