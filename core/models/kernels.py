@@ -135,11 +135,12 @@ class PsiStatistics:
             U += 0.5 * T_K
             d_logvar += T_K.sum()
         d_alpha -= U.ravel() @ self.delta_sq
-        # Z: through u, z (psi1) and zbar, zbar^2 (psi2; T2 symmetric in a, b)
+        # Z: through z (psi1), zbar and zbar^2 (psi2; T2 symmetric in a, b) and u:
+        # E1 = T1^T coef1, E2 = r2^T coef2 with r2_na = sum_b T2_nab, T2_Z[n] = T2_n Z
         E1 = T1.T @ self.coef1
-        r2 = (T2.reshape(n * m, m) @ np.ones(m)).reshape(n, m)                      # sum_b T2_nab
-        E2 = r2.T @ self.coef2[:, : 2 * q]
-        T2_c = (T2.T @ self.coef2[:, q: 2 * q]).reshape(m, m, q)                    # -sum_n T2_nab c_nq
-        d_Z = (E1[:, :q] + 2.0 * Z * E1[:, q: 2 * q] + E2[:, :q] + Z * E2[:, q:]
-               + np.einsum("abq,bq->aq", T2_c, Z) - 4.0 * a * (U.sum(1)[:, None] * Z - U @ Z))
+        T2_F = (T2.reshape(n * m, m) @ self.features1).reshape(n, m, 2 * q + 1)       # T2_n [Z, Z^2, 1]
+        E2 = T2_F[:, :, 2 * q].T @ self.coef2[:, : 2 * q]
+        U_F = U @ self.features1
+        d_Z = (E1[:, :q] + E2[:, :q] + np.einsum("naq,nq->aq", T2_F[:, :, :q], self.coef2[:, q: 2 * q])
+               + 4.0 * a * U_F[:, :q] + Z * (2.0 * E1[:, q: 2 * q] + E2[:, q:] - 4.0 * a * U_F[:, 2 * q:]))
         return d_mu, d_S, d_Z, float(d_logvar), d_alpha
