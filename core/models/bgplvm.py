@@ -298,7 +298,8 @@ class BayesianGPLVM(ShapeModel):
             if noise_fixed:
                 y_bounds[-1] = (0.0, 0.0)
             result = lbfgs(preconditioned, np.zeros(layout.size), max_iter=max(n_iter, 1), progress=progress,
-                           message=message, bounds=y_bounds, progress_span=span, ftol=self._FTOL, stall=stall)
+                           message=message, bounds=y_bounds, progress_span=span,
+                           ftol=self._FTOL, stall=stall)
             x, _ = profile_scale(x_start + scales * result.x, layout)
             return x, -float(result.fun), int(result.nit), str(result.message), scales
 
@@ -315,11 +316,11 @@ class BayesianGPLVM(ShapeModel):
             x = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
                             np.log(snr / data_var))
             span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
-            nit, scales = 0, None
+            nit = 0
             if n_warm:
-                x, _, nit, _, scales = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
-                                           noise_fixed=True)
-            x, value, more, _, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points", scales)
+                x, _, nit, _, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
+                                      noise_fixed=True)
+            x, value, more, _, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
             candidates.append((value, x, nit + more))
         value, x, nit = max(candidates, key=lambda c: c[0])
         n_total = sum(c[2] for c in candidates)
