@@ -284,11 +284,10 @@ class BayesianGPLVM(ShapeModel):
             value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
             return -value, -chain(grad)
 
-        def run(x_start, n_iter, span, message, scales=None, noise_fixed=False, stall=None):
-            """L-BFGS-B on the bound from x_start, preconditioned by `scales` (default:
-            `block_scales` at x_start). Returns (x, F, iterations, message, scales)."""
-            if scales is None:
-                scales = block_scales(objective, x_start, layout.splits)
+        def run(x_start, n_iter, span, message, noise_fixed=False, stall=None):
+            """L-BFGS-B on the bound from x_start, preconditioned by `block_scales` measured
+            there. Returns (x, F, iterations, message)."""
+            scales = block_scales(objective, x_start, layout.splits)
 
             def preconditioned(y):
                 value, grad = objective(x_start + scales * y)
@@ -301,7 +300,7 @@ class BayesianGPLVM(ShapeModel):
                            message=message, bounds=y_bounds, progress_span=span,
                            ftol=self._FTOL, stall=stall)
             x, _ = profile_scale(x_start + scales * result.x, layout)
-            return x, -float(result.fun), int(result.nit), str(result.message), scales
+            return x, -float(result.fun), int(result.nit), str(result.message)
 
         # two starting points (the bound has several local optima; neither start wins on all
         # data): (a) PCA latents (relative scales kept), noise first held at 1 % of the data
@@ -309,7 +308,7 @@ class BayesianGPLVM(ShapeModel):
         # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
         # iterations; the better one continues until the bound stalls (`_STALL`) or `max_iter`.
         starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP), (standardised_pca_latents(Yc, q), 1.0, 0)]
-        n_start = int(min(self._START_ITERS, self.max_iter))
+        n_start = int(min(self._START_ITERS, max(self.max_iter // 4, 1)))   # the final run keeps >= half
         candidates = []
         for i, (mu0, snr, n_warm) in enumerate(starts):
             Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
@@ -318,14 +317,14 @@ class BayesianGPLVM(ShapeModel):
             span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
             nit = 0
             if n_warm:
-                x, _, nit, _, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
-                                      noise_fixed=True)
-            x, value, more, _, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
+                x, _, nit, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
+                                   noise_fixed=True)
+            x, value, more, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
             candidates.append((value, x, nit + more))
-        value, x, nit = max(candidates, key=lambda c: c[0])
+        value, x, _ = max(candidates, key=lambda c: c[0])
         n_total = sum(c[2] for c in candidates)
-        x, value, more, message, _ = run(x, self.max_iter - nit, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
-                                         stall=self._STALL)
+        x, value, more, message = run(x, self.max_iter - n_total, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
+                                      stall=self._STALL)
         mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
         self.mean_ = mean
         self.latent_mean_ = mu.copy()

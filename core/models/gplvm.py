@@ -146,7 +146,7 @@ class GPLVM(ShapeModel):
         # (b) GPy's: PCA of the column-standardised data, each latent scaled to unit variance,
         # noise 10 %. Each runs `_START_ITERS` iterations; the better one continues.
         starts = [(pca_latents(Yc, q), 100.0), (standardised_pca_latents(Yc, q), 10.0)]
-        n_start = int(min(self._START_ITERS, self.max_iter))
+        n_start = int(min(self._START_ITERS, max(self.max_iter // 4, 1)))   # the final run keeps >= half
         candidates = []
         for i, (Z0, snr) in enumerate(starts):
             x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(snr / data_var)]])
@@ -154,10 +154,11 @@ class GPLVM(ShapeModel):
                            bounds=bounds, progress_span=(0.1 * i / len(starts), 0.1 * (i + 1) / len(starts)))
             candidates.append(result)
         best = min(candidates, key=lambda r: r.fun)
-        result = lbfgs(objective, best.x, max_iter=max(self.max_iter - best.nit, 1), progress=progress,
+        n_start_total = sum(r.nit for r in candidates)
+        result = lbfgs(objective, best.x, max_iter=max(self.max_iter - n_start_total, 1), progress=progress,
                        message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.1, 0.95),
                        ftol=0.0, stall=self._STALL)
-        n_iter = sum(r.nit for r in candidates) + result.nit
+        n_iter = n_start_total + result.nit
         x = result.x
         self.mean_ = mean
         self.latents_ = x[: n * q].reshape(n, q).copy()
