@@ -189,9 +189,19 @@ def default_latent_dim(Yc: np.ndarray, fraction: float = 0.8) -> int:
 
 def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     """PCA initialisation of latents (§5.3.3): the first q principal scores, scaled so the first
-    has unit standard deviation (relative scales kept, which ARD needs)."""
-    scores, _, _ = principal_axes(Yc)
-    Z = scores[:, :q]
+    has unit standard deviation (relative scales kept, which ARD needs).
+
+    The scores U s come from the N x N Gram matrix Yc Yc^T = U s^2 U^T (cheaper than the SVD
+    of Yc for N << D), with the signs of `principal_axes` (largest |entry| of V = Yc^T U / s
+    positive)."""
+    r = min(Yc.shape)
+    eigvals, U = np.linalg.eigh(Yc @ Yc.T)
+    eigvals, U = eigvals[::-1][: min(q, r)], U[:, ::-1][:, : min(q, r)]
+    s = np.sqrt(np.maximum(eigvals, 0.0))
+    axes = Yc.T @ (U / np.where(s > 0, s, 1.0))
+    flip = np.sign(axes[np.argmax(np.abs(axes), axis=0), np.arange(axes.shape[1])])
+    flip[flip == 0] = 1.0
+    Z = U * (s * flip)
     if Z.shape[1] < q:  # fewer non-trivial directions than q: pad with tiny deterministic values
         pad = 1e-3 * np.linspace(-1, 1, Yc.shape[0])[:, None] * np.ones((1, q - Z.shape[1]))
         Z = np.hstack([Z, pad])
@@ -199,15 +209,25 @@ def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     return Z / (scale if scale > 0 else 1.0)
 
 
+def standardised_pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
+    """GPy's latent initialisation: PCA of the column-standardised data, each of the q
+    scores scaled to unit standard deviation."""
+    column_std = Yc.std(0)
+    Z = pca_latents(Yc / np.where(column_std > 0, column_std, 1.0), q)
+    return Z / np.maximum(Z.std(0), 1e-12)
+
+
 # ----------------------------------------------------------------------------- optimiser
 
 def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,
           bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6,
-          ftol: float = 1e-12):
+          ftol: float = 1e-12, stall: tuple[int, float] | None = None):
     """Minimise objective(x) -> (value, gradient) with scipy's L-BFGS-B.
 
-    It stops after `max_iter` iterations, when the projected gradient is below `gtol` or when an
-    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps).
+    It stops after `max_iter` iterations, when the projected gradient is below `gtol`, when an
+    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps) or,
+    with stall = (k, rtol), when the last k iterations together lowered it by at most
+    rtol |value|.
 
     `progress(fraction, message)` is called once per iteration; if it raises (e.g. Cancelled)
     the exception propagates and the fit stops (cooperative cancel).
@@ -216,17 +236,23 @@ def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, me
     count = [0]
     failures = [0]
 
-    def callback(_xk):
+    history = []
+
+    def callback(intermediate_result):
         count[0] += 1
         if progress is not None:
             progress(lo + (hi - lo) * min(count[0] / max_iter, 1.0), message)
+        if stall is not None:
+            history.append(intermediate_result.fun)
+            k, rtol = stall
+            if len(history) > k and history[-k - 1] - history[-1] <= rtol * abs(history[-1]):
+                raise StopIteration
 
     def guarded(x):
         # a trial step far outside the sane region can make a kernel matrix numerically
         # indefinite; report +inf so the line search backs off
         try:
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                value, grad = objective(x)
+            value, grad = objective(x)
             if np.isfinite(value) and np.all(np.isfinite(grad)):
                 return value, grad
         except (np.linalg.LinAlgError, ValueError):
@@ -239,9 +265,10 @@ def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, me
     # from the last good point while it still makes progress and iterations remain
     for _ in range(20):
         failures_before = failures[0]
-        result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
-                          options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
-                                   "gtol": gtol, "ftol": ftol, "maxcor": 20})
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
+                              options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
+                                       "gtol": gtol, "ftol": ftol, "maxcor": 20})
         improved = result.fun < best - 1e-9 * max(abs(best), 1.0) if np.isfinite(best) else np.isfinite(result.fun)
         if not np.isfinite(result.fun):
             raise np.linalg.LinAlgError(f"{message}: the objective is not computable at the starting point")

@@ -12,8 +12,11 @@ It is maximised over mu, log S, Z, log s_f^2, log a (inverse squared length-scal
 by L-BFGS-B with analytic gradients. Y enters only through Y Y^T (formed once, N x N), so an
 iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`fit`): the latent scale of
 each dimension, which only the KL term pins down, is profiled out (`profile_scale`); the blocks
-are preconditioned by their measured curvature (`block_scales`); L-BFGS-B stops at a relative
-decrease below 1e7 eps (scipy's and GPy's default) or after `max_iter` iterations.
+are preconditioned by their measured curvature (`block_scales`). The bound has several local
+optima, so two starting points (PCA latents with a noise warm-up; GPy's standardised PCA with
+noise = data variance) run 40 iterations each and the better one continues; it stops when 10
+iterations together gain less than 3e-6 |F|, at a single-iteration relative decrease below
+1e7 eps (scipy's and GPy's default), or after `max_iter` iterations in all.
 
 Prediction uses the optimal q(u_d) = N(K_mm B_d, K_mm A^-1 K_mm) with B = beta A^-1 Psi1^T Y
 (M x D, one pass over D after the fit). For a new, possibly partial, shape y* with observed
@@ -30,13 +33,14 @@ E_q(x*)[f] = psi1(mu*, S*) B.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
 from ..errors import ModelFileError
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
-                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
-from .kernels import PsiStatistics, ard_rbf, ard_rbf_grads
+                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents,
+                   standardised_pca_latents)
+from .kernels import PsiStatistics, ard_rbf
 
 __all__ = ["BayesianGPLVM", "bgplvm_bound", "BoundLayout", "gram_root", "profile_scale", "block_scales"]
 
@@ -48,12 +52,14 @@ class BoundLayout:
 
     def __init__(self, n: int, q: int, m: int):
         self.n, self.q, self.m = n, q, m
-        sizes = [n * q, n * q, m * q, 1, q, 1]
-        self.splits = np.cumsum(sizes)[:-1]
-        self.size = int(sum(sizes))
+        ends = np.cumsum([n * q, n * q, m * q, 1, q, 1])
+        self.splits = ends[:-1]
+        self.size = int(ends[-1])
+        self._blocks = [slice(int(lo), int(hi)) for lo, hi in zip([0, *ends[:-1]], ends)]
 
     def unpack(self, x):
-        mu, log_S, Z, log_var, log_alpha, log_beta = np.split(x, self.splits)
+        """Views (mu, log S, Z, log s_f^2, log a, log beta) into x."""
+        mu, log_S, Z, log_var, log_alpha, log_beta = (x[block] for block in self._blocks)
         n, q, m = self.n, self.q, self.m
         return mu.reshape(n, q), log_S.reshape(n, q), Z.reshape(m, q), log_var[0], log_alpha, log_beta[0]
 
@@ -63,19 +69,26 @@ class BoundLayout:
 
 
 def _factors(Kmm: np.ndarray, Psi2: np.ndarray, beta: float):
-    """Factors for A = K_mm + beta Psi2 (M x M), kept well-conditioned:
-    L = chol K_mm, X = L^-1 Psi2 L^-T = V diag(lam) V^T (lam clipped at 0: X is PSD and only
-    rounding makes it otherwise), B = I + beta X = L^-1 A L^-T.
-    Returns (L^-1, X, B^-1, B^-1/2 = diag((1 + beta lam)^-1/2) V^T, log|B|); then
-    K_mm^-1 = L^-T L^-1 and A^-1 = L^-T B^-1 L^-1."""
-    m = Kmm.shape[0]
-    L_inv = solve_triangular(np.linalg.cholesky(Kmm), np.eye(m), lower=True)
+    """Factors of A = K_mm + beta Psi2 (M x M) through Cholesky factors only:
+    K_mm = L L^T, X = L^-1 Psi2 L^-T (PSD), B = I + beta X = L^-1 A L^-T = R R^T, P = R^-1 L^-1.
+    Then K_mm^-1 = L^-T L^-1, A^-1 = P^T P, log|A K_mm^-1| = log|B| = 2 sum log diag R.
+    Returns (L^-1, R^-1, X, P, log|B|)."""
+    L_inv = _inverse_cholesky(Kmm, "K_mm")
     X = L_inv @ Psi2 @ L_inv.T
-    lam, V = np.linalg.eigh(0.5 * (X + X.T))
-    lam = np.maximum(lam, 0.0)
-    X = (V * lam) @ V.T
-    b = 1.0 + beta * lam
-    return L_inv, X, (V / b) @ V.T, V.T / np.sqrt(b)[:, None], float(np.sum(np.log(b)))
+    B = beta * X
+    B.flat[:: B.shape[0] + 1] += 1.0
+    R_inv, log_det_B = _inverse_cholesky(B, "I + beta L^-1 Psi2 L^-T", log_det=True)
+    return L_inv, R_inv, X, R_inv @ L_inv, log_det_B
+
+
+def _inverse_cholesky(matrix: np.ndarray, name: str, log_det: bool = False):
+    """L^-1 for matrix = L L^T (lower), and log|matrix| if asked; LinAlgError if not PD."""
+    L, info = dpotrf(matrix, lower=1, clean=1)
+    if info == 0:
+        L_inv, info = dtrtri(L, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"{name} is not positive definite")
+    return (L_inv, 2.0 * np.log(L.diagonal()).sum()) if log_det else L_inv
 
 
 def gram_root(YYt: np.ndarray) -> np.ndarray:
@@ -90,46 +103,41 @@ def bgplvm_bound(x: np.ndarray, layout: BoundLayout, Y_root: np.ndarray, n_featu
 
     Y enters through any `Y_root` with Y_root Y_root^T = Y Y^T (Y itself, or `gram_root(Y Y^T)`,
     N x N, so the cost does not grow with D). K_mm carries a jitter of `jitter * s_f^2` on its
-    diagonal. The data term is computed as a sum of squares, tr(A^-1 Psi1^T Y Y^T Psi1) =
-    |B^-1/2 L^-1 Psi1^T Y_root|^2, and the K_mm / Psi2 gradients in the L^-1 frame, which keeps
-    the value accurate when K_mm is ill-conditioned.
+    diagonal. With the factors of `_factors` (A^-1 = P^T P, B = L^-1 A L^-T = R R^T) and
+    G = P Psi1^T Y_root, V = R^-1 X, W = V L^-1:
+      tr(A^-1 Psi1^T Y Y^T Psi1) = |G|^2 (a sum of squares), tr(K_mm^-1 Psi2) = tr X,
+      dF/dK_mm = -beta^2 / 2 (D W^T W + A^-1 Psi1^T Y Y^T Psi1 A^-1)    (K^-1 - A^-1 = beta L^-T B^-1 X L^-1),
+      dF/dPsi2 = beta^2 / 2 (D P^T W - beta A^-1 Psi1^T Y Y^T Psi1 A^-1),
+      dF/dPsi1 = beta^2 Y Y^T Psi1 A^-1 = beta^2 Y_root G^T P,
+    all without differences of large terms, which keeps F accurate when K_mm is ill-conditioned.
     """
     mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
-    n, m, d = layout.n, layout.m, n_features
+    n, d = layout.n, n_features
     S, variance, alpha, beta = np.exp(log_S), np.exp(log_var), np.exp(log_alpha), np.exp(log_beta)
-    psi = PsiStatistics(mu, S, Z, variance, alpha)
-    Psi1, Psi2 = psi.psi1, psi.psi2
-    Kmm = ard_rbf(Z, Z, variance, alpha) + jitter * variance * np.eye(m)
-    L_inv, X, B_inv, B_half_inv, log_det_B = _factors(Kmm, Psi2, beta)
-    F_root = L_inv @ (Psi1.T @ Y_root)                            # L^-1 Psi1^T Y, (M, r)
-    E = B_half_inv @ F_root
-    tr_YYt = np.sum(Y_root**2)
-    tr_E2 = np.sum(E**2)                                          # tr(A^-1 Psi1^T Y Y^T Psi1)
+    psi = PsiStatistics(mu, S, Z, variance, alpha, jitter)
+    L_inv, R_inv, X, P, log_det_B = _factors(psi.Kmm, psi.psi2, beta)
+    G = P @ (psi.psi1.T @ Y_root)                                 # (M, r)
+    tr_YYt = (Y_root * Y_root).sum()
+    tr_E2 = (G * G).sum()                                         # tr(A^-1 Psi1^T Y Y^T Psi1)
     tr_X = np.trace(X)                                            # tr(K_mm^-1 Psi2)
-    kl = 0.5 * np.sum(mu**2 + S - log_S - 1.0)
+    kl = 0.5 * (mu * mu + S - log_S - 1.0).sum()
     F = (0.5 * n * d * (log_beta - _LOG_2PI) - 0.5 * d * log_det_B - 0.5 * beta * tr_YYt
          + 0.5 * beta**2 * tr_E2 - 0.5 * beta * d * psi.psi0 + 0.5 * beta * d * tr_X - kl)
-    # dF/dA = L^-T inner_A L^-1,  A^-1 P A^-1 = L^-T Q1 L^-1 with Q1 = B^-1 F F^T B^-1
-    B_inv_F = B_inv @ F_root
-    Q1 = B_inv_F @ B_inv_F.T
-    inner_A = -0.5 * d * B_inv - 0.5 * beta**2 * Q1
-    # dF/dK_mm = D/2 K^-1 + dF/dA - beta D/2 K^-1 Psi2 K^-1, using (I - B^-1) = beta B^-1 X
-    inner_K = -0.5 * beta**2 * d * (B_inv @ X @ X) - 0.5 * beta**2 * Q1
-    # dF/dPsi2 = beta dF/dA + beta D/2 K^-1
-    inner_P2 = 0.5 * beta**2 * d * (B_inv @ X) - 0.5 * beta**3 * Q1
-    G_Kmm = L_inv.T @ (0.5 * (inner_K + inner_K.T)) @ L_inv
-    G_Psi2 = L_inv.T @ (0.5 * (inner_P2 + inner_P2.T)) @ L_inv
-    G_Psi1 = beta**2 * (Y_root @ (B_inv_F.T @ L_inv))            # beta^2 Y Y^T Psi1 A^-1
-    g_psi0 = -0.5 * beta * d
+    V = R_inv @ X
+    W = V @ L_inv
+    GP = G.T @ P                                                  # Y_root^T Psi1 A^-1, (r, M)
+    GG = GP.T @ GP                                                # A^-1 Psi1^T Y Y^T Psi1 A^-1
+    PW = P.T @ W                                                  # L^-T B^-1 X L^-1 (symmetric)
+    G_Kmm = -0.5 * beta**2 * (d * (W.T @ W) + GG)
+    G_Psi2 = 0.5 * beta**2 * (0.5 * d * (PW + PW.T) - beta * GG)
+    G_Psi1 = beta**2 * (Y_root @ GP)
+    # dF/dbeta: the explicit terms, plus tr(dF/dA Psi2) with D/2 tr((I - B^-1) X) = beta D/2 |V|^2
+    # and tr(A^-1 Psi1^T Y Y^T Psi1 A^-1 Psi2) = tr(K1^T X K1), K1 = R^-T G
+    K1 = R_inv.T @ G
     dF_dbeta = (0.5 * n * d / beta - 0.5 * tr_YYt + beta * tr_E2 - 0.5 * d * psi.psi0
-                + 0.5 * d * tr_X + np.sum(inner_A * X))
-    d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(g_psi0, G_Psi1, G_Psi2)
-    dZ_k, dalpha_k, dlogvar_k = ard_rbf_grads(G_Kmm, Z, Kmm, alpha)   # jitter on the diagonal: no dZ, d alpha
-    d_mu = d_mu - mu
-    d_logS = d_S * S - 0.5 * (S - 1.0)
-    grad = layout.pack(d_mu, d_logS, d_Z + dZ_k, d_logvar + dlogvar_k, (d_alpha + dalpha_k) * alpha,
-                       dF_dbeta * beta)
-    return F, grad
+                + 0.5 * beta * d * (V * V).sum() - 0.5 * beta**2 * (K1 * (X @ K1)).sum())
+    d_mu, d_S, d_Z, d_logvar, d_alpha = psi.gradients(-0.5 * beta * d, G_Psi1, G_Psi2, G_Kmm)
+    return F, layout.pack(d_mu - mu, d_S * S - 0.5 * (S - 1.0), d_Z, d_logvar, d_alpha * alpha, dF_dbeta * beta)
 
 
 def profile_scale(x: np.ndarray, layout: BoundLayout):
@@ -146,7 +154,7 @@ def profile_scale(x: np.ndarray, layout: BoundLayout):
     """
     mu_t, log_S_t, Z_t, log_var, log_alpha_t, log_beta = layout.unpack(x)
     S_t = np.exp(log_S_t)
-    total = np.sum(mu_t**2 + S_t, 0)                                  # (Q,)
+    total = (mu_t**2 + S_t).sum(0)                                  # (Q,)
     log_c = 0.5 * (np.log(layout.n) - np.log(total))
     c = np.exp(log_c)
     mu, Z = mu_t * c, Z_t * c
@@ -154,7 +162,7 @@ def profile_scale(x: np.ndarray, layout: BoundLayout):
 
     def chain(grad):
         g_mu, g_logS, g_Z, g_logvar, g_logalpha, g_logbeta = layout.unpack(grad)
-        g_logc = np.sum(mu * g_mu, 0) + 2.0 * np.sum(g_logS, 0) + np.sum(Z * g_Z, 0) - 2.0 * g_logalpha
+        g_logc = (mu * g_mu).sum(0) + 2.0 * g_logS.sum(0) + (Z * g_Z).sum(0) - 2.0 * g_logalpha
         return layout.pack(c * g_mu - g_logc * mu_t / total, g_logS - 0.5 * g_logc * S_t / total,
                            c * g_Z, g_logvar, g_logalpha, g_logbeta)
     return x_actual, chain
@@ -193,8 +201,8 @@ class BayesianGPLVM(ShapeModel):
     n_inducing : int
         Inducing inputs M (thesis: 20); capped at N.
     max_iter : int
-        At most this many L-BFGS-B iterations (thesis: 2000 SCG iterations); the fit usually
-        stops earlier, at a relative decrease of the bound below 1e7 eps per iteration.
+        At most this many L-BFGS-B iterations, starting points included (thesis: 2000 SCG
+        iterations); the fit usually stops earlier, once the bound stalls (module docstring).
     n_restarts : int
         Starting points per row in encode / complete / score (best training q(x_n)).
     variance_fraction : float
@@ -209,6 +217,11 @@ class BayesianGPLVM(ShapeModel):
     model_type = "bgplvm"
     # L-BFGS-B relative-decrease tolerance: scipy's (and GPy's) default factr = 1e7
     _FTOL = 1e7 * np.finfo(float).eps
+    # the final run also stops once 10 iterations together gained less than 3e-6 |F|
+    _STALL = (10, 3e-6)
+    # iterations per starting point before the better one continues; noise warm-up of start (a)
+    _START_ITERS = 40
+    _WARM_UP = 15
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -257,61 +270,62 @@ class BayesianGPLVM(ShapeModel):
         YYt = Yc @ Yc.T                                       # the only use of D-sized data
         Y_root = gram_root(YYt)                               # N x r, Y_root Y_root^T = Y Y^T
         data_var = np.trace(YYt) / (n * d)
-        mu0 = pca_latents(Yc, q)
-        Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
-        layout = BoundLayout(n, q, m)
-        x0 = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
-                         np.log(100.0 / data_var))
         jitter = float(self.jitter)
         if not 0.0 < jitter < 1.0:
             raise ModelInputError(f"jitter must be in (0, 1), got {self.jitter!r}")
+        layout = BoundLayout(n, q, m)
         bounds = ([(None, None)] * (n * q) + [(np.log(1e-10), np.log(1e3))] * (n * q) + [(None, None)] * (m * q)
                   + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
                   + [(None, np.log(1e8 / data_var))])
 
         def objective(x_tilde):
+            """-F in scale-profiled coordinates (`profile_scale`)."""
             x, chain = profile_scale(x_tilde, layout)
             value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
             return -value, -chain(grad)
 
-        def scaled(fun, origin, scales):
-            """fun in the preconditioned coordinates y = (x - origin) / scales."""
-            def wrapped(y):
-                value, grad = fun(origin + scales * y)
+        def run(x_start, n_iter, span, message, noise_fixed=False, stall=None):
+            """L-BFGS-B on the bound from x_start, preconditioned by `block_scales` measured
+            there. Returns (x, F, iterations, message)."""
+            scales = block_scales(objective, x_start, layout.splits)
+
+            def preconditioned(y):
+                value, grad = objective(x_start + scales * y)
                 return value, grad * scales
-            return wrapped
+            y_bounds = [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
+                        for (lo, hi), o, sc in zip(bounds, x_start, scales)]
+            if noise_fixed:
+                y_bounds[-1] = (0.0, 0.0)
+            result = lbfgs(preconditioned, np.zeros(layout.size), max_iter=max(n_iter, 1), progress=progress,
+                           message=message, bounds=y_bounds, progress_span=span,
+                           ftol=self._FTOL, stall=stall)
+            x, _ = profile_scale(x_start + scales * result.x, layout)
+            return x, -float(result.fun), int(result.nit), str(result.message)
 
-        def scaled_bounds(bnds, origin, scales):
-            return [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
-                    for (lo, hi), o, sc in zip(bnds, origin, scales)]
-
-        # warm-up with the noise fixed at 1 % of the data variance, so the latents and kernel
-        # explain the data before beta may grow (avoids the all-noise local optimum)
-        free = np.ones(layout.size, bool)
-        free[-1] = False
-        n_warm = int(min(max(self.max_iter // 10, 1), 200))
-
-        def objective_fixed_noise(x_free):
-            x = x0.copy()
-            x[free] = x_free
-            value, grad = objective(x)
-            return value, grad[free]
-
-        origin = x0[free]                                     # free = all but log beta, the last entry
-        scales = block_scales(objective_fixed_noise, origin, layout.splits)
-        warm = lbfgs(scaled(objective_fixed_noise, origin, scales), np.zeros(free.sum()), max_iter=n_warm,
-                     progress=progress, message="Bayesian GP-LVM: warm-up (noise fixed)",
-                     bounds=scaled_bounds([b for b, keep in zip(bounds, free) if keep], origin, scales),
-                     progress_span=(0.0, 0.1), ftol=self._FTOL)
-        x0[free] = origin + scales * warm.x
-        scales = block_scales(objective, x0, layout.splits)
-        result = lbfgs(scaled(objective, x0, scales), np.zeros(layout.size),
-                       max_iter=max(self.max_iter - warm.nit, 1), progress=progress,
-                       message="Bayesian GP-LVM: optimising the bound", bounds=scaled_bounds(bounds, x0, scales),
-                       progress_span=(0.1, 0.95), ftol=self._FTOL)
-        result.nit += warm.nit
-        result.x, _ = profile_scale(x0 + scales * result.x, layout)
-        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(result.x)
+        # two starting points (the bound has several local optima; neither start wins on all
+        # data): (a) PCA latents (relative scales kept), noise first held at 1 % of the data
+        # variance for `_WARM_UP` iterations; (b) GPy's: PCA of the column-standardised data,
+        # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
+        # iterations; the better one continues until the bound stalls (`_STALL`) or `max_iter`.
+        starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP), (standardised_pca_latents(Yc, q), 1.0, 0)]
+        n_start = int(min(self._START_ITERS, max(self.max_iter // 4, 1)))   # the final run keeps >= half
+        candidates = []
+        for i, (mu0, snr, n_warm) in enumerate(starts):
+            Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
+            x = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
+                            np.log(snr / data_var))
+            span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
+            nit = 0
+            if n_warm:
+                x, _, nit, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
+                                   noise_fixed=True)
+            x, value, more, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
+            candidates.append((value, x, nit + more))
+        value, x, _ = max(candidates, key=lambda c: c[0])
+        n_total = sum(c[2] for c in candidates)
+        x, value, more, message = run(x, self.max_iter - n_total, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
+                                      stall=self._STALL)
+        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
         self.mean_ = mean
         self.latent_mean_ = mu.copy()
         self.latent_variance_ = np.exp(log_S)
@@ -320,9 +334,9 @@ class BayesianGPLVM(ShapeModel):
         self.inverse_lengthscales_ = np.exp(log_alpha)
         self.noise_variance_ = float(np.exp(-log_beta))
         self.jitter_ = float(jitter)
-        self.elbo_ = float(-result.fun)
-        self.n_iter_ = int(result.nit)
-        self.optimizer_message_ = str(result.message)
+        self.elbo_ = value
+        self.n_iter_ = n_total + more
+        self.optimizer_message_ = message
         self._prepare()
         # B = beta A^-1 Psi1^T Y: the one pass over D after the fit
         self.B_ = (self.beta_ * self._A_inv) @ (self._train_psi.psi1.T @ Yc)
@@ -337,12 +351,11 @@ class BayesianGPLVM(ShapeModel):
     def _prepare(self) -> None:
         """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters)."""
         self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
-                                        self.kernel_variance_, self.inverse_lengthscales_)
-        Kmm = (ard_rbf(self.inducing_, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
-               + self.jitter_ * self.kernel_variance_ * np.eye(self.inducing_.shape[0]))
-        L_inv, _, B_inv, _, _ = _factors(Kmm, self._train_psi.psi2, self.beta_)
-        self._A_inv = L_inv.T @ B_inv @ L_inv
-        self._posterior_term = L_inv.T @ (B_inv - np.eye(B_inv.shape[0])) @ L_inv   # A^-1 - K_mm^-1
+                                        self.kernel_variance_, self.inverse_lengthscales_, self.jitter_)
+        L_inv, R_inv, X, P, _ = _factors(self._train_psi.Kmm, self._train_psi.psi2, self.beta_)
+        self._A_inv = P.T @ P
+        posterior = -self.beta_ * (P.T @ (R_inv @ X @ L_inv))                     # A^-1 - K_mm^-1
+        self._posterior_term = 0.5 * (posterior + posterior.T)
 
     @property
     def latent_dim(self) -> int:

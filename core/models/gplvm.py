@@ -3,9 +3,10 @@
 Y (N x D, centred) = f(Z) + noise with independent GPs per coordinate:
   K = s_f^2 exp(-|z - z'|^2 / (2 l^2)) + beta^-1 I                       (eq. 5.38)
   log p(Y | Z) = -(N D / 2) log 2 pi - (D / 2) log|K| - 1/2 tr(K^-1 Y Y^T)   (eq. 5.34)
-maximised over Z and (log s_f^2, log l, log beta) by L-BFGS-B with analytic gradients
-(eq. 5.35 generalised: dL/dK = 1/2 (K^-1 Y Y^T K^-1 - D K^-1)). Y Y^T is formed once, so an
-iteration costs O(N^3 + N^2 Q), whatever D. Z is initialised by PCA.
+maximised (with the N(0, I) latent prior, MAP) over Z and (log s_f^2, log l, log beta) by
+L-BFGS-B with analytic gradients (eq. 5.35 generalised: dL/dK = 1/2 (K^-1 Y Y^T K^-1 - D K^-1)).
+Y Y^T is formed once, so an iteration costs O(N^3 + N^2 Q), whatever D. Z is initialised by
+PCA; two starting points run briefly and the better one continues (`GPLVM.fit`).
 
 Sampling (§5.4.3): Gaussian KDE over the learnt Z, spherical bandwidth chosen by leave-one-out
 log-likelihood over a grid, mapped through the GP posterior mean (eq. 5.42).
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 from scipy.special import logsumexp
 
 from ..errors import ModelFileError
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
-                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents)
+                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents,
+                   standardised_pca_latents)
 from .kernels import rbf, sq_dists
 
 __all__ = ["GPLVM", "gplvm_log_likelihood"]
@@ -37,10 +40,15 @@ def gplvm_log_likelihood(params: np.ndarray, YYt: np.ndarray, n_features: int, l
     variance, ls2, noise = np.exp(log_var), np.exp(2.0 * log_ls), np.exp(-log_beta)
     r2 = sq_dists(Z, Z)
     Kf = variance * np.exp(-0.5 * r2 / ls2)
-    K = Kf + noise * np.eye(n)
-    chol = cho_factor(K, lower=True)
-    K_inv = cho_solve(chol, np.eye(n))
-    log_det = 2.0 * np.sum(np.log(np.diag(chol[0])))
+    K = Kf.copy()
+    K.flat[:: n + 1] += noise
+    L, info = dpotrf(K, lower=1, clean=1)                     # K = L L^T
+    if info == 0:
+        L_inv, info = dtrtri(L, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("K is not positive definite")
+    K_inv = L_inv.T @ L_inv
+    log_det = 2.0 * np.log(L.diagonal()).sum()
     K_inv_YYt = K_inv @ YYt
     value = -0.5 * (n * n_features * _LOG_2PI + n_features * log_det + np.trace(K_inv_YYt))
     G = 0.5 * (K_inv_YYt @ K_inv - n_features * K_inv)        # dL/dK (symmetric)
@@ -64,7 +72,8 @@ class GPLVM(ShapeModel):
     n_components : int or None
         Latent dimension Q; None = the PPCA 80 % explained-variance rule (§5.4.1).
     max_iter : int
-        L-BFGS-B iterations for Z and the hyperparameters.
+        At most this many L-BFGS-B iterations for Z and the hyperparameters (both starting
+        points and the final run together).
     n_restarts : int
         Starting latents per row in encode / complete / score (best training latents).
     variance_fraction : float
@@ -74,6 +83,10 @@ class GPLVM(ShapeModel):
     """
 
     model_type = "gplvm"
+    # iterations per starting point before the better one continues; the final run stops once
+    # 10 iterations together gained less than 1e-9 |objective| (not on one small step)
+    _START_ITERS = 60
+    _STALL = (10, 1e-9)
     _ARRAY_SPEC = {
         "model_type": ("U", ()),
         "mean_": ("f", ("D",)),
@@ -111,8 +124,6 @@ class GPLVM(ShapeModel):
             progress(0.0, "GP-LVM: PCA initialisation")
         YYt = Yc @ Yc.T                                      # the only use of D-sized data
         data_var = np.trace(YYt) / (n * d)
-        Z0 = pca_latents(Yc, q)
-        x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(100.0 / data_var)]])
         # noise variance kept >= 1e-8 of the data variance so K stays positive definite;
         # length-scale kept >= MIN_LENGTHSCALE (latents start at unit spread and carry the
         # N(0, I) prior below): without both, few shapes (N = 6, Q = 2) let the optimiser
@@ -130,8 +141,24 @@ class GPLVM(ShapeModel):
             grad[: n * q] -= z
             return -value, -grad
 
-        result = lbfgs(objective, x0, max_iter=self.max_iter, progress=progress,
-                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.0, 0.95))
+        # two starting points (the likelihood has several local optima; neither start wins on
+        # all data): (a) PCA latents (relative scales kept), noise 1 % of the data variance;
+        # (b) GPy's: PCA of the column-standardised data, each latent scaled to unit variance,
+        # noise 10 %. Each runs `_START_ITERS` iterations; the better one continues.
+        starts = [(pca_latents(Yc, q), 100.0), (standardised_pca_latents(Yc, q), 10.0)]
+        n_start = int(min(self._START_ITERS, max(self.max_iter // 4, 1)))   # the final run keeps >= half
+        candidates = []
+        for i, (Z0, snr) in enumerate(starts):
+            x0 = np.concatenate([Z0.ravel(), [np.log(data_var), 0.0, np.log(snr / data_var)]])
+            result = lbfgs(objective, x0, max_iter=n_start, progress=progress, message="GP-LVM: starting points",
+                           bounds=bounds, progress_span=(0.1 * i / len(starts), 0.1 * (i + 1) / len(starts)))
+            candidates.append(result)
+        best = min(candidates, key=lambda r: r.fun)
+        n_start_total = sum(r.nit for r in candidates)
+        result = lbfgs(objective, best.x, max_iter=max(self.max_iter - n_start_total, 1), progress=progress,
+                       message="GP-LVM: optimising latents", bounds=bounds, progress_span=(0.1, 0.95),
+                       ftol=0.0, stall=self._STALL)
+        n_iter = n_start_total + result.nit
         x = result.x
         self.mean_ = mean
         self.latents_ = x[: n * q].reshape(n, q).copy()
@@ -140,7 +167,7 @@ class GPLVM(ShapeModel):
         self.lengthscale_ = float(np.exp(log_ls))
         self.noise_variance_ = float(np.exp(-log_beta))
         self.log_likelihood_ = float(gplvm_log_likelihood(x, YYt, d, q)[0])  # eq. 5.34, without the prior
-        self.n_iter_ = int(result.nit)
+        self.n_iter_ = int(n_iter)
         self.optimizer_message_ = str(result.message)
         self._prepare()
         self.alpha_ = self._K_inv @ Yc                       # K^-1 Y for the posterior mean

@@ -16,9 +16,11 @@ psi-statistics for q(X) = prod_n N(mu_n, diag S_n) (Titsias & Lawrence 2010, eq.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
-__all__ = ["sq_dists", "rbf", "ard_rbf", "ard_rbf_grads", "PsiStatistics"]
+__all__ = ["sq_dists", "rbf", "ard_rbf", "PsiStatistics"]
 
 
 def sq_dists(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -38,90 +40,107 @@ def ard_rbf(A: np.ndarray, B: np.ndarray, variance: float, alpha: np.ndarray) ->
     return variance * np.exp(-0.5 * sq_dists(A * r, B * r))
 
 
-def ard_rbf_grads(G: np.ndarray, Z: np.ndarray, K: np.ndarray, alpha: np.ndarray):
-    """Gradients of sum(G * K(Z, Z)) for a symmetric G, K = ard_rbf(Z, Z) (no jitter).
-
-    Returns (dZ (M, Q), d alpha (Q,), d log s_f^2).
-    """
-    T = G * K
-    rows = T.sum(1)
-    TZ = T @ Z
-    dZ = -2.0 * alpha * (rows[:, None] * Z - TZ)
-    dalpha = -(rows @ Z**2 - np.sum(Z * TZ, 0))
-    return dZ, dalpha, T.sum()
+@lru_cache(maxsize=8)
+def _pair_operators(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M^2, M) matrices mapping Z to (z_a + z_b) / 2 and to z_a - z_b for all pairs (a, b)."""
+    first = np.repeat(np.eye(m), m, axis=0)                     # row (a, b) -> e_a
+    second = np.tile(np.eye(m), (m, 1))                         # row (a, b) -> e_b
+    mean_pairs, diff_pairs = 0.5 * (first + second), first - second
+    mean_pairs.flags.writeable = diff_pairs.flags.writeable = False
+    return mean_pairs, diff_pairs
 
 
 class PsiStatistics:
-    """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under an ARD RBF kernel, with gradients.
+    """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under an ARD RBF kernel, and
+    K_mm = K(Z, Z) + jitter s_f^2 I, with gradients.
 
-    `psi2n` is kept per point (N, M, M); the bound uses Psi2 = psi2n.sum(0). Nothing of size
-    N x M x M x Q is formed: psi2 and its gradients go through batched (M x Q) products of
-    d = mu_n - Z and the symmetry of dF/dPsi2.
+    Each log-statistic is linear in a few features of Z, with per-point coefficients
+    (w = a / (a S + 1), c = a / (2 a S + 1), N x Q; zbar_ab = (z_a + z_b) / 2):
+
+      log psi1_nm   = [w mu, -w / 2, k1] . [z_m, z_m^2, 1],
+      log psi2^n_ab = [2 c mu, -c, k2, -1/4] . [zbar_ab, zbar_ab^2, 1, u_ab],
+      log K_ab      = log s_f^2 - 1/2 u_ab,      u_ab = sum_q a_q (z_aq - z_bq)^2,
+      k1 = log s_f^2 - 1/2 sum_q (log(a S + 1) + w mu^2),  k2 = 2 log s_f^2 - sum_q (1/2 log(2 a S + 1) + c mu^2),
+
+    so every statistic is one (N x K) (K x M or M^2) product and an exp, and every gradient a
+    product of T = dF/dpsi * psi with the same features (nothing N x M x Q or N x M x M x Q).
+    `psi2n` is kept per point (N, M, M); the bound uses Psi2 = psi2n.sum(0).
     """
 
-    def __init__(self, mu: np.ndarray, S: np.ndarray, Z: np.ndarray, variance: float, alpha: np.ndarray):
-        self.mu, self.S, self.Z, self.variance, self.alpha = mu, S, Z, variance, alpha
+    def __init__(self, mu: np.ndarray, S: np.ndarray, Z: np.ndarray, variance: float, alpha: np.ndarray,
+                 jitter: float = 0.0):
+        self.mu, self.S, self.Z, self.variance, self.alpha, self.jitter = mu, S, Z, variance, alpha, jitter
         n, q = mu.shape
+        m = Z.shape[0]
         self.psi0 = n * variance
-        # psi1
-        self.den1 = alpha * S + 1.0                                   # (N, Q)
-        self.diff1 = mu[:, None, :] - Z[None, :, :]                   # (N, M, Q)
-        log_psi1 = (np.log(variance) - 0.5 * np.log(self.den1).sum(1)[:, None]
-                    - 0.5 * np.einsum("nmq,nq->nm", self.diff1**2, alpha / self.den1))
-        self.psi1 = np.exp(log_psi1)
-        # psi2: with d_a = mu_n - z_a, mu_n - zbar_ab = (d_a + d_b) / 2 and z_a - z_b = d_b - d_a, so
-        # log psi2^n_ab = 2 log s_f^2 - 1/2 sum_q log den2_nq + u_na + u_nb + sum_q w_nq d_naq d_nbq,
-        # u_na = -sum_q (a_q + c_nq) d_naq^2 / 4, w = (a - c) / 2, c = a / den2: one batched
-        # (M x Q) (Q x M) product per point instead of N x M x M x Q arrays
-        self.den2 = 2.0 * alpha * S + 1.0                             # (N, Q)
-        c = alpha / self.den2
-        d1 = self.diff1
-        u = -0.25 * np.einsum("nmq,nq->nm", d1**2, alpha + c)
-        cross = np.matmul(d1 * (0.5 * (alpha - c))[:, None, :], d1.transpose(0, 2, 1))
-        const = 2.0 * np.log(variance) - 0.5 * np.log(self.den2).sum(1)
-        self.psi2n = np.exp(cross + (u + 0.5 * const[:, None])[:, :, None] + (u + 0.5 * const[:, None])[:, None, :])
+        log_var = np.log(variance)
+        mean_pairs, diff_pairs = _pair_operators(m)
+        self.delta_sq = np.square(diff_pairs @ Z)                                    # (z_a - z_b)^2, (M^2, Q)
+        u = self.delta_sq @ alpha                                                   # (M^2,)
+        self.features1 = np.concatenate([Z, Z * Z, np.ones((m, 1))], 1)                # (M, 2Q + 1)
+        # [zbar, zbar^2, 1, u] (M^2, 2Q + 2): the u column carries the -u/4 of log psi2
+        self.features2 = np.empty((m * m, 2 * q + 2))
+        z_bar = np.matmul(mean_pairs, Z, out=self.features2[:, :q])
+        np.square(z_bar, out=self.features2[:, q: 2 * q])
+        self.features2[:, 2 * q] = 1.0
+        self.features2[:, 2 * q + 1] = u
+        self.inv_den1 = 1.0 / (alpha * S + 1.0)
+        self.inv_den2 = 1.0 / (2.0 * alpha * S + 1.0)
+        self.w = alpha * self.inv_den1
+        self.c = alpha * self.inv_den2
+        w_mu, c_mu = self.w * mu, self.c * mu
+        k1 = log_var + (0.5 * np.log(self.inv_den1) - 0.5 * w_mu * mu).sum(1)
+        k2 = 2.0 * log_var + (0.5 * np.log(self.inv_den2) - c_mu * mu).sum(1)
+        self.coef1 = np.concatenate([w_mu, -0.5 * self.w, k1[:, None]], 1)
+        self.coef2 = np.concatenate([2.0 * c_mu, -self.c, k2[:, None], np.full((n, 1), -0.25)], 1)
+        self.psi1 = np.exp(self.coef1 @ self.features1.T)
+        self.psi2n = np.exp(self.coef2 @ self.features2.T).reshape(n, m, m)
+        self.Kmm = (variance * np.exp(-0.5 * u)).reshape(m, m)
+        self.Kmm.flat[:: m + 1] += jitter * variance
 
     @property
     def psi2(self) -> np.ndarray:
         return self.psi2n.sum(0)
 
-    def gradients(self, g0, g1: np.ndarray, g2: np.ndarray):
-        """Chain rule from dF/dpsi0 (scalar, per point psi0_n = s_f^2), dF/dpsi1 (N, M) and a
-        symmetric dF/dPsi2 (M, M) to (d mu, d S, d Z, d log s_f^2, d alpha)."""
-        a, S, Z = self.alpha, self.S, self.Z
-        n = self.mu.shape[0]
-        # psi0: sum_n s_f^2
-        g0 = np.broadcast_to(np.asarray(g0, dtype=float), (n,))
-        dlogvar = float(g0.sum() * self.variance)
-        # psi1
-        T1 = g1 * self.psi1                                             # (N, M)
-        T1_rows = T1.sum(1)[:, None]
-        T1_diff = np.einsum("nm,nmq->nq", T1, self.diff1)
-        T1_diff2 = np.einsum("nm,nmq->nq", T1, self.diff1**2)
-        d_mu = -a / self.den1 * T1_diff
-        d_S = -0.5 * a / self.den1 * T1_rows + 0.5 * a**2 / self.den1**2 * T1_diff2
-        d_Z = np.einsum("nm,nmq->mq", T1, self.diff1 * (a / self.den1)[:, None, :])
-        d_alpha = -0.5 * np.sum(T1_rows * S / self.den1 + T1_diff2 / self.den1**2, 0)
-        dlogvar += T1.sum()
-        # psi2 (g2 symmetric, shared by all points). With D_abq = mu_nq - zbar_abq =
-        # (d_aq + d_bq) / 2 and the symmetry of T2 = g2 * psi2^n, the sums over a, b of T2 D and
-        # T2 D^2 and, for d Z, the sums over b of T2 D reduce to T2 d (one batched product)
-        T2 = g2[None] * self.psi2n                                      # (N, M, M)
-        T2_tot = T2.sum((1, 2))[:, None]
-        T2_sum = T2.sum(0)
-        T2_rows = T2.sum(2)                                             # (N, M)
-        d1 = self.diff1
-        Td = np.matmul(T2, d1)                                          # (N, M, Q)
-        T2_dbar = np.einsum("nm,nmq->nq", T2_rows, d1)
-        T2_dbar2 = 0.5 * (np.einsum("nm,nmq->nq", T2_rows, d1**2) + np.einsum("nmq,nmq->nq", d1, Td))
-        dZ2 = 0.5 * np.einsum("nmq,nq->mq", T2_rows[:, :, None] * d1 + Td, 1.0 / self.den2)
-        d_mu += -2.0 * a / self.den2 * T2_dbar
-        d_S += -a / self.den2 * T2_tot + 2.0 * a**2 / self.den2**2 * T2_dbar2
-        sum_rows = T2_sum.sum(1)
-        TZ = T2_sum @ Z
-        d_alpha += (-np.sum(T2_tot * S / self.den2, 0)
-                    - 0.5 * (sum_rows @ Z**2 - np.sum(Z * TZ, 0))
-                    - np.sum(T2_dbar2 / self.den2**2, 0))
-        d_Z += -a * (sum_rows[:, None] * Z - TZ) + 2.0 * a * dZ2
-        dlogvar += 2.0 * T2.sum()
-        return d_mu, d_S, d_Z, dlogvar, d_alpha
+    def gradients(self, g0: float, g1: np.ndarray, g2: np.ndarray, g_kmm: np.ndarray | None = None):
+        """Chain rule from dF/dpsi0 (scalar; psi0 = N s_f^2), dF/dpsi1 (N, M), a symmetric
+        dF/dPsi2 (M, M) and optionally a symmetric dF/dK_mm (M, M) to
+        (d mu, d S, d Z, d log s_f^2, d alpha).
+
+        With T1 = g1 * psi1, T2 = g2 * psi2^n, T_K = g_kmm * K_mm: dF/dcoef = T @ features and
+        dF/dfeatures = T^T coef (class docstring), then the coefficients' and features'
+        derivatives; u enters through U = sum_n T2 / 4 + T_K / 2 (d u_ab / d z = 2 a (z_a - z_b)).
+        """
+        mu, S, Z, a = self.mu, self.S, self.Z, self.alpha
+        n, q = mu.shape
+        m = Z.shape[0]
+        w, c = self.w, self.c
+        T1 = g1 * self.psi1                                                          # (N, M)
+        T2 = g2.ravel() * self.psi2n.reshape(n, m * m)                               # (N, M^2)
+        S1 = T1 @ self.features1                                                     # sums of T1 z, T1 z^2, T1
+        S2 = T2 @ self.features2                                                     # sums of T2 zbar, zbar^2, T2
+        T1_z, T1_z2, r1 = S1[:, :q], S1[:, q:2 * q], S1[:, 2 * q:]
+        T2_z, T2_z2, t2 = S2[:, :q], S2[:, q:2 * q], S2[:, 2 * q: 2 * q + 1]
+        d_w = mu * T1_z - 0.5 * T1_z2 - 0.5 * r1 * mu**2                             # dF/dw = -Q1 / 2
+        d_c = 2.0 * mu * T2_z - T2_z2 - t2 * mu**2                                   # dF/dc = -Q2
+        d_mu = w * (T1_z - r1 * mu) + 2.0 * c * (T2_z - t2 * mu)
+        # dw/dS = -w^2, dc/dS = -2 c^2, dw/da = 1 / den1^2, dc/da = 1 / den2^2
+        d_S = -w**2 * d_w - 0.5 * w * r1 - 2.0 * c**2 * d_c - c * t2
+        d_alpha = (d_w * self.inv_den1**2 - 0.5 * r1 * S * self.inv_den1
+                   + d_c * self.inv_den2**2 - t2 * S * self.inv_den2).sum(0)
+        U = 0.25 * T2.sum(0).reshape(m, m)
+        d_logvar = g0 * n * self.variance + r1.sum() + 2.0 * t2.sum()
+        if g_kmm is not None:
+            T_K = g_kmm * self.Kmm
+            U += 0.5 * T_K
+            d_logvar += T_K.sum()
+        d_alpha -= U.ravel() @ self.delta_sq
+        # Z: through z (psi1), zbar and zbar^2 (psi2; T2 symmetric in a, b) and u:
+        # E1 = T1^T coef1, E2 = r2^T coef2 with r2_na = sum_b T2_nab, T2_Z[n] = T2_n Z
+        E1 = T1.T @ self.coef1
+        T2_F = (T2.reshape(n * m, m) @ self.features1).reshape(n, m, 2 * q + 1)       # T2_n [Z, Z^2, 1]
+        E2 = T2_F[:, :, 2 * q].T @ self.coef2[:, : 2 * q]
+        U_F = U @ self.features1
+        d_Z = (E1[:, :q] + E2[:, :q] + np.einsum("naq,nq->aq", T2_F[:, :, :q], self.coef2[:, q: 2 * q])
+               + 4.0 * a * U_F[:, :q] + Z * (2.0 * E1[:, q: 2 * q] + E2[:, q:] - 4.0 * a * U_F[:, 2 * q:]))
+        return d_mu, d_S, d_Z, float(d_logvar), d_alpha

@@ -5,10 +5,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
-import pytest
-
+# before numpy is imported: OpenBLAS reads it once, when the library loads (set after the
+# import, numpy's BLAS ran on every core while scipy's ran on one)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
