@@ -24,7 +24,7 @@ from ..core.jobs import BackgroundJob, JobStatus
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import mesh_data_from_arrays, object_to_mesh
-from .fitting import job_scene, run_worker_job
+from .fitting import job_settings, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       TRANSFORM_KEY, marker_mesh_arrays)
@@ -112,10 +112,9 @@ def _load(status: JobStatus):
 
 
 def _finish(status: JobStatus, result) -> None:
-    scene = job_scene()
-    if scene is None:
+    settings = job_settings(status, f"finding correspondences in '{MANAGER.payload.get('collection')}'")
+    if settings is None:
         return
-    settings = scene.shapegen
     collection = bpy.data.collections.get(MANAGER.payload.get("collection", ""))
     if status.state != "done" or isinstance(result, Exception) or collection is None:
         settings.job_state = "CANCELLED" if status.state == "cancelled" else "FAILED"

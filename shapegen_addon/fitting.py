@@ -136,6 +136,16 @@ def job_scene() -> bpy.types.Scene | None:
     return bpy.data.scenes.get(MANAGER.payload.get("scene", ""))
 
 
+def job_settings(status: JobStatus, job: str):
+    """The ShapeGen settings of the ended job's scene, or None (and a console line naming
+    `job`) when the user deleted that scene meanwhile."""
+    scene = job_scene()
+    if scene is None:
+        print(f"ShapeGen: {job} ended ({status.state}) but its scene is gone")
+        return None
+    return scene.shapegen
+
+
 def poll_fit() -> JobStatus | None:
     """Poll the running job once (main thread; never blocks on the worker). Mirrors the
     progress into the scene; the job's own callback applies the result when it has ended.
@@ -163,17 +173,15 @@ def _finish(status: JobStatus, loaded) -> None:
     """on_finish of the fit job: called once, on the main thread, from poll_fit, with
     `_load_result`'s return value (or the exception it raised)."""
     payload = MANAGER.payload
-    scene = job_scene()
-    if scene is None:
-        print(f"ShapeGen: the fit of '{payload.get('name')}' ended ({status.state}) but its scene is gone")
+    settings = job_settings(status, f"the fit of '{payload.get('name')}'")
+    if settings is None:
         return
-    settings = scene.shapegen
     seconds = time.monotonic() - MANAGER.started_at
     if status.state == "done":
         try:
             if isinstance(loaded, Exception):
                 raise loaded
-            model = store.store_fitted_model(scene, status.output, payload["name"], loaded)
+            model = store.store_fitted_model(settings.id_data, status.output, payload["name"], loaded)
         except (ShapeGenError, OSError) as exc:
             settings.job_state = "FAILED"
             settings.job_message = f"Fit finished but its model could not be loaded: {exc}"

@@ -23,7 +23,7 @@ from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
-from .fitting import job_scene, run_worker_job
+from .fitting import job_settings, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
@@ -143,11 +143,9 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     say why not. Nothing is created when the job failed or was cancelled, or when the
     user deleted or edited a source object while it ran."""
     payload = MANAGER.payload
-    scene = job_scene()
-    if scene is None:
-        print(f"ShapeGen: preparing '{payload.get('source')}' ended ({status.state}) but its scene is gone")
+    settings = job_settings(status, f"preparing '{payload.get('source')}'")
+    if settings is None:
         return
-    settings = scene.shapegen
     source = bpy.data.collections.get(payload.get("source", ""))
     objects = [bpy.data.objects.get(name) for name in payload.get("objects", [])]
     changed = [name for name, obj, count in zip(payload.get("objects", []), objects, payload.get("vertex_counts", []))
@@ -159,7 +157,7 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
                   else f"object(s) deleted or edited while preparing: {', '.join(changed)}")
         settings.job_message = f"Prepare {status.state}: {reason or status.state}; nothing was created"
     else:
-        target = build_prepared_collection(scene, source, objects, prepared, settings.preview_spacing)
+        target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
         counts = [len(l) for l in prepared.landmarks]
         turned = sum(s.orientation_changed for s in prepared.shapes)
         settings.job_state = "DONE"
