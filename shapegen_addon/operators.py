@@ -166,11 +166,22 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
         settings.job_message = (f"Prepared {len(prepared)} shapes into '{target.name}': "
                                 f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus")
         if not bpy.app.background and not payload.get("wait"):
-            try:  # the scene changed after the operator returned: give the user an undo step
-                bpy.ops.ed.undo_push(message="ShapeGen Prepare")
-            except RuntimeError as exc:
-                print(f"ShapeGen: no undo step for Prepare ({exc})")
+            _push_undo_step("ShapeGen Prepare")
     print(f"ShapeGen: {settings.job_message}")
+
+
+def _push_undo_step(message: str) -> None:
+    """An undo step for a change made after the operator returned (from the job timer,
+    which has no window in its context: borrow the first one)."""
+    windows = list(getattr(bpy.context.window_manager, "windows", []))
+    try:
+        if windows:
+            with bpy.context.temp_override(window=windows[0], screen=windows[0].screen):
+                bpy.ops.ed.undo_push(message=message)
+        else:
+            bpy.ops.ed.undo_push(message=message)
+    except RuntimeError as exc:
+        print(f"ShapeGen: no undo step for '{message}' ({exc})")
 
 
 class SHAPEGEN_OT_prepare(bpy.types.Operator):
