@@ -71,6 +71,14 @@ class FitSettings:
         if self.model not in MODEL_TYPES:
             raise ValueError(f"unknown model {self.model!r}; choose from {', '.join(MODEL_TYPES)}")
 
+    @classmethod
+    def from_dict(cls, options: dict) -> "FitSettings":
+        """FitSettings from plain data (JSON), the stage settings as nested dicts under
+        "correspondence" and "deform". Unknown or invalid fields raise TypeError/ValueError."""
+        rest = dict(options)
+        return cls(correspondence=CorrespondenceSettings(**rest.pop("correspondence", {})),
+                   deform=DeformSettings(**rest.pop("deform", {})), **rest)
+
 
 def _scalar_settings(settings: FitSettings) -> dict[str, str]:
     out = {}

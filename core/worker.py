@@ -53,24 +53,25 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz) or from an
     already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare)."""
     from .collection import PreparedCollection
-    from .correspond import CorrespondenceSettings
-    from .deform import DeformSettings
-    from .errors import Cancelled
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, fit_meshes
 
     source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
               else load_mesh_set(arguments["meshes"]))
-    options = dict(arguments.get("settings", {}))
-    correspondence = CorrespondenceSettings(**options.pop("correspondence", {}))
-    deform = DeformSettings(**options.pop("deform", {}))
-    settings = FitSettings(correspondence=correspondence, deform=deform, **options)
-    model = fit_meshes(source, settings, progress=lambda f, stage: _emit(event="progress", fraction=f, stage=stage),
-                       should_cancel=should_cancel)
+    settings = FitSettings.from_dict(arguments.get("settings", {}))
+    model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
+    return _save_result(model, arguments, should_cancel, "fit")
+
+
+def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
+    """The shared end of a task: nothing is written once cancelled; else `result.save` to
+    arguments["output"], whose path is the task's output."""
+    from .errors import Cancelled
+
     if should_cancel():
-        raise Cancelled("fit cancelled")
+        raise Cancelled(f"{task} cancelled")
     output = Path(arguments["output"])
-    model.save(output)
+    result.save(output)
     return str(output)
 
 
@@ -90,18 +91,13 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
         progress(fraction, stage)
 
     prepared = prepare_meshes(meshes, progress=report, **arguments.get("settings", {}))
-    if should_cancel():
-        raise Cancelled("prepare cancelled")
-    output = Path(arguments["output"])
-    prepared.save(output)
-    return str(output)
+    return _save_result(prepared, arguments, should_cancel, "prepare")
 
 
 def task_correspond(arguments: dict, progress, should_cancel) -> str:
     """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
     from .collection import PreparedCollection
     from .correspond import CorrespondenceSettings, correspond
-    from .errors import Cancelled
 
     prepared = PreparedCollection.load(arguments["prepared"])
     settings = CorrespondenceSettings(**arguments.get("settings", {}))
@@ -115,11 +111,7 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
 
     result = correspond(prepared, settings, template=arguments.get("template") or None,
                         jobs=arguments.get("jobs"), progress=report, should_cancel=should_cancel)
-    if should_cancel():
-        raise Cancelled("correspondence cancelled")
-    output = Path(arguments["output"])
-    result.save(output)
-    return str(output)
+    return _save_result(result, arguments, should_cancel, "correspondence")
 
 
 def task_selftest(arguments: dict, progress, should_cancel) -> str:
