@@ -12,7 +12,6 @@ Fig. 4.2–4.4): the same colour should sit on the same part of every shape.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import bpy
@@ -24,7 +23,7 @@ from ..core.jobs import BackgroundJob, JobStatus
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import mesh_data_from_arrays, object_to_mesh
-from .fitting import job_settings, run_worker_job
+from .fitting import job_settings, no_job_running, parse_extra_settings, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       TRANSFORM_KEY, marker_mesh_arrays)
@@ -164,8 +163,7 @@ class SHAPEGEN_OT_find_correspondences(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if MANAGER.running:
-            cls.poll_message_set(f"A job is running ({MANAGER.label}): wait for it or cancel it")
+        if not no_job_running(cls):
             return False
         if prepared_collection_of(context) is None:
             cls.poll_message_set("Prepare the chosen collection first (Data panel)")
@@ -181,10 +179,7 @@ class SHAPEGEN_OT_find_correspondences(bpy.types.Operator):
         settings = context.scene.shapegen
         options = {"alpha_end": settings.stiffness, "alpha_start": max(100.0, settings.stiffness)}
         try:
-            extra = json.loads(self.extra_settings) if self.extra_settings.strip() else {}
-            if not isinstance(extra, dict):
-                raise ValueError("not a JSON object")
-            options.update(extra)
+            options.update(parse_extra_settings(self.extra_settings))
             from ..core.correspond import CorrespondenceSettings
 
             CorrespondenceSettings(**options)  # a bad setting is reported before a worker starts

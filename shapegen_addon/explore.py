@@ -191,11 +191,12 @@ def tag_object(obj: bpy.types.Object, scene: bpy.types.Scene, z, template: str, 
 
 
 # ------------------------------------------------------------------------------ operators
-class _NeedsLive:
+class _NeedsLive(store.NeedsModel):
+    """Operator mixin: a model and its live object (Explore) must exist."""
+
     @classmethod
     def poll(cls, context):
-        if context.scene.shapegen.model_text is None:
-            cls.poll_message_set("No fitted model in this scene: fit or load one first")
+        if not super().poll(context):
             return False
         if live_object(context.scene) is None:
             cls.poll_message_set("No live object: press Explore first")

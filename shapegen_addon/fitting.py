@@ -65,14 +65,10 @@ def fit_settings_dict(settings, extra: dict | None = None) -> dict:
 
 def _check_settings(options: dict) -> None:
     """Build FitSettings here too, so a bad setting is reported before a worker starts."""
-    from ..core.correspond import CorrespondenceSettings
-    from ..core.deform import DeformSettings
     from ..core.pipeline import FitSettings
 
-    rest = dict(options)
     try:
-        FitSettings(correspondence=CorrespondenceSettings(**rest.pop("correspondence", {})),
-                    deform=DeformSettings(**rest.pop("deform", {})), **rest)
+        FitSettings.from_dict(options)
     except (TypeError, ValueError) as exc:
         raise ShapeGenError(f"Invalid fit settings: {exc}") from None
 
@@ -242,6 +238,26 @@ def start_polling() -> None:
         bpy.app.timers.register(_timer, first_interval=POLL_INTERVAL)
 
 
+def no_job_running(operator_class) -> bool:
+    """Operator poll part shared by Prepare, Find Correspondences and Fit: one background
+    job at a time; says which one runs and how far it is."""
+    if not MANAGER.running:
+        return True
+    status = MANAGER.last_status
+    percent = int(100 * status.fraction) if status else 0
+    operator_class.poll_message_set(f"A job is already running ({MANAGER.label}, {percent} %): "
+                                    "wait for it or cancel it")
+    return False
+
+
+def parse_extra_settings(text: str) -> dict:
+    """The operators' "Extra Settings" JSON: an object, or empty. ValueError otherwise."""
+    extra = json.loads(text) if text.strip() else {}
+    if not isinstance(extra, dict):
+        raise ValueError("not a JSON object")
+    return extra
+
+
 def run_worker_job(operator, settings, prefix: str, start, *, wait: bool, started: str) -> set[str]:
     """The shared tail of the operators that run core work in a worker (Fit, Find
     Correspondences): `start(folder)` writes the job's inputs into a fresh temporary folder
@@ -302,11 +318,7 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if MANAGER.running:
-            status = MANAGER.last_status
-            percent = int(100 * status.fraction) if status else 0
-            cls.poll_message_set(f"A job is already running ({MANAGER.label}, {percent} %): "
-                                 "wait for it or cancel it")
+        if not no_job_running(cls):
             return False
         if context.scene.shapegen.source_collection is None:
             cls.poll_message_set("Choose a training collection first (Data panel)")
@@ -328,9 +340,7 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
                         "a shape model needs at least 2")
             return {"CANCELLED"}
         try:
-            extra = json.loads(self.extra_settings) if self.extra_settings.strip() else {}
-            if not isinstance(extra, dict):
-                raise ValueError("not a JSON object")
+            extra = parse_extra_settings(self.extra_settings)
         except ValueError as exc:
             self.report({"ERROR"}, f"Extra settings are not a JSON object: {exc}")
             return {"CANCELLED"}
@@ -420,7 +430,7 @@ class SHAPEGEN_OT_load_model(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SHAPEGEN_OT_export_model(bpy.types.Operator):
+class SHAPEGEN_OT_export_model(store.NeedsModel, bpy.types.Operator):
     """Write the scene's packed model to a .npz file (for the `shapegen` command line)"""
 
     bl_idname = "shapegen.export_model"
@@ -429,13 +439,6 @@ class SHAPEGEN_OT_export_model(bpy.types.Operator):
 
     filepath: StringProperty(name="File", subtype="FILE_PATH")
     filter_glob: StringProperty(default="*.npz", options={"HIDDEN"})
-
-    @classmethod
-    def poll(cls, context):
-        if context.scene.shapegen.model_text is None:
-            cls.poll_message_set("No fitted model in this scene")
-            return False
-        return True
 
     def invoke(self, context, event):
         if not self.filepath:

@@ -23,7 +23,7 @@ from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
-from .fitting import job_settings, run_worker_job
+from .fitting import job_settings, no_job_running, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
@@ -201,8 +201,7 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if MANAGER.running:
-            cls.poll_message_set(f"A job is running ({MANAGER.label}): wait for it or cancel it")
+        if not no_job_running(cls):
             return False
         settings = context.scene.shapegen
         if settings.source_collection is None:
