@@ -295,12 +295,6 @@ def enclosed_volume(mesh: Mesh) -> float:
     return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
 
-def _is_closed(mesh: Mesh) -> bool:
-    edges = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(np.all(counts == 2))
-
-
 def smooth_curvature_flow(mesh: Mesh, iterations: int = 1, step: float = 0.5,
                           preserve_volume: bool = True) -> Mesh:
     """Implicit mean-curvature flow (Desbrun et al. 1999, thesis eq. 6.4).
@@ -311,7 +305,7 @@ def smooth_curvature_flow(mesh: Mesh, iterations: int = 1, step: float = 0.5,
     """
     if iterations < 0:
         raise ValueError(f"smoothing iterations must be >= 0, got {iterations}")
-    closed = preserve_volume and _is_closed(mesh)
+    closed = preserve_volume and mesh.is_closed()
     volume0 = enclosed_volume(mesh) if closed else None
     current = mesh
     for _ in range(iterations):

@@ -197,11 +197,20 @@ class Mesh:
         lo, hi = self.bounds()
         return float(np.linalg.norm(hi - lo))
 
-    def edges_unique(self) -> np.ndarray:
-        """(E, 2) undirected edges, each once, smaller index first."""
+    def _face_edges(self) -> np.ndarray:
+        """(3F, 2) the edge of every face corner, smaller index first (shared edges repeat)."""
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         e.sort(axis=1)
-        return np.unique(e, axis=0)
+        return e
+
+    def edges_unique(self) -> np.ndarray:
+        """(E, 2) undirected edges, each once, smaller index first."""
+        return np.unique(self._face_edges(), axis=0)
+
+    def is_closed(self) -> bool:
+        """True when every edge is shared by exactly two faces (a closed 2-manifold surface)."""
+        _, counts = np.unique(self._face_edges(), axis=0, return_counts=True)
+        return bool(np.all(counts == 2))
 
     def mean_edge_length(self) -> float:
         e = self.edges_unique()

@@ -338,3 +338,12 @@ def test_fast_obj_writer_round_trips_through_trimesh_with_vertex_order(tmp_path)
     other = _trimesh.load(tmp_path / "b.obj", process=False, maintain_order=True)
     assert len(other.vertices) == mesh.n_vertices and len(other.faces) == mesh.n_faces
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_is_closed_agrees_with_trimesh_watertight():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    closed = Mesh(sphere.vertices, sphere.faces, name="sphere")
+    opened = Mesh(sphere.vertices, sphere.faces[1:], name="sphere minus a face")
+    assert closed.is_closed() and sphere.is_watertight
+    assert not opened.is_closed()
+    assert not trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False).is_watertight
