@@ -250,6 +250,15 @@ def no_job_running(operator_class) -> bool:
     return False
 
 
+def chosen_collection(operator, name: str, settings):
+    """The collection an operator works on: the one named `name`, else the panel's chosen
+    training collection. None (reported on `operator`) when there is none."""
+    collection = bpy.data.collections.get(name) if name else settings.source_collection
+    if collection is None:
+        operator.report({"ERROR"}, f"No collection named '{name}'" if name else "Choose a training collection first")
+    return collection
+
+
 def parse_extra_settings(text: str) -> dict:
     """The operators' "Extra Settings" JSON: an object, or empty. ValueError otherwise."""
     extra = json.loads(text) if text.strip() else {}
@@ -328,11 +337,8 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         settings = scene.shapegen
-        collection = (bpy.data.collections.get(self.collection_name) if self.collection_name
-                      else settings.source_collection)
+        collection = chosen_collection(self, self.collection_name, settings)
         if collection is None:
-            self.report({"ERROR"}, f"No collection named '{self.collection_name}'" if self.collection_name
-                        else "Choose a training collection first")
             return {"CANCELLED"}
         objects = sorted((o for o in collection.all_objects if o.type == "MESH"), key=lambda o: o.name)
         if len(objects) < 2:

@@ -23,7 +23,7 @@ from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
-from .fitting import job_settings, no_job_running, run_worker_job
+from .fitting import chosen_collection, job_settings, no_job_running, run_worker_job
 from .jobs import MANAGER
 from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
                       SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
@@ -211,10 +211,8 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
 
     def execute(self, context):
         settings = context.scene.shapegen
-        source = (bpy.data.collections.get(self.collection_name) if self.collection_name
-                  else settings.source_collection)
+        source = chosen_collection(self, self.collection_name, settings)
         if source is None:
-            self.report({"ERROR"}, f"No collection named '{self.collection_name}'")
             return {"CANCELLED"}
         objects = sorted(source.all_objects, key=lambda o: o.name)
         mesh_objects = [o for o in objects if o.type == "MESH"]
