@@ -109,20 +109,40 @@ def decompose(shapes, template_index, template_landmarks, face_index, barycentri
 
 
 # ---------------------------------------------------------------------------- methods (pairwise)
+class PairwiseFrame:
+    """The template's landmarks, k-NN graph and normals in its registration frame (zero
+    mean, unit RMS radius), and `register` of that template onto any shape of `prepared`."""
+
+    def __init__(self, prepared, template_index: int, k_neighbours: int):
+        lm = prepared.landmarks[template_index]
+        self.prepared = prepared
+        self.centre, self.scale = registration_frame(lm.points)
+        self.template = self.frame(lm.points)
+        self.edges = knn_graph(lm.points, k_neighbours)
+        self.normals = prepared.shapes[template_index].mesh.face_normals()[lm.face_index]
+
+    def frame(self, points) -> np.ndarray:
+        return (np.asarray(points) - self.centre) / self.scale
+
+    def surface(self, m: int) -> TargetSurface:
+        mesh = self.prepared.shapes[m].mesh
+        return TargetSurface(self.frame(mesh.vertices), mesh.faces)
+
+    def register(self, m: int, settings, surface: TargetSurface | None = None, **options):
+        """Template → shape m (`options`: register's anchors, initial_points)."""
+        mesh, target_lm = self.prepared.shapes[m].mesh, self.prepared.landmarks[m]
+        return register(self.template, self.edges, surface or self.surface(m), self.frame(target_lm.points),
+                        settings, self.normals, mesh.face_normals()[target_lm.face_index], **options)
+
+
 def ours_pairwise(prepared, template_index, settings):
     """Register the template to every shape; returns (points, face, bary, seconds per shape)."""
-    lm = prepared.landmarks[template_index]
-    centre, scale = registration_frame(lm.points)
-    frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    edges = knn_graph(lm.points, settings.k_neighbours)
-    normals = prepared.shapes[template_index].mesh.face_normals()[lm.face_index]
+    pair = PairwiseFrame(prepared, template_index, settings.k_neighbours)
     points, faces, barys = [], [], []
     start = time.perf_counter()
-    for shape, target_lm in zip(prepared.shapes, prepared.landmarks):
-        mesh = shape.mesh
-        result = register(frame(lm.points), edges, TargetSurface(frame(mesh.vertices), mesh.faces),
-                          frame(target_lm.points), settings, normals, mesh.face_normals()[target_lm.face_index])
-        points.append(result.placed.points * scale + centre)
+    for m in range(len(prepared)):
+        result = pair.register(m, settings)
+        points.append(result.placed.points * pair.scale + pair.centre)
         faces.append(result.placed.face_index)
         barys.append(result.placed.barycentric)
     seconds = (time.perf_counter() - start) / len(prepared)
@@ -191,12 +211,9 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     * started AT the ground truth (`initial_points`), 30 iterations at the last α (and at
       α = 1): how far the method walks away from the truth on its own."""
     settings = CorrespondenceSettings(groupwise_rounds=0)
+    pair = PairwiseFrame(prepared, template_index, settings.k_neighbours)
+    template, edges = pair.template, pair.edges
     lm = prepared.landmarks[template_index]
-    centre, scale = registration_frame(lm.points)
-    frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    template = frame(lm.points)
-    edges = knn_graph(lm.points, settings.k_neighbours)
-    normals = prepared.shapes[template_index].mesh.face_normals()[lm.face_index]
     st = shapes[template_index].surface_coordinates(lm.face_index, lm.barycentric)
     b = PROFILE_BREAKS
     wall = np.where((st[:, 0] > b[1]) & (st[:, 0] < b[2]), (st[:, 0] - b[1]) / (b[2] - b[1]),
@@ -208,16 +225,14 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     for m, shape in enumerate(prepared.shapes):
         if m == template_index:
             continue
-        target_lm = prepared.landmarks[m]
-        truth = frame(shape.transform.to_normalised(shapes[m].points_at(st)))
-        surface = TargetSurface(frame(shape.mesh.vertices), shape.mesh.faces)
-        args = (template, edges, surface, frame(target_lm.points), settings, normals,
-                shape.mesh.face_normals()[target_lm.face_index])
-        free = register(*args).placed.points
-        oracle = register(*args, anchors=Anchors(np.flatnonzero(anchored), truth[anchored], 1e3)).placed.points
+        truth = pair.frame(shape.transform.to_normalised(shapes[m].points_at(st)))
+        surface = pair.surface(m)
+        free = pair.register(m, settings, surface).placed.points
+        oracle = pair.register(m, settings, surface,
+                               anchors=Anchors(np.flatnonzero(anchored), truth[anchored], 1e3)).placed.points
         ratios.append(pinned_stiffness_energy(template, edges, truth, settings)
                       / pinned_stiffness_energy(template, edges, free, settings))
-        diagonal = shapes[m].mesh.bbox_diagonal() * shape.transform.scale / scale  # input diagonal, frame units
+        diagonal = shapes[m].mesh.bbox_diagonal() * shape.transform.scale / pair.scale  # input diagonal, frame units
         free_err.append(100 * np.linalg.norm(free - truth, axis=1)[~anchored].mean() / diagonal)
         error = np.linalg.norm(oracle - truth, axis=1) / diagonal
         oracle_err.append(100 * error[~anchored].mean())
@@ -225,7 +240,7 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
         for alpha, errors in from_truth.items():
             stay = CorrespondenceSettings(groupwise_rounds=0, alpha_start=alpha, alpha_end=alpha, alpha_steps=1,
                                           tolerance=0.0, max_iterations_per_alpha=30, max_iterations=30)
-            walked = register(*args[:4], stay, *args[5:], initial_points=truth).placed.points
+            walked = pair.register(m, stay, surface, initial_points=truth).placed.points
             errors.append(100 * np.linalg.norm(walked - truth, axis=1).mean() / diagonal)
     out = {"energy_truth_over_ours": [float(r) for r in ratios], "anchored_landmarks": int(anchored.sum()),
            "unanchored_error_free_pct": float(np.mean(free_err)), "unanchored_error_oracle_pct": float(np.mean(oracle_err)),
