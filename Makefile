@@ -15,8 +15,7 @@ export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
 
-EXTENSION_SOURCES := blender_manifest.toml __init__.py $(wildcard shapegen_addon/*.py) \
-	$(wildcard core/*.py) $(wildcard core/models/*.py)
+EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
 .PHONY: all demo test test-core test-blender build wheels clean bench
 

@@ -1,0 +1,62 @@
+"""The installed `shapegen_core` must hold every sub-package of `core/`.
+
+pyproject.toml lists the packages by hand; a new folder that is not added there would
+work in the editable checkout and be missing from a real install. This builds the wheel
+(setuptools, no network) and compares its packages with the folders of core/.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+CORE = ROOT / "core"
+
+
+def core_packages() -> set[str]:
+    """Dotted names of every folder of core/ that holds Python modules."""
+    names = set()
+    for init in CORE.rglob("*.py"):
+        if "__pycache__" in init.parts:
+            continue
+        relative = init.parent.relative_to(CORE)
+        names.add(".".join(("shapegen_core", *relative.parts)))
+    return names
+
+
+def test_every_core_folder_is_a_package():
+    for name in core_packages():
+        folder = CORE.joinpath(*name.split(".")[1:])
+        assert (folder / "__init__.py").is_file(), f"{folder} holds modules but no __init__.py"
+
+
+def test_pyproject_lists_every_core_package():
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    assert core_packages() <= listed, f"missing from pyproject.toml: {sorted(core_packages() - listed)}"
+
+
+def test_built_wheel_holds_every_core_module(tmp_path):
+    # build from a copy: setuptools would reuse a stale build/ folder of the checkout
+    source = tmp_path / "source"
+    source.mkdir()
+    shutil.copy(ROOT / "pyproject.toml", source)
+    shutil.copytree(CORE, source / "core", ignore=shutil.ignore_patterns("__pycache__"))
+    wheels = tmp_path / "wheels"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+         "--disable-pip-version-check", "-q", "-w", str(wheels), str(source)],
+        check=True, capture_output=True, cwd=tmp_path,
+    )
+    (wheel,) = wheels.glob("shapegen-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        shipped = {name for name in archive.namelist() if name.endswith(".py")}
+    expected = {
+        "shapegen_core/" + path.relative_to(CORE).as_posix()
+        for path in CORE.rglob("*.py") if "__pycache__" not in path.parts
+    }
+    assert expected <= shipped, f"modules missing from the wheel: {sorted(expected - shipped)}"
