@@ -34,6 +34,7 @@ from ..core.meshset import save_mesh_set
 from . import store
 from .convert import object_triangles
 from .jobs import MANAGER
+from .prepared import PREPARE_SETTINGS, prepare_options, reusable_prepared, to_prepared_collection
 
 __all__ = ["CLASSES", "poll_fit", "fit_settings_dict", "unregister_timer"]
 
@@ -54,8 +55,7 @@ def _merge(base: dict, extra: dict) -> dict:
 def fit_settings_dict(settings, extra: dict | None = None) -> dict:
     """The worker's FitSettings fields (JSON) from the panel's settings plus `extra`."""
     options = {
-        "n_landmarks": settings.n_landmarks, "up_axis": settings.up_axis, "align": settings.align,
-        "scale": settings.scale, "centre": settings.centre, "seed": settings.seed,
+        **prepare_options(settings),
         "model": settings.fit_model, "latent_dim": settings.latent_dim or None,
         "correspondence": {"alpha_end": settings.stiffness, "alpha_start": max(100.0, settings.stiffness)},
         "deform": {"final_alpha": settings.mesh_stiffness, "start_alpha": max(100.0, settings.mesh_stiffness)},
@@ -78,44 +78,6 @@ def gather_meshes(objects) -> list[tuple[str, np.ndarray, np.ndarray]]:
     (convert.object_triangles, ~4 ms per 100k vertices). The core's mesh validation runs
     in the worker, whose error names the object."""
     return [(o.name, *object_triangles(o)[:2]) for o in objects]
-
-
-#: Prepare settings that must match for Fit to reuse a prepared collection.
-PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")
-
-
-def reusable_prepared(collection, objects, options: dict):
-    """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
-    when Prepare ran on them with the same settings as this fit (`options`) and none has
-    changed since: every copy equals its source's world coordinates under its stored
-    transform (bulk reads, well under 1 ms per 100k vertices). Else None (Fit prepares
-    again in the worker). Returns (prepared bpy collection, copies in `objects` order)."""
-    from .correspondence import prepared_objects
-    from .preview import TRANSFORM_KEY
-
-    candidates = [c for c in bpy.data.collections
-                  if c.get("shapegen_prepared") and c.get("shapegen_source_collection") == collection.name
-                  and all(str(c.get(f"shapegen_{k}")) == str(options[k]) for k in PREPARE_SETTINGS)]
-    for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
-        copies = {o.get("shapegen_source"): o for o in prepared_objects(prepared)}
-        if set(copies) != {o.name for o in objects}:
-            continue
-        ordered = [copies[o.name] for o in objects]
-        if all(_unchanged(source, copy, TRANSFORM_KEY) for source, copy in zip(objects, ordered)):
-            return prepared, ordered
-    return None
-
-
-def _unchanged(source, copy, transform_key: str) -> bool:
-    """True when the prepared `copy` still equals `source` mapped by its stored transform."""
-    if len(source.data.vertices) != len(copy.data.vertices) or len(source.data.polygons) != len(copy.data.polygons):
-        return False
-    world = object_triangles(source, world=True)[0]
-    local = object_triangles(copy, world=False)[0]
-    matrix = np.asarray(copy[transform_key], dtype=np.float64).reshape(4, 4)
-    mapped = world @ matrix[:3, :3].T + matrix[:3, 3]
-    size = max(float(np.ptp(local, axis=0).max()), 1e-12)
-    return bool(np.abs(mapped - local).max() <= 1e-5 * size)
 
 
 def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:
@@ -357,8 +319,6 @@ class SHAPEGEN_OT_fit(bpy.types.Operator):
             _check_settings(options)
             payload = {"scene": scene.name, "name": collection.name}
             if reuse is not None:  # Prepare's result is current: the worker starts at correspondence
-                from .correspondence import to_prepared_collection
-
                 prepared = to_prepared_collection(reuse[1])
                 prepared.settings = {k: options[k] for k in PREPARE_SETTINGS}
                 inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name

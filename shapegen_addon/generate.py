@@ -17,7 +17,8 @@ from ..core.errors import ShapeGenError
 from . import store
 from .convert import mesh_data_from_arrays
 from .explore import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, tag_object
-from .preview import SOURCE_KEY, grid_offsets
+from .keys import SOURCE_KEY
+from .preview import ensure_collection, grid_offsets
 from .properties import INTERPOLATION_ITEMS
 
 __all__ = ["CLASSES", "object_latent", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
@@ -25,16 +26,6 @@ __all__ = ["CLASSES", "object_latent", "SAMPLES_COLLECTION", "INTERPOLATION_COLL
 SAMPLES_COLLECTION = "ShapeGen Samples"
 INTERPOLATION_COLLECTION = "ShapeGen Interpolation"
 MODES_COLLECTION = "ShapeGen Modes"
-
-
-def ensure_collection(scene: bpy.types.Scene, name: str) -> bpy.types.Collection:
-    """The collection `name` linked to the scene (created when missing)."""
-    collection = bpy.data.collections.get(name)
-    if collection is None:
-        collection = bpy.data.collections.new(name)
-    if collection.name not in scene.collection.children:
-        scene.collection.children.link(collection)
-    return collection
 
 
 def shape_size(model) -> float:

@@ -15,9 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-import numpy as np
 from bpy.props import BoolProperty, StringProperty
-from mathutils import Matrix
 
 from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
@@ -25,22 +23,10 @@ from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
 from .fitting import chosen_collection, job_settings, no_job_running, run_worker_job
 from .jobs import MANAGER
-from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
-                      SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
+from .prepared import build_prepared_collection, prepare_options
+from .preview import new_collection
 
 __all__ = ["CLASSES"]
-
-PREPARED_KEY = "shapegen_prepared"  # collection property: marks a prepared collection
-
-
-def _unique_collection_name(base: str) -> str:
-    if base not in bpy.data.collections:
-        return base
-    index = 1
-    while f"{base}.{index:03d}" in bpy.data.collections:
-        index += 1
-    return f"{base}.{index:03d}"
-
 
 class SHAPEGEN_OT_import_collection(bpy.types.Operator):
     """Import every mesh file of a folder into a new collection (one object per file)"""
@@ -70,8 +56,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
             self.report({"ERROR"}, f"{folder}: no mesh files found (.obj, .ply, .stl, .off, .glb, .gltf)")
             return {"CANCELLED"}
 
-        collection = bpy.data.collections.new(_unique_collection_name(folder.name or "Training"))
-        context.scene.collection.children.link(collection)
+        collection = new_collection(context.scene, folder.name or "Training")
         imported, failures = [], []
         wm = context.window_manager
         wm.progress_begin(0, len(files))
@@ -104,38 +89,6 @@ def _load_prepared(status: JobStatus):
     from ..core.collection import PreparedCollection
 
     return PreparedCollection.load(status.output)
-
-
-def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
-                              prepared, preview_spacing: float) -> bpy.types.Collection:
-    """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
-    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
-    landmark markers. The user's objects are not modified."""
-    target = bpy.data.collections.new(_unique_collection_name(f"{source.name} Prepared"))
-    scene.collection.children.link(target)
-    target[PREPARED_KEY] = True
-    target["shapegen_source_collection"] = source.name
-    for key, value in prepared.settings.items():
-        target[f"shapegen_{key}"] = value
-    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
-    offsets = grid_offsets(len(prepared), preview_spacing * size)
-    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
-        data = obj.data.copy()
-        data.name = f"{obj.name} prepared"
-        data.transform(obj.matrix_world)  # input coordinates = the original's world frame
-        data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
-        copy = bpy.data.objects.new(f"{obj.name} prepared", data)
-        copy.location = offset
-        copy[SOURCE_KEY] = obj.name
-        copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
-        copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
-        # where each landmark lies on the (loop-triangulated) mesh, for correspondence
-        copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
-        copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
-        copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
-        target.objects.link(copy)
-        add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
-    return target
 
 
 def _finish_prepare(status: JobStatus, prepared) -> None:
@@ -237,8 +190,7 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
         for mesh in meshes:
             if mesh.report.summary() != "clean":
                 self.report({"INFO"}, f"{mesh.name}: {mesh.report.summary()}")
-        options = {"n_landmarks": settings.n_landmarks, "up_axis": settings.up_axis, "align": settings.align,
-                   "scale": settings.scale, "centre": settings.centre, "seed": settings.seed}
+        options = prepare_options(settings)
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
                    "vertex_counts": [len(o.data.vertices) for o in mesh_objects], "wait": self.wait}
 
