@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import correspondence, explore, fitting, generate, operators, panels, properties, store
+from . import correspondence, explore, fitting, generate, handlers, latent, operators, panels, properties
 from .jobs import MANAGER
 
 _CLASSES = (*properties.CLASSES, *operators.CLASSES, *correspondence.CLASSES, *fitting.CLASSES,
@@ -26,14 +26,14 @@ def register():
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
     properties.register_properties()
-    store.register_handlers()
+    handlers.register_handlers()
 
 
 def unregister():
     fitting.unregister_timer()
     MANAGER.kill()
-    store.unregister_handlers()
-    explore.forget_cache()
+    handlers.unregister_handlers()
+    latent.forget_cache()
     properties.unregister_properties()
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)

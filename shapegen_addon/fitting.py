@@ -31,7 +31,7 @@ from bpy.props import BoolProperty, StringProperty
 from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
-from . import store
+from . import latent, store
 from .convert import object_triangles
 from .jobs import MANAGER
 from .prepared import PREPARE_SETTINGS, prepare_options, reusable_prepared, to_prepared_collection
@@ -120,6 +120,14 @@ def poll_fit() -> JobStatus | None:
     return status
 
 
+def install_model(scene: bpy.types.Scene, path: str | Path, name: str, loaded=None):
+    """The model file at `path` becomes the scene's model (store.store_fitted_model: packed
+    into the .blend) and the latent sliders (and any live object) follow it."""
+    model = store.store_fitted_model(scene, path, name, loaded)
+    latent.model_changed(scene, model)
+    return model
+
+
 def _load_result(status: JobStatus):
     """prepare step of the fit job (helper thread, no bpy): load and validate the model."""
     if status.state != "done":
@@ -139,7 +147,7 @@ def _finish(status: JobStatus, loaded) -> None:
         try:
             if isinstance(loaded, Exception):
                 raise loaded
-            model = store.store_fitted_model(settings.id_data, status.output, payload["name"], loaded)
+            model = install_model(settings.id_data, status.output, payload["name"], loaded)
         except (ShapeGenError, OSError) as exc:
             settings.job_state = "FAILED"
             settings.job_message = f"Fit finished but its model could not be loaded: {exc}"
@@ -387,7 +395,7 @@ class SHAPEGEN_OT_load_model(bpy.types.Operator):
             self.report({"ERROR"}, f"{path}: no such model file")
             return {"CANCELLED"}
         try:
-            model = store.store_fitted_model(context.scene, path, path.stem)
+            model = install_model(context.scene, path, path.stem)
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

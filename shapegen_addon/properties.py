@@ -14,6 +14,7 @@ from bpy.props import (CollectionProperty, EnumProperty, FloatProperty, IntPrope
                        PointerProperty, StringProperty)
 
 from ..core.landmarks import DEFAULT_LANDMARKS
+from .latent import on_slider_changed
 
 UP_AXIS_ITEMS = [
     ("z", "Z", "The input's +Z points up (Blender's convention)"),
@@ -63,9 +64,7 @@ INTERPOLATION_ITEMS = [
 
 
 def _on_latent_changed(self, context):
-    from . import explore
-
-    explore.on_slider_changed(self.id_data)
+    on_slider_changed(self.id_data)
 
 
 class ShapeGenLatent(bpy.types.PropertyGroup):
