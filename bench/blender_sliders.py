@@ -7,7 +7,7 @@ installed into a throwaway user folder, then measures:
 
 1. **Main-thread stalls while a fit runs.** Six procedural vases of ~100k vertices each
    are fitted through the real Fit operator (a worker process); the main thread polls the
-   job like the UI timer does (`fitting.poll_fit`, here every 10 ms instead of 100 ms, to
+   job like the UI timer does (`jobs.poll_job`, here every 10 ms instead of 100 ms, to
    sample more polls). Reported: the longest single poll while the job runs (target
    ≤ 50 ms) and, separately, the final poll that applies the result (loads the model file
    and packs it into the .blend).
@@ -75,7 +75,7 @@ def main() -> None:
     install()
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     datasets, convert = module("core.datasets"), module("shapegen_addon.convert")
-    fitting, store, latent = module("shapegen_addon.fitting"), module("shapegen_addon.store"), module(
+    jobs, store, latent = module("shapegen_addon.jobs"), module("shapegen_addon.store"), module(
         "shapegen_addon.latent")
     pipeline, models = module("core.pipeline"), module("core.models")
 
@@ -102,7 +102,7 @@ def main() -> None:
     polls, apply_ms, status = [], None, None
     while True:
         t = time.perf_counter()
-        status = fitting.poll_fit()
+        status = jobs.poll_job()
         dt = 1000 * (time.perf_counter() - t)
         if status is not None and status.finished:
             apply_ms = dt

@@ -16,7 +16,7 @@ from __future__ import annotations
 import bpy
 
 from . import correspondence, explore, fitting, generate, handlers, latent, operators, panels, properties
-from .jobs import MANAGER
+from .jobs import MANAGER, unregister_timer
 
 _CLASSES = (*properties.CLASSES, *operators.CLASSES, *correspondence.CLASSES, *fitting.CLASSES,
             *generate.CLASSES, *explore.CLASSES, *panels.CLASSES)
@@ -30,7 +30,7 @@ def register():
 
 
 def unregister():
-    fitting.unregister_timer()
+    unregister_timer()
     MANAGER.kill()
     handlers.unregister_handlers()
     latent.forget_cache()

@@ -7,7 +7,7 @@ Data section:
 * `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
   never modified. Meshes are read and validated here; the slow part runs in a worker
-  (core.worker "prepare") through `jobs.MANAGER`, like Fit.
+  (core.worker "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit.
 """
 
 from __future__ import annotations
@@ -15,15 +15,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-from bpy.props import BoolProperty, StringProperty
+from bpy.props import StringProperty
 
 from ..core.errors import ShapeGenError
 from ..core.jobs import BackgroundJob, JobStatus
 from ..core.meshset import save_mesh_set
 from .convert import import_mesh_file, object_to_mesh
-from .fitting import chosen_collection, job_settings, no_job_running, run_worker_job
-from .jobs import MANAGER
-from .prepared import build_prepared_collection, prepare_options
+from .jobs import MANAGER, JobOperator, job_settings, report_outcome
+from .prepared import PREPARE_SETTINGS, build_prepared_collection
 from .preview import new_collection
 
 __all__ = ["CLASSES"]
@@ -104,23 +103,19 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     changed = [name for name, obj, count in zip(payload.get("objects", []), objects, payload.get("vertex_counts", []))
                if obj is None or obj.type != "MESH" or len(obj.data.vertices) != count]
     if status.state != "done" or isinstance(prepared, Exception) or source is None or changed:
-        settings.job_state = "CANCELLED" if status.state == "cancelled" else "FAILED"
         reason = (str(prepared) if isinstance(prepared, Exception) else status.error if status.state != "done"
                   else f"collection '{payload.get('source')}' was deleted" if source is None
                   else f"object(s) deleted or edited while preparing: {', '.join(changed)}")
-        settings.job_message = f"Prepare {status.state}: {reason or status.state}; nothing was created"
-    else:
-        target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
-        counts = [len(l) for l in prepared.landmarks]
-        turned = sum(s.orientation_changed for s in prepared.shapes)
-        settings.job_state = "DONE"
-        settings.job_fraction = 1.0
-        settings.job_stage = "prepared"
-        settings.job_message = (f"Prepared {len(prepared)} shapes into '{target.name}': "
-                                f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus")
-        if not bpy.app.background and not payload.get("wait"):
-            _push_undo_step("ShapeGen Prepare")
-    print(f"ShapeGen: {settings.job_message}")
+        report_outcome(settings, "CANCELLED" if status.state == "cancelled" else "FAILED",
+                       f"Prepare {status.state}: {reason or status.state}; nothing was created")
+        return
+    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
+    counts = [len(l) for l in prepared.landmarks]
+    turned = sum(s.orientation_changed for s in prepared.shapes)
+    report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}': "
+                   f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus", "prepared")
+    if not bpy.app.background and not payload.get("wait"):
+        _push_undo_step("ShapeGen Prepare")  # after the outcome, so the step holds it
 
 
 def _push_undo_step(message: str) -> None:
@@ -137,34 +132,24 @@ def _push_undo_step(message: str) -> None:
         print(f"ShapeGen: no undo step for '{message}' ({exc})")
 
 
-class SHAPEGEN_OT_prepare(bpy.types.Operator):
+def _check_prepare_options(options: dict) -> None:
+    unknown = sorted(set(options) - set(PREPARE_SETTINGS))
+    if unknown:
+        raise ValueError(f"unknown option(s) {', '.join(unknown)} (known: {', '.join(PREPARE_SETTINGS)})")
+
+
+class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
     """Align, scale and landmark the chosen collection into a new "Prepared" collection, in
     the background (originals untouched; progress and Cancel in the panel)"""
 
     bl_idname = "shapegen.prepare"
     bl_label = "Prepare"
     bl_options = {"REGISTER", "UNDO"}
-
-    collection_name: StringProperty(
-        name="Collection", default="",
-        description="Collection to prepare (empty: the panel's chosen collection)",
-    )
-    wait: BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
-                       description="Block until preparing ends (scripts and background mode)")
-
-    @classmethod
-    def poll(cls, context):
-        if not no_job_running(cls):
-            return False
-        settings = context.scene.shapegen
-        if settings.source_collection is None:
-            cls.poll_message_set("Choose a training collection first")
-            return False
-        return True
+    job_name = "prepare"
 
     def execute(self, context):
         settings = context.scene.shapegen
-        source = chosen_collection(self, self.collection_name, settings)
+        source = self.chosen_collection(context)
         if source is None:
             return {"CANCELLED"}
         objects = sorted(source.all_objects, key=lambda o: o.name)
@@ -190,7 +175,9 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
         for mesh in meshes:
             if mesh.report.summary() != "clean":
                 self.report({"INFO"}, f"{mesh.name}: {mesh.report.summary()}")
-        options = prepare_options(settings)
+        options = self.job_options(settings.prepare_options(), _check_prepare_options)
+        if options is None:
+            return {"CANCELLED"}
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
                    "vertex_counts": [len(o.data.vertices) for o in mesh_objects], "wait": self.wait}
 
@@ -204,8 +191,7 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
                           setup=lambda: save_mesh_set(mesh_file, [m.name for m in meshes], [m.vertices for m in meshes],
                                                       [m.faces for m in meshes], compress=False))
 
-        return run_worker_job(self, settings, "shapegen-prepare-", start, wait=self.wait,
-                              started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
+        return self.run_job(context, start, started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
 
 
 CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare)

@@ -25,16 +25,11 @@ from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENC
 from .preview import (add_correspondence_markers, add_landmark_markers, grid_offsets, landmark_index_colours,
                       new_collection)
 
-__all__ = ["PREPARE_SETTINGS", "prepare_options", "build_prepared_collection", "prepared_objects",
+__all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects",
            "prepared_collection_for", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
 PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")
-
-
-def prepare_options(settings) -> dict:
-    """The panel's Prepare settings (`scene.shapegen`) as the core's prepare options."""
-    return {name: getattr(settings, name) for name in PREPARE_SETTINGS}
 
 
 # ------------------------------------------------------------------------------ write
