@@ -14,9 +14,9 @@ from pathlib import Path
 
 import bpy
 
-from ..core.jobs import BackgroundJob, JobStatus
-from .jobs import MANAGER, JobOperator, job_settings, report_outcome
-from .prepared import apply_correspondence, prepared_collection_for, prepared_objects, to_prepared_collection
+from ...core.jobs import BackgroundJob, JobStatus
+from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
+from ..prepared import apply_correspondence, prepared_collection_for, prepared_objects, to_prepared_collection
 
 __all__ = ["CLASSES"]
 
@@ -24,7 +24,7 @@ __all__ = ["CLASSES"]
 def _load(status: JobStatus):
     if status.state != "done":
         return None
-    from ..core.correspond import Correspondence
+    from ...core.correspond import Correspondence
 
     return Correspondence.load(status.output)
 
@@ -48,7 +48,7 @@ def _finish(status: JobStatus, result) -> None:
 
 
 def _check_correspondence_settings(options: dict) -> None:
-    from ..core.correspond import CorrespondenceSettings
+    from ...core.correspond import CorrespondenceSettings
 
     CorrespondenceSettings(**options)
 

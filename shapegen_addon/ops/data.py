@@ -1,7 +1,6 @@
-"""One operator per user action. Operators convert Blender data, call the core, and turn
-the result back into scene data; they hold no algorithm.
+"""Data section. Operators convert Blender data, call the core, and turn the result back
+into scene data; they hold no algorithm.
 
-Data section:
 * `SHAPEGEN_OT_import_collection` — a folder of mesh files → a new collection of mesh
   objects named after the files (Blender's own importers; OFF through the core reader).
 * `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
@@ -17,13 +16,13 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ..core.errors import ShapeGenError
-from ..core.jobs import BackgroundJob, JobStatus
-from ..core.meshset import save_mesh_set
-from .convert import import_mesh_file, object_to_mesh
-from .jobs import MANAGER, JobOperator, job_settings, report_outcome
-from .prepared import PREPARE_SETTINGS, build_prepared_collection
-from .preview import new_collection
+from ...core.errors import ShapeGenError
+from ...core.jobs import BackgroundJob, JobStatus
+from ...core.meshset import save_mesh_set
+from ..convert import import_mesh_file, object_to_mesh
+from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
+from ..prepared import PREPARE_SETTINGS, build_prepared_collection
+from ..preview import new_collection
 
 __all__ = ["CLASSES"]
 
@@ -43,7 +42,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ..core.io import list_mesh_files
+        from ...core.io import list_mesh_files
 
         folder = Path(bpy.path.abspath(self.directory))
         try:
@@ -85,7 +84,7 @@ def _load_prepared(status: JobStatus):
     """prepare step of the job (helper thread, no bpy): load and validate the result."""
     if status.state != "done":
         return None
-    from ..core.collection import PreparedCollection
+    from ...core.collection import PreparedCollection
 
     return PreparedCollection.load(status.output)
 

@@ -1,7 +1,7 @@
 """Scene-level settings of the ShapeGen panel (`scene.shapegen`).
 
 Everything the sidebar shows lives here and is saved with the .blend: data and fit
-settings, the fitted model (a pointer to the Text datablock that holds it, see store.py),
+settings, the fitted model (a pointer to the Text datablock that holds it, see ../store.py),
 the last job's outcome, the latent sliders of the live object and the generate options.
 The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
 `job_state` / `job_fraction` / `job_stage` so the panel and scripts can read it.
@@ -13,9 +13,9 @@ import bpy
 from bpy.props import (CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
-from ..core.landmarks import DEFAULT_LANDMARKS
-from .latent import on_slider_changed
-from .prepared import PREPARE_SETTINGS
+from ...core.landmarks import DEFAULT_LANDMARKS
+from ..latent import on_slider_changed
+from ..prepared import PREPARE_SETTINGS
 
 UP_AXIS_ITEMS = [
     ("z", "Z", "The input's +Z points up (Blender's convention)"),

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import bpy
 
-from .jobs import MANAGER
-from .keys import (LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY, N_SHAPES_KEY,
+from ..jobs import MANAGER
+from ..keys import (LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY, N_SHAPES_KEY,
                    OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 
 __all__ = ["CLASSES"]

@@ -24,19 +24,19 @@ import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from ..core.errors import ShapeGenError
-from ..core.jobs import BackgroundJob, JobStatus
-from ..core.meshset import save_mesh_set
-from . import latent, store
-from .convert import object_triangles
-from .jobs import MANAGER, JobOperator, job_scene, job_settings, no_job_running, report_outcome
-from .prepared import PREPARE_SETTINGS, reusable_prepared, to_prepared_collection
+from ...core.errors import ShapeGenError
+from ...core.jobs import BackgroundJob, JobStatus
+from ...core.meshset import save_mesh_set
+from .. import latent, store
+from ..convert import object_triangles
+from ..jobs import MANAGER, JobOperator, job_settings, no_job_running, report_outcome
+from ..prepared import PREPARE_SETTINGS, reusable_prepared, to_prepared_collection
 
 __all__ = ["CLASSES", "install_model"]
 
 
 def _check_fit_settings(options: dict) -> None:
-    from ..core.pipeline import FitSettings
+    from ...core.pipeline import FitSettings
 
     FitSettings.from_dict(options)
 
@@ -143,30 +143,6 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
                             started=f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
 
 
-class SHAPEGEN_OT_fit_cancel(bpy.types.Operator):
-    """Stop the running background job (Prepare, Find Correspondences or Fit); the scene and
-    any earlier model stay as they are"""
-
-    bl_idname = "shapegen.fit_cancel"
-    bl_label = "Cancel"
-    bl_options = {"REGISTER"}
-
-    @classmethod
-    def poll(cls, context):
-        if not MANAGER.running:
-            cls.poll_message_set("No background job is running")
-            return False
-        return True
-
-    def execute(self, context):
-        MANAGER.cancel()
-        scene = job_scene()
-        if scene is not None:
-            scene.shapegen.job_stage = "cancelling"
-        self.report({"INFO"}, f"Cancelling {MANAGER.label}")
-        return {"FINISHED"}
-
-
 class SHAPEGEN_OT_load_model(bpy.types.Operator):
     """Load a fitted model file (.npz from `shapegen fit` or Export Model) into this scene;
     it is packed into the .blend"""
@@ -231,4 +207,4 @@ class SHAPEGEN_OT_export_model(store.NeedsModel, bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (SHAPEGEN_OT_fit, SHAPEGEN_OT_fit_cancel, SHAPEGEN_OT_load_model, SHAPEGEN_OT_export_model)
+CLASSES = (SHAPEGEN_OT_fit, SHAPEGEN_OT_load_model, SHAPEGEN_OT_export_model)

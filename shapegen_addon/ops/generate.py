@@ -1,9 +1,8 @@
 """Generate: sample new shapes, interpolate between two shapes, PPCA modes as shape keys.
 
-Every generated object is an ordinary mesh object tagged with custom properties
-(`shapegen_latent`, `shapegen_model`, `shapegen_model_id`, `shapegen_template`, and
-`shapegen_seed` for samples), so later operators (Interpolate, Latent Map) can find its
-latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
+Every generated object is an ordinary mesh object tagged with its latent vector, model
+and template (latent.tag_object; a sample also with its seed), so later operators
+(Interpolate, Latent Map) can find its latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
 `mesh_from_landmarks`, `LatentMesher`); nothing here is an algorithm.
 """
 
@@ -13,13 +12,13 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from ..core.errors import ShapeGenError
-from . import store
-from .convert import mesh_data_from_arrays
-from .keys import INTERPOLATION_KEY
-from .latent import object_latent, tag_object
-from .preview import ensure_collection, grid_offsets
-from .properties import INTERPOLATION_ITEMS
+from ...core.errors import ShapeGenError
+from .. import store
+from ..convert import mesh_data_from_arrays
+from ..keys import INTERPOLATION_KEY
+from ..latent import object_latent, tag_object
+from ..preview import ensure_collection, grid_offsets
+from ..ui.properties import INTERPOLATION_ITEMS
 
 __all__ = ["CLASSES", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
 
