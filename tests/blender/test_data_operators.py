@@ -124,6 +124,20 @@ def test_prepare_skips_non_mesh_objects_and_refuses_empty_or_single(vase_folder)
         bpy.ops.shapegen.prepare(wait=True)
 
 
+def test_prepare_extra_settings_override_the_panel_and_unknown_ones_are_refused(vase_folder):
+    folder, _ = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 120
+    with pytest.raises(RuntimeError, match="Invalid prepare settings: unknown option.*landmarks"):
+        bpy.ops.shapegen.prepare(wait=True, extra_settings='{"landmarks": 40}')
+    assert settings.job_state == "IDLE"  # refused before any worker started
+    assert bpy.ops.shapegen.prepare(wait=True, extra_settings='{"n_landmarks": 40}') == {"FINISHED"}
+    prepared = bpy.data.collections["vases Prepared"]
+    assert int(prepared["shapegen_n_landmarks"]) == 40
+    assert all(len(o["shapegen_landmarks"]) <= 3 * 40 for o in prepared.objects if "shapegen_landmarks" in o)
+
+
 def test_prepare_names_the_object_with_bad_geometry(vase_folder):
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
