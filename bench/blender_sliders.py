@@ -7,7 +7,7 @@ installed into a throwaway user folder, then measures:
 
 1. **Main-thread stalls while a fit runs.** Six procedural vases of ~100k vertices each
    are fitted through the real Fit operator (a worker process); the main thread polls the
-   job like the UI timer does (`fitting.poll_fit`, here every 10 ms instead of 100 ms, to
+   job like the UI timer does (`jobs.poll_job`, here every 10 ms instead of 100 ms, to
    sample more polls). Reported: the longest single poll while the job runs (target
    ≤ 50 ms) and, separately, the final poll that applies the result (loads the model file
    and packs it into the .blend).
@@ -75,8 +75,8 @@ def main() -> None:
     install()
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     datasets, convert = module("core.datasets"), module("shapegen_addon.convert")
-    fitting, store, explore = module("shapegen_addon.fitting"), module("shapegen_addon.store"), module(
-        "shapegen_addon.explore")
+    jobs, store, latent = module("shapegen_addon.jobs"), module("shapegen_addon.store"), module(
+        "shapegen_addon.latent")
     pipeline, models = module("core.pipeline"), module("core.models")
 
     scene = bpy.context.scene
@@ -102,7 +102,7 @@ def main() -> None:
     polls, apply_ms, status = [], None, None
     while True:
         t = time.perf_counter()
-        status = fitting.poll_fit()
+        status = jobs.poll_job()
         dt = 1000 * (time.perf_counter() - t)
         if status is not None and status.finished:
             apply_ms = dt
@@ -143,15 +143,15 @@ def main() -> None:
             t = time.perf_counter()
             item.value = value
             times.append(1000 * (time.perf_counter() - t))
-        mesher = explore._MESHERS[(store.model_id(scene), template)]
-        z = explore.current_latent(scene)
+        mesher = latent._MESHERS[(store.model_id(scene), template)]
+        z = latent.current_latent(scene)
         t = time.perf_counter()
         for _ in range(20):
             flat = mesher.flat_vertices(z)
         compute_ms = 1000 * (time.perf_counter() - t) / 20
         t = time.perf_counter()
         for _ in range(20):
-            explore.write_positions(live.data, flat)
+            latent.write_positions(live.data, flat)
         write_ms = 1000 * (time.perf_counter() - t) / 20
         sliders[kind] = {"vertices": len(live.data.vertices), "basis_rows": int(mesher.basis.shape[0]),
                          "build_live_object_s": build_s, "compute_ms": compute_ms, "foreach_set_update_ms": write_ms,

@@ -1,39 +1,43 @@
 """ShapeGen's Blender layer: converts scene data, calls the core, shows results.
 
-Modules exporting classes (`CLASSES`), registered in this order:
-`properties` (scene settings), `operators` (Data: import, prepare), `correspondence`
-(Find Correspondences on a prepared collection, landmark-index colours), `fitting` (Fit in a
-worker process, Cancel, Load / Export Model), `generate` (Sample, Interpolate, Modes to
-Shape Keys), `explore` (live object sliders, Randomise, Reset, Snap, Bake, Latent Map),
-`panels` (sidebar UI).
-Helpers: `convert` (bpy <-> core data), `preview` (landmark markers, layout), `store`
-(the model packed in the .blend, load_post restore), `jobs` (bpy-free job manager),
-`picture` (numpy drawing of the latent map).
+* `ops/` — one operator module per panel section, each exporting `CLASSES`: `data`
+  (Import Training Collection, Prepare), `correspondence` (Find Correspondences), `fit`
+  (Fit, Load / Export Model), `cancel` (Cancel the running job), `generate` (Sample,
+  Interpolate, Modes to Shape Keys), `explore` (Explore, Randomise, Reset, Snap, Bake,
+  Latent Map).
+* `ui/` — `properties` (`scene.shapegen`: settings, job state, sliders) and `panels`
+  (View3D › Sidebar › ShapeGen).
+* `jobs/` — background jobs: the bpy-free manager, the runtime shared by Prepare, Find
+  Correspondences and Fit (polling, reporting the outcome), the operator mixin.
+* helpers: `keys` (every `shapegen_*` key of the .blend), `prepared` (the prepared-object
+  format), `latent` (sliders, live object, latent tags), `store` (the model packed in a
+  Text datablock), `handlers` (file load), `convert` (bpy <-> core data), `preview`
+  (collections, layout, markers), `picture` (numpy drawing of the latent map).
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import correspondence, explore, fitting, generate, operators, panels, properties, store
-from .jobs import MANAGER
+from . import handlers, latent, ops
+from .jobs import MANAGER, unregister_timer
+from .ui import panels, properties
 
-_CLASSES = (*properties.CLASSES, *operators.CLASSES, *correspondence.CLASSES, *fitting.CLASSES,
-            *generate.CLASSES, *explore.CLASSES, *panels.CLASSES)
+_CLASSES = (*properties.CLASSES, *ops.CLASSES, *panels.CLASSES)
 
 
 def register():
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
     properties.register_properties()
-    store.register_handlers()
+    handlers.register_handlers()
 
 
 def unregister():
-    fitting.unregister_timer()
+    unregister_timer()
     MANAGER.kill()
-    store.unregister_handlers()
-    explore.forget_cache()
+    handlers.unregister_handlers()
+    latent.forget_cache()
     properties.unregister_properties()
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)

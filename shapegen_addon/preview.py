@@ -1,9 +1,12 @@
-"""Scene objects that show ShapeGen data: landmark markers and grid layout.
+"""Where ShapeGen's data appears in the scene: collections, grid layout, landmark markers.
 
 Landmarks are shown as one mesh of small octahedra (a marker per landmark), so they
 render in every engine (Workbench, Cycles, EEVEE) and need no geometry nodes. The
-landmark coordinates themselves are kept exactly in a custom property of the shape
-object (`shapegen_landmarks`), never reconstructed from the markers.
+landmark coordinates themselves are kept exactly in custom properties of the shape
+object (keys.LANDMARKS_KEY, keys.CORRESPONDENCE_KEY), never reconstructed from the markers.
+Correspondence markers are coloured by LANDMARK INDEX the same way on every shape
+(colour of landmark i = position of template landmark i in the template's bounding box,
+as RGB), so a user can judge correspondence by eye (thesis Fig. 4.2–4.4).
 """
 
 from __future__ import annotations
@@ -15,16 +18,10 @@ import numpy as np
 
 from .convert import mesh_data_from_arrays
 
-__all__ = ["marker_mesh_arrays", "add_landmark_markers", "grid_offsets", "landmark_material",
-           "LANDMARKS_KEY", "TRANSFORM_KEY", "SOURCE_KEY", "LANDMARK_FACES_KEY", "LANDMARK_BARYCENTRIC_KEY",
-           "LANDMARK_RADIUS_KEY"]
+__all__ = ["marker_mesh_arrays", "add_landmark_markers", "add_correspondence_markers", "landmark_index_colours",
+           "grid_offsets", "landmark_material", "new_collection", "ensure_collection", "COLOUR_ATTRIBUTE"]
 
-LANDMARKS_KEY = "shapegen_landmarks"  # flat float list (L*3), the shape object's local frame
-TRANSFORM_KEY = "shapegen_transform"  # 16 floats, row-major: input (world) -> normalised
-SOURCE_KEY = "shapegen_source"  # name of the user's original object
-LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each landmark
-LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
-LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
+COLOUR_ATTRIBUTE = "landmark_index_colour"
 
 _OCTAHEDRON_VERTICES = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64
@@ -33,6 +30,27 @@ _OCTAHEDRON_FACES = np.array(
     [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]],
     dtype=np.int64,
 )
+
+
+def new_collection(scene: bpy.types.Scene, base: str) -> bpy.types.Collection:
+    """A new collection named `base` (or "base.001", ... when taken), linked to the scene."""
+    name, index = base, 0
+    while name in bpy.data.collections:
+        index += 1
+        name = f"{base}.{index:03d}"
+    collection = bpy.data.collections.new(name)
+    scene.collection.children.link(collection)
+    return collection
+
+
+def ensure_collection(scene: bpy.types.Scene, name: str) -> bpy.types.Collection:
+    """The collection `name` linked to the scene (created when missing)."""
+    collection = bpy.data.collections.get(name)
+    if collection is None:
+        collection = bpy.data.collections.new(name)
+    if collection.name not in scene.collection.children:
+        scene.collection.children.link(collection)
+    return collection
 
 
 def marker_mesh_arrays(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -66,6 +84,34 @@ def add_landmark_markers(parent: bpy.types.Object, points: np.ndarray, radius: f
     markers.hide_select = True
     markers.color = (0.95, 0.3, 0.05, 1.0)
     collection.objects.link(markers)
+    return markers
+
+
+def landmark_index_colours(template_points: np.ndarray) -> np.ndarray:
+    """RGBA per landmark index: the template landmark's position in its bounding box."""
+    lo, hi = template_points.min(axis=0), template_points.max(axis=0)
+    rgb = (template_points - lo) / np.maximum(hi - lo, 1e-12)
+    return np.hstack([0.1 + 0.85 * rgb, np.ones((len(rgb), 1))]).astype(np.float32)
+
+
+def add_correspondence_markers(parent: bpy.types.Object, points: np.ndarray, colours: np.ndarray,
+                               radius: float) -> bpy.types.Object:
+    """A child of `parent` with one octahedron per landmark, coloured by landmark index
+    (replaces an earlier one)."""
+    name = f"{parent.name} correspondence"
+    old = bpy.data.objects.get(name)
+    if old is not None:
+        bpy.data.objects.remove(old)
+    vertices, faces = marker_mesh_arrays(points, radius)
+    data = mesh_data_from_arrays(name, vertices, faces)
+    attribute = data.color_attributes.new(COLOUR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+    attribute.data.foreach_set("color", np.repeat(colours, 6, axis=0).ravel())
+    data.color_attributes.active_color = attribute
+    markers = bpy.data.objects.new(name, data)
+    markers.parent = parent
+    markers.hide_select = True
+    for collection in parent.users_collection:
+        collection.objects.link(markers)
     return markers
 
 

@@ -19,7 +19,9 @@ Why packed rather than a file beside the .blend:
 
 Decoded models are cached per process, keyed by a uuid stored on the Text
 (`shapegen_model_id`), so the cache survives undo (which rebuilds Blender's data) and a
-reopened file restores it in `load_post` (or lazily in `get_model`).
+reopened file restores it (handlers.py, at load_post; or lazily in `get_model`). This
+module knows only the Text datablock: what follows a new model (the latent sliders) is
+the caller's business.
 """
 
 from __future__ import annotations
@@ -30,15 +32,14 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.app.handlers import persistent
 
 from ..core.errors import ModelFileError, ShapeGenError
 from ..core.pipeline import GenerativeShapeModel
+from .keys import (LATENT_DIM_KEY, MODEL_FILE_KEY, MODEL_ID_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY,
+                   N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 
-__all__ = ["NeedsModel", "pack_model", "get_model", "require_model", "model_id", "model_name", "store_fitted_model",
-           "forget_cache", "register_handlers", "unregister_handlers", "MODEL_ID_KEY"]
-
-MODEL_ID_KEY = "shapegen_model_id"
+__all__ = ["NeedsModel", "pack_model", "get_model", "require_model", "model_id", "model_name", "model_bytes",
+           "read_model_file", "store_fitted_model", "forget_cache"]
 
 
 class NeedsModel:
@@ -50,8 +51,7 @@ class NeedsModel:
             cls.poll_message_set("No fitted model in this scene: fit or load one first")
             return False
         return True
-MODEL_NAME_KEY = "shapegen_model_name"
-MODEL_FILE_KEY = "shapegen_model_npz"  # bytes: the model .npz file
+
 
 _CACHE: dict[str, GenerativeShapeModel] = {}
 
@@ -99,13 +99,13 @@ def pack_model(path: str | Path, name: str, model: GenerativeShapeModel | None =
 def describe(text: bpy.types.Text, model: GenerativeShapeModel) -> None:
     """Summary custom properties on the Text, so panels can draw without decoding."""
     corr = model.correspondence
-    text["shapegen_model_type"] = model.model_type
-    text["shapegen_latent_dim"] = int(model.latent_dim)
-    text["shapegen_n_shapes"] = len(model.names)
-    text["shapegen_n_landmarks"] = int(model.n_landmarks)
-    text["shapegen_template"] = str(corr.template_name)
-    text["shapegen_residual_median"] = float(np.median(corr.residuals))
-    text["shapegen_outliers"] = [f"{n}: {r}" if r else n for n, r, bad in
+    text[MODEL_TYPE_KEY] = model.model_type
+    text[LATENT_DIM_KEY] = int(model.latent_dim)
+    text[N_SHAPES_KEY] = len(model.names)
+    text[N_LANDMARKS_KEY] = int(model.n_landmarks)
+    text[TEMPLATE_KEY] = str(corr.template_name)
+    text[RESIDUAL_MEDIAN_KEY] = float(np.median(corr.residuals))
+    text[OUTLIERS_KEY] = [f"{n}: {r}" if r else n for n, r, bad in
                                  zip(corr.names, corr.outlier_reasons, corr.outliers) if bad]
 
 
@@ -159,8 +159,7 @@ def read_model_file(path: str | Path) -> tuple[GenerativeShapeModel, bytes]:
 def store_fitted_model(scene: bpy.types.Scene, path: str | Path, name: str,
                        loaded: tuple[GenerativeShapeModel, bytes] | None = None) -> GenerativeShapeModel:
     """Make the model file at `path` the scene's model: load (validates), pack, point the
-    scene at it, rebuild the latent sliders. `loaded`: `read_model_file(path)`, when done
-    already. The previous model's Text is removed unless another scene still uses it.
+    scene at it. `loaded`: `read_model_file(path)`, when done already. The previous model's Text is removed unless another scene still uses it.
     Nothing changes when loading fails."""
     model, data = loaded if loaded is not None else read_model_file(path)
     model.metadata.setdefault("name", name)
@@ -170,55 +169,8 @@ def store_fitted_model(scene: bpy.types.Scene, path: str | Path, name: str,
     if old is not None and old != text and not any(s.shapegen.model_text == old for s in bpy.data.scenes):
         _CACHE.pop(str(old.get(MODEL_ID_KEY, "")), None)
         bpy.data.texts.remove(old)
-    from . import explore
-
-    explore.model_changed(scene, model)
     return model
 
 
 def forget_cache() -> None:
     _CACHE.clear()
-
-
-@persistent
-def _load_pre(*_args):
-    from .jobs import MANAGER
-
-    if MANAGER.running:  # the job belongs to the file being closed
-        print(f"ShapeGen: a new file is loading; stopping the running job ({MANAGER.label})")
-        MANAGER.kill()
-
-
-@persistent
-def _load_post(*_args):
-    """Restore every scene's model after a file is opened (and reset stale job states)."""
-    from . import explore
-
-    forget_cache()
-    explore.forget_cache()
-    for scene in bpy.data.scenes:
-        settings = scene.shapegen
-        if settings.job_state == "RUNNING":
-            settings.job_state = "IDLE"
-            settings.job_stage = ""
-        if settings.model_text is None:
-            continue
-        try:
-            get_model(scene)
-        except ShapeGenError as exc:
-            settings.job_message = f"Could not restore the model: {exc}"
-            print(f"ShapeGen: scene '{scene.name}': could not restore the model: {exc}")
-
-
-def register_handlers() -> None:
-    if _load_post not in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.append(_load_post)
-    if _load_pre not in bpy.app.handlers.load_pre:
-        bpy.app.handlers.load_pre.append(_load_pre)
-
-
-def unregister_handlers() -> None:
-    for handlers, function in ((bpy.app.handlers.load_post, _load_post), (bpy.app.handlers.load_pre, _load_pre)):
-        while function in handlers:
-            handlers.remove(function)
-    forget_cache()

@@ -124,6 +124,20 @@ def test_prepare_skips_non_mesh_objects_and_refuses_empty_or_single(vase_folder)
         bpy.ops.shapegen.prepare(wait=True)
 
 
+def test_prepare_extra_settings_override_the_panel_and_unknown_ones_are_refused(vase_folder):
+    folder, _ = vase_folder
+    bpy.ops.shapegen.import_collection(directory=str(folder))
+    settings = bpy.context.scene.shapegen
+    settings.n_landmarks = 120
+    with pytest.raises(RuntimeError, match="Invalid prepare settings: unknown option.*landmarks"):
+        bpy.ops.shapegen.prepare(wait=True, extra_settings='{"landmarks": 40}')
+    assert settings.job_state == "IDLE"  # refused before any worker started
+    assert bpy.ops.shapegen.prepare(wait=True, extra_settings='{"n_landmarks": 40}') == {"FINISHED"}
+    prepared = bpy.data.collections["vases Prepared"]
+    assert int(prepared["shapegen_n_landmarks"]) == 40
+    assert all(len(o["shapegen_landmarks"]) <= 3 * 40 for o in prepared.objects if "shapegen_landmarks" in o)
+
+
 def test_prepare_names_the_object_with_bad_geometry(vase_folder):
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
@@ -139,35 +153,35 @@ def test_prepare_names_the_object_with_bad_geometry(vase_folder):
 
 
 @pytest.fixture
-def fitting(extension):
-    module = addon_module(extension, "shapegen_addon.fitting")
+def jobs(extension):
+    module = addon_module(extension, "shapegen_addon.jobs")
     yield module
-    addon_module(extension, "shapegen_addon.jobs").MANAGER.kill()  # never leave a worker behind
+    module.MANAGER.kill()  # never leave a worker behind
 
 
-def _pump(fitting, timeout=120.0):
+def _pump(jobs, timeout=120.0):
     """Poll like the UI timer (timers never fire in the bpy module) until the job ends."""
     deadline = time.monotonic() + timeout
     statuses = []
     while time.monotonic() < deadline:
-        statuses.append(fitting.poll_fit())
-        if statuses[-1] is not None and statuses[-1].finished and not fitting.MANAGER.running:
+        statuses.append(jobs.poll_job())
+        if statuses[-1] is not None and statuses[-1].finished and not jobs.MANAGER.running:
             return statuses
         time.sleep(0.02)
     raise AssertionError(f"timed out; last status {statuses[-1] if statuses else None}")
 
 
-def test_prepare_runs_in_a_worker_and_the_scene_changes_only_when_it_ends(vase_folder, fitting):
+def test_prepare_runs_in_a_worker_and_the_scene_changes_only_when_it_ends(vase_folder, jobs):
     folder, shapes = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
     settings.n_landmarks = 120
     n_collections = len(bpy.data.collections)
     assert bpy.ops.shapegen.prepare() == {"FINISHED"}  # returns at once: the worker runs
-    assert fitting.MANAGER.running and settings.job_state == "RUNNING"
+    assert jobs.MANAGER.running and settings.job_state == "RUNNING"
     assert len(bpy.data.collections) == n_collections
     assert not bpy.ops.shapegen.prepare.poll() and not bpy.ops.shapegen.fit.poll()  # one job at a time
-    statuses = _pump(fitting)
+    statuses = _pump(jobs)
     assert statuses[-1].state == "done" and settings.job_state == "DONE"
     assert any(0 < s.fraction < 1 for s in statuses if s is not None)  # progress came through
     assert f"Prepared {len(shapes)} shapes into 'vases Prepared'" in settings.job_message
@@ -175,7 +189,7 @@ def test_prepare_runs_in_a_worker_and_the_scene_changes_only_when_it_ends(vase_f
     assert len([o for o in prepared.objects if "shapegen_landmarks" in o]) == len(shapes)
 
 
-def test_cancelling_or_deleting_a_source_while_preparing_creates_nothing(vase_folder, fitting):
+def test_cancelling_or_deleting_a_source_while_preparing_creates_nothing(vase_folder, jobs):
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
@@ -184,14 +198,14 @@ def test_cancelling_or_deleting_a_source_while_preparing_creates_nothing(vase_fo
 
     assert bpy.ops.shapegen.prepare() == {"FINISHED"}
     assert bpy.ops.shapegen.fit_cancel() == {"FINISHED"}
-    assert _pump(fitting)[-1].state == "cancelled"
+    assert _pump(jobs)[-1].state == "cancelled"
     assert settings.job_state == "CANCELLED" and "nothing was created" in settings.job_message
     assert len(bpy.data.collections) == n_collections
 
     assert bpy.ops.shapegen.prepare() == {"FINISHED"}
     victim = sorted(o.name for o in settings.source_collection.objects)[1]
     bpy.data.objects.remove(bpy.data.objects[victim])
-    assert _pump(fitting)[-1].state == "done"  # the worker finished; the result is refused
+    assert _pump(jobs)[-1].state == "done"  # the worker finished; the result is refused
     assert settings.job_state == "FAILED" and victim in settings.job_message
     assert "nothing was created" in settings.job_message
     assert len(bpy.data.collections) == n_collections

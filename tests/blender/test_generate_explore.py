@@ -80,8 +80,8 @@ def test_sliders_remesh_the_live_object_for_every_model_type(extension, model_fi
     settings.latents[0].value = 1.5  # a slider drag: the update callback re-meshes
     moved = vertices(live).copy()
     assert np.abs(moved - mean).max() > 1e-3
-    explore = addon_module(extension, "shapegen_addon.explore")
-    z = explore.current_latent(scene)
+    latent = addon_module(extension, "shapegen_addon.latent")
+    z = latent.current_latent(scene)
     np.testing.assert_allclose(live["shapegen_latent"], z)
     # the fast path equals the core's own meshing of decode(z) on the same template
     expected = model.mesh_from_landmarks(model.decode(z)[0], template=template).vertices
@@ -95,7 +95,7 @@ def test_sliders_remesh_the_live_object_for_every_model_type(extension, model_fi
     settings.latents[1].value = -0.4
     assert bpy.ops.shapegen.explore_snap() == {"FINISHED"}
     training = model.training_latents()
-    snapped = explore.current_latent(scene)
+    snapped = latent.current_latent(scene)
     assert np.min(np.abs(training - snapped).max(axis=1)) < 1e-5  # sliders are float32
 
     assert bpy.ops.shapegen.explore_bake() == {"FINISHED"}

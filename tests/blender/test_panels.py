@@ -4,9 +4,12 @@ recording layout that checks every property, operator and icon it names exists."
 
 from __future__ import annotations
 
+import json
+import time
+
 import bpy
 import pytest
-from conftest import addon_module, load_model
+from conftest import FAST_FIT, add_vase_collection, addon_module, load_model
 
 PANELS = ("SHAPEGEN_PT_main", "SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model",
           "SHAPEGEN_PT_generate", "SHAPEGEN_PT_explore")
@@ -59,9 +62,9 @@ class Context:
         self.space_data = None
 
 
-def _draw_all() -> list:
+def _draw_all(panels=PANELS) -> list:
     calls = []
-    for name in PANELS:
+    for name in panels:
         panel = getattr(bpy.types, name)
         panel.draw(type("Fake", (), {"layout": RecordingLayout(calls)})(), Context())
     return calls
@@ -95,6 +98,29 @@ def test_model_panel_shows_progress_and_cancel_while_a_job_runs(extension, tmp_p
         jobs.MANAGER.kill()
     assert any(kind == "progress" for kind, _ in calls)
     assert ("operator", "shapegen.fit_cancel") in calls and ("operator", "shapegen.fit") not in calls
+
+
+def test_correspondence_panel_shows_its_jobs_stage_and_percentage(extension):
+    jobs = addon_module(extension, "shapegen_addon.jobs")
+    add_vase_collection(extension)
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    assert not any(kind == "progress" for kind, _ in _draw_all(["SHAPEGEN_PT_correspondence"]))
+    calls, status = [], None
+    try:
+        extra = json.dumps(FAST_FIT["correspondence"])
+        assert bpy.ops.shapegen.find_correspondences(extra_settings=extra) == {"FINISHED"}
+        deadline = time.monotonic() + 60
+        while jobs.MANAGER.running and time.monotonic() < deadline:
+            status = jobs.poll_job()
+            if 0.0 < status.fraction < 1.0 and status.stage:  # a shape is registered, more run
+                calls = _draw_all(["SHAPEGEN_PT_correspondence"])
+                break
+            time.sleep(0.02)
+    finally:
+        jobs.MANAGER.kill()
+    progress = [text for kind, text in calls if kind == "progress"]
+    assert progress == [f"{int(100 * status.fraction)} %  {status.stage}"]
+    assert ("operator", "shapegen.fit_cancel") in calls
 
 
 @pytest.mark.parametrize("name", ["fit", "fit_cancel", "load_model", "export_model", "sample", "interpolate",

@@ -23,7 +23,7 @@ REOPEN = textwrap.dedent("""
         filepath=zip_path, repo="user_default", enable_on_install=True) == {"FINISHED"}
     bpy.ops.wm.open_mainfile(filepath=blend)
     store = importlib.import_module("bl_ext.user_default.shapegen.shapegen_addon.store")
-    explore = importlib.import_module("bl_ext.user_default.shapegen.shapegen_addon.explore")
+    latent = importlib.import_module("bl_ext.user_default.shapegen.shapegen_addon.latent")
     scene = bpy.context.scene
     settings = scene.shapegen
     restored = settings.model_text["shapegen_model_id"] in store._CACHE  # by the load_post handler
@@ -39,7 +39,7 @@ REOPEN = textwrap.dedent("""
     settings.latents[1].value = -1.25  # move a slider
     moved = co(live)
     model = store.get_model(scene)
-    z = explore.current_latent(scene)
+    z = latent.current_latent(scene)
     expected = model.mesh_from_landmarks(model.decode(z)[0], template=live["shapegen_template"]).vertices
     print("RESULT " + json.dumps({
         "restored_on_load": restored, "values": values, "opened": opened.tolist(),

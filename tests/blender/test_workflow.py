@@ -1,13 +1,16 @@
 """Fit in the background through the installed extension (issue 6).
 
 Timers never fire in the bpy module, so these tests drive the add-on's polling loop
-(`fitting.poll_fit`) themselves, exactly as the UI timer would.
+(`jobs.poll_job`) themselves, exactly as the UI timer would.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
+import re
 import time
+from pathlib import Path
 
 import bpy
 import numpy as np
@@ -16,20 +19,19 @@ from conftest import add_vase_collection, addon_module, fast_fit_json, load_mode
 
 
 @pytest.fixture
-def fitting(extension):
-    module = addon_module(extension, "shapegen_addon.fitting")
+def jobs(extension):
+    module = addon_module(extension, "shapegen_addon.jobs")
     yield module
-    manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
-    manager.kill()  # never leave a worker behind
+    module.MANAGER.kill()  # never leave a worker behind
 
 
-def _pump(fitting, until, timeout=120.0):
+def _pump(jobs, until, timeout=120.0):
     """Poll like the UI timer until `until(status)` holds; returns (statuses, longest poll)."""
     statuses, longest = [], 0.0
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         start = time.perf_counter()
-        status = fitting.poll_fit()
+        status = jobs.poll_job()
         longest = max(longest, time.perf_counter() - start)
         statuses.append(status)
         if until(status):
@@ -38,7 +40,7 @@ def _pump(fitting, until, timeout=120.0):
     raise AssertionError(f"timed out; last status {statuses[-1] if statuses else None}")
 
 
-def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, fitting):
+def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, jobs):
     collection = add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
     settings.fit_model = "ppca"
@@ -52,7 +54,7 @@ def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, fittin
         bpy.ops.shapegen.fit()
     assert settings.model_text is None  # nothing is applied before the job ends
 
-    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished)
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished)
     fractions = [s.fraction for s in statuses]
     assert fractions == sorted(fractions)  # progress only moves forward
     assert statuses[-1].state == "done" and fractions[-1] == 1.0
@@ -68,7 +70,7 @@ def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, fittin
     assert sorted(model.names) == sorted(o.name for o in collection.objects)
 
 
-def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension, fitting):
+def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension, jobs):
     """Prepare's result with the panel's settings is what Fit starts from (no second
     Prepare in the worker); after a source object is edited, or with other settings, Fit
     prepares again."""
@@ -100,7 +102,7 @@ def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension,
     assert "reusing" not in settings.job_message
 
 
-def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, fitting, model_files):
+def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, jobs, model_files):
     load_model("ppca", model_files)
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
@@ -110,9 +112,9 @@ def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, fitting
     objects_before = {o.name for o in bpy.data.objects}
     slow = json.dumps({"jobs": 1, "correspondence": {"alpha_steps": 5, "max_iterations": 40, "groupwise_rounds": 2}})
     assert bpy.ops.shapegen.fit(extra_settings=slow) == {"FINISHED"}
-    _pump(fitting, lambda s: s is not None and s.fraction > 0.0)  # the worker is busy
+    _pump(jobs, lambda s: s is not None and s.fraction > 0.0)  # the worker is busy
     assert bpy.ops.shapegen.fit_cancel() == {"FINISHED"}
-    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished, timeout=30)
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished, timeout=30)
     assert statuses[-1].state == "cancelled"
     assert settings.job_state == "CANCELLED"
     assert "cancelled" in settings.job_message and "earlier model is kept" in settings.job_message
@@ -122,21 +124,21 @@ def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, fitting
     assert not bpy.ops.shapegen.fit_cancel.poll() and bpy.ops.shapegen.fit.poll()
 
 
-def test_a_worker_crash_becomes_a_report(extension, fitting):
+def test_a_worker_crash_becomes_a_report(extension, jobs):
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
     manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
     assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
-    _pump(fitting, lambda s: s is not None and s.fraction > 0.0)
+    _pump(jobs, lambda s: s is not None and s.fraction > 0.0)
     manager.job.kill()  # the worker dies without a word (as a segfault or the OOM killer would)
-    statuses, _ = _pump(fitting, lambda s: s is not None and s.finished, timeout=30)
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished, timeout=30)
     assert statuses[-1].state == "failed"
     assert settings.job_state == "FAILED"
     assert "worker exited with code" in settings.job_message and "no model was made" in settings.job_message
     assert settings.model_text is None and len(bpy.data.texts) == 0
 
 
-def test_a_failing_fit_reports_the_workers_reason(extension, fitting):
+def test_a_failing_fit_reports_the_workers_reason(extension, jobs):
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
     settings.latent_dim = 9  # more latent dimensions than the 6 shapes allow: the core refuses
@@ -145,7 +147,7 @@ def test_a_failing_fit_reports_the_workers_reason(extension, fitting):
     assert settings.job_state == "FAILED" and settings.model_text is None
 
 
-def test_fit_refuses_bad_input_before_starting_a_worker(extension, fitting):
+def test_fit_refuses_bad_input_before_starting_a_worker(extension, jobs):
     manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
     with pytest.raises(RuntimeError, match="Choose a training collection first"):
         bpy.ops.shapegen.fit()
@@ -163,6 +165,19 @@ def test_fit_refuses_bad_input_before_starting_a_worker(extension, fitting):
     with pytest.raises(RuntimeError, match="No collection named 'missing'"):
         bpy.ops.shapegen.fit(collection_name="missing")
     assert not manager.running and bpy.context.scene.shapegen.job_state == "IDLE"
+
+
+def test_the_polling_function_the_readme_names_exists(extension, jobs):
+    """Scripts (timers never fire there) poll through the function the README names."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    paths = re.findall(r"`(bl_ext\.user_default\.shapegen\.[\w.]+)\(\)`", readme)
+    assert paths
+    for path in paths:
+        module, _, name = path.rpartition(".")
+        poll = getattr(importlib.import_module(module), name)
+        assert poll is jobs.poll_job
+        status = poll()  # nothing runs: the last status (or None), and no error
+        assert status is None or status.finished
 
 
 def test_cancel_without_a_job_explains_itself():

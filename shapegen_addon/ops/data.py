@@ -1,13 +1,12 @@
-"""One operator per user action. Operators convert Blender data, call the core, and turn
-the result back into scene data; they hold no algorithm.
+"""Data section. Operators convert Blender data, call the core, and turn the result back
+into scene data; they hold no algorithm.
 
-Data section:
 * `SHAPEGEN_OT_import_collection` — a folder of mesh files → a new collection of mesh
   objects named after the files (Blender's own importers; OFF through the core reader).
 * `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
   never modified. Meshes are read and validated here; the slow part runs in a worker
-  (core.worker "prepare") through `jobs.MANAGER`, like Fit.
+  (core.worker "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit.
 """
 
 from __future__ import annotations
@@ -15,32 +14,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-import numpy as np
-from bpy.props import BoolProperty, StringProperty
-from mathutils import Matrix
+from bpy.props import StringProperty
 
-from ..core.errors import ShapeGenError
-from ..core.jobs import BackgroundJob, JobStatus
-from ..core.meshset import save_mesh_set
-from .convert import import_mesh_file, object_to_mesh
-from .fitting import chosen_collection, job_settings, no_job_running, run_worker_job
-from .jobs import MANAGER
-from .preview import (LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY,
-                      SOURCE_KEY, TRANSFORM_KEY, add_landmark_markers, grid_offsets)
+from ...core.errors import ShapeGenError
+from ...core.jobs import BackgroundJob, JobStatus
+from ...core.meshset import save_mesh_set
+from ..convert import import_mesh_file, object_to_mesh
+from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
+from ..prepared import PREPARE_SETTINGS, build_prepared_collection
+from ..preview import new_collection
 
 __all__ = ["CLASSES"]
-
-PREPARED_KEY = "shapegen_prepared"  # collection property: marks a prepared collection
-
-
-def _unique_collection_name(base: str) -> str:
-    if base not in bpy.data.collections:
-        return base
-    index = 1
-    while f"{base}.{index:03d}" in bpy.data.collections:
-        index += 1
-    return f"{base}.{index:03d}"
-
 
 class SHAPEGEN_OT_import_collection(bpy.types.Operator):
     """Import every mesh file of a folder into a new collection (one object per file)"""
@@ -58,7 +42,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ..core.io import list_mesh_files
+        from ...core.io import list_mesh_files
 
         folder = Path(bpy.path.abspath(self.directory))
         try:
@@ -70,8 +54,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
             self.report({"ERROR"}, f"{folder}: no mesh files found (.obj, .ply, .stl, .off, .glb, .gltf)")
             return {"CANCELLED"}
 
-        collection = bpy.data.collections.new(_unique_collection_name(folder.name or "Training"))
-        context.scene.collection.children.link(collection)
+        collection = new_collection(context.scene, folder.name or "Training")
         imported, failures = [], []
         wm = context.window_manager
         wm.progress_begin(0, len(files))
@@ -101,41 +84,9 @@ def _load_prepared(status: JobStatus):
     """prepare step of the job (helper thread, no bpy): load and validate the result."""
     if status.state != "done":
         return None
-    from ..core.collection import PreparedCollection
+    from ...core.collection import PreparedCollection
 
     return PreparedCollection.load(status.output)
-
-
-def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
-                              prepared, preview_spacing: float) -> bpy.types.Collection:
-    """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
-    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
-    landmark markers. The user's objects are not modified."""
-    target = bpy.data.collections.new(_unique_collection_name(f"{source.name} Prepared"))
-    scene.collection.children.link(target)
-    target[PREPARED_KEY] = True
-    target["shapegen_source_collection"] = source.name
-    for key, value in prepared.settings.items():
-        target[f"shapegen_{key}"] = value
-    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
-    offsets = grid_offsets(len(prepared), preview_spacing * size)
-    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
-        data = obj.data.copy()
-        data.name = f"{obj.name} prepared"
-        data.transform(obj.matrix_world)  # input coordinates = the original's world frame
-        data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
-        copy = bpy.data.objects.new(f"{obj.name} prepared", data)
-        copy.location = offset
-        copy[SOURCE_KEY] = obj.name
-        copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
-        copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
-        # where each landmark lies on the (loop-triangulated) mesh, for correspondence
-        copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
-        copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
-        copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
-        target.objects.link(copy)
-        add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
-    return target
 
 
 def _finish_prepare(status: JobStatus, prepared) -> None:
@@ -151,23 +102,19 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     changed = [name for name, obj, count in zip(payload.get("objects", []), objects, payload.get("vertex_counts", []))
                if obj is None or obj.type != "MESH" or len(obj.data.vertices) != count]
     if status.state != "done" or isinstance(prepared, Exception) or source is None or changed:
-        settings.job_state = "CANCELLED" if status.state == "cancelled" else "FAILED"
         reason = (str(prepared) if isinstance(prepared, Exception) else status.error if status.state != "done"
                   else f"collection '{payload.get('source')}' was deleted" if source is None
                   else f"object(s) deleted or edited while preparing: {', '.join(changed)}")
-        settings.job_message = f"Prepare {status.state}: {reason or status.state}; nothing was created"
-    else:
-        target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
-        counts = [len(l) for l in prepared.landmarks]
-        turned = sum(s.orientation_changed for s in prepared.shapes)
-        settings.job_state = "DONE"
-        settings.job_fraction = 1.0
-        settings.job_stage = "prepared"
-        settings.job_message = (f"Prepared {len(prepared)} shapes into '{target.name}': "
-                                f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus")
-        if not bpy.app.background and not payload.get("wait"):
-            _push_undo_step("ShapeGen Prepare")
-    print(f"ShapeGen: {settings.job_message}")
+        report_outcome(settings, "CANCELLED" if status.state == "cancelled" else "FAILED",
+                       f"Prepare {status.state}: {reason or status.state}; nothing was created")
+        return
+    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
+    counts = [len(l) for l in prepared.landmarks]
+    turned = sum(s.orientation_changed for s in prepared.shapes)
+    report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}': "
+                   f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus", "prepared")
+    if not bpy.app.background and not payload.get("wait"):
+        _push_undo_step("ShapeGen Prepare")  # after the outcome, so the step holds it
 
 
 def _push_undo_step(message: str) -> None:
@@ -184,34 +131,24 @@ def _push_undo_step(message: str) -> None:
         print(f"ShapeGen: no undo step for '{message}' ({exc})")
 
 
-class SHAPEGEN_OT_prepare(bpy.types.Operator):
+def _check_prepare_options(options: dict) -> None:
+    unknown = sorted(set(options) - set(PREPARE_SETTINGS))
+    if unknown:
+        raise ValueError(f"unknown option(s) {', '.join(unknown)} (known: {', '.join(PREPARE_SETTINGS)})")
+
+
+class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
     """Align, scale and landmark the chosen collection into a new "Prepared" collection, in
     the background (originals untouched; progress and Cancel in the panel)"""
 
     bl_idname = "shapegen.prepare"
     bl_label = "Prepare"
     bl_options = {"REGISTER", "UNDO"}
-
-    collection_name: StringProperty(
-        name="Collection", default="",
-        description="Collection to prepare (empty: the panel's chosen collection)",
-    )
-    wait: BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
-                       description="Block until preparing ends (scripts and background mode)")
-
-    @classmethod
-    def poll(cls, context):
-        if not no_job_running(cls):
-            return False
-        settings = context.scene.shapegen
-        if settings.source_collection is None:
-            cls.poll_message_set("Choose a training collection first")
-            return False
-        return True
+    job_name = "prepare"
 
     def execute(self, context):
         settings = context.scene.shapegen
-        source = chosen_collection(self, self.collection_name, settings)
+        source = self.chosen_collection(context)
         if source is None:
             return {"CANCELLED"}
         objects = sorted(source.all_objects, key=lambda o: o.name)
@@ -237,8 +174,9 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
         for mesh in meshes:
             if mesh.report.summary() != "clean":
                 self.report({"INFO"}, f"{mesh.name}: {mesh.report.summary()}")
-        options = {"n_landmarks": settings.n_landmarks, "up_axis": settings.up_axis, "align": settings.align,
-                   "scale": settings.scale, "centre": settings.centre, "seed": settings.seed}
+        options = self.job_options(settings.prepare_options(), _check_prepare_options)
+        if options is None:
+            return {"CANCELLED"}
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
                    "vertex_counts": [len(o.data.vertices) for o in mesh_objects], "wait": self.wait}
 
@@ -252,8 +190,7 @@ class SHAPEGEN_OT_prepare(bpy.types.Operator):
                           setup=lambda: save_mesh_set(mesh_file, [m.name for m in meshes], [m.vertices for m in meshes],
                                                       [m.faces for m in meshes], compress=False))
 
-        return run_worker_job(self, settings, "shapegen-prepare-", start, wait=self.wait,
-                              started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
+        return self.run_job(context, start, started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
 
 
 CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare)

@@ -4,9 +4,9 @@ This module never imports bpy. It owns the running worker process (core/jobs.py)
 temporary folder and the callback that applies the result. Whoever drives the UI calls
 `MANAGER.poll()` regularly on the main thread:
 
-* in Blender with a window, a `bpy.app.timers` function does (fitting.py);
+* in Blender with a window, a `bpy.app.timers` function does (runtime.py);
 * in background mode / tests (timers never fire there) the caller loops over
-  `fitting.poll_fit()` or `MANAGER.poll()` itself.
+  `jobs.poll_job()` or `MANAGER.poll()` itself.
 
 An optional `setup()` (bpy-free, e.g. writing the input file) runs on a helper thread
 before the worker starts; the job counts as running meanwhile. When the worker has
@@ -28,13 +28,14 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
-from ..core.jobs import BackgroundJob, JobStatus
+from ...core.jobs import BackgroundJob, JobStatus
 
 __all__ = ["JobManager", "MANAGER"]
 
 
 class JobManager:
-    """Holds at most one running job (a fit). Not thread-safe: call from the main thread."""
+    """Holds at most one running job (Prepare, Find Correspondences or Fit). Not
+    thread-safe: call from the main thread."""
 
     def __init__(self):
         self.job: BackgroundJob | None = None
@@ -54,6 +55,11 @@ class JobManager:
     @property
     def running(self) -> bool:
         return self.job is not None
+
+    @property
+    def task(self) -> str:
+        """The running job's core task ("prepare", "correspond", "fit", ...), or ""."""
+        return self.job.task if self.job is not None else ""
 
     @property
     def elapsed(self) -> float:

@@ -1,7 +1,7 @@
 """Scene-level settings of the ShapeGen panel (`scene.shapegen`).
 
 Everything the sidebar shows lives here and is saved with the .blend: data and fit
-settings, the fitted model (a pointer to the Text datablock that holds it, see store.py),
+settings, the fitted model (a pointer to the Text datablock that holds it, see ../store.py),
 the last job's outcome, the latent sliders of the live object and the generate options.
 The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
 `job_state` / `job_fraction` / `job_stage` so the panel and scripts can read it.
@@ -13,7 +13,9 @@ import bpy
 from bpy.props import (CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
-from ..core.landmarks import DEFAULT_LANDMARKS
+from ...core.landmarks import DEFAULT_LANDMARKS
+from ..latent import on_slider_changed
+from ..prepared import PREPARE_SETTINGS
 
 UP_AXIS_ITEMS = [
     ("z", "Z", "The input's +Z points up (Blender's convention)"),
@@ -46,11 +48,11 @@ MODEL_ITEMS = [
     ("bgplvm", "Bayesian GP-LVM", "Variational Bayesian GP-LVM: non-linear, picks its dimensions (ARD)"),
 ]
 JOB_STATE_ITEMS = [
-    ("IDLE", "Idle", "No fit has run"),
-    ("RUNNING", "Running", "A fit runs in the background"),
-    ("DONE", "Done", "The last fit finished; its model is in use"),
-    ("FAILED", "Failed", "The last fit failed; the earlier model (if any) is kept"),
-    ("CANCELLED", "Cancelled", "The last fit was cancelled; the earlier model (if any) is kept"),
+    ("IDLE", "Idle", "No background job has run"),
+    ("RUNNING", "Running", "A job (Prepare, Find Correspondences or Fit) runs in the background"),
+    ("DONE", "Done", "The last job finished; its result is in the scene"),
+    ("FAILED", "Failed", "The last job failed; the scene (and any earlier model) is as it was"),
+    ("CANCELLED", "Cancelled", "The last job was cancelled; the scene (and any earlier model) is as it was"),
 ]
 TEMPLATE_ITEMS = [
     ("nearest-data", "Nearest Shape", "Deform the training mesh nearest to the sample's landmarks"),
@@ -63,9 +65,7 @@ INTERPOLATION_ITEMS = [
 
 
 def _on_latent_changed(self, context):
-    from . import explore
-
-    explore.on_slider_changed(self.id_data)
+    on_slider_changed(self.id_data)
 
 
 class ShapeGenLatent(bpy.types.PropertyGroup):
@@ -121,12 +121,13 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
     # --- the fitted model (packed in a Text datablock, see store.py) and the last job
     model_text: PointerProperty(
         name="Model", type=bpy.types.Text,
-        description="Text datablock holding the fitted model (base64 of the model .npz)",
+        description="Text datablock holding the fitted model (the model .npz byte for byte, in its custom "
+                    "property 'shapegen_model_npz')",
     )
-    job_state: EnumProperty(name="Fit State", items=JOB_STATE_ITEMS, default="IDLE")
+    job_state: EnumProperty(name="Job State", items=JOB_STATE_ITEMS, default="IDLE")
     job_fraction: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
     job_stage: StringProperty(name="Stage")
-    job_message: StringProperty(name="Message", description="Outcome of the last fit (why it failed, ...)")
+    job_message: StringProperty(name="Message", description="Outcome of the last job (why it failed, ...)")
 
     # --- generate
     sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="Shapes to sample")
@@ -145,6 +146,24 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
     live_object: PointerProperty(name="Live Object", type=bpy.types.Object)
     explore_seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the next Randomise")
     map_size: IntProperty(name="Map Size", default=256, min=64, max=2048, description="Latent map size in pixels")
+
+    # --- the panel's settings as the core's options (the worker tasks' JSON)
+    def prepare_options(self) -> dict:
+        """Options of the core's prepare_meshes (the settings a prepared collection records)."""
+        return {name: getattr(self, name) for name in PREPARE_SETTINGS}
+
+    def correspondence_options(self) -> dict:
+        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`."""
+        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness)}
+
+    def fit_options(self) -> dict:
+        """FitSettings fields: Prepare's, the model's, correspondence and meshing stiffness."""
+        return {
+            **self.prepare_options(),
+            "model": self.fit_model, "latent_dim": self.latent_dim or None,
+            "correspondence": self.correspondence_options(),
+            "deform": {"final_alpha": self.mesh_stiffness, "start_alpha": max(100.0, self.mesh_stiffness)},
+        }
 
 
 CLASSES = (ShapeGenLatent, ShapeGenSettings)

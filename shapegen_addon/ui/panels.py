@@ -1,5 +1,7 @@
 """The sidebar panel: View3D › Sidebar › ShapeGen, one sub-panel per stage:
-Data, Correspondence, Model (fit with progress and Cancel), Generate, Explore.
+Data, Correspondence, Model, Generate, Explore. The Data, Correspondence and Model panels
+show their background job's progress and Cancel while it runs (the Model panel shows any
+job, and the last job's outcome).
 
 Panels only draw: they read `scene.shapegen`, the model's summary properties on its Text
 datablock (no model decoding while drawing) and the job manager's runtime status.
@@ -9,7 +11,9 @@ from __future__ import annotations
 
 import bpy
 
-from .jobs import MANAGER
+from ..jobs import MANAGER
+from ..keys import (LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY, N_SHAPES_KEY,
+                   OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 
 __all__ = ["CLASSES"]
 
@@ -36,16 +40,18 @@ class SHAPEGEN_PT_main(bpy.types.Panel):
         self.layout.label(text="Learn shapes from a collection", icon="MESH_MONKEY")
 
 
-def _draw_job(layout, settings) -> None:
-    """The background job's progress bar and Cancel while it runs, then its last message
-    (one job at a time: Prepare, Find Correspondences or Fit)."""
-    if MANAGER.running:
-        status = MANAGER.last_status
-        fraction = status.fraction if status else settings.job_fraction
-        stage = (status.stage if status and status.stage else settings.job_stage) or "starting"
-        layout.label(text=f"Running: {MANAGER.label}", icon="SORTTIME")
-        layout.progress(factor=fraction, type="BAR", text=f"{int(100 * fraction)} %  {stage}")
-        layout.operator("shapegen.fit_cancel", icon="CANCEL")
+def _draw_progress(layout, settings) -> None:
+    """The running job's label, progress bar (percentage and stage) and Cancel."""
+    status = MANAGER.last_status
+    fraction = status.fraction if status else settings.job_fraction
+    stage = (status.stage if status and status.stage else settings.job_stage) or "starting"
+    layout.label(text=f"Running: {MANAGER.label}", icon="SORTTIME")
+    layout.progress(factor=fraction, type="BAR", text=f"{int(100 * fraction)} %  {stage}")
+    layout.operator("shapegen.fit_cancel", icon="CANCEL")
+
+
+def _draw_outcome(layout, settings) -> None:
+    """The last job's message (one job at a time: Prepare, Find Correspondences or Fit)."""
     if settings.job_message:
         icon = {"FAILED": "ERROR", "CANCELLED": "CANCEL", "DONE": "CHECKMARK"}.get(settings.job_state, "INFO")
         layout.label(text=settings.job_message, icon=icon)
@@ -69,8 +75,8 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         column.prop(settings, "seed")
         column.prop(settings, "preview_spacing")
         layout.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
-        if MANAGER.running and MANAGER.label.startswith("prepare"):
-            _draw_job(layout, settings)
+        if MANAGER.task == "prepare":
+            _draw_progress(layout, settings)
 
 
 class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
@@ -85,19 +91,21 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
         column.prop(settings, "stiffness")
         column.prop(settings, "mesh_stiffness")
         layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")
+        if MANAGER.task == "correspond":
+            _draw_progress(layout, settings)
         layout.label(text="Colours show the landmark index: same colour, same part", icon="INFO")
         text = _model_text(context)
         if text is None:
             layout.label(text="No model yet: Fit corresponds the landmarks again", icon="INFO")
             return
         box = layout.box()
-        box.label(text=f"{text.get('shapegen_n_landmarks', '?')} landmarks on "
-                       f"{text.get('shapegen_n_shapes', '?')} shapes", icon="STICKY_UVS_LOC")
-        box.label(text=f"Template: {text.get('shapegen_template', '?')}")
-        median = text.get("shapegen_residual_median")
+        box.label(text=f"{text.get(N_LANDMARKS_KEY, '?')} landmarks on "
+                       f"{text.get(N_SHAPES_KEY, '?')} shapes", icon="STICKY_UVS_LOC")
+        box.label(text=f"Template: {text.get(TEMPLATE_KEY, '?')}")
+        median = text.get(RESIDUAL_MEDIAN_KEY)
         if median is not None:
             box.label(text=f"Median residual: {100 * median:.2f} % of the diagonal")
-        outliers = list(text.get("shapegen_outliers", []))
+        outliers = list(text.get(OUTLIERS_KEY, []))
         if outliers:
             box.label(text=f"{len(outliers)} outlier(s):", icon="ERROR")
             for line in outliers[:8]:
@@ -120,15 +128,17 @@ class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
         column.prop(settings, "latent_dim")
         if not MANAGER.running:
             layout.operator("shapegen.fit", icon="PLAY")
-        _draw_job(layout, settings)
+        else:
+            _draw_progress(layout, settings)
+        _draw_outcome(layout, settings)
         text = _model_text(context)
         box = layout.box()
         if text is None:
             box.label(text="No fitted model", icon="INFO")
         else:
-            box.label(text=str(text.get("shapegen_model_name", text.name)), icon="OUTLINER_OB_POINTCLOUD")
-            box.label(text=f"{text.get('shapegen_model_type', '?')}, {text.get('shapegen_latent_dim', '?')} "
-                           f"latent dimensions, {text.get('shapegen_n_shapes', '?')} shapes")
+            box.label(text=str(text.get(MODEL_NAME_KEY, text.name)), icon="OUTLINER_OB_POINTCLOUD")
+            box.label(text=f"{text.get(MODEL_TYPE_KEY, '?')}, {text.get(LATENT_DIM_KEY, '?')} "
+                           f"latent dimensions, {text.get(N_SHAPES_KEY, '?')} shapes")
             box.label(text=f"Stored in the .blend: Text '{text.name}'")
         row = layout.row(align=True)
         row.operator("shapegen.load_model", icon="FILE_FOLDER")
@@ -159,7 +169,7 @@ class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
         layout.separator()
         row = layout.row()
         text = _model_text(context)
-        row.enabled = text is not None and text.get("shapegen_model_type") == "ppca"
+        row.enabled = text is not None and text.get(MODEL_TYPE_KEY) == "ppca"
         row.operator("shapegen.modes_to_shape_keys", icon="SHAPEKEY_DATA")
 
 
@@ -172,7 +182,7 @@ class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
         settings = context.scene.shapegen
         layout.operator("shapegen.explore", icon="HIDE_OFF")
         live = settings.live_object
-        if live is not None and "shapegen_live" in live:
+        if live is not None and LIVE_KEY in live:
             column = layout.column(align=True)
             for item in settings.latents:
                 column.prop(item, "value", text=item.name, slider=True)

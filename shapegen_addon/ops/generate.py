@@ -1,9 +1,8 @@
 """Generate: sample new shapes, interpolate between two shapes, PPCA modes as shape keys.
 
-Every generated object is an ordinary mesh object tagged with custom properties
-(`shapegen_latent`, `shapegen_model`, `shapegen_model_id`, `shapegen_template`, and
-`shapegen_seed` for samples), so later operators (Interpolate, Latent Map) can find its
-latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
+Every generated object is an ordinary mesh object tagged with its latent vector, model
+and template (latent.tag_object; a sample also with its seed), so later operators
+(Interpolate, Latent Map) can find its latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
 `mesh_from_landmarks`, `LatentMesher`); nothing here is an algorithm.
 """
 
@@ -13,48 +12,24 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from ..core.errors import ShapeGenError
-from . import store
-from .convert import mesh_data_from_arrays
-from .explore import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, tag_object
-from .preview import SOURCE_KEY, grid_offsets
-from .properties import INTERPOLATION_ITEMS
+from ...core.errors import ShapeGenError
+from .. import store
+from ..convert import mesh_data_from_arrays
+from ..keys import INTERPOLATION_KEY
+from ..latent import object_latent, tag_object
+from ..preview import ensure_collection, grid_offsets
+from ..ui.properties import INTERPOLATION_ITEMS
 
-__all__ = ["CLASSES", "object_latent", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
+__all__ = ["CLASSES", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
 
 SAMPLES_COLLECTION = "ShapeGen Samples"
 INTERPOLATION_COLLECTION = "ShapeGen Interpolation"
 MODES_COLLECTION = "ShapeGen Modes"
 
 
-def ensure_collection(scene: bpy.types.Scene, name: str) -> bpy.types.Collection:
-    """The collection `name` linked to the scene (created when missing)."""
-    collection = bpy.data.collections.get(name)
-    if collection is None:
-        collection = bpy.data.collections.new(name)
-    if collection.name not in scene.collection.children:
-        scene.collection.children.link(collection)
-    return collection
-
-
 def shape_size(model) -> float:
     """Largest bounding-box side over the training meshes (grid spacing unit)."""
     return max(float(np.ptp(m.vertices, axis=0).max()) for m in model.meshes)
-
-
-def object_latent(model, scene: bpy.types.Scene, obj: bpy.types.Object) -> np.ndarray:
-    """The latent vector of `obj` under `model`: its `shapegen_latent` tag (a sample, baked
-    or live object of this model), else the encoded landmarks of the training shape it is
-    (by name, or by the `shapegen_source` tag of a prepared copy)."""
-    if LATENT_KEY in obj and obj.get(MODEL_ID_KEY) == store.model_id(scene):
-        z = np.asarray(obj[LATENT_KEY], dtype=np.float64)
-        if z.shape == (model.latent_dim,):
-            return z
-    for name in (obj.name, obj.get(SOURCE_KEY)):
-        if isinstance(name, str) and name in model.names:
-            return model.training_latents()[model.names.index(name)]
-    raise ShapeGenError(f"'{obj.name}' has no latent vector in model '{store.model_name(scene)}': pick a "
-                        "training shape (named like one of the model's shapes) or a ShapeGen sample of this model")
 
 
 class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
@@ -159,7 +134,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
                 obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, shapes[k], faces))
                 obj.location = (k * spacing, 0.0, 0.0)
                 tag_object(obj, scene, (1 - ts[k]) * z_a + ts[k] * z_b, model.names[index])
-                obj["shapegen_interpolation"] = float(ts[k])
+                obj[INTERPOLATION_KEY] = float(ts[k])
                 collection.objects.link(obj)
             self.report({"INFO"}, f"{steps} in-between shape(s) of '{first.name}' and '{second.name}' in "
                         f"'{collection.name}'")

@@ -1,0 +1,58 @@
+"""What happens when a .blend is closed or opened (bpy.app.handlers load_pre / load_post).
+
+Closing: a running job belongs to the file being closed, so it is stopped. Opening: the
+process caches (decoded models, latent meshers) belong to the old file and are dropped,
+every scene's packed model is decoded again, and a job state left at RUNNING when the file
+was saved (its worker is gone) is reset.
+"""
+
+from __future__ import annotations
+
+import bpy
+from bpy.app.handlers import persistent
+
+from ..core.errors import ShapeGenError
+from . import latent, store
+from .jobs import MANAGER
+
+__all__ = ["register_handlers", "unregister_handlers"]
+
+
+@persistent
+def _load_pre(*_args):
+    if MANAGER.running:  # the job belongs to the file being closed
+        print(f"ShapeGen: a new file is loading; stopping the running job ({MANAGER.label})")
+        MANAGER.kill()
+
+
+@persistent
+def _load_post(*_args):
+    """Restore every scene's model after a file is opened (and reset stale job states)."""
+    store.forget_cache()
+    latent.forget_cache()
+    for scene in bpy.data.scenes:
+        settings = scene.shapegen
+        if settings.job_state == "RUNNING":
+            settings.job_state = "IDLE"
+            settings.job_stage = ""
+        if settings.model_text is None:
+            continue
+        try:
+            store.get_model(scene)
+        except ShapeGenError as exc:
+            settings.job_message = f"Could not restore the model: {exc}"
+            print(f"ShapeGen: scene '{scene.name}': could not restore the model: {exc}")
+
+
+def register_handlers() -> None:
+    if _load_post not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(_load_post)
+    if _load_pre not in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.append(_load_pre)
+
+
+def unregister_handlers() -> None:
+    for handlers, function in ((bpy.app.handlers.load_post, _load_post), (bpy.app.handlers.load_pre, _load_pre)):
+        while function in handlers:
+            handlers.remove(function)
+    store.forget_cache()

@@ -1,0 +1,56 @@
+"""Every `shapegen_*` custom-property key ShapeGen writes into a .blend, by datablock.
+
+This module owns the names (and says what each holds); the formats built from them are
+written and read in one module each: `prepared` (prepared collections and shape objects,
+their correspondence), `latent` (objects tagged with a latent vector, the live object),
+`store` (the Text datablock holding the model). Some keys sit on several datablocks
+(`MODEL_ID_KEY`, `TEMPLATE_KEY`): the comment says where.
+"""
+
+from __future__ import annotations
+
+# ------------------------------------------------------------------ the model's Text datablock
+MODEL_FILE_KEY = "shapegen_model_npz"  # bytes: the model .npz file, byte for byte
+MODEL_ID_KEY = "shapegen_model_id"  # uuid of the model; also on tagged objects and the latent-map image
+MODEL_NAME_KEY = "shapegen_model_name"  # the model's name (the fitted collection's)
+# summary, so panels draw without decoding the model
+MODEL_TYPE_KEY = "shapegen_model_type"  # "ppca", "gplvm" or "bgplvm"
+LATENT_DIM_KEY = "shapegen_latent_dim"
+N_SHAPES_KEY = "shapegen_n_shapes"
+N_LANDMARKS_KEY = "shapegen_n_landmarks"
+TEMPLATE_KEY = "shapegen_template"  # Text: the correspondence template; tagged object: the training shape it deforms
+RESIDUAL_MEDIAN_KEY = "shapegen_residual_median"  # median correspondence residual, fraction of the diagonal
+OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
+
+# ------------------------------------------------------------------ a prepared collection
+PREPARED_KEY = "shapegen_prepared"  # True: made by Prepare
+SOURCE_COLLECTION_KEY = "shapegen_source_collection"  # name of the user's collection it was prepared from
+CORRESPONDENCE_TEMPLATE_KEY = "shapegen_correspondence_template"  # template of the last Find Correspondences
+
+
+def prepare_setting_key(name: str) -> str:
+    """The prepared collection's key recording Prepare setting `name` (e.g. "shapegen_seed")."""
+    return f"shapegen_{name}"
+
+
+# ------------------------------------------------------------------ a prepared shape object
+SOURCE_KEY = "shapegen_source"  # name of the user's original object
+TRANSFORM_KEY = "shapegen_transform"  # 16 floats, row-major: input (world) -> normalised frame
+LANDMARKS_KEY = "shapegen_landmarks"  # flat float list (L*3), the object's local (normalised) frame
+LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each landmark
+LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
+LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
+CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local
+CORRESPONDENCE_OUTLIER_KEY = "shapegen_correspondence_outlier"  # True: an outlier of the correspondence
+
+# ------------------------------------------------------------------ an object tagged with a latent vector
+LATENT_KEY = "shapegen_latent"  # the latent vector (list of floats); with MODEL_ID_KEY and TEMPLATE_KEY
+MODEL_KEY = "shapegen_model"  # the model's name
+SEED_KEY = "shapegen_seed"  # a sample's seed
+INTERPOLATION_KEY = "shapegen_interpolation"  # an in-between shape's position t in [0, 1]
+LIVE_KEY = "shapegen_live"  # the live object: id of the model whose sliders drive it
+TEMPLATE_INDEX_KEY = "shapegen_template_index"  # the live object: index of its template shape
+
+# ------------------------------------------------------------------ the latent-map image (and MODEL_ID_KEY)
+MAP_DIMS_KEY = "shapegen_dims"  # latent dimensions on x and y
+MAP_BOUNDS_KEY = "shapegen_bounds"  # x0, x1, y0, y1 of the drawn latent window

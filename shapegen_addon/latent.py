@@ -1,0 +1,229 @@
+"""Latent vectors in the scene: the sliders, the live object they drive, and the latent
+tag of every object ShapeGen generates.
+
+The live object is a copy of one template training mesh. Each slider change re-meshes it
+through the core's `LatentMesher` (vertices = offset + features(z) @ basis, the basis
+computed once per model and template) and one bulk write of the position attribute, so a
+drag costs a small matrix product and a `foreach_set`, for every model type.
+
+Generated objects (samples, in-between shapes, modes, the live object) carry their latent
+vector, model and template (keys.LATENT_KEY, ...): written by `tag_object`, read by
+`object_latent` and `tagged_latents`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import bpy
+import numpy as np
+
+from ..core.errors import ShapeGenError
+from . import store
+from .convert import mesh_data_from_arrays
+from .keys import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY, TEMPLATE_KEY
+
+__all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "reset_sliders",
+           "live_object", "create_live", "model_changed", "write_positions", "tag_object", "object_latent",
+           "tagged_latents", "forget_cache", "LIVE_NAME"]
+
+LIVE_NAME = "ShapeGen Live"
+
+# (model id, template index) -> LatentMesher; process memory, rebuilt lazily
+_MESHERS: dict[tuple[str, int], object] = {}
+_SUSPENDED = [0]
+
+
+def forget_cache() -> None:
+    _MESHERS.clear()
+
+
+@contextlib.contextmanager
+def sliders_batch():
+    """Set many sliders with one re-mesh at the end (instead of one per slider)."""
+    _SUSPENDED[0] += 1
+    try:
+        yield
+    finally:
+        _SUSPENDED[0] -= 1
+
+
+# ------------------------------------------------------------------------------ sliders
+def _latent_statistics(model) -> tuple[np.ndarray, np.ndarray]:
+    z = model.training_latents()
+    centre = z.mean(axis=0)
+    scale = z.std(axis=0)
+    scale[~(scale > 1e-9)] = 1.0
+    return centre, scale
+
+
+def rebuild_sliders(scene: bpy.types.Scene, model) -> None:
+    """One slider per latent dimension of `model`, all at the training mean."""
+    settings = scene.shapegen
+    centre, scale = _latent_statistics(model)
+    with sliders_batch():
+        settings.latents.clear()
+        for k in range(model.latent_dim):
+            item = settings.latents.add()
+            item.name = f"z{k + 1}"
+            item.centre = float(centre[k])
+            item.scale = float(scale[k])
+            item.value = 0.0
+
+
+def current_latent(scene: bpy.types.Scene) -> np.ndarray:
+    """z from the sliders: centre + value × scale per dimension."""
+    items = scene.shapegen.latents
+    return np.array([item.centre + item.value * item.scale for item in items], dtype=np.float64)
+
+
+def set_latent(scene: bpy.types.Scene, z: np.ndarray) -> None:
+    """Move every slider so the sliders express `z`, then re-mesh once."""
+    items = scene.shapegen.latents
+    z = np.asarray(z, dtype=np.float64).ravel()
+    if len(z) != len(items):
+        raise ShapeGenError(f"latent vector has {len(z)} values, the sliders {len(items)}")
+    with sliders_batch():
+        for item, value in zip(items, z):
+            item.value = float((value - item.centre) / item.scale)
+    update_live(scene)
+
+
+def reset_sliders(scene: bpy.types.Scene) -> None:
+    """Every slider back to the training mean, then re-mesh once."""
+    with sliders_batch():
+        for item in scene.shapegen.latents:
+            item.value = 0.0
+    update_live(scene)
+
+
+def on_slider_changed(scene: bpy.types.Scene) -> None:
+    """Update callback of every slider (properties.ShapeGenLatent.value)."""
+    if _SUSPENDED[0] or not isinstance(scene, bpy.types.Scene):
+        return
+    try:
+        update_live(scene)
+    except ShapeGenError as exc:  # an update callback cannot report: keep the reason visible
+        scene.shapegen.job_message = str(exc)
+
+
+# ------------------------------------------------------------------------------ live object
+def live_object(scene: bpy.types.Scene) -> bpy.types.Object | None:
+    obj = scene.shapegen.live_object
+    if obj is None or LIVE_KEY not in obj or obj.type != "MESH":
+        return None
+    return obj
+
+
+def _mesher(scene: bpy.types.Scene, model, index: int):
+    key = (store.model_id(scene), int(index))
+    mesher = _MESHERS.get(key)
+    if mesher is None:
+        mesher = _MESHERS[key] = model.latent_mesher(int(index))
+    return mesher
+
+
+def write_positions(mesh: bpy.types.Mesh, flat: np.ndarray) -> None:
+    """Bulk vertex write through the position attribute (the fast path, ~0.2 ms per 100k)."""
+    mesh.attributes["position"].data.foreach_set("vector", np.ascontiguousarray(flat, dtype=np.float32))
+    mesh.update()
+
+
+def update_live(scene: bpy.types.Scene) -> bool:
+    """Re-mesh the live object from the sliders. False when there is nothing to update."""
+    obj = live_object(scene)
+    if obj is None or not len(scene.shapegen.latents):
+        return False
+    model = store.require_model(scene)
+    if obj[LIVE_KEY] != store.model_id(scene):
+        raise ShapeGenError(f"'{obj.name}' belongs to another model: press Explore to rebuild it")
+    mesher = _mesher(scene, model, int(obj[TEMPLATE_INDEX_KEY]))
+    if len(obj.data.vertices) != mesher.n_vertices:
+        raise ShapeGenError(f"'{obj.name}' has {len(obj.data.vertices)} vertices, its template "
+                            f"'{mesher.template_name}' {mesher.n_vertices}: press Explore to rebuild it")
+    z = current_latent(scene)
+    write_positions(obj.data, mesher.flat_vertices(z))
+    obj[LATENT_KEY] = z.tolist()
+    return True
+
+
+def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.Object:
+    """Create (or rebuild) the live object on the template nearest the mean shape."""
+    index = model.shape_index(template) if template else model.mean_template()
+    source = model.meshes[index]
+    data = mesh_data_from_arrays(f"{LIVE_NAME} mesh", source.vertices, source.faces)
+    obj = live_object(scene)
+    if obj is None:
+        obj = bpy.data.objects.new(LIVE_NAME, data)
+        scene.collection.objects.link(obj)
+        scene.shapegen.live_object = obj
+    else:
+        old = obj.data
+        obj.data = data
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
+        if obj.name not in scene.objects:  # deleted from the scene but still referenced
+            scene.collection.objects.link(obj)
+    obj[LIVE_KEY] = store.model_id(scene)
+    obj[MODEL_KEY] = store.model_name(scene)
+    obj[MODEL_ID_KEY] = store.model_id(scene)
+    obj[TEMPLATE_KEY] = model.names[index]
+    obj[TEMPLATE_INDEX_KEY] = index
+    if len(scene.shapegen.latents) != model.latent_dim:
+        rebuild_sliders(scene, model)
+    update_live(scene)
+    return obj
+
+
+def bake_live(scene: bpy.types.Scene) -> bpy.types.Object:
+    """The live object becomes an ordinary (still tagged) mesh, no longer driven by the sliders."""
+    obj = live_object(scene)
+    del obj[LIVE_KEY]
+    del obj[TEMPLATE_INDEX_KEY]
+    obj.name = f"{store.model_name(scene)} baked"
+    obj.data.name = obj.name
+    scene.shapegen.live_object = None
+    return obj
+
+
+def model_changed(scene: bpy.types.Scene, model) -> None:
+    """A new model became the scene's: new sliders; an existing live object follows it."""
+    rebuild_sliders(scene, model)
+    if live_object(scene) is not None:
+        create_live(scene, model)
+
+
+# ------------------------------------------------------------------------------ latent tags
+def tag_object(obj: bpy.types.Object, scene: bpy.types.Scene, z, template: str, seed: int | None = None) -> None:
+    """Custom properties that tie a generated object to its model and latent vector."""
+    obj[LATENT_KEY] = [float(v) for v in np.ravel(z)]
+    obj[MODEL_KEY] = store.model_name(scene)
+    obj[MODEL_ID_KEY] = store.model_id(scene)
+    obj[TEMPLATE_KEY] = template
+    if seed is not None:
+        obj[SEED_KEY] = int(seed)
+
+
+def object_latent(model, scene: bpy.types.Scene, obj: bpy.types.Object) -> np.ndarray:
+    """The latent vector of `obj` under `model`: its latent tag (a sample, baked or live
+    object of this model), else the encoded landmarks of the training shape it is (by
+    name, or by the source tag of a prepared copy)."""
+    if LATENT_KEY in obj and obj.get(MODEL_ID_KEY) == store.model_id(scene):
+        z = np.asarray(obj[LATENT_KEY], dtype=np.float64)
+        if z.shape == (model.latent_dim,):
+            return z
+    for name in (obj.name, obj.get(SOURCE_KEY)):
+        if isinstance(name, str) and name in model.names:
+            return model.training_latents()[model.names.index(name)]
+    raise ShapeGenError(f"'{obj.name}' has no latent vector in model '{store.model_name(scene)}': pick a "
+                        "training shape (named like one of the model's shapes) or a ShapeGen sample of this model")
+
+
+def tagged_latents(scene: bpy.types.Scene, model) -> np.ndarray:
+    """(K, latent_dim) latent vectors of the scene's objects tagged by the scene's model,
+    the live object excepted (samples, in-between shapes, baked objects)."""
+    key = store.model_id(scene)
+    found = [np.asarray(o[LATENT_KEY], dtype=np.float64) for o in scene.objects
+             if o.get(MODEL_ID_KEY) == key and LATENT_KEY in o and LIVE_KEY not in o
+             and len(o[LATENT_KEY]) == model.latent_dim]
+    return np.array(found).reshape(-1, model.latent_dim)

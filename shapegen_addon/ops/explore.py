@@ -1,0 +1,186 @@
+"""Explore: one live object driven by a slider per latent dimension, and the latent map.
+
+Operators: Explore (create / reset the live object), Randomise, Reset, Snap to Nearest
+Training Shape, Bake (the live object becomes an ordinary mesh), Latent Map (an image).
+The sliders and the live object themselves are `latent.py`'s.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from bpy.props import IntProperty, StringProperty
+
+from ...core.errors import ShapeGenError
+from .. import store
+from ..keys import MAP_BOUNDS_KEY, MAP_DIMS_KEY, MODEL_ID_KEY, TEMPLATE_KEY
+from ..latent import (bake_live, create_live, current_latent, live_object, reset_sliders, set_latent,
+                     tagged_latents)
+from ..picture import latent_map_pixels
+
+__all__ = ["CLASSES"]
+
+MAP_NAME = "ShapeGen Latent Map"
+
+
+# ------------------------------------------------------------------------------ operators
+class _NeedsLive(store.NeedsModel):
+    """Operator mixin: a model and its live object (Explore) must exist."""
+
+    @classmethod
+    def poll(cls, context):
+        if not super().poll(context):
+            return False
+        if live_object(context.scene) is None:
+            cls.poll_message_set("No live object: press Explore first")
+            return False
+        return True
+
+
+def _run(operator, function) -> set[str]:
+    try:
+        message = function()
+    except ShapeGenError as exc:
+        operator.report({"ERROR"}, str(exc))
+        return {"CANCELLED"}
+    if message:
+        operator.report({"INFO"}, message)
+    return {"FINISHED"}
+
+
+class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
+    """Create the live object (a template mesh driven by the latent sliders), or rebuild it"""
+
+    bl_idname = "shapegen.explore"
+    bl_label = "Explore"
+    bl_options = {"REGISTER", "UNDO"}
+
+    template: StringProperty(name="Template", default="",
+                             description="Training shape to deform (empty: the one nearest the mean shape)")
+
+    def execute(self, context):
+        def work():
+            model = store.require_model(context.scene)
+            obj = create_live(context.scene, model, self.template)
+            return f"'{obj.name}': {model.latent_dim} sliders on template '{obj[TEMPLATE_KEY]}'"
+
+        return _run(self, work)
+
+
+class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
+    """Draw a latent vector from the model's latent distribution and show it"""
+
+    bl_idname = "shapegen.explore_randomise"
+    bl_label = "Randomise"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        def work():
+            scene = context.scene
+            model = store.require_model(scene)
+            seed = scene.shapegen.explore_seed
+            z = model.model.sample_latents(1, np.random.default_rng(seed))[0]
+            set_latent(scene, z)
+            scene.shapegen.explore_seed = seed + 1
+            return f"Random shape (seed {seed})"
+
+        return _run(self, work)
+
+
+class SHAPEGEN_OT_explore_reset(_NeedsLive, bpy.types.Operator):
+    """Move every slider back to the training mean"""
+
+    bl_idname = "shapegen.explore_reset"
+    bl_label = "Reset"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        def work():
+            reset_sliders(context.scene)
+            return ""
+
+        return _run(self, work)
+
+
+class SHAPEGEN_OT_explore_snap(_NeedsLive, bpy.types.Operator):
+    """Move the sliders to the nearest training shape's latent vector"""
+
+    bl_idname = "shapegen.explore_snap"
+    bl_label = "Snap to Nearest Training Shape"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        def work():
+            scene = context.scene
+            model = store.require_model(scene)
+            items = scene.shapegen.latents
+            scale = np.array([item.scale for item in items])
+            training = model.training_latents()
+            distances = (((training - current_latent(scene)) / scale) ** 2).sum(axis=1)
+            index = int(np.argmin(distances))
+            set_latent(scene, training[index])
+            return f"Snapped to '{model.names[index]}'"
+
+        return _run(self, work)
+
+
+class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
+    """Turn the live object into an ordinary mesh (no longer driven by the sliders)"""
+
+    bl_idname = "shapegen.explore_bake"
+    bl_label = "Bake"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        def work():
+            obj = bake_live(context.scene)
+            return f"Baked '{obj.name}'"
+
+        return _run(self, work)
+
+
+class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
+    """Draw the training shapes' latent vectors as a 2-D map (image "ShapeGen Latent Map"):
+    training shapes blue, outliers red, ShapeGen samples green, the live object white"""
+
+    bl_idname = "shapegen.latent_map"
+    bl_label = "Latent Map"
+    bl_options = {"REGISTER"}
+
+    size: IntProperty(name="Size", default=0, min=0, max=4096, description="Pixels (0: the panel's Map Size)")
+
+    def execute(self, context):
+        def work():
+            scene = context.scene
+            model = store.require_model(scene)
+            size = self.size or scene.shapegen.map_size
+            live = live_object(scene)
+            picture = latent_map_pixels(
+                model.training_latents(), model.correspondence.outliers, size,
+                samples=tagged_latents(scene, model),
+                live=current_latent(scene) if live is not None else None)
+            image = bpy.data.images.get(MAP_NAME)
+            if image is not None and tuple(image.size) != (size, size):
+                bpy.data.images.remove(image)
+                image = None
+            if image is None:
+                image = bpy.data.images.new(MAP_NAME, size, size, alpha=True)
+            image.pixels.foreach_set(picture.pixels.ravel())
+            image.update()
+            try:
+                image.pack()  # keep the pixels with the .blend
+            except RuntimeError:
+                pass
+            image[MAP_DIMS_KEY] = list(picture.dims)
+            image[MAP_BOUNDS_KEY] = list(picture.bounds)
+            image[MODEL_ID_KEY] = store.model_id(scene)
+            n_out = int(np.sum(model.correspondence.outliers))
+            axes = ", ".join(f"z{d + 1}" for d in picture.dims if d >= 0)
+            return (f"Latent map of {len(model.names)} shapes ({n_out} outlier(s)) on {axes}: "
+                    f"image '{image.name}'")
+
+        return _run(self, work)
+
+
+CLASSES = (SHAPEGEN_OT_explore, SHAPEGEN_OT_explore_randomise, SHAPEGEN_OT_explore_reset,
+           SHAPEGEN_OT_explore_snap, SHAPEGEN_OT_explore_bake, SHAPEGEN_OT_latent_map)

@@ -1,0 +1,156 @@
+"""The prepared-object format: what Prepare writes into the scene, and what Find
+Correspondences and Fit read back. Written and read here only.
+
+A prepared collection ("<source> Prepared", keys.PREPARED_KEY) records its source
+collection and the six Prepare settings it was made with. Each prepared shape object is a
+copy of a user's object in the normalised frame (object-local), tagged with its source's
+name, the transform input (world) -> normalised, its landmarks and where they lie on the
+mesh (face and barycentrics, so correspondence starts from them), plus a child marker
+object. Find Correspondences adds the corresponded landmarks and index-coloured markers.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..core.collection import PreparedCollection
+from ..core.landmarks import Landmarks
+from ..core.preprocess import PreparedShape, ShapeTransform
+from .convert import object_to_mesh, object_triangles
+from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
+                   LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, PREPARED_KEY,
+                   SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, prepare_setting_key)
+from .preview import (add_correspondence_markers, add_landmark_markers, grid_offsets, landmark_index_colours,
+                      new_collection)
+
+__all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects",
+           "prepared_collection_for", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
+
+#: the Prepare settings a prepared collection records (Fit reuses it only when they match)
+PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")
+
+
+# ------------------------------------------------------------------------------ write
+def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
+                              prepared: PreparedCollection, preview_spacing: float) -> bpy.types.Collection:
+    """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
+    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
+    landmark markers. The user's objects are not modified."""
+    target = new_collection(scene, f"{source.name} Prepared")
+    target[PREPARED_KEY] = True
+    target[SOURCE_COLLECTION_KEY] = source.name
+    for key, value in prepared.settings.items():
+        target[prepare_setting_key(key)] = value
+    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
+    offsets = grid_offsets(len(prepared), preview_spacing * size)
+    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
+        data = obj.data.copy()
+        data.name = f"{obj.name} prepared"
+        data.transform(obj.matrix_world)  # input coordinates = the original's world frame
+        data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
+        copy = bpy.data.objects.new(f"{obj.name} prepared", data)
+        copy.location = offset
+        copy[SOURCE_KEY] = obj.name
+        copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
+        copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
+        # where each landmark lies on the (loop-triangulated) mesh, for correspondence
+        copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
+        copy[LANDMARK_BARYCENTRIC_KEY] = landmarks.barycentric.ravel().tolist()
+        copy[LANDMARK_RADIUS_KEY] = float(landmarks.radius)
+        target.objects.link(copy)
+        add_landmark_markers(copy, landmarks.points, 0.25 * landmarks.radius, target)
+    return target
+
+
+def apply_correspondence(collection: bpy.types.Collection, result) -> None:
+    """Tag every prepared object of `collection` with its corresponded landmarks (a core
+    `Correspondence`, object-local) and index-coloured markers; its Prepare landmark
+    markers are hidden."""
+    objects = {o.get(SOURCE_KEY, o.name): o for o in prepared_objects(collection)}
+    colours = landmark_index_colours(result.template_points)
+    radius = 0.006 * float(np.linalg.norm(np.ptp(result.template_points, axis=0)))
+    for name, points, outlier in zip(result.names, result.points, result.outliers):
+        obj = objects.get(name)
+        if obj is None:
+            continue
+        obj[CORRESPONDENCE_KEY] = points.ravel().tolist()
+        obj[CORRESPONDENCE_OUTLIER_KEY] = bool(outlier)
+        add_correspondence_markers(obj, points, colours, radius)
+        landmark_markers = bpy.data.objects.get(f"{obj.name} landmarks")
+        if landmark_markers is not None:
+            landmark_markers.hide_viewport = True
+            landmark_markers.hide_render = True
+    collection[CORRESPONDENCE_TEMPLATE_KEY] = result.template_name
+
+
+# ------------------------------------------------------------------------------ read
+def prepared_objects(collection: bpy.types.Collection) -> list[bpy.types.Object]:
+    """The shape objects Prepare made (they carry landmarks and a transform), by name."""
+    return sorted((o for o in collection.objects if LANDMARKS_KEY in o and TRANSFORM_KEY in o),
+                  key=lambda o: o.name)
+
+
+def prepared_collection_for(collection: bpy.types.Collection | None) -> bpy.types.Collection | None:
+    """`collection` if it is a prepared one, else its "<name> Prepared" sibling (or None)."""
+    if collection is None:
+        return None
+    if collection.get(PREPARED_KEY):
+        return collection
+    for candidate in bpy.data.collections:
+        if candidate.get(PREPARED_KEY) and candidate.get(SOURCE_COLLECTION_KEY) == collection.name:
+            return candidate
+    return None
+
+
+def to_prepared_collection(objects) -> PreparedCollection:
+    """Core data of prepared objects: their (normalised) meshes, transforms, landmarks."""
+    shapes, landmarks = [], []
+    for obj in objects:
+        mesh = object_to_mesh(obj, world=False)
+        mesh = mesh.with_vertices(mesh.vertices, name=obj.get(SOURCE_KEY, obj.name))
+        points = np.asarray(obj[LANDMARKS_KEY], dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(obj.get(LANDMARK_FACES_KEY, []), dtype=np.int64)
+        bary = np.asarray(obj.get(LANDMARK_BARYCENTRIC_KEY, []), dtype=np.float64).reshape(-1, 3)
+        if len(faces) != len(points) or (len(faces) and faces.max() >= mesh.n_faces):
+            # older Prepare results (or an edited mesh): put each landmark on its nearest face again
+            from ..core.correspond import TargetSurface
+
+            placed = TargetSurface(mesh.vertices, mesh.faces).closest(points)
+            faces, bary = placed.face_index, placed.barycentric
+        transform = ShapeTransform.from_matrix(np.asarray(obj[TRANSFORM_KEY], dtype=np.float64).reshape(4, 4))
+        shapes.append(PreparedShape(mesh, transform))
+        landmarks.append(Landmarks(points, faces, bary, float(obj.get(LANDMARK_RADIUS_KEY, 0.0))))
+    return PreparedCollection(shapes, landmarks)
+
+
+def reusable_prepared(collection, objects, options: dict):
+    """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
+    when Prepare ran on them with the same settings as this fit (`options`) and none has
+    changed since: every copy equals its source's world coordinates under its stored
+    transform (bulk reads, well under 1 ms per 100k vertices). Else None (Fit prepares
+    again in the worker). Returns (prepared bpy collection, copies in `objects` order)."""
+    candidates = [c for c in bpy.data.collections
+                  if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name
+                  and all(str(c.get(prepare_setting_key(k))) == str(options[k]) for k in PREPARE_SETTINGS)]
+    for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
+        copies = {o.get(SOURCE_KEY): o for o in prepared_objects(prepared)}
+        if set(copies) != {o.name for o in objects}:
+            continue
+        ordered = [copies[o.name] for o in objects]
+        if all(_unchanged(source, copy) for source, copy in zip(objects, ordered)):
+            return prepared, ordered
+    return None
+
+
+def _unchanged(source, copy) -> bool:
+    """True when the prepared `copy` still equals `source` mapped by its stored transform."""
+    if len(source.data.vertices) != len(copy.data.vertices) or len(source.data.polygons) != len(copy.data.polygons):
+        return False
+    world = object_triangles(source, world=True)[0]
+    local = object_triangles(copy, world=False)[0]
+    matrix = np.asarray(copy[TRANSFORM_KEY], dtype=np.float64).reshape(4, 4)
+    mapped = world @ matrix[:3, :3].T + matrix[:3, 3]
+    size = max(float(np.ptp(local, axis=0).max()), 1e-12)
+    return bool(np.abs(mapped - local).max() <= 1e-5 * size)
