@@ -10,8 +10,8 @@ Flow of Fit:
    changes yet.
 2. The job runtime (jobs.poll_job, from the UI timer or a script's loop) mirrors the
    progress into `scene.shapegen`.
-3. When the job ends, `_finish` runs on the main thread: on success the model file is
-   loaded, packed into the .blend and becomes the scene's model (`install_model`); on
+3. When the job ends, `fitting.finish` runs on the main thread: on success the model file is
+   loaded, packed into the .blend and becomes the scene's model (`fitting.install_model`); on
    failure or cancel only the job's state and message change, so the scene and any
    earlier model stay as they were, and the message says why.
 """
@@ -21,82 +21,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-import numpy as np
 from bpy.props import StringProperty
 
 from ...core.errors import ShapeGenError
-from ...core.jobs import BackgroundJob, JobStatus
-from ...core.meshset import save_mesh_set
-from .. import latent, store
-from ..convert import object_triangles
-from ..jobs import MANAGER, JobOperator, job_settings, no_job_running, report_outcome
+from ...core.jobs import BackgroundJob
+from .. import fitting, store
+from ..jobs import MANAGER, JobOperator, no_job_running
 from ..prepared import PREPARE_SETTINGS, reusable_prepared, to_prepared_collection
 
-__all__ = ["CLASSES", "install_model"]
-
-
-def _check_fit_settings(options: dict) -> None:
-    from ...core.pipeline import FitSettings
-
-    FitSettings.from_dict(options)
-
-
-def gather_meshes(objects) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, vertices, triangles) of each object, world coordinates: bulk reads only
-    (convert.object_triangles, ~4 ms per 100k vertices). The core's mesh validation runs
-    in the worker, whose error names the object."""
-    return [(o.name, *object_triangles(o)[:2]) for o in objects]
-
-
-def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:
-    """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshset). No bpy: runs
-    on the job's setup thread. Uncompressed: it is a throwaway hand-off; compressing
-    6 × 100k-vertex meshes took 1.5 s, this ~0.1 s."""
-    return save_mesh_set(path, [name for name, _, _ in meshes], [v for _, v, _ in meshes],
-                         [f for _, _, f in meshes], compress=False)
-
-
-def install_model(scene: bpy.types.Scene, path: str | Path, name: str, loaded=None):
-    """The model file at `path` becomes the scene's model (store.store_fitted_model: packed
-    into the .blend) and the latent sliders (and any live object) follow it."""
-    model = store.store_fitted_model(scene, path, name, loaded)
-    latent.model_changed(scene, model)
-    return model
-
-
-# ------------------------------------------------------------------------------ the fit job
-def _load_result(status: JobStatus):
-    """prepare step of the fit job (helper thread, no bpy): load and validate the model."""
-    if status.state != "done":
-        return None
-    return store.read_model_file(status.output)
-
-
-def _finish(status: JobStatus, loaded) -> None:
-    """on_finish of the fit job: called once, on the main thread, from the job runtime's
-    poll, with `_load_result`'s return value (or the exception it raised)."""
-    payload = MANAGER.payload
-    settings = job_settings(status, f"the fit of '{payload.get('name')}'")
-    if settings is None:
-        return
-    kept = "the earlier model is kept" if settings.model_text else "no model was made"
-    if status.state == "cancelled":
-        report_outcome(settings, "CANCELLED", f"Fit cancelled; {kept}")
-        return
-    if status.state != "done":
-        report_outcome(settings, "FAILED", f"Fit failed: {status.error or 'unknown error'}; {kept}")
-        return
-    try:
-        if isinstance(loaded, Exception):
-            raise loaded
-        model = install_model(settings.id_data, status.output, payload["name"], loaded)
-    except (ShapeGenError, OSError) as exc:
-        report_outcome(settings, "FAILED", f"Fit finished but its model could not be loaded: {exc}")
-        return
-    reused = f", reusing '{payload['reused']}'" if payload.get("reused") else ""
-    report_outcome(settings, "DONE", f"Fitted {model.model_type} to {len(model.names)} shapes of '{payload['name']}': "
-                   f"{model.latent_dim} latent dimensions, {model.n_landmarks} landmarks "
-                   f"({MANAGER.elapsed:.1f} s{reused})", "fitted")
+__all__ = ["CLASSES"]
 
 
 class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
@@ -119,7 +52,7 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
             self.report({"ERROR"}, f"Collection '{collection.name}' has {len(objects)} mesh object(s); "
                         "a shape model needs at least 2")
             return {"CANCELLED"}
-        options = self.job_options(settings.fit_options(), _check_fit_settings)
+        options = self.job_options(settings.fit_options(), fitting.check_fit_settings)
         if options is None:
             return {"CANCELLED"}
         reuse = reusable_prepared(collection, objects, options)
@@ -132,12 +65,12 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
                 inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name
                 setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
             else:
-                gathered = gather_meshes(objects)
+                gathered = fitting.gather_meshes(objects)
                 inputs = {"meshes": str(folder / "meshes.npz")}
-                setup = lambda: save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
+                setup = lambda: fitting.save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
             job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})
-            MANAGER.start(job, _finish, label=f"fit '{collection.name}'", folder=folder,
-                          payload=payload, prepare=_load_result, setup=setup)
+            MANAGER.start(job, fitting.finish, label=f"fit '{collection.name}'", folder=folder,
+                          payload=payload, prepare=fitting.load_result, setup=setup)
 
         return self.run_job(context, start,
                             started=f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
@@ -168,7 +101,7 @@ class SHAPEGEN_OT_load_model(bpy.types.Operator):
             self.report({"ERROR"}, f"{path}: no such model file")
             return {"CANCELLED"}
         try:
-            model = install_model(context.scene, path, path.stem)
+            model = fitting.install_model(context.scene, path, path.stem)
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
