@@ -15,7 +15,7 @@ import argparse
 import numpy as np
 
 from shapegen_core.correspond import Correspondence
-from shapegen_core.evaluate import _rng, completion_errors, hidden_coordinates, kfold_indices, region_mask
+from shapegen_core.evaluation import completion_errors, heldout_folds, hidden_coordinates, region_mask
 from shapegen_core.models import PPCA, ModelInputError
 
 
@@ -29,7 +29,7 @@ def main() -> None:
     args = parser.parse_args()
     Y = Correspondence.load(args.correspondence).landmark_matrix()
     regions = args.regions.split(",")
-    folds = kfold_indices(len(Y), args.folds, _rng(args.seed, 1))       # the evaluate split
+    folds = heldout_folds(len(Y), args.folds, args.seed)                # the evaluate split
     print(f"| PPCA variant | q | " + " | ".join(regions) + " |")
     print("|---|---|" + "---|" * len(regions))
     for shrinkage, label in (("ledoit-wolf", "Ledoit-Wolf (project default)"), (0.0, "maximum likelihood")):

@@ -104,7 +104,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- evaluate
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate shape models on a folder of meshes or a correspondence .npz (issue 7)."""
-    from .evaluate import EvaluationError, EvaluationSettings, parse_model_names, run_evaluation
+    from .evaluation import EvaluationError, EvaluationSettings, parse_model_names, run_evaluation
     from .report import write_report
 
     start = time.perf_counter()

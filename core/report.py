@@ -1,4 +1,4 @@
-"""Writing an evaluation (evaluate.py) to a folder: `report.json`, `summary.md`, PNG figures.
+"""Writing an evaluation (core/evaluation) to a folder: `report.json`, `summary.md`, PNG figures.
 
 Byte-for-byte reproducible for a fixed seed: no timestamps or paths of the output folder in
 any file, floats rounded to 7 significant digits (so last-bit differences of BLAS cannot
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import EvaluationResult, procrustes_align
+from .evaluation import EvaluationResult, procrustes_align
 
 __all__ = ["clean_for_json", "write_report", "write_summary", "write_figures", "REPORT_FILES"]
 

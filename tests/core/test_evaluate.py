@@ -1,4 +1,4 @@
-"""Evaluation metrics (core/evaluate.py) on cases with known answers, and the
+"""Evaluation metrics (core/evaluation) on cases with known answers, and the
 `shapegen evaluate` report: reproducible byte for byte, clear errors on bad input."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from shapegen_core.collection import prepare_meshes
 from shapegen_core.correspond import correspond
 from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.evaluate import (EvaluationError, EvaluationSettings, TrainingSetModel, choose_morph_endpoints,
+from shapegen_core.evaluation import (EvaluationError, EvaluationSettings, TrainingSetModel, choose_morph_endpoints,
                                     completion_errors,
                                     coverage, generalisation_curve, hidden_coordinates, kfold_indices,
                                     landmark_rms_matrix, latent_outlier_scores, mmd, novelty, one_nna,

@@ -13,10 +13,10 @@ from shapegen_core.errors import CollectionError
 from shapegen_core.mesh import Mesh
 from shapegen_core.preprocess import (
     ShapeTransform,
-    _third_central_moment,
     prepare_collection,
     scale_measure,
     surface_moments,
+    third_central_moment,
 )
 
 from conftest import unit_cube
@@ -124,7 +124,7 @@ def test_surface_moments_against_dense_trimesh_samples(small_vases):
     np.testing.assert_allclose(mean, points.mean(axis=0), atol=8e-3 * scale)
     np.testing.assert_allclose(cov, np.cov(points.T), atol=1e-2 * scale**2)
     axis = np.array([0.6, -0.8, 0.0])
-    exact = _third_central_moment(mesh, axis, mean)
+    exact = third_central_moment(mesh, axis, mean)
     mc = float(np.mean(((points - mean) @ axis) ** 3))
     assert exact == pytest.approx(mc, abs=2e-2 * scale**3)
 
@@ -185,7 +185,7 @@ def test_pca_sign_rule_is_deterministic_under_yaw():
     # the rule itself: the main horizontal axis is x and the third moment along +x is positive
     _, mean, cov = surface_moments(prepared[0].mesh)
     assert cov[0, 0] > cov[1, 1] and abs(cov[0, 1]) < 1e-9
-    assert _third_central_moment(prepared[0].mesh, np.array([1.0, 0, 0]), mean) > 0
+    assert third_central_moment(prepared[0].mesh, np.array([1.0, 0, 0]), mean) > 0
 
 
 # ---------------------------------------------------------------------------- consensus

@@ -1,0 +1,101 @@
+"""`prepare_collection`: align and scale a collection of meshes, every transform recorded
+(thesis §3.4; the steps are in the package docstring)."""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import CollectionError, MeshError
+from ..mesh import Mesh
+from .consensus import consensus_rotations
+from .moments import SCALE_MODES, scale_measure, surface_moments
+from .rotations import horizontal_pca_rotation, up_rotation
+from .transform import PreparedShape, ShapeTransform
+
+__all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection"]
+
+ALIGN_MODES = ("consensus", "pca", "none")
+CENTRE_MODES = ("centroid", "highest", "none")
+
+
+def prepare_collection(
+    meshes: Sequence[Mesh],
+    up_axis: str = "z",
+    align: str = "consensus",
+    centre: str = "centroid",
+    scale: str = "variance",
+    seed: int = 0,
+    progress: Callable[[float, str], None] | None = None,
+) -> list[PreparedShape]:
+    """Align and scale a collection of meshes (see the package docstring for the steps)."""
+    if align not in ALIGN_MODES:
+        raise ValueError(f"unknown align mode {align!r}; choose from {ALIGN_MODES}")
+    if centre not in CENTRE_MODES:
+        raise ValueError(f"unknown centre mode {centre!r}; choose from {CENTRE_MODES}")
+    if scale not in SCALE_MODES:
+        raise ValueError(f"unknown scale mode {scale!r}; choose from {SCALE_MODES}")
+    meshes = list(meshes)
+    if not meshes:
+        raise CollectionError("the collection is empty: nothing to prepare")
+    report = progress or (lambda fraction, message: None)
+
+    up = up_rotation(up_axis)
+    rotations = [_own_rotation(mesh, up, align) for mesh in meshes]
+    report(0.2, "principal axes")
+    changed = [False] * len(meshes)
+    if align == "consensus" and len(meshes) > 1:
+        rotations, changed = consensus_rotations(meshes, rotations, seed, report, up)
+    report(0.8, "floor, centre and scale")
+
+    transforms = [_floor_and_centre(mesh, rotation, centre) for mesh, rotation in zip(meshes, rotations)]
+    if scale != "none":
+        transforms = _equal_size(meshes, transforms, scale)
+    prepared = [
+        PreparedShape(mesh.with_vertices(t.to_normalised(mesh.vertices)), t, c)
+        for mesh, t, c in zip(meshes, transforms, changed)
+    ]
+    report(1.0, "prepared")
+    return prepared
+
+
+def _own_rotation(mesh: Mesh, up: np.ndarray, align: str) -> np.ndarray:
+    """Steps 1-2: the up rotation, then (align "pca" or "consensus") the horizontal PCA."""
+    if align not in ("pca", "consensus"):
+        return up
+    upright = mesh.with_vertices(mesh.vertices @ up.T)
+    return horizontal_pca_rotation(upright) @ up
+
+
+def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTransform:
+    """Step 4: the rotation, then the lowest surface vertex to z = 0 and the horizontal
+    centre (surface centroid, highest vertex, or none) to x = y = 0."""
+    # only vertices that belong to a face count (an unused stray vertex is no surface)
+    rotated = mesh.vertices[np.unique(mesh.faces)] @ rotation.T
+    shift = np.zeros(3)
+    shift[2] = -rotated[:, 2].min()
+    if centre == "centroid":
+        _, mean, _ = surface_moments(mesh)
+        shift[:2] = -(rotation @ mean)[:2]
+    elif centre == "highest":
+        shift[:2] = -rotated[int(np.argmax(rotated[:, 2])), :2]
+    return ShapeTransform(rotation, 1.0, shift)
+
+
+def _equal_size(meshes: Sequence[Mesh], transforms: Sequence[ShapeTransform], scale: str) -> list[ShapeTransform]:
+    """Step 5: scale every shape so its measure (`scale_measure`) equals the geometric mean
+    of the collection's measures."""
+    measures = []
+    for mesh, transform in zip(meshes, transforms):
+        value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
+        if not np.isfinite(value) or value <= 0:
+            raise MeshError(
+                f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "
+                "(a flat or degenerate shape)"
+            )
+        measures.append(value)
+    measures = np.asarray(measures)
+    target = float(np.exp(np.mean(np.log(measures))))
+    power = 0.5 if scale == "variance" else 1.0 / 3.0
+    return [t.then(scale=(target / m) ** power) for t, m in zip(transforms, measures)]
