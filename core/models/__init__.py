@@ -4,8 +4,14 @@
 - `GPLVM`          GP latent variable model, RBF kernel, KDE latent density (§5.3.3, §5.4.3)
 - `BayesianGPLVM`  variational sparse Bayesian GP-LVM, ARD RBF (§5.3.4, Titsias & Lawrence 2010)
 
-All share: fit(Y, progress=None), sample(n, rng), encode(Y), decode(Z),
-complete(Y_partial, observed_mask), score(Y), latent_dim, to_arrays(), from_arrays(d).
+All share (base.ShapeModel): fit(Y, progress=None), sample(n, rng), sample_with_latents(n, rng),
+sample_latents(n, rng), encode(Y), decode(Z), complete(Y_partial, observed_mask), score(Y),
+latent_dim, get_params(), clone(), to_arrays(), from_arrays(d). The two GP-LVMs share their fit
+and row search (latent_variable.LatentVariableModel).
+
+Modules: base (input checks, PCA helpers, the common API and model arrays), latent_variable
+(the GP-LVMs' shared fit, row search and numerics), kernels (RBF kernel, psi-statistics), kde
+(latent Gaussian KDE), ppca, gplvm, bgplvm.
 """
 
 from ..errors import ModelFileError
