@@ -32,7 +32,7 @@ from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curv
 from .errors import Cancelled, ModelFileError, ShapeGenError
 from . import meshset
 from .mesh import Mesh
-from .models import MODEL_TYPES, model_from_arrays
+from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
@@ -90,16 +90,6 @@ def _scalar_settings(settings: FitSettings) -> dict[str, str]:
         else:
             out[f.name] = repr(value)
     return out
-
-
-def _make_model(settings: FitSettings):
-    import inspect
-
-    cls = MODEL_TYPES[settings.model]
-    kwargs = {"n_components": settings.latent_dim}
-    if "random_state" in inspect.signature(cls).parameters:
-        kwargs["random_state"] = settings.seed
-    return cls(**kwargs)
 
 
 class GenerativeShapeModel:
@@ -401,7 +391,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
         if cancelled():
             raise Cancelled("fit cancelled")
 
-    model = _make_model(settings)
+    model = make_model(settings.model, settings.latent_dim, settings.seed)
     model.fit(corr.landmark_matrix(),
               progress=lambda f, msg: (check(), report(low + (high - low) * f, f"{settings.model}: {msg}")))
     check()

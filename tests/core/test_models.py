@@ -12,7 +12,7 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from shapegen_core.errors import Cancelled, ModelFileError
-from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, kde, model_from_arrays
+from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, kde, make_model, model_from_arrays
 from shapegen_core.models.base import ModelInputError, ledoit_wolf_shrinkage
 from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales, profile_scale
 from shapegen_core.models.gplvm import gplvm_log_likelihood
@@ -506,7 +506,7 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     assert moved > 0.1 * np.abs(Y[:2] - model.mean_).max()
 
 
-# ----------------------------------------------------------------------------- parameters
+# ----------------------------------------------------------------------------- parameters, factory
 
 #: the arrays of each model in model files (format version 1): files written before the
 #: parameters were read from the constructor keep loading because the layout is unchanged
@@ -539,6 +539,19 @@ def test_parameters_come_from_the_constructor(fitted, kind):
     settings = {"shrinkage": 0.25, "sample_noise": True} if kind == "ppca" else {"max_iter": 40, "n_restarts": 2}
     odd = cls(n_components=2, variance_fraction=0.7, **settings).fit(Y)
     assert model_from_arrays(odd.to_arrays()).get_params() == {**odd.get_params(), **unsaved}
+
+
+def test_make_model_builds_each_model_with_the_project_defaults():
+    assert make_model("ppca").get_params() == PPCA().get_params()
+    assert make_model("ppca", 3, seed=5).get_params() == PPCA(n_components=3).get_params()
+    assert make_model("gplvm", 2, seed=4).get_params() == GPLVM(n_components=2, random_state=4).get_params()
+    assert make_model("bgplvm", None, 7).get_params() == BayesianGPLVM(random_state=7).get_params()
+    custom = make_model("bgplvm", 2, 1, n_inducing=8, max_iter=50)
+    assert (custom.n_inducing, custom.max_iter, custom.n_components, custom.random_state) == (8, 50, 2, 1)
+    with pytest.raises(ModelInputError, match="unknown model name 'pca'"):
+        make_model("pca")
+    with pytest.raises(ModelInputError, match="n_inducing"):
+        make_model("gplvm", n_inducing=4)
 
 
 # ----------------------------------------------------------------------------- latent KDE
