@@ -145,14 +145,9 @@ class GenerativeShapeModel:
                 + (", ..." if len(self.names) > 12 else "") + ")") from None
 
     # ------------------------------------------------------------------ generation
-    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
-        """n sampled landmark sets (n, L, 3) and their latents where the model has them."""
-        latents = None
-        if hasattr(self.model, "sample_latents"):
-            latents = self.model.sample_latents(n, rng)
-            flat = self.model.decode(latents)
-        else:
-            flat = self.model.sample(n, rng)
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """n sampled landmark sets (n, L, 3), as the model's settings ask, and their latents."""
+        flat, latents = self.model.sample_with_latents(n, rng)
         return flat.reshape(n, self.n_landmarks, 3), latents
 
     def decode(self, latents: np.ndarray) -> np.ndarray:
