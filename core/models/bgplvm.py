@@ -10,9 +10,9 @@ Prior p(X) = prod_n N(x_n | 0, I), variational q(X) = prod_n N(mu_n, diag S_n), 
 
 It is maximised over mu, log S, Z, log s_f^2, log a (inverse squared length-scales) and log beta
 by L-BFGS-B with analytic gradients. Y enters only through Y Y^T (formed once, N x N), so an
-iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`fit`): the latent scale of
-each dimension, which only the KL term pins down, is profiled out (`profile_scale`); the blocks
-are preconditioned by their measured curvature (`block_scales`). The bound has several local
+iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`_BoundProblem`): the latent
+scale of each dimension, which only the KL term pins down, is profiled out (`profile_scale`);
+the blocks are preconditioned by their measured curvature (`block_scales`). The bound has several local
 optima, so two starting points (PCA latents with a noise warm-up; GPy's standardised PCA with
 noise = data variance) run 40 iterations each and the better one continues; it stops when 10
 iterations together gain less than 3e-6 |F|, at a single-iteration relative decrease below
