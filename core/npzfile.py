@@ -117,6 +117,7 @@ def validate_arrays(arrays: Mapping[str, np.ndarray], spec: Mapping[str, ArraySp
     """Check that `arrays` holds every key of `spec` with the right dtype kind, shape and
     (where asked) finite values; raise ModelFileError starting with `label` otherwise."""
     sizes: dict[str, int] = {}
+    defined_by: dict[str, str] = {}
     for key, expected in spec.items():
         if key not in arrays:
             raise ModelFileError(f"{label}: missing array {key!r}")
@@ -138,10 +139,11 @@ def validate_arrays(arrays: Mapping[str, np.ndarray], spec: Mapping[str, ArraySp
                 if got != want:
                     raise ModelFileError(f"{label}: array {key!r} has shape {array.shape}, axis {axis} must be {want}")
             else:
+                defined_by.setdefault(want, key)
                 if sizes.setdefault(want, got) != got:
                     raise ModelFileError(
                         f"{label}: array {key!r} has shape {array.shape}: its {want} = {got} disagrees "
-                        f"with {sizes[want]} in other arrays"
+                        f"with {want} = {sizes[want]} of array {defined_by[want]!r}"
                     )
         if expected.finite and array.dtype.kind == "f" and not np.isfinite(array).all():
             raise ModelFileError(f"{label}: array {key!r} contains NaN or infinite values")

@@ -32,7 +32,7 @@ from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curv
 from .errors import Cancelled, ModelFileError, ShapeGenError
 from . import meshset
 from .mesh import Mesh
-from .models import MODEL_TYPES, model_from_arrays
+from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
@@ -92,16 +92,6 @@ def _scalar_settings(settings: FitSettings) -> dict[str, str]:
     return out
 
 
-def _make_model(settings: FitSettings):
-    import inspect
-
-    cls = MODEL_TYPES[settings.model]
-    kwargs = {"n_components": settings.latent_dim}
-    if "random_state" in inspect.signature(cls).parameters:
-        kwargs["random_state"] = settings.seed
-    return cls(**kwargs)
-
-
 class GenerativeShapeModel:
     """A fitted shape class: sample, encode, complete and mesh new shapes."""
 
@@ -155,14 +145,9 @@ class GenerativeShapeModel:
                 + (", ..." if len(self.names) > 12 else "") + ")") from None
 
     # ------------------------------------------------------------------ generation
-    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
-        """n sampled landmark sets (n, L, 3) and their latents where the model has them."""
-        latents = None
-        if hasattr(self.model, "sample_latents"):
-            latents = self.model.sample_latents(n, rng)
-            flat = self.model.decode(latents)
-        else:
-            flat = self.model.sample(n, rng)
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """n sampled landmark sets (n, L, 3), as the model's settings ask, and their latents."""
+        flat, latents = self.model.sample_with_latents(n, rng)
         return flat.reshape(n, self.n_landmarks, 3), latents
 
     def decode(self, latents: np.ndarray) -> np.ndarray:
@@ -401,7 +386,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
         if cancelled():
             raise Cancelled("fit cancelled")
 
-    model = _make_model(settings)
+    model = make_model(settings.model, settings.latent_dim, settings.seed)
     model.fit(corr.landmark_matrix(),
               progress=lambda f, msg: (check(), report(low + (high - low) * f, f"{settings.model}: {msg}")))
     check()

@@ -10,12 +10,14 @@ Models work on Y centred by its mean shape `mean_`.
 
 from __future__ import annotations
 
+import copy
+import inspect
 from typing import Callable, ClassVar
 
 import numpy as np
-from scipy.optimize import minimize
 
 from ..errors import ModelFileError, ShapeGenError
+from ..npzfile import ArraySpec, validate_arrays
 
 __all__ = [
     "ModelInputError",
@@ -32,6 +34,7 @@ __all__ = [
     "latent_dim_for_variance",
     "default_latent_dim",
     "pca_latents",
+    "standardised_pca_latents",
 ]
 
 ProgressCallback = Callable[[float, str], None]
@@ -217,81 +220,57 @@ def standardised_pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     return Z / np.maximum(Z.std(0), 1e-12)
 
 
-# ----------------------------------------------------------------------------- optimiser
-
-def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,
-          bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6,
-          ftol: float = 1e-12, stall: tuple[int, float] | None = None):
-    """Minimise objective(x) -> (value, gradient) with scipy's L-BFGS-B.
-
-    It stops after `max_iter` iterations, when the projected gradient is below `gtol`, when an
-    iteration lowers the value by less than `ftol` relative (scipy's ftol = factr * eps) or,
-    with stall = (k, rtol), when the last k iterations together lowered it by at most
-    rtol |value|.
-
-    `progress(fraction, message)` is called once per iteration; if it raises (e.g. Cancelled)
-    the exception propagates and the fit stops (cooperative cancel).
-    """
-    lo, hi = progress_span
-    count = [0]
-    failures = [0]
-
-    history = []
-
-    def callback(intermediate_result):
-        count[0] += 1
-        if progress is not None:
-            progress(lo + (hi - lo) * min(count[0] / max_iter, 1.0), message)
-        if stall is not None:
-            history.append(intermediate_result.fun)
-            k, rtol = stall
-            if len(history) > k and history[-k - 1] - history[-1] <= rtol * abs(history[-1]):
-                raise StopIteration
-
-    def guarded(x):
-        # a trial step far outside the sane region can make a kernel matrix numerically
-        # indefinite; report +inf so the line search backs off
-        try:
-            value, grad = objective(x)
-            if np.isfinite(value) and np.all(np.isfinite(grad)):
-                return value, grad
-        except (np.linalg.LinAlgError, ValueError):
-            pass
-        failures[0] += 1
-        return np.inf, np.zeros_like(x)
-
-    x, result, best = np.asarray(x0, dtype=float), None, np.inf
-    # L-BFGS-B may stop early after +inf trial values; restart it (fresh curvature memory)
-    # from the last good point while it still makes progress and iterations remain
-    for _ in range(20):
-        failures_before = failures[0]
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            result = minimize(guarded, x, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
-                              options={"maxiter": max(max_iter - count[0], 1), "maxfun": 2 * max_iter + 20,
-                                       "gtol": gtol, "ftol": ftol, "maxcor": 20})
-        improved = result.fun < best - 1e-9 * max(abs(best), 1.0) if np.isfinite(best) else np.isfinite(result.fun)
-        if not np.isfinite(result.fun):
-            raise np.linalg.LinAlgError(f"{message}: the objective is not computable at the starting point")
-        best, x = min(best, result.fun), result.x
-        if failures[0] == failures_before or count[0] >= max_iter or not improved:
-            break
-    result.nit = count[0]
-    return result
-
-
 # ----------------------------------------------------------------------------- common API
+
+#: Integer codes of the non-integer choices of a parameter in model files.
+_PARAM_CODES: dict[str, dict[object, int]] = {"n_components": {None: -1, "heldout": -2}}
+
 
 class ShapeModel:
     """Common API of PPCA, GP-LVM and Bayesian GP-LVM (issue 4).
 
-    Subclasses implement `fit`, `encode`, `decode`, `complete`, `score`, `sample` and declare
-    `_ARRAY_SPEC`: key -> (dtype kind, shape as symbols) for `to_arrays` / `from_arrays`.
-    Symbols are dimension names ('N', 'D', 'Q', 'M', ...) that must agree across keys.
+    The parameters are the constructor's arguments, each stored under its own name
+    (scikit-learn's convention): `get_params` reads them through the signature, and `clone`
+    and the model files (`to_arrays`, `from_arrays`) build on it.
+
+    Subclasses implement `fit`, `encode`, `decode`, `sample_latents`, `complete`, `score`,
+    `decode_features`, `decode_basis` and `_prepare` (caches derived from the fitted
+    attributes), and declare `_ARRAY_SPEC`: the arrays of `to_arrays` as npzfile ArraySpecs,
+    i.e. "model_type", "param_<name>" per saved parameter and the fitted attributes (names
+    ending in "_"). Equal dimension names ('N', 'D', 'Q', 'M', ...) must agree across arrays.
     """
 
     model_type: ClassVar[str] = ""
-    _ARRAY_SPEC: ClassVar[dict[str, tuple[str, tuple[str, ...]]]] = {}
-    _HYPER_KEYS: ClassVar[tuple[str, ...]] = ()
+    _ARRAY_SPEC: ClassVar[dict[str, ArraySpec]] = {}
+    #: parameters left out of model files: random_state only seeds `fit` (and a Generator has
+    #: no file form), so a loaded model has the default
+    _UNSAVED_PARAMS: ClassVar[tuple[str, ...]] = ("random_state",)
+    #: parameter -> the fitted attribute that holds its value in model files
+    _PARAMS_IN_FITTED: ClassVar[dict[str, str]] = {}
+    #: fitted attributes whose every entry must be positive in a model file
+    _POSITIVE: ClassVar[tuple[str, ...]] = ()
+
+    # ---- parameters
+    @classmethod
+    def _param_names(cls) -> tuple[str, ...]:
+        return tuple(inspect.signature(cls.__init__).parameters)[1:]
+
+    def get_params(self) -> dict[str, object]:
+        """The constructor's arguments by name (scikit-learn's `get_params`)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def clone(self) -> "ShapeModel":
+        """A new, unfitted model with copies of this one's parameters (scikit-learn's `clone`)."""
+        return type(self)(**copy.deepcopy(self.get_params()))
+
+    @classmethod
+    def _saved_param_names(cls) -> tuple[str, ...]:
+        return tuple(name for name in cls._param_names()
+                     if name not in cls._UNSAVED_PARAMS and name not in cls._PARAMS_IN_FITTED)
+
+    @classmethod
+    def _fitted_keys(cls) -> tuple[str, ...]:
+        return tuple(key for key in cls._ARRAY_SPEC if key != "model_type" and not key.startswith("param_"))
 
     # ---- helpers used by subclasses
     def _check_fitted(self) -> None:
@@ -332,75 +311,98 @@ class ShapeModel:
             raise ModelInputError("Y_partial has NaN or infinite values at observed coordinates")
         return Y, mask
 
+    # ---- sampling
+    def sample_with_latents(self, n: int, rng=None) -> tuple[np.ndarray, np.ndarray]:
+        """n shapes (n, D) from the model, as its settings ask (PPCA: `sample_noise`), and the
+        latents (n, Q) they were decoded from."""
+        rng = as_generator(rng)
+        latents = self.sample_latents(n, rng)
+        return self.decode(latents), latents
+
+    def sample(self, n: int, rng=None) -> np.ndarray:
+        """n shapes (n, D) from the model (`sample_with_latents` without the latents)."""
+        return self.sample_with_latents(n, rng)[0]
+
     # ---- serialisation
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Plain numeric / str arrays (no objects) describing the fitted model."""
+        """Plain numeric / str arrays (no objects) describing the fitted model: its type, the
+        saved parameters as "param_<name>" and the fitted attributes."""
         self._check_fitted()
         out = {"model_type": np.array(self.model_type)}
-        for key in self._ARRAY_SPEC:
-            if key == "model_type":
-                continue
-            out[key] = np.array(self._array_value(key))
+        for name in self._saved_param_names():
+            key = f"param_{name}"
+            out[key] = _encode_param(name, getattr(self, name), self._ARRAY_SPEC[key].kinds)
+        for key in self._fitted_keys():
+            out[key] = np.array(getattr(self, key))
         return out
-
-    def _array_value(self, key: str):
-        return getattr(self, key)
 
     @classmethod
     def from_arrays(cls, arrays) -> "ShapeModel":
         """Rebuild a fitted model from `to_arrays()` output; refuses anything else (ModelFileError)."""
-        arrays = _validate_arrays(cls, arrays)
-        model = cls.__new__(cls)
-        model._restore(arrays)
+        arrays = cls._checked_arrays(arrays, f"{cls.__name__} arrays")
+        defaults = inspect.signature(cls.__init__).parameters
+        params = {name: _decode_param(name, arrays[f"param_{name}"], defaults[name].default)
+                  for name in cls._saved_param_names()}
+        params.update({name: arrays[key].item() for name, key in cls._PARAMS_IN_FITTED.items()})
+        model = cls(**params)
+        for key in cls._fitted_keys():
+            setattr(model, key, arrays[key].item() if arrays[key].ndim == 0 else arrays[key])
+        try:
+            model._prepare()
+        except np.linalg.LinAlgError:
+            raise ModelFileError(f"{cls.__name__} arrays: the stored kernel matrices are not positive definite") from None
         return model
 
-    def _restore(self, arrays: dict[str, np.ndarray]) -> None:
+    def _prepare(self) -> None:
         raise NotImplementedError
 
+    @classmethod
+    def _checked_arrays(cls, arrays, label: str) -> dict[str, np.ndarray]:
+        """`arrays` validated against `_ARRAY_SPEC` (exactly its keys; float arrays as float64)."""
+        if not hasattr(arrays, "keys"):
+            raise ModelFileError(f"{label}: need a mapping of arrays, got {type(arrays).__name__}")
+        unknown = sorted(set(arrays.keys()) - set(cls._ARRAY_SPEC))
+        validate_arrays(arrays, cls._ARRAY_SPEC, label)
+        if unknown:
+            raise ModelFileError(f"{label}: unexpected array(s) {unknown}")
+        out = {key: np.asarray(arrays[key]) for key in cls._ARRAY_SPEC}
+        out = {key: value.astype(np.float64) if value.dtype.kind == "f" else value for key, value in out.items()}
+        if str(out["model_type"]) != cls.model_type:
+            raise ModelFileError(f"arrays describe a '{out['model_type']}' model, not '{cls.model_type}' ({cls.__name__})")
+        for key, value in out.items():
+            if 0 in value.shape:
+                raise ModelFileError(f"{label}: array {key!r} is empty (shape {value.shape})")
+        for key in cls._POSITIVE:
+            if not np.all(out[key] > 0):
+                raise ModelFileError(f"{label}: {key} must be positive")
+        return out
 
-def _validate_arrays(cls, arrays) -> dict[str, np.ndarray]:
-    name = cls.__name__
-    if not hasattr(arrays, "keys"):
-        raise ModelFileError(f"{name}.from_arrays needs a mapping of arrays, got {type(arrays).__name__}")
-    keys = set(arrays.keys())
-    expected = set(cls._ARRAY_SPEC)
-    missing, unknown = sorted(expected - keys), sorted(keys - expected)
-    if missing:
-        raise ModelFileError(f"{name} arrays are missing key(s) {missing}")
-    if unknown:
-        raise ModelFileError(f"{name} arrays have unexpected key(s) {unknown}")
-    sizes: dict[str, int] = {}
-    defined_by: dict[str, str] = {}
-    out = {}
-    for key, (kind, shape) in cls._ARRAY_SPEC.items():
-        value = arrays[key]
-        if not isinstance(value, np.ndarray):
-            raise ModelFileError(f"{name} array '{key}' is a {type(value).__name__}, not a numpy array")
-        if value.dtype.kind == "O":
-            raise ModelFileError(f"{name} array '{key}' holds Python objects; refused")
-        kinds = {"f": "f", "i": "iu", "U": "U"}[kind]
-        if value.dtype.kind not in kinds:
-            raise ModelFileError(f"{name} array '{key}' has dtype {value.dtype}, expected kind '{kind}'")
-        if value.ndim != len(shape):
-            raise ModelFileError(f"{name} array '{key}' has shape {value.shape}, expected {len(shape)}-D {shape}")
-        for axis, symbol in enumerate(shape):
-            size = value.shape[axis]
-            if symbol.isdigit():
-                if size != int(symbol):
-                    raise ModelFileError(f"{name} array '{key}' has shape {value.shape}, expected {shape}")
-            elif sizes.setdefault(symbol, size) != size:
-                raise ModelFileError(
-                    f"{name} array '{key}' has {symbol} = {size} along axis {axis}, "
-                    f"but array '{defined_by[symbol]}' has {symbol} = {sizes[symbol]}"
-                )
-            else:
-                defined_by.setdefault(symbol, key)
-        if kind == "f" and not np.all(np.isfinite(value)):
-            raise ModelFileError(f"{name} array '{key}' contains NaN or infinite values")
-        out[key] = value.astype(np.float64) if kind == "f" else value
-    if str(out["model_type"]) != cls.model_type:
-        raise ModelFileError(f"arrays describe a '{out['model_type']}' model, not '{cls.model_type}' ({name})")
-    for symbol in ("N", "D", "Q", "M"):
-        if sizes.get(symbol, 1) < 1:
-            raise ModelFileError(f"{name} arrays have {symbol} = 0")
-    return out
+
+def _encode_param(name: str, value, kinds: str) -> np.ndarray:
+    """A parameter as a 0-d array of the spec's kind ('U' text, 'f' float, else integer; None
+    and text choices by `_PARAM_CODES`)."""
+    if kinds == "U":
+        return np.array(str(value))
+    if kinds == "f":
+        return np.array(float(value))
+    if value is None or isinstance(value, str):
+        return np.array(_PARAM_CODES[name][value])
+    return np.array(int(value))
+
+
+def _decode_param(name: str, array: np.ndarray, default):
+    """The inverse of `_encode_param`: text that reads as a number becomes a float, integer
+    codes their choice, and integers of a parameter whose default is a bool a bool."""
+    if array.dtype.kind == "U":
+        text = str(array)
+        try:
+            return float(text)
+        except ValueError:
+            return text
+    if array.dtype.kind == "f":
+        return float(array)
+    number = int(array)
+    choices = {code: choice for choice, code in _PARAM_CODES.get(name, {}).items()}
+    if number in choices:
+        return choices[number]
+    return bool(number) if isinstance(default, bool) else number

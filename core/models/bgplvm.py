@@ -10,9 +10,9 @@ Prior p(X) = prod_n N(x_n | 0, I), variational q(X) = prod_n N(mu_n, diag S_n), 
 
 It is maximised over mu, log S, Z, log s_f^2, log a (inverse squared length-scales) and log beta
 by L-BFGS-B with analytic gradients. Y enters only through Y Y^T (formed once, N x N), so an
-iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`fit`): the latent scale of
-each dimension, which only the KL term pins down, is profiled out (`profile_scale`); the blocks
-are preconditioned by their measured curvature (`block_scales`). The bound has several local
+iteration costs O(N M^2 Q + N^2 M), whatever D. Optimiser details (`_BoundProblem`): the latent
+scale of each dimension, which only the KL term pins down, is profiled out (`profile_scale`);
+the blocks are preconditioned by their measured curvature (`block_scales`). The bound has several local
 optima, so two starting points (PCA latents with a noise warm-up; GPy's standardised PCA with
 noise = data variance) run 40 iterations each and the better one continues; it stops when 10
 iterations together gain less than 3e-6 |F|, at a single-iteration relative decrease below
@@ -33,14 +33,11 @@ E_q(x*)[f] = psi1(mu*, S*) B.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf, dtrtri
-from scipy.optimize import minimize
-
-from ..errors import ModelFileError
-from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
-                   check_rows, check_training_data, default_latent_dim, lbfgs, pca_latents,
-                   standardised_pca_latents)
-from .kernels import PsiStatistics, ard_rbf
+from ..npzfile import ArraySpec
+from .base import ModelInputError, ProgressCallback, as_generator, pca_latents, standardised_pca_latents
+from .kernels import PsiStatistics, rbf
+from .latent_variable import (FitProblem, LatentVariableModel, OptimiserRun, TrainingData, best_start,
+                              inverse_cholesky, lbfgs)
 
 __all__ = ["BayesianGPLVM", "bgplvm_bound", "BoundLayout", "gram_root", "profile_scale", "block_scales"]
 
@@ -73,22 +70,12 @@ def _factors(Kmm: np.ndarray, Psi2: np.ndarray, beta: float):
     K_mm = L L^T, X = L^-1 Psi2 L^-T (PSD), B = I + beta X = L^-1 A L^-T = R R^T, P = R^-1 L^-1.
     Then K_mm^-1 = L^-T L^-1, A^-1 = P^T P, log|A K_mm^-1| = log|B| = 2 sum log diag R.
     Returns (L^-1, R^-1, X, P, log|B|)."""
-    L_inv = _inverse_cholesky(Kmm, "K_mm")
+    L_inv = inverse_cholesky(Kmm, "K_mm")
     X = L_inv @ Psi2 @ L_inv.T
     B = beta * X
     B.flat[:: B.shape[0] + 1] += 1.0
-    R_inv, log_det_B = _inverse_cholesky(B, "I + beta L^-1 Psi2 L^-T", log_det=True)
+    R_inv, log_det_B = inverse_cholesky(B, "I + beta L^-1 Psi2 L^-T", log_det=True)
     return L_inv, R_inv, X, R_inv @ L_inv, log_det_B
-
-
-def _inverse_cholesky(matrix: np.ndarray, name: str, log_det: bool = False):
-    """L^-1 for matrix = L L^T (lower), and log|matrix| if asked; LinAlgError if not PD."""
-    L, info = dpotrf(matrix, lower=1, clean=1)
-    if info == 0:
-        L_inv, info = dtrtri(L, lower=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"{name} is not positive definite")
-    return (L_inv, 2.0 * np.log(L.diagonal()).sum()) if log_det else L_inv
 
 
 def gram_root(YYt: np.ndarray) -> np.ndarray:
@@ -191,7 +178,69 @@ def block_scales(objective, x: np.ndarray, splits, h: float = 1e-4) -> np.ndarra
     return scales
 
 
-class BayesianGPLVM(ShapeModel):
+class _BoundProblem(FitProblem):
+    """-F in scale-profiled coordinates (`profile_scale`) over the bounded parameters; every
+    run is preconditioned by `block_scales` measured at its start. Starting points (the bound
+    has several local optima; neither start wins on all data): (a) PCA latents (relative scales
+    kept), noise first held at 1 % of the data variance for `warm_up` iterations; (b) GPy's:
+    PCA of the column-standardised data, each latent scaled to unit variance, noise = data
+    variance; the inducing inputs are M latents drawn by `rng`, slightly perturbed."""
+
+    def __init__(self, data: TrainingData, m: int, jitter: float, rng: np.random.Generator,
+                 progress: ProgressCallback | None, ftol: float, stall: tuple[int, float], warm_up: int):
+        n, q, data_var, Yc = data.gram.shape[0], data.latent_dim, data.variance, data.centred
+        self.layout = BoundLayout(n, q, m)
+        self.Y_root = gram_root(data.gram)                    # N x r, Y_root Y_root^T = Y Y^T
+        self.n_features, self.jitter = data.n_features, jitter
+        self.progress, self.ftol, self.stall = progress, ftol, stall
+        self.bounds = ([(None, None)] * (n * q) + [(np.log(1e-10), np.log(1e3))] * (n * q) + [(None, None)] * (m * q)
+                       + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
+                       + [(None, np.log(1e8 / data_var))])
+        self.starts, self.warm_ups = [], [warm_up, 0]
+        for mu0, snr in ((pca_latents(Yc, q), 100.0), (standardised_pca_latents(Yc, q), 1.0)):
+            Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
+            self.starts.append(self.layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
+                                                np.log(snr / data_var)))
+
+    def objective(self, x_tilde):
+        """-F in scale-profiled coordinates (`profile_scale`)."""
+        x, chain = profile_scale(x_tilde, self.layout)
+        value, grad = bgplvm_bound(x, self.layout, self.Y_root, self.n_features, self.jitter)
+        return -value, -chain(grad)
+
+    def _run(self, x_start, n_iter, span, stage, noise_fixed=False, stall=None) -> OptimiserRun:
+        """L-BFGS-B on the bound from x_start, preconditioned by `block_scales` measured there."""
+        scales = block_scales(self.objective, x_start, self.layout.splits)
+
+        def preconditioned(y):
+            value, grad = self.objective(x_start + scales * y)
+            return value, grad * scales
+        y_bounds = [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
+                    for (lo, hi), o, sc in zip(self.bounds, x_start, scales)]
+        if noise_fixed:
+            y_bounds[-1] = (0.0, 0.0)
+        result = lbfgs(preconditioned, np.zeros(self.layout.size), max_iter=max(n_iter, 1), progress=self.progress,
+                       message=f"Bayesian GP-LVM: {stage}", bounds=y_bounds, progress_span=span,
+                       ftol=self.ftol, stall=stall)
+        x, _ = profile_scale(x_start + scales * result.x, self.layout)
+        return OptimiserRun(x, -float(result.fun), int(result.nit), str(result.message))
+
+    def run(self, x, n_iter, span, final):
+        if final:
+            return self._run(x, n_iter, span, "optimising the bound", stall=self.stall)
+        return self._run(x, n_iter, span, "starting points")
+
+    def run_start(self, index, n_iter, span):
+        """The start's noise warm-up (if any), then its run, within n_iter iterations together."""
+        x, warm_up, used = self.starts[index], self.warm_ups[index], 0
+        if warm_up:
+            warm = self._run(x, min(warm_up, n_iter), span, "warm-up (noise fixed)", noise_fixed=True)
+            x, used = warm.x, warm.n_iter
+        run = self.run(x, n_iter - used, span, final=False)
+        return OptimiserRun(run.x, run.value, used + run.n_iter, run.message)
+
+
+class BayesianGPLVM(LatentVariableModel):
     """Bayesian GP-LVM shape model (sparse variational, ARD RBF).
 
     Parameters
@@ -215,6 +264,7 @@ class BayesianGPLVM(ShapeModel):
     """
 
     model_type = "bgplvm"
+    _LABEL = "Bayesian GP-LVM"
     # L-BFGS-B relative-decrease tolerance: scipy's (and GPy's) default factr = 1e7
     _FTOL = 1e7 * np.finfo(float).eps
     # the final run also stops once 10 iterations together gained less than 3e-6 |F|
@@ -223,23 +273,26 @@ class BayesianGPLVM(ShapeModel):
     _START_ITERS = 40
     _WARM_UP = 15
     _ARRAY_SPEC = {
-        "model_type": ("U", ()),
-        "mean_": ("f", ("D",)),
-        "latent_mean_": ("f", ("N", "Q")),
-        "latent_variance_": ("f", ("N", "Q")),
-        "inducing_": ("f", ("M", "Q")),
-        "kernel_variance_": ("f", ()),
-        "inverse_lengthscales_": ("f", ("Q",)),
-        "noise_variance_": ("f", ()),
-        "jitter_": ("f", ()),
-        "B_": ("f", ("M", "D")),
-        "elbo_": ("f", ()),
-        "param_n_components": ("i", ()),
-        "param_n_inducing": ("i", ()),
-        "param_max_iter": ("i", ()),
-        "param_n_restarts": ("i", ()),
-        "param_variance_fraction": ("f", ()),
+        "model_type": ArraySpec("U", ()),
+        "mean_": ArraySpec("f", ("D",)),
+        "latent_mean_": ArraySpec("f", ("N", "Q")),
+        "latent_variance_": ArraySpec("f", ("N", "Q")),
+        "inducing_": ArraySpec("f", ("M", "Q")),
+        "kernel_variance_": ArraySpec("f", ()),
+        "inverse_lengthscales_": ArraySpec("f", ("Q",)),
+        "noise_variance_": ArraySpec("f", ()),
+        "jitter_": ArraySpec("f", ()),
+        "B_": ArraySpec("f", ("M", "D")),
+        "elbo_": ArraySpec("f", ()),
+        "param_n_components": ArraySpec("iu", ()),
+        "param_n_inducing": ArraySpec("iu", ()),
+        "param_max_iter": ArraySpec("iu", ()),
+        "param_n_restarts": ArraySpec("iu", ()),
+        "param_variance_fraction": ArraySpec("f", ()),
     }
+    # model files keep the jitter setting as the fitted jitter_ (equal after a fit)
+    _PARAMS_IN_FITTED = {"jitter": "jitter_"}
+    _POSITIVE = ("kernel_variance_", "noise_variance_", "jitter_", "latent_variance_", "inverse_lengthscales_")
 
     def __init__(self, n_components: int | None = None, n_inducing: int = 20, max_iter: int = 2000,
                  n_restarts: int = 3, variance_fraction: float = 0.8, random_state=None,
@@ -253,109 +306,47 @@ class BayesianGPLVM(ShapeModel):
         self.jitter = jitter
 
     # ------------------------------------------------------------------ fit
-    def fit(self, Y, progress: ProgressCallback | None = None) -> "BayesianGPLVM":
-        """Maximise the collapsed bound from a PCA initialisation; returns self."""
-        Y = check_training_data(Y)
-        n, d = Y.shape
+    def _fit_problem(self, data, progress):
         rng = as_generator(self.random_state)
         if isinstance(self.n_inducing, bool) or not isinstance(self.n_inducing, (int, np.integer)) or self.n_inducing < 1:
             raise ModelInputError(f"n_inducing must be a positive integer, got {self.n_inducing!r}")
-        mean = Y.mean(0)
-        Yc = Y - mean
-        q = (default_latent_dim(Yc, self.variance_fraction) if self.n_components is None
-             else check_latent_dim(self.n_components, n))
-        m = int(min(self.n_inducing, n))
-        if progress is not None:
-            progress(0.0, "Bayesian GP-LVM: PCA initialisation")
-        YYt = Yc @ Yc.T                                       # the only use of D-sized data
-        Y_root = gram_root(YYt)                               # N x r, Y_root Y_root^T = Y Y^T
-        data_var = np.trace(YYt) / (n * d)
         jitter = float(self.jitter)
         if not 0.0 < jitter < 1.0:
             raise ModelInputError(f"jitter must be in (0, 1), got {self.jitter!r}")
-        layout = BoundLayout(n, q, m)
-        bounds = ([(None, None)] * (n * q) + [(np.log(1e-10), np.log(1e3))] * (n * q) + [(None, None)] * (m * q)
-                  + [(np.log(1e-8 * data_var), np.log(1e8 * data_var))] + [(np.log(1e-10), np.log(1e10))] * q
-                  + [(None, np.log(1e8 / data_var))])
+        m = int(min(self.n_inducing, data.gram.shape[0]))
+        return _BoundProblem(data, m, jitter, rng, progress, self._FTOL, self._STALL, self._WARM_UP)
 
-        def objective(x_tilde):
-            """-F in scale-profiled coordinates (`profile_scale`)."""
-            x, chain = profile_scale(x_tilde, layout)
-            value, grad = bgplvm_bound(x, layout, Y_root, d, jitter)
-            return -value, -chain(grad)
-
-        def run(x_start, n_iter, span, message, noise_fixed=False, stall=None):
-            """L-BFGS-B on the bound from x_start, preconditioned by `block_scales` measured
-            there. Returns (x, F, iterations, message)."""
-            scales = block_scales(objective, x_start, layout.splits)
-
-            def preconditioned(y):
-                value, grad = objective(x_start + scales * y)
-                return value, grad * scales
-            y_bounds = [(None if lo is None else (lo - o) / sc, None if hi is None else (hi - o) / sc)
-                        for (lo, hi), o, sc in zip(bounds, x_start, scales)]
-            if noise_fixed:
-                y_bounds[-1] = (0.0, 0.0)
-            result = lbfgs(preconditioned, np.zeros(layout.size), max_iter=max(n_iter, 1), progress=progress,
-                           message=message, bounds=y_bounds, progress_span=span,
-                           ftol=self._FTOL, stall=stall)
-            x, _ = profile_scale(x_start + scales * result.x, layout)
-            return x, -float(result.fun), int(result.nit), str(result.message)
-
-        # two starting points (the bound has several local optima; neither start wins on all
-        # data): (a) PCA latents (relative scales kept), noise first held at 1 % of the data
-        # variance for `_WARM_UP` iterations; (b) GPy's: PCA of the column-standardised data,
-        # each latent scaled to unit variance, noise = data variance. Each runs `_START_ITERS`
-        # iterations; the better one continues until the bound stalls (`_STALL`) or `max_iter`.
-        starts = [(pca_latents(Yc, q), 100.0, self._WARM_UP), (standardised_pca_latents(Yc, q), 1.0, 0)]
-        n_start = int(min(self._START_ITERS, max(self.max_iter // 4, 1)))   # the final run keeps >= half
-        candidates = []
-        for i, (mu0, snr, n_warm) in enumerate(starts):
-            Z0 = mu0[rng.permutation(n)[:m]] + 1e-3 * rng.standard_normal((m, q))
-            x = layout.pack(mu0, np.log(np.full((n, q), 0.1)), Z0, np.log(data_var), np.zeros(q),
-                            np.log(snr / data_var))
-            span = (0.1 * i / len(starts), 0.1 * (i + 1) / len(starts))
-            nit = 0
-            if n_warm:
-                x, _, nit, _ = run(x, min(n_warm, n_start), span, "Bayesian GP-LVM: warm-up (noise fixed)",
-                                   noise_fixed=True)
-            x, value, more, _ = run(x, n_start - nit, span, "Bayesian GP-LVM: starting points")
-            candidates.append((value, x, nit + more))
-        value, x, _ = max(candidates, key=lambda c: c[0])
-        n_total = sum(c[2] for c in candidates)
-        x, value, more, message = run(x, self.max_iter - n_total, (0.1, 0.95), "Bayesian GP-LVM: optimising the bound",
-                                      stall=self._STALL)
-        mu, log_S, Z, log_var, log_alpha, log_beta = layout.unpack(x)
-        self.mean_ = mean
+    def _set_optimum(self, data, problem, optimum):
+        """q(X), inducing inputs and kernel from the optimum, F there; then
+        B = beta A^-1 Psi1^T Y, the one pass over D after the fit."""
+        mu, log_S, Z, log_var, log_alpha, log_beta = problem.layout.unpack(optimum.x)
         self.latent_mean_ = mu.copy()
         self.latent_variance_ = np.exp(log_S)
         self.inducing_ = Z.copy()
         self.kernel_variance_ = float(np.exp(log_var))
         self.inverse_lengthscales_ = np.exp(log_alpha)
         self.noise_variance_ = float(np.exp(-log_beta))
-        self.jitter_ = float(jitter)
-        self.elbo_ = value
-        self.n_iter_ = n_total + more
-        self.optimizer_message_ = message
+        self.jitter_ = problem.jitter
+        self.elbo_ = optimum.value
         self._prepare()
-        # B = beta A^-1 Psi1^T Y: the one pass over D after the fit
-        self.B_ = (self.beta_ * self._A_inv) @ (self._train_psi.psi1.T @ Yc)
-        if progress is not None:
-            progress(1.0, "Bayesian GP-LVM: done")
-        return self
+        self.B_ = (self.beta_ * self._A_inv) @ (self._train_psi.psi1.T @ data.centred)
 
     @property
     def beta_(self) -> float:
         return 1.0 / self.noise_variance_
 
     def _prepare(self) -> None:
-        """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters)."""
-        self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
-                                        self.kernel_variance_, self.inverse_lengthscales_, self.jitter_)
-        L_inv, R_inv, X, P, _ = _factors(self._train_psi.Kmm, self._train_psi.psi2, self.beta_)
+        """Training psi-statistics, K_mm^-1 and A^-1 (from the stored parameters), and the row
+        search's per-candidate constants."""
+        tp = self._train_psi = PsiStatistics(self.latent_mean_, self.latent_variance_, self.inducing_,
+                                             self.kernel_variance_, self.inverse_lengthscales_, self.jitter_)
+        L_inv, R_inv, X, P, _ = _factors(tp.Kmm, tp.psi2, self.beta_)
         self._A_inv = P.T @ P
         posterior = -self.beta_ * (P.T @ (R_inv @ X @ L_inv))                     # A^-1 - K_mm^-1
         self._posterior_term = 0.5 * (posterior + posterior.T)
+        self._row_candidates = np.hstack([tp.mu, np.log(tp.S)])
+        self._train_kl = 0.5 * np.sum(tp.mu**2 + tp.S - np.log(tp.S) - 1.0, 1)
+        self._psi2_variance = tp.psi2n - tp.psi1[:, :, None] * tp.psi1[:, None, :]
 
     @property
     def latent_dim(self) -> int:
@@ -365,15 +356,14 @@ class BayesianGPLVM(ShapeModel):
     # ------------------------------------------------------------------ API
     def decode(self, Z) -> np.ndarray:
         """Predictive mean at latent points: mean + k(z, Z_ind) B, (n, D)."""
-        self._check_fitted()
-        Z = self._check_latents(Z)
-        return self.mean_ + ard_rbf(Z, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_) @ self.B_
+        features = self.decode_features(Z)
+        return self.mean_ + features @ self.B_
 
     def decode_features(self, Z) -> np.ndarray:
         """decode(Z) = mean_ + decode_features(Z) @ decode_basis(): k(z, Z_ind), (n, M)."""
         self._check_fitted()
-        Z = self._check_latents(Z)
-        return ard_rbf(Z, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
+        scale = np.sqrt(self.inverse_lengthscales_)                    # the ARD kernel (kernels.py)
+        return rbf(self._check_latents(Z) * scale, self.inducing_ * scale, self.kernel_variance_)
 
     def decode_basis(self) -> np.ndarray:
         """(M, D): the predictive-mean weights B."""
@@ -385,53 +375,33 @@ class BayesianGPLVM(ShapeModel):
         self._check_fitted()
         return as_generator(rng).standard_normal((self._check_count(n), self.latent_dim))
 
-    def sample(self, n: int, rng=None) -> np.ndarray:
-        """Prior latents (`sample_latents`) mapped by the predictive mean, (n, D)."""
-        return self.decode(self.sample_latents(n, rng))
-
     def _row_setup(self, B_o: np.ndarray, r_o: np.ndarray):
-        """Per-row constants of the per-point bound for observed residual r_o = (y - mean)_o.
+        """The shared row constants (c, R, rest, D_o) with H = B_o B_o^T + D_o (A^-1 - K_mm^-1):
+        |r_o|^2 - 2 psi1 B_o r_o + tr(psi2 B_o B_o^T) = |c - R psi1|^2 + rest
+        + tr((psi2 - psi1^T psi1) R^T R). Returns (c, R, rest, H, D_o)."""
+        c, R, rest, d_o = super()._row_setup(B_o, r_o)
+        return c, R, rest, R.T @ R + d_o * self._posterior_term, d_o
 
-        With the thin QR B_o^T = Q R: |r_o|^2 - 2 psi1 B_o r_o + tr(psi2 B_o B_o^T)
-        = |c - R psi1|^2 + rest + tr((psi2 - psi1^T psi1) R^T R), c = Q^T r_o,
-        rest = |r_o|^2 - |c|^2, so each evaluation costs O(M^2 Q), not O(D), without cancellation.
-        Returns (c, R, rest, H, d_o) with H = B_o B_o^T + D_o (A^-1 - K_mm^-1).
-        """
-        Q, R = np.linalg.qr(B_o.T)
-        c = Q.T @ r_o
-        d_o = r_o.size
-        H = R.T @ R + d_o * self._posterior_term
-        return c, R, max(float(r_o @ r_o - c @ c), 0.0), H, d_o
-
-    def _fit_rows(self, Y, mask):
-        """Optimise q(x*) = N(mu*, diag S*) of each row against its observed coordinates
-        (per-point bound, module docstring). Returns (mu*, S*, bound) per row."""
-        R_all = np.where(mask, Y - self.mean_, 0.0)
-        beta, q = self.beta_, self.latent_dim
+    def _search_row(self, args, scoring):
+        """Optimise q(x*) = N(mu*, diag S*) of one row against its observed coordinates (the
+        per-point bound of the module docstring, also the score: a lower-bound-based estimate
+        of log p(y* | Y)), from the training q(x_n) with the best per-point bound. Returns
+        ([mu*, log S*], bound)."""
+        c, R, rest, H, d_o = args
         tp = self._train_psi
-        kl_train = 0.5 * np.sum(tp.mu**2 + tp.S - np.log(tp.S) - 1.0, 1)
-        psi2_var = tp.psi2n - tp.psi1[:, :, None] * tp.psi1[:, None, :]
-        mus, Ss, bounds_out = np.empty((len(Y), q)), np.empty((len(Y), q)), np.empty(len(Y))
-        for i in range(len(Y)):
-            o = mask[i]
-            args = self._row_setup(self.B_[:, o], R_all[i, o])
-            c, R, rest, H, d_o = args
-            # starting points: training q(x_n) with the best per-point bound
-            G = R.T @ R
-            data = (np.sum((c[:, None] - R @ tp.psi1.T) ** 2, 0) + rest
-                    + np.einsum("nab,ab->n", psi2_var, G) + d_o * np.einsum("nab,ab->n", tp.psi2n, self._posterior_term))
-            start_vals = -0.5 * beta * data - kl_train
-            best = (-np.inf, None)
-            for j in np.argsort(-start_vals)[: max(1, self.n_restarts)]:
-                x0 = np.concatenate([tp.mu[j], np.log(tp.S[j])])
-                res = minimize(self._row_bound, x0, args=args, jac=True, method="L-BFGS-B",
-                               bounds=[(None, None)] * q + [(np.log(1e-10), np.log(1e3))] * q,
-                               options={"maxiter": 200})
-                if -res.fun > best[0]:
-                    best = (-res.fun, res.x)
-            bounds_out[i] = best[0]
-            mus[i], Ss[i] = best[1][:q], np.exp(best[1][q:])
-        return mus, Ss, bounds_out
+        G = R.T @ R
+        data = (np.sum((c[:, None] - R @ tp.psi1.T) ** 2, 0) + rest + np.einsum("nab,ab->n", self._psi2_variance, G)
+                + d_o * np.einsum("nab,ab->n", tp.psi2n, self._posterior_term))
+        q = self.latent_dim
+        return best_start(self._row_bound, self._best_candidates(-0.5 * self.beta_ * data - self._train_kl), args,
+                          bounds=[(None, None)] * q + [(np.log(1e-10), np.log(1e3))] * q)
+
+    def _predict_rows(self, found):
+        """E_q(x*)[f] = mean + psi1(mu*, S*) B."""
+        q = self.latent_dim
+        psi = PsiStatistics(found[:, :q], np.exp(found[:, q:]), self.inducing_, self.kernel_variance_,
+                            self.inverse_lengthscales_)
+        return self.mean_ + psi.psi1 @ self.B_
 
     def _row_bound(self, x, c, R, rest, H, d_o):
         """-L(y*) for one row and its gradient w.r.t. [mu*, log S*] (args from `_row_setup`)."""
@@ -451,51 +421,3 @@ class BayesianGPLVM(ShapeModel):
         d_mu = d_mu - mu
         d_logS = d_S * S - 0.5 * (S - 1.0)
         return -value, -np.concatenate([d_mu[0], d_logS[0]])
-
-    def encode(self, Y) -> np.ndarray:
-        """Means mu* of the optimised q(x*) of each row, (n, Q)."""
-        self._check_fitted()
-        Y = check_rows(Y, self.n_features_)
-        return self._fit_rows(Y, np.ones(Y.shape, bool))[0]
-
-    def score(self, Y) -> float:
-        """Mean over rows of the per-point ELBO with q(x*) optimised (a lower-bound-based
-        estimate of log p(y* | Y); module docstring)."""
-        self._check_fitted()
-        Y = check_rows(Y, self.n_features_)
-        return float(np.mean(self._fit_rows(Y, np.ones(Y.shape, bool))[2]))
-
-    def complete(self, Y_partial, observed_mask) -> np.ndarray:
-        """Optimise q(x*) against the observed coordinates, fill the rest with E_q[f] = psi1 B."""
-        Y, mask = self._check_partial(Y_partial, observed_mask)
-        mu, S, _ = self._fit_rows(np.where(mask, Y, 0.0), mask)
-        psi = PsiStatistics(mu, S, self.inducing_, self.kernel_variance_, self.inverse_lengthscales_)
-        return np.where(mask, Y, self.mean_ + psi.psi1 @ self.B_)
-
-    # ------------------------------------------------------------------ arrays
-    def _array_value(self, key: str):
-        if key == "param_n_components":
-            return -1 if self.n_components is None else int(self.n_components)
-        if key.startswith("param_"):
-            return getattr(self, key[len("param_"):])
-        return getattr(self, key)
-
-    def _restore(self, a) -> None:
-        for key in ("kernel_variance_", "noise_variance_", "jitter_"):
-            if not a[key] > 0:
-                raise ModelFileError(f"BayesianGPLVM arrays: {key} must be positive")
-        for key in ("latent_variance_", "inverse_lengthscales_"):
-            if not np.all(a[key] > 0):
-                raise ModelFileError(f"BayesianGPLVM arrays: {key} must be positive")
-        nc = int(a["param_n_components"])
-        self.__init__(n_components=None if nc < 0 else nc, n_inducing=int(a["param_n_inducing"]),
-                      max_iter=int(a["param_max_iter"]), n_restarts=int(a["param_n_restarts"]),
-                      variance_fraction=float(a["param_variance_fraction"]), jitter=float(a["jitter_"]))
-        for key in ("mean_", "latent_mean_", "latent_variance_", "inducing_", "inverse_lengthscales_", "B_"):
-            setattr(self, key, a[key])
-        for key in ("kernel_variance_", "noise_variance_", "jitter_", "elbo_"):
-            setattr(self, key, float(a[key]))
-        try:
-            self._prepare()
-        except np.linalg.LinAlgError:
-            raise ModelFileError("BayesianGPLVM arrays: the stored kernel matrices are not positive definite") from None

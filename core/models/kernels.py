@@ -1,8 +1,9 @@
 """Kernels of the GP-LVMs (thesis eq. 5.38) and the psi-statistics of the Bayesian GP-LVM (§5.3.4).
 
-RBF:      k(z, z') = s_f^2 exp(-|z - z'|^2 / (2 l^2))
+RBF:      k(z, z') = s_f^2 exp(-|z - z'|^2 / (2 l^2))                       (eq. 5.38; GP-LVM)
 ARD RBF:  k(x, x') = s_f^2 exp(-1/2 sum_q a_q (x_q - x'_q)^2),  a_q = 1 / l_q^2 (inverse squared
-          length-scales: a_q -> 0 switches latent dimension q off).
+          length-scales: a_q -> 0 switches latent dimension q off; Bayesian GP-LVM), i.e. the
+          RBF kernel with l = 1 on inputs scaled by sqrt(a_q): one `rbf` serves both.
 
 psi-statistics for q(X) = prod_n N(mu_n, diag S_n) (Titsias & Lawrence 2010, eq. 15 and App. B):
   psi0   = sum_n <k(x_n, x_n)>              = N s_f^2
@@ -20,7 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["sq_dists", "rbf", "ard_rbf", "PsiStatistics"]
+__all__ = ["sq_dists", "rbf", "rbf_from_sq_dists", "PsiStatistics"]
 
 
 def sq_dists(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -29,15 +30,15 @@ def sq_dists(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.maximum(d2, 0.0)
 
 
-def rbf(A: np.ndarray, B: np.ndarray, variance: float, lengthscale: float) -> np.ndarray:
-    """Isotropic RBF kernel matrix (eq. 5.38), without the noise term."""
-    return variance * np.exp(-0.5 * sq_dists(A, B) / lengthscale**2)
+def rbf_from_sq_dists(d2: np.ndarray, variance: float, squared_lengthscale: float = 1.0) -> np.ndarray:
+    """The RBF kernel (eq. 5.38) of squared distances d2 = |z - z'|^2."""
+    return variance * np.exp(-0.5 * d2 / squared_lengthscale)
 
 
-def ard_rbf(A: np.ndarray, B: np.ndarray, variance: float, alpha: np.ndarray) -> np.ndarray:
-    """ARD RBF kernel matrix with inverse squared length-scales `alpha` (Q,)."""
-    r = np.sqrt(alpha)
-    return variance * np.exp(-0.5 * sq_dists(A * r, B * r))
+def rbf(A: np.ndarray, B: np.ndarray, variance: float, squared_lengthscale: float = 1.0) -> np.ndarray:
+    """RBF kernel matrix k(A, B), without the noise term; the ARD kernel is
+    rbf(A * sqrt(a), B * sqrt(a), variance)."""
+    return rbf_from_sq_dists(sq_dists(A, B), variance, squared_lengthscale)
 
 
 @lru_cache(maxsize=8)
@@ -51,7 +52,7 @@ def _pair_operators(m: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class PsiStatistics:
-    """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under an ARD RBF kernel, and
+    """psi0, psi1, psi2^n for q(X) = prod N(mu_n, diag S_n) under the ARD RBF kernel, and
     K_mm = K(Z, Z) + jitter s_f^2 I, with gradients.
 
     Each log-statistic is linear in a few features of Z, with per-point coefficients
@@ -95,7 +96,7 @@ class PsiStatistics:
         self.coef2 = np.concatenate([2.0 * c_mu, -self.c, k2[:, None], np.full((n, 1), -0.25)], 1)
         self.psi1 = np.exp(self.coef1 @ self.features1.T)
         self.psi2n = np.exp(self.coef2 @ self.features2.T).reshape(n, m, m)
-        self.Kmm = (variance * np.exp(-0.5 * u)).reshape(m, m)
+        self.Kmm = rbf_from_sq_dists(u, variance).reshape(m, m)
         self.Kmm.flat[:: m + 1] += jitter * variance
 
     @property

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ModelFileError
+from ..npzfile import ArraySpec
 from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
                    check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
                    principal_axes, shrunk_spectrum)
@@ -43,18 +44,19 @@ class PPCA(ShapeModel):
 
     model_type = "ppca"
     _ARRAY_SPEC = {
-        "model_type": ("U", ()),
-        "mean_": ("f", ("D",)),
-        "components_": ("f", ("D", "Q")),
-        "noise_variance_": ("f", ()),
-        "shrinkage_": ("f", ()),
-        "eigenvalues_": ("f", ("R",)),
-        "n_samples_": ("i", ()),
-        "param_n_components": ("i", ()),
-        "param_shrinkage": ("U", ()),
-        "param_variance_fraction": ("f", ()),
-        "param_sample_noise": ("i", ()),
+        "model_type": ArraySpec("U", ()),
+        "mean_": ArraySpec("f", ("D",)),
+        "components_": ArraySpec("f", ("D", "Q")),
+        "noise_variance_": ArraySpec("f", ()),
+        "shrinkage_": ArraySpec("f", ()),
+        "eigenvalues_": ArraySpec("f", ("R",)),
+        "n_samples_": ArraySpec("iu", ()),
+        "param_n_components": ArraySpec("iu", ()),   # -1: variance rule, -2: held-out likelihood
+        "param_shrinkage": ArraySpec("U", ()),
+        "param_variance_fraction": ArraySpec("f", ()),
+        "param_sample_noise": ArraySpec("iu", ()),
     }
+    _POSITIVE = ("noise_variance_",)
 
     def __init__(self, n_components: int | None = None, shrinkage="ledoit-wolf",
                  variance_fraction: float = 0.8, sample_noise: bool = False):
@@ -142,7 +144,7 @@ class PPCA(ShapeModel):
             Yc = Y[train] - mean
             _, eigvals, axes = principal_axes(Yc)
             spectrum, _ = shrunk_spectrum(eigvals, d, self._shrinkage_value(Yc))
-            model = PPCA.__new__(PPCA)
+            model = self.clone()
             for q in range(1, q_max + 1):
                 if not valid[q - 1]:
                     continue
@@ -199,14 +201,13 @@ class PPCA(ShapeModel):
         self._check_fitted()
         return self.components_.T
 
-    def sample(self, n: int, rng=None) -> np.ndarray:
-        """n shapes y = mu + W z, z ~ N(0, I) (+ N(0, s^2 I) if sample_noise)."""
-        self._check_fitted()
+    def sample_with_latents(self, n: int, rng=None) -> tuple[np.ndarray, np.ndarray]:
+        """n shapes y = mu + W z, z ~ N(0, I) (+ N(0, s^2 I) if sample_noise), and their z."""
         rng = as_generator(rng)
-        Y = self.decode(self.sample_latents(n, rng))
+        Y, Z = super().sample_with_latents(n, rng)
         if self.sample_noise:
             Y += np.sqrt(self.noise_variance_) * rng.standard_normal(Y.shape)
-        return Y
+        return Y, Z
 
     def log_likelihood(self, Y) -> np.ndarray:
         """Exact log N(y | mu, W W^T + s^2 I) per row, by Woodbury and the determinant lemma:
@@ -237,39 +238,9 @@ class PPCA(ShapeModel):
         return np.where(mask, Y, out)
 
     # ------------------------------------------------------------------ arrays
-    def _array_value(self, key: str):
-        if key == "param_n_components":   # -1: variance rule, -2: held-out likelihood
-            if self.n_components is None:
-                return -1
-            return -2 if self.n_components == "heldout" else int(self.n_components)
-        if key == "param_shrinkage":
-            return str(self.shrinkage)
-        if key == "param_variance_fraction":
-            return float(self.variance_fraction)
-        if key == "param_sample_noise":
-            return int(bool(self.sample_noise))
-        return getattr(self, key)
-
-    def _restore(self, a) -> None:
-        if a["components_"].shape[1] >= a["mean_"].shape[0]:
-            raise ModelFileError("PPCA arrays: latent dimension must be smaller than D")
-        if not a["noise_variance_"] > 0:
-            raise ModelFileError("PPCA arrays: noise_variance_ must be positive")
-        nc = int(a["param_n_components"])
-        shrink = str(a["param_shrinkage"])
-        if shrink != "ledoit-wolf":
-            try:
-                shrink = float(shrink)
-            except ValueError:
-                raise ModelFileError(f"PPCA arrays: param_shrinkage {shrink!r} is not 'ledoit-wolf' or a number") from None
-        self.__init__(n_components=None if nc == -1 else "heldout" if nc == -2 else nc,
-                      shrinkage=shrink,
-                      variance_fraction=float(a["param_variance_fraction"]),
-                      sample_noise=bool(a["param_sample_noise"]))
-        self.mean_ = a["mean_"]
-        self.components_ = a["components_"]
-        self.noise_variance_ = float(a["noise_variance_"])
-        self.shrinkage_ = float(a["shrinkage_"])
-        self.eigenvalues_ = a["eigenvalues_"]
-        self.n_samples_ = int(a["n_samples_"])
-        self._prepare()
+    @classmethod
+    def _checked_arrays(cls, arrays, label):
+        arrays = super()._checked_arrays(arrays, label)
+        if arrays["components_"].shape[1] >= arrays["mean_"].shape[0]:
+            raise ModelFileError(f"{label}: latent dimension must be smaller than D")
+        return arrays

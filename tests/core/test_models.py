@@ -4,6 +4,7 @@ reproducibility, input errors and serialisation. Small data only (the file runs 
 
 from __future__ import annotations
 
+import inspect
 import io
 
 import numpy as np
@@ -11,11 +12,11 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from shapegen_core.errors import Cancelled, ModelFileError
-from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, model_from_arrays
+from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, kde, make_model, model_from_arrays
 from shapegen_core.models.base import ModelInputError, ledoit_wolf_shrinkage
 from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales, profile_scale
 from shapegen_core.models.gplvm import gplvm_log_likelihood
-from shapegen_core.models.kernels import PsiStatistics, ard_rbf
+from shapegen_core.models.kernels import PsiStatistics, rbf
 
 # ----------------------------------------------------------------------------- data
 
@@ -253,7 +254,7 @@ def test_ppca_matches_scikit_learn():
 
 def _gplvm_exact(Y, X, variance, alpha, beta):
     """Exact log p(Y | X) of a GP-LVM with ARD kernel (dense)."""
-    K = ard_rbf(X, X, variance, alpha) + np.eye(len(X)) / beta
+    K = rbf(X * np.sqrt(alpha), X * np.sqrt(alpha), variance) + np.eye(len(X)) / beta
     return sum(multivariate_normal(np.zeros(len(X)), K).logpdf(Y[:, j]) for j in range(Y.shape[1]))
 
 
@@ -294,7 +295,8 @@ def test_bgplvm_point_bound_sums_to_training_bound(fitted):
     for i in range(len(Y)):
         x = np.concatenate([bg.latent_mean_[i], np.log(bg.latent_variance_[i])])
         total -= bg._row_bound(x, *bg._row_setup(bg.B_, Yc[i]))[0]
-    Kmm = (ard_rbf(bg.inducing_, bg.inducing_, bg.kernel_variance_, bg.inverse_lengthscales_)
+    scaled = bg.inducing_ * np.sqrt(bg.inverse_lengthscales_)
+    Kmm = (rbf(scaled, scaled, bg.kernel_variance_)
            + bg.jitter_ * bg.kernel_variance_ * np.eye(len(bg.inducing_)))
     A = Kmm + bg.beta_ * bg._train_psi.psi2
     kl_u = 0.5 * (Y.shape[1] * (np.trace(np.linalg.solve(A, Kmm)) - len(Kmm)
@@ -502,3 +504,70 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     between = 0.5 * (model.latents_[0] + model.latents_[1])
     moved = np.abs(model.decode(between[None])[0] - model.mean_).max()
     assert moved > 0.1 * np.abs(Y[:2] - model.mean_).max()
+
+
+# ----------------------------------------------------------------------------- parameters, factory
+
+#: the arrays of each model in model files (format version 1): files written before the
+#: parameters were read from the constructor keep loading because the layout is unchanged
+VERSION_1_KEYS = {
+    "ppca": {"model_type", "mean_", "components_", "noise_variance_", "shrinkage_", "eigenvalues_", "n_samples_",
+             "param_n_components", "param_shrinkage", "param_variance_fraction", "param_sample_noise"},
+    "gplvm": {"model_type", "mean_", "latents_", "alpha_", "kernel_variance_", "lengthscale_", "noise_variance_",
+              "kde_bandwidth_", "log_likelihood_", "param_n_components", "param_max_iter", "param_n_restarts",
+              "param_variance_fraction"},
+    "bgplvm": {"model_type", "mean_", "latent_mean_", "latent_variance_", "inducing_", "kernel_variance_",
+               "inverse_lengthscales_", "noise_variance_", "jitter_", "B_", "elbo_", "param_n_components",
+               "param_n_inducing", "param_max_iter", "param_n_restarts", "param_variance_fraction"},
+}
+
+
+@pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])
+def test_parameters_come_from_the_constructor(fitted, kind):
+    """get_params reads every constructor argument; clone copies them unfitted; the model
+    arrays keep the version-1 layout and restore every saved parameter."""
+    models, Y, _ = fitted
+    model = models[kind]
+    cls = type(model)
+    signature = list(inspect.signature(cls.__init__).parameters)[1:]
+    assert list(model.get_params()) == signature
+    twin = model.clone()
+    assert type(twin) is cls and twin.get_params() == model.get_params() and not hasattr(twin, "mean_")
+    assert set(model.to_arrays()) == VERSION_1_KEYS[kind]
+    unsaved = {"random_state": None} if "random_state" in signature else {}       # it only seeds a fit
+    assert model_from_arrays(model.to_arrays()).get_params() == {**model.get_params(), **unsaved}
+    settings = {"shrinkage": 0.25, "sample_noise": True} if kind == "ppca" else {"max_iter": 40, "n_restarts": 2}
+    odd = cls(n_components=2, variance_fraction=0.7, **settings).fit(Y)
+    assert model_from_arrays(odd.to_arrays()).get_params() == {**odd.get_params(), **unsaved}
+
+
+def test_make_model_builds_each_model_with_the_project_defaults():
+    assert make_model("ppca").get_params() == PPCA().get_params()
+    assert make_model("ppca", 3, seed=5).get_params() == PPCA(n_components=3).get_params()
+    assert make_model("gplvm", 2, seed=4).get_params() == GPLVM(n_components=2, random_state=4).get_params()
+    assert make_model("bgplvm", None, 7).get_params() == BayesianGPLVM(random_state=7).get_params()
+    custom = make_model("bgplvm", 2, 1, n_inducing=8, max_iter=50)
+    assert (custom.n_inducing, custom.max_iter, custom.n_components, custom.random_state) == (8, 50, 2, 1)
+    with pytest.raises(ModelInputError, match="unknown model name 'pca'"):
+        make_model("pca")
+    with pytest.raises(ModelInputError, match="n_inducing"):
+        make_model("gplvm", n_inducing=4)
+
+
+# ----------------------------------------------------------------------------- latent KDE
+
+def test_kde_matches_the_gaussian_mixture_it_defines():
+    rng = np.random.default_rng(14)
+    Z, points, h = rng.standard_normal((9, 2)), rng.standard_normal((4, 2)), 0.4
+    mixture = [multivariate_normal(z, h**2 * np.eye(2)) for z in Z]
+    direct = np.log(np.mean([m.pdf(points) for m in mixture], 0))
+    np.testing.assert_allclose(kde.log_density(points, Z, h), direct, rtol=1e-12)
+    loo = [np.log(np.mean([m.pdf(Z[i]) for j, m in enumerate(mixture) if j != i])) for i in range(len(Z))]
+    np.testing.assert_allclose(kde.leave_one_out_log_density(Z, h), loo, rtol=1e-12)
+    # the bandwidth is the best of the grid by mean leave-one-out log density
+    nn = np.sort(np.sqrt(((Z[:, None] - Z[None]) ** 2).sum(-1)), 1)[:, 1]
+    grid = np.median(nn) * np.geomspace(1e-2, 10.0, 60)
+    best = grid[np.argmax([kde.leave_one_out_log_density(Z, g).mean() for g in grid])]
+    assert kde.leave_one_out_bandwidth(Z) == pytest.approx(best, rel=1e-12)
+    draws = kde.sample(Z, 1e-9, 50, np.random.default_rng(1))
+    assert np.abs(draws[:, None] - Z[None]).max(-1).min(1).max() < 1e-7     # every draw at a centre

@@ -7,6 +7,7 @@ import pytest
 
 from shapegen_core.datasets import make_vases
 from shapegen_core.errors import ModelFileError, ShapeGenError
+from shapegen_core.models import PPCA
 from shapegen_core.npzfile import save_npz
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 
@@ -30,6 +31,26 @@ def test_round_trip_reproduces_samples_and_meshes(fitted):
     np.testing.assert_allclose(za, zb)
     np.testing.assert_allclose(model.mesh_from_landmarks(a[0]).vertices,
                                loaded.mesh_from_landmarks(b[0]).vertices, atol=1e-9)
+
+
+def test_sampling_follows_the_models_noise_setting(fitted, tmp_path):
+    """PPCA(sample_noise=True) adds its isotropic noise in the fitted whole too (the pipeline
+    used to decode the sampled latents itself, dropping the noise); the default stays noise-free."""
+    model, _ = fitted
+    arrays = model.model.to_arrays()
+    arrays["param_sample_noise"] = np.array(1)
+    noisy = GenerativeShapeModel(model.meshes, model.correspondence, PPCA.from_arrays(arrays),
+                                 settings=model.settings, deform_settings=model.deform_settings)
+    landmarks, latents = noisy.sample(3, np.random.default_rng(4))
+    expected = noisy.model.sample(3, np.random.default_rng(4)).reshape(landmarks.shape)
+    np.testing.assert_array_equal(landmarks, expected)
+    smooth, smooth_latents = model.sample(3, np.random.default_rng(4))
+    np.testing.assert_array_equal(latents, smooth_latents)
+    np.testing.assert_array_equal(smooth.reshape(3, -1), model.model.decode(smooth_latents))
+    assert np.abs(landmarks - smooth).max() > 0.1 * np.sqrt(noisy.model.noise_variance_)
+    noisy.save(tmp_path / "noisy.npz")
+    again, _ = GenerativeShapeModel.load(tmp_path / "noisy.npz").sample(3, np.random.default_rng(4))
+    np.testing.assert_array_equal(again, landmarks)
 
 
 def test_a_training_shape_meshes_to_its_own_mesh(fitted):
