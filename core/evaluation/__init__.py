@@ -36,7 +36,7 @@ from .latent import choose_morph_endpoints, latent_morph, latent_outlier_scores
 from .metrics import (EvaluationError, as_point_sets, coverage, landmark_rms_matrix, mmd, novelty, one_nna,
                       one_nna_chance_level, procrustes_align, procrustes_rms_matrix, specificity)
 from .protocol import heldout_folds, kfold_indices, random_stream
-from .run import EvaluationResult, EvaluationSettings, make_model, parse_model_names, run_evaluation
+from .run import EvaluationResult, EvaluationSettings, parse_model_names, run_evaluation
 
 __all__ = [
     "EvaluationError",
@@ -67,7 +67,6 @@ __all__ = [
     "latent_morph",
     "TrainingSetModel",
     "MeanShapeModel",
-    "make_model",
     "parse_model_names",
     "run_evaluation",
 ]

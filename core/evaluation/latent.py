@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..models import kde
 from .metrics import landmark_rms_matrix
 
 __all__ = ["latent_outlier_scores", "choose_morph_endpoints", "latent_morph"]
@@ -20,26 +21,11 @@ __all__ = ["latent_outlier_scores", "choose_morph_endpoints", "latent_morph"]
 def latent_outlier_scores(Z, bandwidth: float) -> dict:
     """Leave-one-out KDE outlier score of each latent (module docstring) and robust z-scores."""
     Z = np.asarray(Z, dtype=np.float64)
-    n, q = Z.shape
-    d2 = np.sum((Z[:, None, :] - Z[None, :, :]) ** 2, -1)
-    log_k = -0.5 * d2 / bandwidth**2 - q * np.log(bandwidth) - 0.5 * q * np.log(2 * np.pi)
-    np.fill_diagonal(log_k, -np.inf)
-    top = log_k.max(1, keepdims=True)
-    log_density = top[:, 0] + np.log(np.sum(np.exp(log_k - top), 1)) - np.log(n - 1)
-    score = -log_density
+    score = -kde.leave_one_out_log_density(Z, bandwidth)
     median = np.median(score)
     mad = 1.4826 * np.median(np.abs(score - median))
-    robust_z = (score - median) / mad if mad > 0 else np.zeros(n)
+    robust_z = (score - median) / mad if mad > 0 else np.zeros(len(Z))
     return {"score": score, "robust_z": robust_z, "flagged": robust_z > 3.0}
-
-
-def _kde_log_density(points: np.ndarray, Z: np.ndarray, bandwidth: float) -> np.ndarray:
-    """log (1/N) Σ_j N(p | z_j, h² I) at each row of `points`."""
-    q = Z.shape[1]
-    d2 = np.sum((points[:, None, :] - Z[None, :, :]) ** 2, -1)
-    log_k = -0.5 * d2 / bandwidth**2 - q * np.log(bandwidth) - 0.5 * q * np.log(2 * np.pi)
-    top = log_k.max(1, keepdims=True)
-    return top[:, 0] + np.log(np.sum(np.exp(log_k - top), 1)) - np.log(len(Z))
 
 
 def choose_morph_endpoints(Z, bandwidth: float, quantile: float = 0.1, checks: int = 25) -> tuple[int, int]:
@@ -48,7 +34,7 @@ def choose_morph_endpoints(Z, bandwidth: float, quantile: float = 0.1, checks: i
     never drops below its `quantile` over the training latents themselves (a morph through empty
     latent space only shows the GP reverting to the mean shape). Falls back to the farthest pair."""
     Z = np.asarray(Z, dtype=np.float64)
-    floor = np.quantile(_kde_log_density(Z, Z, bandwidth), quantile)
+    floor = np.quantile(kde.log_density(Z, Z, bandwidth), quantile)
     t = np.linspace(0.0, 1.0, checks)[:, None]
     d2 = np.sum((Z[:, None, :] - Z[None, :, :]) ** 2, -1)
     best, best_d2 = None, -1.0
@@ -57,7 +43,7 @@ def choose_morph_endpoints(Z, bandwidth: float, quantile: float = 0.1, checks: i
             if d2[a, b] <= best_d2:
                 continue
             line = (1.0 - t) * Z[a] + t * Z[b]
-            if _kde_log_density(line, Z, bandwidth).min() >= floor:
+            if kde.log_density(line, Z, bandwidth).min() >= floor:
                 best, best_d2 = (a, b), d2[a, b]
     if best is None:
         a, b = np.unravel_index(int(np.argmax(d2)), d2.shape)

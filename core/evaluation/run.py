@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..models import MODEL_TYPES, BayesianGPLVM, GPLVM, PPCA
+from ..models import MODEL_TYPES, GPLVM, make_model
 from .baselines import MeanShapeModel, TrainingSetModel
 from .completion import REGIONS, completion_errors, hidden_coordinates, region_mask
 from .curves import generalisation_curve, ppca_nll_curve, specificity_curve
@@ -26,7 +26,7 @@ from .metrics import (EvaluationError, as_point_sets, coverage, landmark_rms_mat
                       one_nna_chance_level, procrustes_rms_matrix)
 from .protocol import heldout_folds, random_stream
 
-__all__ = ["EvaluationSettings", "EvaluationResult", "make_model", "parse_model_names", "run_evaluation"]
+__all__ = ["EvaluationSettings", "EvaluationResult", "parse_model_names", "run_evaluation"]
 
 Progress = Callable[[float, str], None]
 
@@ -46,17 +46,6 @@ def parse_model_names(text_or_names) -> list[str]:
     if not names:
         raise EvaluationError(f"no model given (known: {', '.join(MODEL_TYPES)})")
     return list(dict.fromkeys(names))
-
-
-def make_model(name: str, latent_dim: int | None = None, seed: int = 0):
-    """An unfitted model with the project defaults; latent_dim None = each model's 80 % rule."""
-    if name == "ppca":
-        return PPCA(n_components=latent_dim)
-    if name == "gplvm":
-        return GPLVM(n_components=latent_dim)
-    if name == "bgplvm":
-        return BayesianGPLVM(n_components=latent_dim, random_state=seed)
-    raise EvaluationError(f"unknown model name {name!r} (known: {', '.join(MODEL_TYPES)})")
 
 
 @dataclass
