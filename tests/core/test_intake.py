@@ -15,6 +15,7 @@ from shapegen_core.errors import MeshError
 from shapegen_core.intake import OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outwardness, weld_vertices
 from shapegen_core.io import read_folder, read_mesh, write_mesh
 from shapegen_core.mesh import Mesh
+from shapegen_core.meshset import load_mesh_set, save_mesh_set
 from shapegen_core.pipeline import FitSettings, fit_meshes
 
 from conftest import random_surface
@@ -180,6 +181,19 @@ def test_a_non_orientable_surface_is_refused_clearly():
         faces += [[i, n + i, bottom_j], [i, bottom_j, top_j]]
     with pytest.raises(MeshError, match=r"strip: part of its surface is non-orientable \(like a Möbius strip\): no winding of its 24 faces"):
         clean_mesh(vertices, faces, name="strip")
+
+
+def test_the_blender_hand_off_is_cleaned_like_a_file(vase, tmp_path):
+    """Fit's meshes from Blender (a "shapegen.meshes" file the worker reads) go through the
+    same intake: a soup wound inside out comes out welded and outward."""
+    vertices, faces = _soup(vase.mesh.vertices, vase.mesh.faces[:, ::-1])
+    path = save_mesh_set(tmp_path / "meshes.npz", ["soup", "vase"], [vertices, vase.mesh.vertices],
+                         [faces, vase.mesh.faces])
+    soup, clean = load_mesh_set(path)
+    assert soup.n_vertices == vase.mesh.n_vertices and soup.report.parts_turned_outward == 1
+    np.testing.assert_allclose(soup.face_normals(), vase.mesh.face_normals(), atol=1e-12)
+    assert clean.report.summary() == "clean"
+    np.testing.assert_array_equal(clean.faces, vase.mesh.faces)
 
 
 # ---------------------------------------------------------------------------- STL class
