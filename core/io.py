@@ -1,9 +1,11 @@
 """Mesh files <-> `Mesh`, through trimesh (no hand-written parsers).
 
 Supported: OBJ, PLY, STL, OFF, GLB/GLTF. Files are read with `process=False` and
-`maintain_order=True` so vertex i of the file is vertex i of the Mesh (no merging,
-no reordering). Polygons are fan-triangulated by trimesh's readers. Every error
-message starts with the file's path.
+`maintain_order=True` (trimesh neither merges nor reorders), then cleaned by
+`intake.clean_mesh`: coincident vertices welded, faces wound outwards, what changed in
+`Mesh.report`. A clean file keeps its order: vertex i of the file is vertex i of the
+Mesh. Polygons are fan-triangulated by trimesh's readers. Every error message starts with
+the file's path.
 
 OBJ: trimesh splits a vertex for every distinct (v, vt, vn) corner it meets and repeats
 the whole vertex list once per material / object group, which breaks "vertex i of the
@@ -12,8 +14,9 @@ present). Only geometry is wanted here, so the text handed to trimesh keeps the 
 lines and the `f` lines with each corner reduced to its vertex index; trimesh still
 does the parsing and triangulation.
 
-STL stores each triangle with its own three corners: vertex 3k + j of the Mesh is corner
-j of triangle k of the file (nothing is merged).
+STL stores each triangle with its own three corners (vertex 3k + j of the file is corner j
+of triangle k): welded, they become one connected surface, and `report.vertex_map[3k + j]`
+is the Mesh vertex of that corner.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CollectionError, MeshError, MeshFileError
+from .intake import clean_mesh
 from .mesh import Mesh
 
 __all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ObjWriter"]
@@ -69,7 +73,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     if faces.size == 0:
         raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
     try:
-        return Mesh.from_polygons(vertices, faces, name=name)
+        return clean_mesh(vertices, faces, name=name)
     except MeshError as exc:
         # replace the mesh label by the file path so the user knows which file to fix
         message = str(exc)

@@ -7,8 +7,10 @@ immutable by convention (arrays are made read-only) and always valid:
 * faces: (F, 3) int64, every index in [0, V), F >= 1, no degenerate triangle.
 
 Build one with `Mesh.from_polygons` (triangulates polygons, drops degenerate faces and
-counts what it did in `Mesh.report`) or `Mesh(vertices, faces)` for data already clean.
-Vertex order is never changed: vertex i of the input is vertex i of the mesh.
+counts what it did in `Mesh.report`) or `Mesh(vertices, faces)` for data already clean;
+neither changes the vertex order (vertex i of the input is vertex i of the mesh). Meshes
+read from files or Blender go through `intake.clean_mesh`, which also welds coincident
+vertices and winds the faces outward; its `MeshReport` keeps the maps back to the input.
 """
 
 from __future__ import annotations
@@ -27,13 +29,28 @@ __all__ = ["Mesh", "MeshReport", "SurfaceSamples"]
 DEGENERATE_AREA_RTOL = 1e-12
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MeshReport:
-    """What validation changed on the way in (all counts, zero when nothing happened)."""
+    """What intake changed on the way in: counts (zero when nothing happened) and the maps
+    back to the input's elements (None: the identity, nothing was merged, dropped or turned).
+
+    `vertex_map[i]` is the mesh vertex of input vertex i (welding merges coincident ones);
+    `face_source[f]` the input triangle (after fan triangulation) that face f comes from;
+    `face_reversed[f]` is True when face f's winding is the reverse of that triangle's
+    (corners 1 and 2 swapped), not counting the reversal of a mirrored read (`mirrored`).
+    """
 
     polygons_triangulated: int = 0
     triangles_from_polygons: int = 0
     degenerate_faces_dropped: int = 0
+    vertices_welded: int = 0  # input vertices merged into a coincident one
+    mirrored: bool = False  # read through a mirroring transform (det < 0): every face reversed
+    faces_rewound: int = 0  # faces reversed to agree with their neighbours
+    parts_turned_outward: int = 0  # connected parts that faced inwards, reversed whole
+    parts_without_inside: int = 0  # open, nearly flat parts: no side is outside, winding kept
+    vertex_map: np.ndarray | None = field(default=None, repr=False)
+    face_source: np.ndarray | None = field(default=None, repr=False)
+    face_reversed: np.ndarray | None = field(default=None, repr=False)
 
     def summary(self) -> str:
         parts = []
@@ -44,6 +61,16 @@ class MeshReport:
             )
         if self.degenerate_faces_dropped:
             parts.append(f"{self.degenerate_faces_dropped} degenerate face(s) dropped")
+        if self.vertices_welded:
+            parts.append(f"{self.vertices_welded} duplicate vertices welded")
+        if self.mirrored:
+            parts.append("mirrored (negative scale): winding reversed")
+        if self.parts_turned_outward:
+            parts.append(f"{self.parts_turned_outward} inside-out part(s) turned outward")
+        if self.faces_rewound:
+            parts.append(f"{self.faces_rewound} face(s) re-wound to agree with their neighbours")
+        if self.parts_without_inside:
+            parts.append(f"{self.parts_without_inside} open flat part(s) with no outside: winding kept")
         return "; ".join(parts) if parts else "clean"
 
 
@@ -140,7 +167,8 @@ class Mesh:
         triangles = triangles[keep]
         if triangles.shape[0] == 0:
             raise MeshError(f"{label}: every face is degenerate (zero area or repeated vertex)")
-        report = MeshReport(n_poly, n_from_poly, n_dropped)
+        report = MeshReport(n_poly, n_from_poly, n_dropped,
+                            face_source=np.flatnonzero(keep) if n_dropped else None)
         return cls(vertices, triangles, name=name, report=report)
 
     def with_vertices(self, vertices: np.ndarray, name: str | None = None) -> "Mesh":

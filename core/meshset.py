@@ -14,6 +14,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import ModelFileError, ShapeGenError
+from .intake import clean_mesh
 from .mesh import Mesh
 from .npzfile import ArraySpec, load_npz, save_npz
 
@@ -49,7 +50,7 @@ def unpack(arrays, names: Sequence[str], label: str, prefix: str = "",
            build: Callable[..., Mesh] = Mesh) -> list[Mesh]:
     """The meshes of `pack`'s arrays, named `names`. Offsets that do not match the shape
     count or the data, and invalid meshes, raise ModelFileError starting with `label`.
-    `build` makes each mesh: `Mesh` (data already clean) or `Mesh.from_polygons`."""
+    `build` makes each mesh: `Mesh` (data already clean) or `intake.clean_mesh` (raw)."""
     vertices, faces = arrays[f"{prefix}vertices"], arrays[f"{prefix}faces"]
     vo, fo = arrays[f"{prefix}vertex_offsets"], arrays[f"{prefix}face_offsets"]
     m = len(names)
@@ -73,7 +74,8 @@ def save_mesh_set(path: str | os.PathLike, names: Sequence[str], vertices: Seque
 
 
 def load_mesh_set(path: str | os.PathLike) -> list[Mesh]:
-    """The meshes of a "shapegen.meshes" file, validated (polygons as written by Blender:
-    degenerate triangles dropped and counted, see Mesh.from_polygons)."""
+    """The meshes of a "shapegen.meshes" file, cleaned like a file's (triangles as read from
+    Blender: degenerate ones dropped, duplicates welded, faces wound outwards; see
+    intake.clean_mesh)."""
     arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, {"names": ArraySpec("U", ("M",)), **spec(finite=False)})
-    return unpack(arrays, arrays["names"].tolist(), str(path), build=Mesh.from_polygons)
+    return unpack(arrays, arrays["names"].tolist(), str(path), build=clean_mesh)

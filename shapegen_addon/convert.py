@@ -1,8 +1,15 @@
 """Blender data <-> core data. No algorithm lives here: only conversion.
 
-* `object_to_mesh`: a mesh object's triangles in world coordinates as a core `Mesh`
-  (vertex order kept, `foreach_get`, Blender's own loop triangulation);
-  `object_triangles`: the same as raw arrays, without the core's validation.
+* `object_triangles`: a mesh object's vertices (world coordinates by default) and triangles
+  as raw arrays, read the way the artist sees the object: the evaluated mesh (modifiers
+  applied, as in the viewport) unless `evaluated=False` asks for the object's own mesh
+  data. A mirroring world matrix (negative determinant) would turn the faces inside out:
+  their winding is reversed on reading.
+* `read_object` / `object_to_mesh`: the same as a core `Mesh` through `intake.clean_mesh`
+  (welded, wound outwards, what changed in its report), plus the polygons whose winding
+  the core reversed.
+* `world_mesh_copy`: a new mesh datablock of an object as read, in world coordinates, its
+  winding as the core's Mesh has it (the prepared copies).
 * `mesh_data_from_arrays`: a new bpy mesh from vertex / face arrays (`foreach_set`).
 * `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF); OFF,
   which Blender cannot read, through the core reader (trimesh, bundled).
@@ -10,71 +17,167 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import bmesh
 import bpy
 import numpy as np
 
 from ..core.errors import MeshError, MeshFileError
-from ..core.mesh import Mesh, MeshReport
+from ..core.intake import clean_mesh
+from ..core.mesh import Mesh
 
-__all__ = ["object_to_mesh", "object_triangles", "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
+__all__ = ["ObjectTriangles", "ObjectReading", "object_triangles", "read_object", "object_to_mesh",
+           "world_mesh_copy", "evaluated_depsgraph", "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
 
 
-def object_triangles(obj: bpy.types.Object, world: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw arrays of a mesh object: vertices (V, 3) float64 (world coordinates unless
-    world=False), triangles (F, 3) int64 and the polygons' corner counts (P,).
+@dataclass(frozen=True)
+class ObjectTriangles:
+    """Raw arrays of a mesh object as read (see `object_triangles`)."""
+
+    vertices: np.ndarray  # (V, 3) float64, world coordinates unless read with world=False
+    triangles: np.ndarray  # (F, 3) int64, reversed (corners 1 and 2 swapped) when mirrored
+    polygon_sizes: np.ndarray  # (P,) corners of each polygon
+    triangle_polygon: np.ndarray  # (F,) the polygon each triangle belongs to
+    mirrored: bool  # read through a world matrix with negative determinant
+
+
+@dataclass(frozen=True)
+class ObjectReading:
+    """A mesh object as a core Mesh (`read_object`), with what the Blender layer needs to
+    make its prepared copy agree with it."""
+
+    mesh: Mesh
+    reversed_polygons: np.ndarray  # polygons the core re-wound (beyond a mirrored read's reversal)
+    n_vertices: int  # vertices of the mesh as read, before welding
+
+
+def evaluated_depsgraph(scene: bpy.types.Scene):
+    """The evaluated dependency graph of `scene`, also where the context has no window or
+    shows another scene (the job timer applying a job's end): the context's view layer
+    when it is `scene`'s, else the scene's first."""
+    context = bpy.context
+    view_layer = context.view_layer if context.scene == scene and context.view_layer else scene.view_layers[0]
+    with context.temp_override(scene=scene, view_layer=view_layer):
+        return bpy.context.evaluated_depsgraph_get()
+
+
+@contextmanager
+def _mesh_as_read(obj: bpy.types.Object, evaluated: bool, depsgraph):
+    """(mesh data, world matrix) of `obj`: the evaluated mesh (a temporary, freed on exit)
+    or the object's own data. The world matrix comes from the evaluated depsgraph, so a
+    transform set just before (and not evaluated yet) counts."""
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    evaluated_object = obj.evaluated_get(depsgraph)
+    matrix = np.array(evaluated_object.matrix_world, dtype=np.float64)
+    if not evaluated:
+        yield obj.data, matrix
+        return
+    data = evaluated_object.to_mesh()
+    try:
+        yield data, matrix
+    finally:
+        evaluated_object.to_mesh_clear()
+
+
+def object_triangles(obj: bpy.types.Object, world: bool = True, evaluated: bool = True,
+                     depsgraph=None) -> ObjectTriangles:
+    """Raw arrays of a mesh object (`ObjectTriangles`): the evaluated mesh (modifiers
+    applied) unless evaluated=False, world coordinates unless world=False.
 
     Bulk reads only: the position attribute and, for all-triangle meshes, the corner
     vertex attribute (well under 1 ms per 100k vertices); other meshes go through
     Blender's loop triangulation (handles concave n-gons). No validation beyond "has
-    vertices and faces" (the core's Mesh does that).
+    vertices and faces" (the core's intake does that).
     """
     if obj.type != "MESH":
         raise MeshError(f"{obj.name}: is a {obj.type.lower()} object, not a mesh")
-    data = obj.data
-    n_vertices = len(data.vertices)
-    if n_vertices == 0:
-        raise MeshError(f"{obj.name}: mesh is empty (no vertices)")
-    coords = np.empty(n_vertices * 3, dtype=np.float32)
-    data.attributes["position"].data.foreach_get("vector", coords)
-    coords = coords.reshape(-1, 3).astype(np.float64)
-    if world:
-        matrix = np.array(obj.matrix_world, dtype=np.float64)
-        coords = coords @ matrix[:3, :3].T + matrix[:3, 3]
-    n_polygons, n_loops = len(data.polygons), len(data.loops)
-    if n_polygons == 0:
-        raise MeshError(f"{obj.name}: mesh has no faces")
-    if n_loops == 3 * n_polygons:  # every polygon is a triangle (a polygon has >= 3 corners)
-        corners = np.empty(n_loops, dtype=np.int32)
-        if ".corner_vert" in data.attributes:
-            data.attributes[".corner_vert"].data.foreach_get("value", corners)
+    with _mesh_as_read(obj, evaluated, depsgraph) as (data, matrix):
+        n_vertices = len(data.vertices)
+        if n_vertices == 0:
+            raise MeshError(f"{obj.name}: mesh is empty (no vertices)")
+        coords = np.empty(n_vertices * 3, dtype=np.float32)
+        data.attributes["position"].data.foreach_get("vector", coords)
+        coords = coords.reshape(-1, 3).astype(np.float64)
+        n_polygons, n_loops = len(data.polygons), len(data.loops)
+        if n_polygons == 0:
+            raise MeshError(f"{obj.name}: mesh has no faces")
+        if n_loops == 3 * n_polygons:  # every polygon is a triangle (a polygon has >= 3 corners)
+            corners = np.empty(n_loops, dtype=np.int32)
+            if ".corner_vert" in data.attributes:
+                data.attributes[".corner_vert"].data.foreach_get("value", corners)
+            else:
+                data.loops.foreach_get("vertex_index", corners)
+            tris = corners.reshape(-1, 3).astype(np.int64)
+            sizes, tri_polygon = np.full(n_polygons, 3, dtype=np.int64), np.arange(n_polygons)
         else:
-            data.loops.foreach_get("vertex_index", corners)
-        return coords, corners.reshape(-1, 3).astype(np.int64), np.full(n_polygons, 3, dtype=np.int64)
-    data.calc_loop_triangles()
-    tris = np.empty(len(data.loop_triangles) * 3, dtype=np.int64)
-    data.loop_triangles.foreach_get("vertices", tris)
-    loop_totals = np.empty(n_polygons, dtype=np.int64)
-    data.polygons.foreach_get("loop_total", loop_totals)
-    return coords, tris.reshape(-1, 3), loop_totals
+            data.calc_loop_triangles()
+            tris = np.empty(len(data.loop_triangles) * 3, dtype=np.int64)
+            data.loop_triangles.foreach_get("vertices", tris)
+            tris = tris.reshape(-1, 3)
+            tri_polygon = np.empty(len(data.loop_triangles), dtype=np.int64)
+            data.loop_triangles.foreach_get("polygon_index", tri_polygon)
+            sizes = np.empty(n_polygons, dtype=np.int64)
+            data.polygons.foreach_get("loop_total", sizes)
+    mirrored = world and bool(np.linalg.det(matrix[:3, :3]) < 0)
+    if world:
+        coords = coords @ matrix[:3, :3].T + matrix[:3, 3]
+    if mirrored:
+        tris = tris[:, [0, 2, 1]]
+    return ObjectTriangles(coords, tris, sizes, tri_polygon, mirrored)
 
 
-def object_to_mesh(obj: bpy.types.Object, world: bool = True) -> Mesh:
-    """Triangles of a mesh object as a core Mesh named after the object.
-
-    Uses the object's own mesh data (modifiers are not applied), so vertex i of the
-    Blender mesh is vertex i of the result. Polygons are triangulated by Blender's loop
-    triangulation (handles concave n-gons); degenerate triangles are dropped and counted.
-    """
-    coords, tris, loop_totals = object_triangles(obj, world)
-    split = loop_totals > 3
-    mesh = Mesh.from_polygons(coords, tris, name=obj.name)
+def read_object(obj: bpy.types.Object, world: bool = True, evaluated: bool = True, depsgraph=None) -> ObjectReading:
+    """A mesh object as a core Mesh named after it (`object_triangles` read through
+    `intake.clean_mesh`: degenerate triangles dropped, duplicates welded, faces wound
+    outwards, a mirrored read said so), and the polygons whose winding the core reversed."""
+    read = object_triangles(obj, world, evaluated, depsgraph)
+    mesh = clean_mesh(read.vertices, read.triangles, name=obj.name, mirrored=read.mirrored)
+    split = read.polygon_sizes > 3
     if split.any():
-        report = MeshReport(int(split.sum()), int((loop_totals[split] - 2).sum()),
-                            mesh.report.degenerate_faces_dropped)
-        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=report)
-    return mesh
+        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(
+            mesh.report, polygons_triangulated=int(split.sum()),
+            triangles_from_polygons=int((read.polygon_sizes[split] - 2).sum())))
+    reversed_polygons = np.empty(0, dtype=np.int64)
+    if mesh.report.face_reversed is not None:
+        source = mesh.report.face_source if mesh.report.face_source is not None else np.arange(mesh.n_faces)
+        reversed_polygons = np.unique(read.triangle_polygon[source[mesh.report.face_reversed]])
+    return ObjectReading(mesh, reversed_polygons, len(read.vertices))
+
+
+def object_to_mesh(obj: bpy.types.Object, world: bool = True, evaluated: bool = True, depsgraph=None) -> Mesh:
+    """`read_object`'s core Mesh: what the core sees of a mesh object."""
+    return read_object(obj, world, evaluated, depsgraph).mesh
+
+
+def world_mesh_copy(obj: bpy.types.Object, name: str, evaluated: bool = True, depsgraph=None,
+                    reversed_polygons=()) -> bpy.types.Mesh:
+    """A new mesh datablock of `obj` as read (evaluated or its own data, with polygons, UV
+    maps and materials) in world coordinates, wound like its core Mesh: every polygon
+    reversed when the world matrix mirrors, and `reversed_polygons` (`read_object`'s)."""
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    evaluated_object = obj.evaluated_get(depsgraph)
+    if evaluated:
+        data = bpy.data.meshes.new_from_object(evaluated_object, preserve_all_data_layers=True, depsgraph=depsgraph)
+    else:
+        data = obj.data.copy()
+    data.name = name
+    matrix = evaluated_object.matrix_world.copy()
+    data.transform(matrix)
+    flip = np.zeros(len(data.polygons), dtype=bool)
+    flip[np.asarray(reversed_polygons, dtype=np.int64)] = True
+    if matrix.to_3x3().determinant() < 0:
+        flip = ~flip
+    if flip.any():
+        editable = bmesh.new()
+        editable.from_mesh(data)
+        editable.faces.ensure_lookup_table()
+        bmesh.ops.reverse_faces(editable, faces=[editable.faces[i] for i in np.flatnonzero(flip)])
+        editable.to_mesh(data)
+        editable.free()
+    return data
 
 
 def mesh_data_from_arrays(name: str, vertices: np.ndarray, faces: np.ndarray) -> bpy.types.Mesh:

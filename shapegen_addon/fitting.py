@@ -41,11 +41,15 @@ def check_fit_settings(options: dict) -> None:
     FitSettings.from_dict(options)
 
 
-def gather_meshes(objects) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, vertices, triangles) of each object, world coordinates: bulk reads only
-    (convert.object_triangles, ~4 ms per 100k vertices). The core's mesh validation runs
-    in the worker, whose error names the object."""
-    return [(o.name, *object_triangles(o)[:2]) for o in objects]
+def gather_meshes(objects, evaluated: bool = True) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, vertices, triangles) of each object, world coordinates, read as Prepare reads
+    them (`evaluated`: modifiers applied, else the base mesh; a mirrored object's winding
+    reversed): bulk reads only (convert.object_triangles, ~4 ms per 100k vertices). The
+    core's intake (welding, winding, validation) runs in the worker, whose error names the
+    object."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    read = [object_triangles(o, evaluated=evaluated, depsgraph=depsgraph) for o in objects]
+    return [(o.name, r.vertices, r.triangles) for o, r in zip(objects, read)]
 
 
 def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:

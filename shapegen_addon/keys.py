@@ -35,6 +35,7 @@ def prepare_setting_key(name: str) -> str:
 
 # ------------------------------------------------------------------ a prepared shape object
 SOURCE_KEY = "shapegen_source"  # name of the user's original object
+MESH_SOURCE_KEY = "shapegen_mesh_source"  # which mesh Prepare read: "evaluated" (modifiers applied) or "base"
 TRANSFORM_KEY = "shapegen_transform"  # 16 floats, row-major: input (world) -> normalised frame
 LANDMARKS_KEY = "shapegen_landmarks"  # flat float list (L*3), the object's local (normalised) frame
 LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each landmark
@@ -42,6 +43,12 @@ LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycen
 LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
 CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local
 CORRESPONDENCE_OUTLIER_KEY = "shapegen_correspondence_outlier"  # True: an outlier of the correspondence
+
+
+def mesh_source(evaluated: bool) -> str:
+    """The MESH_SOURCE_KEY value of a copy read with or without modifiers."""
+    return "evaluated" if evaluated else "base"
+
 
 # ------------------------------------------------------------------ an object tagged with a latent vector
 LATENT_KEY = "shapegen_latent"  # the latent vector (list of floats); with MODEL_ID_KEY and TEMPLATE_KEY

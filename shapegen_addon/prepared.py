@@ -3,10 +3,12 @@ Correspondences and Fit read back. Written and read here only.
 
 A prepared collection ("<source> Prepared", keys.PREPARED_KEY) records its source
 collection and the six Prepare settings it was made with. Each prepared shape object is a
-copy of a user's object in the normalised frame (object-local), tagged with its source's
-name, the transform input (world) -> normalised, its landmarks and where they lie on the
-mesh (face and barycentrics, so correspondence starts from them), plus a child marker
-object. Find Correspondences adds the corresponded landmarks and index-coloured markers.
+copy of a user's object as Prepare read it (the evaluated mesh, or the base mesh when the
+panel asks; keys.MESH_SOURCE_KEY says which) in the normalised frame (object-local), wound
+outwards like the core's Mesh, tagged with its source's name, the transform input (world)
+-> normalised, its landmarks and where they lie on the mesh (face and barycentrics, so
+correspondence starts from them), plus a child marker object. Find Correspondences adds the
+corresponded landmarks and index-coloured markers.
 """
 
 from __future__ import annotations
@@ -20,8 +22,8 @@ from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
-                   LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, PREPARED_KEY,
-                   SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, prepare_setting_key)
+                   LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
+                   PREPARED_KEY, SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source, prepare_setting_key)
 from .preview import (add_correspondence_markers, add_landmark_markers, grid_offsets, landmark_index_colours,
                       new_collection)
 
@@ -34,10 +36,13 @@ PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed"
 
 # ------------------------------------------------------------------------------ write
 def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
-                              prepared: PreparedCollection, preview_spacing: float) -> bpy.types.Collection:
+                              prepared: PreparedCollection, preview_spacing: float, world_meshes,
+                              evaluated: bool) -> bpy.types.Collection:
     """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
-    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
-    landmark markers. The user's objects are not modified."""
+    (object-local), laid out on a grid, each tagged with its transform, landmarks and mesh
+    source, plus landmark markers. `world_meshes` are the objects' meshes as Prepare read
+    them (convert.world_mesh_copy, world coordinates, evaluated or not); they become the
+    copies' data. The user's objects are not modified."""
     target = new_collection(scene, f"{source.name} Prepared")
     target[PREPARED_KEY] = True
     target[SOURCE_COLLECTION_KEY] = source.name
@@ -45,14 +50,14 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
         target[prepare_setting_key(key)] = value
     size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
     offsets = grid_offsets(len(prepared), preview_spacing * size)
-    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
-        data = obj.data.copy()
+    for obj, data, shape, landmarks, offset in zip(objects, world_meshes, prepared.shapes, prepared.landmarks,
+                                                   offsets):
         data.name = f"{obj.name} prepared"
-        data.transform(obj.matrix_world)  # input coordinates = the original's world frame
-        data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
+        data.transform(Matrix(shape.transform.matrix.tolist()))  # world (input) → normalised frame (object-local)
         copy = bpy.data.objects.new(f"{obj.name} prepared", data)
         copy.location = offset
         copy[SOURCE_KEY] = obj.name
+        copy[MESH_SOURCE_KEY] = mesh_source(evaluated)
         copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
         copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
         # where each landmark lies on the (loop-triangulated) mesh, for correspondence
@@ -108,7 +113,7 @@ def to_prepared_collection(objects) -> PreparedCollection:
     """Core data of prepared objects: their (normalised) meshes, transforms, landmarks."""
     shapes, landmarks = [], []
     for obj in objects:
-        mesh = object_to_mesh(obj, world=False)
+        mesh = object_to_mesh(obj, world=False, evaluated=False)
         mesh = mesh.with_vertices(mesh.vertices, name=obj.get(SOURCE_KEY, obj.name))
         points = np.asarray(obj[LANDMARKS_KEY], dtype=np.float64).reshape(-1, 3)
         faces = np.asarray(obj.get(LANDMARK_FACES_KEY, []), dtype=np.int64)
@@ -125,32 +130,39 @@ def to_prepared_collection(objects) -> PreparedCollection:
     return PreparedCollection(shapes, landmarks)
 
 
-def reusable_prepared(collection, objects, options: dict):
+def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
     """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
-    when Prepare ran on them with the same settings as this fit (`options`) and none has
-    changed since: every copy equals its source's world coordinates under its stored
-    transform (bulk reads, well under 1 ms per 100k vertices). Else None (Fit prepares
-    again in the worker). Returns (prepared bpy collection, copies in `objects` order)."""
+    when Prepare ran on them with the same settings as this fit (`options`), read them the
+    same way (`evaluated`: modifiers applied, or the base mesh) and none has changed since:
+    every copy equals its source as read now, in world coordinates, under its stored
+    transform (bulk reads, well under 1 ms per 100k vertices), so editing a modifier makes
+    the copies stale. Else None (Fit prepares again in the worker). Returns (prepared bpy
+    collection, copies in `objects` order)."""
     candidates = [c for c in bpy.data.collections
                   if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name
                   and all(str(c.get(prepare_setting_key(k))) == str(options[k]) for k in PREPARE_SETTINGS)]
+    depsgraph = bpy.context.evaluated_depsgraph_get()
     for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
         copies = {o.get(SOURCE_KEY): o for o in prepared_objects(prepared)}
         if set(copies) != {o.name for o in objects}:
             continue
         ordered = [copies[o.name] for o in objects]
-        if all(_unchanged(source, copy) for source, copy in zip(objects, ordered)):
+        if all(_unchanged(source, copy, evaluated, depsgraph) for source, copy in zip(objects, ordered)):
             return prepared, ordered
     return None
 
 
-def _unchanged(source, copy) -> bool:
-    """True when the prepared `copy` still equals `source` mapped by its stored transform."""
-    if len(source.data.vertices) != len(copy.data.vertices) or len(source.data.polygons) != len(copy.data.polygons):
+def _unchanged(source, copy, evaluated: bool, depsgraph) -> bool:
+    """True when the prepared `copy` was read like `evaluated` says and still equals `source`
+    (read the same way) mapped by its stored transform. Copies from before the mesh source
+    was recorded read the base mesh."""
+    if copy.get(MESH_SOURCE_KEY, mesh_source(False)) != mesh_source(evaluated):
         return False
-    world = object_triangles(source, world=True)[0]
-    local = object_triangles(copy, world=False)[0]
+    world = object_triangles(source, world=True, evaluated=evaluated, depsgraph=depsgraph)
+    local = object_triangles(copy, world=False, evaluated=False)
+    if len(world.vertices) != len(local.vertices) or len(world.triangles) != len(local.triangles):
+        return False
     matrix = np.asarray(copy[TRANSFORM_KEY], dtype=np.float64).reshape(4, 4)
-    mapped = world @ matrix[:3, :3].T + matrix[:3, 3]
-    size = max(float(np.ptp(local, axis=0).max()), 1e-12)
-    return bool(np.abs(mapped - local).max() <= 1e-5 * size)
+    mapped = world.vertices @ matrix[:3, :3].T + matrix[:3, 3]
+    size = max(float(np.ptp(local.vertices, axis=0).max()), 1e-12)
+    return bool(np.abs(mapped - local.vertices).max() <= 1e-5 * size)

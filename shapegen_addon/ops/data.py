@@ -5,8 +5,10 @@ into scene data; they hold no algorithm.
   objects named after the files (Blender's own importers; OFF through the core reader).
 * `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
-  never modified. Meshes are read and validated here; the slow part runs in a worker
-  (core.worker "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit.
+  never modified. Meshes are read here as the artist sees them (modifiers applied, unless
+  the panel's Base Mesh is on; a mirrored object's winding reversed) and cleaned by the
+  core's intake (welded, wound outwards); the slow part runs in a worker (core.worker
+  "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from bpy.props import StringProperty
 from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
 from ...core.meshset import save_mesh_set
-from ..convert import import_mesh_file, object_to_mesh
+from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
 from ..prepared import PREPARE_SETTINGS, build_prepared_collection
 from ..preview import new_collection
@@ -98,23 +100,48 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     if settings is None:
         return
     source = bpy.data.collections.get(payload.get("source", ""))
-    objects = [bpy.data.objects.get(name) for name in payload.get("objects", [])]
-    changed = [name for name, obj, count in zip(payload.get("objects", []), objects, payload.get("vertex_counts", []))
-               if obj is None or obj.type != "MESH" or len(obj.data.vertices) != count]
-    if status.state != "done" or isinstance(prepared, Exception) or source is None or changed:
+    names = payload.get("objects", [])
+    objects = [bpy.data.objects.get(name) for name in names]
+    failed = status.state != "done" or isinstance(prepared, Exception) or source is None
+    world_meshes, changed = [], []
+    if not failed:
+        changed = [name for name, obj in zip(names, objects) if obj is None or obj.type != "MESH"]
+        if not changed:  # each object as read now, as Prepare read it: its vertex count must be the same
+            depsgraph = evaluated_depsgraph(settings.id_data)
+            world_meshes = [world_mesh_copy(obj, f"{obj.name} prepared", payload["evaluated"], depsgraph, flips)
+                            for obj, flips in zip(objects, payload["reversed_polygons"])]
+            changed = [name for name, data, count in zip(names, world_meshes, payload["vertex_counts"])
+                       if len(data.vertices) != count]
+    if failed or changed:
+        for data in world_meshes:
+            bpy.data.meshes.remove(data)
         reason = (str(prepared) if isinstance(prepared, Exception) else status.error if status.state != "done"
                   else f"collection '{payload.get('source')}' was deleted" if source is None
                   else f"object(s) deleted or edited while preparing: {', '.join(changed)}")
         report_outcome(settings, "CANCELLED" if status.state == "cancelled" else "FAILED",
                        f"Prepare {status.state}: {reason or status.state}; nothing was created")
         return
-    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing)
+    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing,
+                                       world_meshes, payload["evaluated"])
     counts = [len(l) for l in prepared.landmarks]
     turned = sum(s.orientation_changed for s in prepared.shapes)
-    report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}': "
-                   f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus", "prepared")
+    read = "meshes as the viewport shows them (modifiers applied)" if payload["evaluated"] else \
+        "base meshes (modifiers ignored)"
+    report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}' from their {read}: "
+                   f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus"
+                   + _intake_notes(payload["notes"]), "prepared")
     if not bpy.app.background and not payload.get("wait"):
         _push_undo_step("ShapeGen Prepare")  # after the outcome, so the step holds it
+
+
+def _intake_notes(notes: dict[str, str], shown: int = 4) -> str:
+    """'; intake: A: mirrored ...; B: ...' for the objects whose meshes the core changed on
+    reading (Mesh.report.summary), the first `shown` of them by name."""
+    if not notes:
+        return ""
+    listed = "; ".join(f"{name}: {note}" for name, note in list(notes.items())[:shown])
+    more = f"; and {len(notes) - shown} more (see the Info log)" if len(notes) > shown else ""
+    return f"; intake: {listed}{more}"
 
 
 def _push_undo_step(message: str) -> None:
@@ -164,21 +191,25 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
                         f"('{mesh_objects[0].name}'); a shape model needs at least 2")
             return {"CANCELLED"}
 
-        # 1. read and validate here (bulk reads, fast): a bad object is named at once and
+        # 1. read and clean here (bulk reads, fast): a bad object is named at once and
         #    the scene is never touched; the slow part (alignment, landmarks) runs in a worker
+        evaluated = not settings.use_base_mesh
+        depsgraph = context.evaluated_depsgraph_get()
         try:
-            meshes = [object_to_mesh(o) for o in mesh_objects]
+            readings = [read_object(o, evaluated=evaluated, depsgraph=depsgraph) for o in mesh_objects]
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        for mesh in meshes:
-            if mesh.report.summary() != "clean":
-                self.report({"INFO"}, f"{mesh.name}: {mesh.report.summary()}")
+        meshes = [r.mesh for r in readings]
+        notes = {m.name: m.report.summary() for m in meshes if m.report.summary() != "clean"}
+        for name, note in notes.items():
+            self.report({"INFO"}, f"{name}: {note}")
         options = self.job_options(settings.prepare_options(), _check_prepare_options)
         if options is None:
             return {"CANCELLED"}
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
-                   "vertex_counts": [len(o.data.vertices) for o in mesh_objects], "wait": self.wait}
+                   "vertex_counts": [r.n_vertices for r in readings], "evaluated": evaluated,
+                   "reversed_polygons": [r.reversed_polygons for r in readings], "notes": notes, "wait": self.wait}
 
         # 2. the worker; `_finish_prepare` builds the collection on the main thread
         def start(folder: Path) -> None:

@@ -55,7 +55,8 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
         options = self.job_options(settings.fit_options(), fitting.check_fit_settings)
         if options is None:
             return {"CANCELLED"}
-        reuse = reusable_prepared(collection, objects, options)
+        evaluated = not settings.use_base_mesh
+        reuse = reusable_prepared(collection, objects, options, evaluated)
 
         def start(folder: Path) -> None:
             payload = {"scene": scene.name, "name": collection.name}
@@ -65,7 +66,7 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
                 inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name
                 setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
             else:
-                gathered = fitting.gather_meshes(objects)
+                gathered = fitting.gather_meshes(objects, evaluated)
                 inputs = {"meshes": str(folder / "meshes.npz")}
                 setup = lambda: fitting.save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
             job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})

@@ -74,7 +74,9 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         column.prop(settings, "centre")
         column.prop(settings, "seed")
         column.prop(settings, "preview_spacing")
-        layout.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
+        row = layout.row(align=True)
+        row.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
+        row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
         if MANAGER.task == "prepare":
             _draw_progress(layout, settings)
 

@@ -10,7 +10,7 @@ The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
 from __future__ import annotations
 
 import bpy
-from bpy.props import (CollectionProperty, EnumProperty, FloatProperty, IntProperty,
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
 from ...core.landmarks import DEFAULT_LANDMARKS
@@ -98,6 +98,11 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (results are deterministic)")
     preview_spacing: FloatProperty(name="Spacing", default=1.5, min=0.0,
                                    description="Grid spacing of prepared shapes, in shape sizes")
+    use_base_mesh: BoolProperty(
+        name="Base Mesh", default=False,
+        description="Read each object's own mesh, ignoring its modifiers (default: the mesh as the viewport "
+                    "shows it, modifiers applied). Prepare and Fit read the same way",
+    )
     last_import_directory: StringProperty(name="Last Folder", subtype="DIR_PATH")
 
     # --- fit (Correspondence + Model sub-panels)

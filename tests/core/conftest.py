@@ -41,6 +41,18 @@ def random_mesh(rng: np.random.Generator, n_vertices: int = 40, n_faces: int = 6
     return vertices, np.asarray(faces, dtype=np.int64)
 
 
+def random_surface(rng: np.random.Generator, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """A clean mesh in random vertex and face order: an icosphere with jittered radii
+    (closed, outward-wound, no coincident vertices), so intake keeps it exactly as it is."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions)
+    order = rng.permutation(len(sphere.vertices))
+    vertices = np.asarray(sphere.vertices)[order] * rng.uniform(0.8, 1.2, (len(order), 1))
+    faces = np.argsort(order)[np.asarray(sphere.faces)][rng.permutation(len(sphere.faces))]
+    return vertices, faces.astype(np.int64)
+
+
 def unit_cube() -> Mesh:
     """Closed unit cube [0, 1]^3, 12 outward-facing triangles."""
     import trimesh

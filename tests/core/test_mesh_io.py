@@ -1,5 +1,6 @@
 """Mesh type and file reading: vertex order, triangulation, degenerate faces, normals,
-areas, area-weighted sampling, and a corpus of bad inputs with their own messages."""
+areas, area-weighted sampling, and a corpus of bad inputs with their own messages.
+(Welding and winding on intake: test_intake.py.)"""
 
 from __future__ import annotations
 
@@ -11,13 +12,13 @@ from shapegen_core.errors import CollectionError, MeshError, MeshFileError
 from shapegen_core.io import read_folder, read_mesh, write_mesh
 from shapegen_core.mesh import Mesh
 
-from conftest import random_mesh
+from conftest import random_mesh, random_surface
 
 
 # ---------------------------------------------------------------------------- vertex order
 @pytest.mark.parametrize("suffix", ["obj", "ply", "off", "glb"])
 def test_vertex_and_face_order_kept(tmp_path, rng, suffix):
-    vertices, faces = random_mesh(rng, 50, 80)
+    vertices, faces = random_surface(rng)
     # written by trimesh itself (an independent writer), read back through read_mesh
     path = tmp_path / f"shape.{suffix}"
     trimesh.Trimesh(vertices, faces, process=False).export(str(path))
@@ -30,21 +31,29 @@ def test_vertex_and_face_order_kept(tmp_path, rng, suffix):
     np.testing.assert_array_equal(mesh.faces, faces)
 
 
-def test_stl_keeps_every_corner_in_face_order(tmp_path, rng):
-    """STL has no shared vertices: vertex 3k + j is corner j of triangle k."""
-    vertices, faces = random_mesh(rng, 30, 45)
+def test_stl_corners_are_welded_and_map_back_to_the_file(tmp_path, rng):
+    """STL has no shared vertices (corner j of triangle k is the file's vertex 3k + j):
+    read_mesh welds them into one connected surface and report.vertex_map says which mesh
+    vertex each file corner became."""
+    vertices, faces = random_surface(rng)
     path = tmp_path / "shape.stl"
     trimesh.Trimesh(vertices, faces, process=False).export(str(path))
     mesh = read_mesh(path)
-    assert mesh.n_vertices == 3 * len(faces)
-    np.testing.assert_allclose(mesh.vertices, vertices[faces].reshape(-1, 3), atol=1e-6)
-    np.testing.assert_array_equal(mesh.faces, np.arange(3 * len(faces)).reshape(-1, 3))
+    assert mesh.n_vertices == len(vertices) and mesh.n_faces == len(faces)
+    assert mesh.report.vertices_welded == 3 * len(faces) - len(vertices)
+    corners = vertices[faces].reshape(-1, 3)  # the file's vertex list
+    vertex_map = mesh.report.vertex_map
+    assert vertex_map.shape == (3 * len(faces),)
+    np.testing.assert_allclose(mesh.vertices[vertex_map], corners, atol=1e-6)  # STL stores float32
+    np.testing.assert_array_equal(mesh.faces, vertex_map.reshape(-1, 3))  # face k = triangle k, winding kept
+    assert mesh.is_closed() and trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).body_count == 1
+    assert "duplicate vertices welded" in mesh.report.summary()
 
 
 def test_obj_with_uv_normals_materials_and_groups_keeps_vertex_list(tmp_path, rng):
     """Ordinary exports: per-corner vt/vn indices that differ from v, two materials, two
     objects. trimesh alone would split / repeat vertices; read_mesh must not."""
-    vertices, faces = random_mesh(rng, 12, 16)
+    vertices, faces = random_surface(rng, subdivisions=0)
     lines = ["mtllib missing.mtl", "o first"]
     lines += [f"v {float(x)!r} {float(y)!r} {float(z)!r}" for x, y, z in vertices]
     lines += [f"vt {u} {v}" for u, v in rng.random((7, 2))]
@@ -191,7 +200,7 @@ def test_sampling_is_seeded(rng):
 
 
 def test_write_then_read_round_trip(tmp_path, rng):
-    mesh = Mesh(*random_mesh(rng), name="w")
+    mesh = Mesh(*random_surface(rng), name="w")
     path = write_mesh(mesh, tmp_path / "w.obj")
     back = read_mesh(path)
     np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-6)
@@ -260,7 +269,7 @@ def test_bad_messages_are_distinct(tmp_path):
 
 def _write_good(folder, names, rng):
     for name in names:
-        write_mesh(Mesh(*random_mesh(rng, 20, 30)), folder / name)
+        write_mesh(Mesh(*random_surface(rng, subdivisions=0)), folder / name)
 
 
 def test_folder_reads_all_sorted_and_ignores_other_files(tmp_path, rng):

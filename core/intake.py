@@ -1,0 +1,193 @@
+"""Raw mesh data -> a clean `Mesh`, the way every reader hands meshes to the core (files:
+io.read_mesh; Blender: convert.object_to_mesh, and meshset.load_mesh_set in the worker):
+
+1. `Mesh.from_polygons`: fan-triangulate polygons, drop degenerate triangles;
+2. `weld_vertices`: merge coincident vertices. STL files and other triangle soups give
+   every triangle its own three corners; welded, smoothing, the closedness test and the
+   written files see one connected surface instead of loose triangles;
+3. `orient_faces`: wind every face like its neighbours and every connected part outwards
+   (files wound inwards or inconsistently); a non-orientable part is refused.
+
+Each step counts what it changed in `Mesh.report`, which also keeps the maps back to the
+input (`vertex_map`, `face_source`, `face_reversed`). A clean input comes out as it went
+in: the same vertices in the same order and the same faces.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .errors import MeshError
+from .mesh import Mesh
+
+__all__ = ["clean_mesh", "weld_vertices", "orient_faces", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
+
+#: Vertices closer than this fraction of the bounding-box diagonal are one vertex. The
+#: corners a soup repeats are bitwise equal (STL stores float32 and every writer prints the
+#: same float for the same corner), so exact equality would do for them; the tolerance also
+#: merges copies of a point that reached the file through different float64 arithmetic
+#: (rounding ~1e-16 of the coordinates). It stays far below what any model distinguishes:
+#: float32, the precision of STL, PLY, glTF and Blender, resolves ~6e-8 of a coordinate.
+WELD_RTOL = 1e-9
+
+#: An open part (one with a border) is turned outward only when its `outwardness` is at
+#: least this large in magnitude. A spherical cap of half-angle φ has outwardness ≈ 0.7 φ,
+#: so parts flatter than a cap of about 4° (a sheet, a leaf) have no outside and keep
+#: their winding. A closed part is decided by the sign of its enclosed volume alone.
+OPEN_PART_MIN_OUTWARDNESS = 0.05
+
+#: A closed part with |outwardness| below this encloses no volume (two coincident sheets
+#: facing apart): its winding is kept. Rounding alone gives ~1e-16.
+CLOSED_PART_MIN_OUTWARDNESS = 1e-9
+
+
+def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = False) -> Mesh:
+    """A valid, welded, outward-wound Mesh from raw vertices and polygons (module docstring).
+
+    `mirrored` records that the caller already reversed every polygon because it read them
+    through a mirroring transform (a Blender object with negative scale); the report says
+    so. Raises MeshError naming `name` when nothing usable remains or a part of the
+    surface is non-orientable.
+    """
+    label = name or "mesh"
+    mesh = Mesh.from_polygons(vertices, polygons, name=name)
+    welded, vertex_map = weld_vertices(mesh.vertices)
+    faces = vertex_map[mesh.faces]
+    source = mesh.report.face_source if mesh.report.face_source is not None else np.arange(mesh.n_faces)
+    collapsed = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    if collapsed.all():
+        raise MeshError(f"{label}: every face is degenerate (its corners coincide once duplicates are welded)")
+    faces, source = faces[~collapsed], source[~collapsed]
+    faces, reversed_faces, counts = orient_faces(welded, faces, label)
+    welded_away = len(vertex_map) - len(welded)
+    report = replace(
+        mesh.report,
+        degenerate_faces_dropped=mesh.report.degenerate_faces_dropped + int(collapsed.sum()),
+        vertices_welded=welded_away, mirrored=bool(mirrored), **counts,
+        vertex_map=vertex_map if welded_away else None,
+        face_source=source if mesh.report.face_source is not None or collapsed.any() else None,
+        face_reversed=reversed_faces if reversed_faces.any() else None,
+    )
+    return Mesh(welded, faces, name=name, report=report)
+
+
+def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices closer than `rtol` × the bounding-box diagonal: every close pair (a
+    k-d tree query) joins one group, transitively. A group keeps the position of its
+    lowest-index vertex, and groups are numbered by first occurrence, so a mesh without
+    duplicates keeps its vertex order. Returns (welded vertices (W, 3), vertex_map (V,):
+    the welded vertex of each input vertex)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    n = len(vertices)
+    tolerance = rtol * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray")
+    if len(pairs) == 0:
+        return vertices, np.arange(n)
+    graph = sp.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    n_groups, group = connected_components(graph, directed=False)
+    first = np.full(n_groups, n)
+    np.minimum.at(first, group, np.arange(n))
+    order = np.argsort(first)
+    rank = np.empty(n_groups, dtype=np.int64)
+    rank[order] = np.arange(n_groups)
+    return vertices[first[order]], rank[group]
+
+
+def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Wind every face like its neighbours, then every connected part outwards.
+
+    Parts are the faces connected across manifold edges (edges of exactly two faces; a
+    border or non-manifold edge separates them). Within a part the relative windings are
+    fixed by a 2-colouring of the signed face graph: node f is face f as given, node f + F
+    face f reversed, and a shared edge joins the windings under which the two faces run
+    along it in opposite directions. A part whose two colours meet (f and f reversed in one
+    component) is non-orientable and refused. Each part keeps the winding of its
+    lowest-index face, then is reversed whole when its `outwardness` is negative (open
+    parts only beyond OPEN_PART_MIN_OUTWARDNESS).
+
+    Returns (faces (F, 3) with reversed faces' corners 1 and 2 swapped, reversed (F,) bool,
+    counts for MeshReport: faces_rewound, parts_turned_outward, parts_without_inside).
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(faces)
+    first, second, same_direction, border = _shared_edges(faces)
+    rows = np.concatenate([first, first + n])
+    cols = np.concatenate([np.where(same_direction, second + n, second), np.where(same_direction, second, second + n)])
+    graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(2 * n, 2 * n))
+    _, colour = connected_components(graph, directed=False)
+    as_given, as_reversed = colour[:n], colour[n:]
+    conflict = as_given == as_reversed
+    if conflict.any():
+        raise MeshError(f"{label}: part of its surface is non-orientable (like a Möbius strip): no winding "
+                        f"of its {int(conflict.sum())} faces makes every pair of neighbours agree, so it has no "
+                        "outside; repair the mesh in a modeller")
+    _, part = np.unique(np.minimum(as_given, as_reversed), return_inverse=True)
+    n_parts = int(part.max()) + 1
+    root = np.full(n_parts, n)
+    np.minimum.at(root, part, np.arange(n))
+    rewound = as_given != as_given[root[part]]
+    consistent = np.where(rewound[:, None], faces[:, [0, 2, 1]], faces)
+
+    score = outwardness(vertices, consistent, part, n_parts)
+    is_open = np.zeros(n_parts, dtype=bool)
+    is_open[part[border]] = True
+    decided = np.abs(score) >= np.where(is_open, OPEN_PART_MIN_OUTWARDNESS, CLOSED_PART_MIN_OUTWARDNESS)
+    turned = decided & (score < 0)
+    reversed_faces = rewound ^ turned[part]
+    n_reversed = np.bincount(part, reversed_faces, n_parts)
+    size = np.bincount(part, minlength=n_parts)
+    counts = {
+        "faces_rewound": int(n_reversed[(n_reversed > 0) & (n_reversed < size)].sum()),
+        "parts_turned_outward": int(np.sum(n_reversed == size)),
+        "parts_without_inside": int(np.sum(~decided)),
+    }
+    return np.where(reversed_faces[:, None], faces[:, [0, 2, 1]], faces), reversed_faces, counts
+
+
+def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None = None,
+                n_parts: int | None = None) -> np.ndarray:
+    """How much each part's normals point away from its middle, per part (n_parts,):
+    Σ A_f n_f · (c_f − c) / (A R), with A_f, n_f, c_f each face's area, unit normal and
+    centroid, c the part's area-weighted centroid, A its area and R the area-weighted RMS
+    distance of the face centroids from c. For a closed part the sum is 3 × its enclosed
+    volume (divergence theorem), so the sign is the volume's; it also decides open parts
+    (a vase open at the top, a bowl), which enclose nothing. 1 for a sphere, 0 for a flat
+    sheet, negative when the part is inside out. `part` (F,) numbers the parts (all
+    faces one part by default)."""
+    part = np.zeros(len(faces), dtype=np.int64) if part is None else part
+    n_parts = int(part.max()) + 1 if n_parts is None else n_parts
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 A_f n_f
+    twice_area = np.linalg.norm(cross, axis=1)
+    centroid = tri.mean(axis=1)
+    weight = np.bincount(part, twice_area, n_parts)
+    middle = np.stack([np.bincount(part, twice_area * centroid[:, d], n_parts) for d in range(3)], axis=1)
+    middle /= np.maximum(weight, np.finfo(float).tiny)[:, None]
+    offset = centroid - middle[part]
+    flux = np.bincount(part, np.einsum("ij,ij->i", cross, offset), n_parts)
+    spread = np.sqrt(np.bincount(part, twice_area * np.einsum("ij,ij->i", offset, offset), n_parts)
+                     / np.maximum(weight, np.finfo(float).tiny))
+    scale = weight * spread
+    return np.divide(flux, scale, out=np.zeros(n_parts), where=scale > 0)
+
+
+def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
+    second (E,), and whether both faces run along the edge in the same direction (E,);
+    plus the faces with a border or non-manifold edge (a face per such half-edge)."""
+    start = faces.ravel()
+    end = faces[:, [1, 2, 0]].ravel()  # half-edge h runs start[h] -> end[h] in face h // 3
+    key = np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
+    order = np.argsort(key, kind="stable")
+    run_start = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
+    run_length = np.diff(np.r_[run_start, len(key)])
+    pair = run_start[run_length == 2]
+    a, b = order[pair], order[pair + 1]
+    same_direction = (start[a] < end[a]) == (start[b] < end[b])
+    border = order[np.repeat(run_length != 2, run_length)] // 3
+    return a // 3, b // 3, same_direction, border

@@ -1,0 +1,159 @@
+"""Prepare reads objects as the artist sees them (issue 12): the evaluated mesh (an
+unapplied Subdivision counts) unless the panel's Base Mesh is on, world coordinates
+(parents and rotations included), a mirrored object (scale -1 on x) and a mesh wound
+inside out both come out with outward normals; the message and a custom property on each
+copy say what was read, and Fit's "is Prepare's result current" check reads the same way.
+"""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+import numpy as np
+import pytest
+import trimesh
+from conftest import addon_module, vertices
+
+def _add(convert, collection, name: str, mesh, faces=None):
+    data = convert.mesh_data_from_arrays(name, mesh.vertices, mesh.faces if faces is None else faces)
+    obj = bpy.data.objects.new(name, data)
+    collection.objects.link(obj)
+    return obj
+
+
+@pytest.fixture
+def shapes(extension):
+    """Seven vases: two plain, one mirrored (scale -1 on x), one wound inside out, one with
+    an unapplied level-1 Subdivision, one parented to a turned, scaled empty, one rotated."""
+    datasets = addon_module(extension, "core.datasets")
+    add = lambda *args: _add(addon_module(extension, "shapegen_addon.convert"), collection, *args)  # noqa: E731
+    vases = [s.mesh for s in datasets.make_vases(7, seed=1, resolution=(10, 14))]
+    collection = bpy.data.collections.new("shapes")
+    bpy.context.scene.collection.children.link(collection)
+    add("plain_a", vases[0])
+    add("plain_b", vases[1])
+    add("mirrored", vases[2]).scale = (-1.0, 1.0, 1.0)
+    add("inverted", vases[3], vases[3].faces[:, ::-1])
+    subdivided = add("subdivided", vases[4])
+    modifier = subdivided.modifiers.new("Subdivision", "SUBSURF")
+    modifier.levels = modifier.render_levels = 1
+    parent = bpy.data.objects.new("holder", None)
+    bpy.context.scene.collection.objects.link(parent)  # outside the training collection
+    parent.location, parent.rotation_euler, parent.scale = (3.0, -1.0, 0.5), (0.0, 0.0, math.radians(30)), (1.5,) * 3
+    child = add("parented", vases[5])
+    child.parent = parent
+    child.location = (0.2, 0.0, 0.0)
+    add("rotated", vases[6]).rotation_euler = (0.25, -0.15, math.radians(70))
+    settings = bpy.context.scene.shapegen
+    settings.source_collection = collection
+    settings.n_landmarks = 60
+    return collection
+
+
+def _triangles(data: bpy.types.Mesh) -> np.ndarray:
+    data.calc_loop_triangles()
+    tris = np.empty(len(data.loop_triangles) * 3, dtype=np.int64)
+    data.loop_triangles.foreach_get("vertices", tris)
+    return tris.reshape(-1, 3)
+
+
+def _world_as_seen(obj) -> np.ndarray:
+    """The object's evaluated vertices in world coordinates, read here independently."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    matrix = np.array(obj.evaluated_get(depsgraph).matrix_world)
+    return vertices(obj, evaluated=True) @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _copies() -> dict:
+    prepared = bpy.data.collections["shapes Prepared"]
+    return {o["shapegen_source"]: o for o in prepared.objects if "shapegen_landmarks" in o}
+
+
+def test_prepared_copies_are_the_world_shapes_as_seen_with_outward_normals(shapes):
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    message = bpy.context.scene.shapegen.job_message
+    assert "from their meshes as the viewport shows them (modifiers applied)" in message
+    assert "mirrored: mirrored (negative scale): winding reversed" in message
+    assert "inverted: 1 inside-out part(s) turned outward" in message
+    copies = _copies()
+    assert sorted(copies) == sorted(o.name for o in shapes.objects)
+    for name, copy in copies.items():
+        source = shapes.objects[name]
+        assert copy["shapegen_mesh_source"] == "evaluated"
+        local = vertices(copy)
+        tm = trimesh.Trimesh(local, _triangles(copy.data), process=False)
+        assert tm.is_watertight and tm.is_winding_consistent, name
+        assert tm.volume > 0, name  # outward normals: positive enclosed volume
+        # the copy is the source's world shape (parent, rotation, mirror, modifier included)
+        # mapped by the recorded transform
+        transform = np.asarray(copy["shapegen_transform"]).reshape(4, 4)
+        world = _world_as_seen(source)
+        assert len(world) == len(local), name
+        np.testing.assert_allclose(world @ transform[:3, :3].T + transform[:3, 3], local,
+                                   atol=1e-5 * np.ptp(local, axis=0).max(), err_msg=name)
+        assert np.linalg.det(transform[:3, :3]) > 0  # Prepare's own transform mirrors nothing
+    subdivided = shapes.objects["subdivided"]
+    assert len(copies["subdivided"].data.vertices) == len(vertices(subdivided, evaluated=True))
+    assert len(vertices(subdivided, evaluated=True)) > 3 * len(subdivided.data.vertices)
+
+
+def test_base_mesh_option_reads_the_cage_and_says_so(shapes):
+    bpy.context.scene.shapegen.use_base_mesh = True
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    assert "from their base meshes (modifiers ignored)" in bpy.context.scene.shapegen.job_message
+    copies = _copies()
+    assert {c["shapegen_mesh_source"] for c in copies.values()} == {"base"}
+    subdivided = shapes.objects["subdivided"]
+    assert len(copies["subdivided"].data.vertices) == len(subdivided.data.vertices)
+    for name, copy in copies.items():
+        assert trimesh.Trimesh(vertices(copy), _triangles(copy.data), process=False).volume > 0, name
+
+
+def test_fit_reads_like_prepare_and_a_modifier_change_makes_prepare_stale(extension, shapes):
+    prepared_module = addon_module(extension, "shapegen_addon.prepared")
+    fitting = addon_module(extension, "shapegen_addon.fitting")
+    settings = bpy.context.scene.shapegen
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    objects = sorted(shapes.objects, key=lambda o: o.name)
+    options = settings.fit_options()
+    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
+    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=False) is None  # read otherwise
+
+    gathered = {name: (v, f) for name, v, f in fitting.gather_meshes(objects, evaluated=True)}
+    subdivided = shapes.objects["subdivided"]
+    assert len(gathered["subdivided"][0]) == len(vertices(subdivided, evaluated=True))
+    assert len(fitting.gather_meshes([subdivided], evaluated=False)[0][1]) == len(subdivided.data.vertices)
+    for name, (world, faces) in gathered.items():  # world coordinates, mirrored winding reversed
+        np.testing.assert_allclose(world, _world_as_seen(shapes.objects[name]), atol=1e-5)
+        volume = trimesh.Trimesh(world, faces, process=False).volume
+        assert volume > 0 or name == "inverted", name  # the core's intake turns "inverted" in the worker
+
+    subdivided.modifiers["Subdivision"].levels = 2  # what the viewport shows changed: stale
+    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is None
+    subdivided.modifiers["Subdivision"].levels = 1
+    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
+    displace = subdivided.modifiers.new("Displace", "DISPLACE")  # same vertex count, other shape
+    displace.strength = 0.05
+    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is None
+
+
+def test_objects_of_a_scene_the_context_does_not_show_are_read_evaluated(extension, shapes):
+    """Prepare's end is applied from the job timer, whose context may show another scene
+    (or none): the prepared copies are read through that job scene's own depsgraph."""
+    convert = addon_module(extension, "shapegen_addon.convert")
+    other = bpy.data.scenes.new("other")
+    obj = shapes.objects["subdivided"].copy()
+    other.collection.objects.link(obj)
+    obj.modifiers["Subdivision"].levels = 2
+    obj.scale = (-1.0, 1.0, 1.0)
+    depsgraph = convert.evaluated_depsgraph(other)
+    assert depsgraph.scene == other
+    read = convert.object_triangles(obj, depsgraph=depsgraph)
+    assert len(read.vertices) > len(vertices(shapes.objects["subdivided"], evaluated=True))  # level 2, not 1
+    assert read.mirrored
+    copy = convert.world_mesh_copy(obj, "copy", depsgraph=depsgraph)
+    assert len(copy.vertices) == len(read.vertices)
+    local = np.empty(len(copy.vertices) * 3)
+    copy.vertices.foreach_get("co", local)
+    assert trimesh.Trimesh(local.reshape(-1, 3), _triangles(copy), process=False).volume > 0

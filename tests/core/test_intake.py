@@ -1,0 +1,238 @@
+"""Intake (core/intake.py): triangle soups welded into one connected surface with a map
+back to the input's vertices; inside-out, mirrored and inconsistently wound meshes wound
+outwards (closed and open), non-orientable ones refused; and an STL class whose smoothed
+samples have no cracks and are written as connected meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.deform import enclosed_volume
+from shapegen_core.errors import MeshError
+from shapegen_core.intake import OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outwardness, weld_vertices
+from shapegen_core.io import read_folder, read_mesh, write_mesh
+from shapegen_core.mesh import Mesh
+from shapegen_core.meshset import load_mesh_set, save_mesh_set
+from shapegen_core.pipeline import FitSettings, fit_meshes
+
+from conftest import random_surface
+
+
+@pytest.fixture(scope="module")
+def vase():
+    return make_vases(1, seed=4, resolution=(14, 18))[0]
+
+
+def _open_vase(vase) -> Mesh:
+    """The vase's base and outer wall only (profile s < 0.58): open at the top, it
+    encloses no volume."""
+    keep = (vase.vertex_st[vase.mesh.faces][..., 0] < 0.58).all(axis=1)
+    return Mesh(vase.mesh.vertices, vase.mesh.faces[keep], name="open")
+
+
+def _soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------- welding
+def test_a_clean_mesh_comes_out_unchanged(rng):
+    vertices, faces = random_surface(rng)
+    mesh = clean_mesh(vertices, faces, name="s")
+    np.testing.assert_array_equal(mesh.vertices, vertices)
+    np.testing.assert_array_equal(mesh.faces, faces)
+    assert mesh.report.summary() == "clean"
+    assert mesh.report.vertex_map is None and mesh.report.face_source is None and mesh.report.face_reversed is None
+
+
+def test_a_soup_is_welded_with_a_map_back_to_its_vertices(vase):
+    vertices, faces = _soup(vase.mesh.vertices, vase.mesh.faces)
+    mesh = clean_mesh(vertices, faces, name="soup")
+    assert mesh.n_vertices == vase.mesh.n_vertices and mesh.n_faces == vase.mesh.n_faces
+    assert mesh.report.vertices_welded == len(vertices) - vase.mesh.n_vertices
+    np.testing.assert_array_equal(mesh.vertices[mesh.report.vertex_map], vertices)  # each input vertex kept its place
+    np.testing.assert_array_equal(mesh.faces, mesh.report.vertex_map[faces])
+    # the same surface as the indexed original, one connected closed body
+    np.testing.assert_allclose(mesh.face_areas(), vase.mesh.face_areas(), rtol=1e-12)
+    assert mesh.is_closed() and trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).body_count == 1
+    # welded vertices are numbered by first occurrence
+    assert np.all(np.diff(np.maximum.accumulate(mesh.report.vertex_map)) <= 1)
+
+
+def test_weld_tolerance_is_relative_to_the_diagonal():
+    """1e-9 of the diagonal merges float64 rounding noise at any scale; a gap of 1e-6
+    of the diagonal (far below a modelled feature, far above rounding) stays open."""
+    for scale in (1e-3, 1.0, 1e4):
+        base = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1]], float) * scale
+        diagonal = np.sqrt(3.0) * scale
+        near = base[1] + [0.2 * WELD_RTOL * diagonal, 0, 0]
+        far = base[2] + [1e-6 * diagonal, 0, 0]
+        welded, vertex_map = weld_vertices(np.vstack([base, near, far]))
+        np.testing.assert_array_equal(vertex_map, [0, 1, 2, 3, 1, 4])
+        np.testing.assert_array_equal(welded[:4], base)
+
+
+def test_faces_collapsed_by_welding_are_dropped_and_counted():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1e-12]], float)
+    mesh = clean_mesh(vertices, [[0, 1, 2], [0, 3, 1], [0, 4, 1], [1, 3, 2], [0, 2, 3]], name="c")
+    # face 2 (corner 4 = corner 0 within 1e-9 of the diagonal) collapses; the tetrahedron stays
+    assert mesh.n_vertices == 4 and mesh.n_faces == 4
+    assert mesh.report.degenerate_faces_dropped == 1
+    np.testing.assert_array_equal(mesh.report.face_source, [0, 1, 3, 4])
+
+
+# ---------------------------------------------------------------------------- winding
+def _variants(mesh: Mesh, rng) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    shuffled = rng.random(mesh.n_faces) < 0.4
+    return {
+        "inside out": (mesh.vertices, mesh.faces[:, ::-1]),
+        "shuffled winding": (mesh.vertices, np.where(shuffled[:, None], mesh.faces[:, ::-1], mesh.faces)),
+        "shuffled soup": _soup(mesh.vertices, np.where(shuffled[:, None], mesh.faces[:, ::-1], mesh.faces)),
+    }
+
+
+def test_inside_out_and_inconsistent_closed_vases_come_out_like_the_original(vase, rng):
+    original = vase.mesh
+    assert enclosed_volume(original) > 0 and outwardness(original.vertices, original.faces)[0] > 0
+    for kind, (vertices, faces) in _variants(original, rng).items():
+        mesh = clean_mesh(vertices, faces, name=kind)
+        np.testing.assert_allclose(mesh.face_normals(), original.face_normals(), atol=1e-12, err_msg=kind)
+        assert enclosed_volume(mesh) == pytest.approx(enclosed_volume(original), rel=1e-12)
+        assert trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).is_winding_consistent
+        reversed_faces = mesh.report.face_reversed
+        np.testing.assert_array_equal(reversed_faces, np.einsum("ij,ij->i", np.cross(
+            vertices[faces][:, 1] - vertices[faces][:, 0], vertices[faces][:, 2] - vertices[faces][:, 0]),
+            original.face_normals()) < 0, err_msg=kind)
+    inside_out = clean_mesh(original.vertices, original.faces[:, ::-1], name="i")
+    assert inside_out.report.parts_turned_outward == 1 and inside_out.report.faces_rewound == 0
+    assert "1 inside-out part(s) turned outward" in inside_out.report.summary()
+    shuffled = clean_mesh(*_variants(original, rng)["shuffled winding"], name="s")
+    assert shuffled.report.faces_rewound == int(shuffled.report.face_reversed.sum()) > 0
+    assert "re-wound to agree with their neighbours" in shuffled.report.summary()
+
+
+def test_a_mirrored_vase_comes_out_outward(vase):
+    """A mirror image (x -> -x) with the faces as they were is inside out."""
+    mirrored = vase.mesh.vertices * [-1.0, 1.0, 1.0]
+    assert enclosed_volume(Mesh(mirrored, vase.mesh.faces)) < 0
+    mesh = clean_mesh(mirrored, vase.mesh.faces, name="m")
+    assert enclosed_volume(mesh) == pytest.approx(enclosed_volume(vase.mesh), rel=1e-12)
+    assert mesh.report.parts_turned_outward == 1
+    # a reader that reverses the faces itself (Blender, negative scale) says so; nothing left to turn
+    read = clean_mesh(mirrored, vase.mesh.faces[:, [0, 2, 1]], name="m", mirrored=True)
+    assert enclosed_volume(read) > 0 and read.report.parts_turned_outward == 0
+    assert "mirrored (negative scale): winding reversed" in read.report.summary()
+
+
+def test_an_open_vase_is_turned_outward_though_it_encloses_nothing(vase, rng):
+    """Open at the top there is no volume to take the sign of; the area-weighted test
+    Σ A n·(c_f − c) decides, clearly (about 0.8, against 0 for a flat sheet)."""
+    original = _open_vase(vase)
+    assert not original.is_closed()
+    score = outwardness(original.vertices, original.faces)[0]
+    assert score > 10 * OPEN_PART_MIN_OUTWARDNESS
+    for kind, (vertices, faces) in _variants(original, rng).items():
+        mesh = clean_mesh(vertices, faces, name=kind)
+        np.testing.assert_allclose(mesh.face_normals(), original.face_normals(), atol=1e-12, err_msg=kind)
+        assert outwardness(mesh.vertices, mesh.faces)[0] == pytest.approx(score)
+        assert trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).is_winding_consistent
+    mirrored = clean_mesh(original.vertices * [1.0, -1.0, 1.0], original.faces, name="m")
+    assert outwardness(mirrored.vertices, mirrored.faces)[0] == pytest.approx(score)
+
+
+def test_each_part_is_turned_on_its_own():
+    """Two closed boxes, one inside out: only that one is turned."""
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    b = trimesh.creation.box(extents=(1, 2, 1))
+    vertices = np.vstack([a.vertices, b.vertices + [3, 0, 0]])
+    faces = np.vstack([a.faces, b.faces[:, ::-1] + len(a.vertices)])
+    mesh = clean_mesh(vertices, faces, name="two")
+    assert mesh.report.parts_turned_outward == 1
+    np.testing.assert_array_equal(mesh.report.face_reversed, np.arange(len(faces)) >= len(a.faces))
+    assert enclosed_volume(mesh) == pytest.approx(1.0 + 2.0)
+
+
+def test_a_flat_sheet_keeps_its_winding_and_says_it_has_no_outside():
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0), indexing="ij"), -1).reshape(-1, 2)
+    vertices = np.column_stack([grid, np.zeros(len(grid))])
+    index = np.arange(16).reshape(4, 4)
+    a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel(), index[:-1, 1:].ravel()
+    faces = np.vstack([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    for winding in (faces, faces[:, ::-1]):
+        mesh = clean_mesh(vertices, winding, name="sheet")
+        np.testing.assert_array_equal(mesh.faces, winding)
+        assert mesh.report.parts_without_inside == 1
+        assert "1 open flat part(s) with no outside: winding kept" in mesh.report.summary()
+
+
+def test_a_non_orientable_surface_is_refused_clearly():
+    """A Möbius strip: no winding makes every pair of neighbours agree."""
+    n = 12
+    t = 2 * np.pi * np.arange(n) / n
+    centre = np.stack([np.cos(t), np.sin(t), np.zeros(n)], 1)
+    across = np.stack([np.cos(t / 2) * np.cos(t), np.cos(t / 2) * np.sin(t), np.sin(t / 2)], 1) * 0.3
+    vertices = np.vstack([centre + across, centre - across])  # i: one edge, n + i: the other
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        top_j, bottom_j = (j, n + j) if j else (n, 0)  # the strip comes back half-twisted
+        faces += [[i, n + i, bottom_j], [i, bottom_j, top_j]]
+    with pytest.raises(MeshError, match=r"strip: part of its surface is non-orientable \(like a Möbius strip\): no winding of its 24 faces"):
+        clean_mesh(vertices, faces, name="strip")
+
+
+def test_the_blender_hand_off_is_cleaned_like_a_file(vase, tmp_path):
+    """Fit's meshes from Blender (a "shapegen.meshes" file the worker reads) go through the
+    same intake: a soup wound inside out comes out welded and outward."""
+    vertices, faces = _soup(vase.mesh.vertices, vase.mesh.faces[:, ::-1])
+    path = save_mesh_set(tmp_path / "meshes.npz", ["soup", "vase"], [vertices, vase.mesh.vertices],
+                         [faces, vase.mesh.faces])
+    soup, clean = load_mesh_set(path)
+    assert soup.n_vertices == vase.mesh.n_vertices and soup.report.parts_turned_outward == 1
+    np.testing.assert_allclose(soup.face_normals(), vase.mesh.face_normals(), atol=1e-12)
+    assert clean.report.summary() == "clean"
+    np.testing.assert_array_equal(clean.faces, vase.mesh.faces)
+
+
+# ---------------------------------------------------------------------------- STL class
+@pytest.fixture(scope="module")
+def stl_model(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("stl")
+    shapes = make_vases(6, seed=2, resolution=(14, 18))
+    write_collection(shapes, folder, "stl")
+    meshes = read_folder(folder)
+    return folder, shapes, meshes, fit_meshes(meshes, FitSettings(n_landmarks=80, model="ppca", jobs=1))
+
+
+def test_stl_files_are_read_as_connected_outward_surfaces(stl_model):
+    _, shapes, meshes, _ = stl_model
+    for shape, mesh in zip(shapes, meshes):
+        assert mesh.n_vertices == shape.mesh.n_vertices
+        assert mesh.report.vertices_welded == 3 * shape.mesh.n_faces - shape.mesh.n_vertices
+        tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        assert mesh.is_closed() and tm.body_count == 1 and tm.is_winding_consistent and tm.volume > 0
+
+
+def test_smoothed_samples_of_an_stl_class_have_no_cracks_and_are_written_connected(stl_model, tmp_path):
+    """Corners that coincide in the template's STL file stay together (to 1e-9 of the
+    diagonal) through sampling and curvature-flow smoothing, and the written files are one
+    body. (Unwelded, one smoothing step opened cracks of a median 9.6 % of the diagonal and
+    three steps failed: each loose triangle shrank on its own to a singular system.)"""
+    folder, _, _, model = stl_model
+    samples, _ = model.sample(4, np.random.default_rng(0))
+    for k, landmarks in enumerate(samples):
+        index = model.choose_template(landmarks, "nearest-data")
+        template = model.meshes[index]
+        mesh = model.mesh_from_landmarks(landmarks, template=model.names[index], smooth=3)
+        in_file = np.asarray(trimesh.load(folder / f"{model.names[index]}.stl", process=False).vertices)
+        assert len(in_file) == len(template.report.vertex_map) == 3 * template.n_faces
+        _, first, group = np.unique(in_file, axis=0, return_index=True, return_inverse=True)
+        at_corners = mesh.vertices[template.report.vertex_map]  # the sample at each file corner
+        crack = np.linalg.norm(at_corners - at_corners[first[group.ravel()]], axis=1).max()
+        assert crack <= 1e-9 * mesh.bbox_diagonal()
+        for suffix in ("obj", "ply"):
+            written = trimesh.load(write_mesh(mesh, tmp_path / f"sample_{k}.{suffix}"), process=False)
+            assert written.body_count == 1 and len(written.vertices) == template.n_vertices
+        assert read_mesh(write_mesh(mesh, tmp_path / f"sample_{k}.stl")).is_closed()
