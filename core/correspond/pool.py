@@ -48,7 +48,6 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(progress_queue, cancel_event) -> None:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     _WORKER["queue"] = progress_queue
     _WORKER["cancel"] = cancel_event
 
@@ -68,14 +67,24 @@ def _run_task(task: RegistrationTask, report=None, should_cancel=None) -> tuple[
 
 class RegistrationRunner:
     """Runs registration tasks in-process (jobs = 1) or in a pool of spawned processes,
-    forwarding per-iteration progress and cooperative cancel."""
+    forwarding per-iteration progress and cooperative cancel.
+
+    A spawned worker loads numpy, and with it OpenBLAS, before any code of ours runs in it,
+    and OpenBLAS reads OPENBLAS_NUM_THREADS only then. So while the pool is open this
+    process's environment holds OPENBLAS_NUM_THREADS=1 (unless the caller set it), which
+    the workers inherit when they start; this process's BLAS, loaded already, keeps its
+    threads, and `close` takes the variable out again."""
 
     def __init__(self, jobs: int, report: ProgressCallback, should_cancel: Callable[[], bool]):
         self.jobs = jobs
         self.report = report
         self.should_cancel = should_cancel
         self.pool = None
+        self._set_blas_threads = False
         if jobs > 1:
+            self._set_blas_threads = "OPENBLAS_NUM_THREADS" not in os.environ
+            if self._set_blas_threads:
+                os.environ["OPENBLAS_NUM_THREADS"] = "1"
             context = multiprocessing.get_context("spawn")
             self.queue = context.Queue()
             self.cancel_event = context.Event()
@@ -124,3 +133,5 @@ class RegistrationRunner:
             self.pool.shutdown(wait=True, cancel_futures=True)
             self._drain()
             self.queue.close()
+        if self._set_blas_threads:
+            os.environ.pop("OPENBLAS_NUM_THREADS", None)

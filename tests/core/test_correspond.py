@@ -7,6 +7,7 @@ measured in bench/correspondence.py, not here.
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -25,6 +26,7 @@ from shapegen_core.correspond import (
     correspond,
     register,
 )
+from shapegen_core.correspond.pool import RegistrationRunner
 from shapegen_core.geometry import (
     AffineSolver,
     TargetSurface,
@@ -373,6 +375,22 @@ def test_cancel_stops_between_iterations(small_vases):
     with pytest.raises(Cancelled):
         correspond(prepared, jobs=1, progress=progress, should_cancel=stop)
     assert calls.count("register") == 2
+
+
+def test_spawned_workers_start_with_one_openblas_thread(monkeypatch):
+    """OpenBLAS reads OPENBLAS_NUM_THREADS once, when numpy loads in a worker: the pool must
+    put it into the environment its spawned workers start with (unless the caller set it),
+    and give the parent its own environment back when it closes."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    runner = RegistrationRunner(2, lambda *event: None, lambda: False)
+    try:
+        seen = runner.pool.submit(threadpoolctl.threadpool_info).result()
+    finally:
+        runner.close()
+    openblas = [library["num_threads"] for library in seen if library["internal_api"] == "openblas"]
+    assert openblas and set(openblas) == {1}
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
 
 
 def test_cli_runs_in_parallel_and_reports_errors(tmp_path, capsys):
