@@ -6,8 +6,8 @@ Chamfer distances between point sets. Nothing here knows about collections, file
 shape models.
 """
 
-from .affine_graph import (AffineSolver, apply_affines, data_blocks, knn_graph, registration_frame, stiffness_energy,
-                           stiffness_matrix, transform_normals)
+from .affine_graph import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines, knn_graph,
+                           registration_frame, stiffness_energy, stiffness_matrix, transform_normals)
 from .surface import SurfacePoints, TargetSurface, closest_points_on_triangles
 
 __all__ = [
@@ -16,7 +16,9 @@ __all__ = [
     "TargetSurface",
     "apply_affines",
     "closest_points_on_triangles",
+    "compose_affines",
     "data_blocks",
+    "identity_affines",
     "knn_graph",
     "registration_frame",
     "stiffness_energy",
