@@ -32,20 +32,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from shapegen_core.collection import prepare_meshes  # noqa: E402
-from shapegen_core.correspond import (  # noqa: E402
-    AffineSolver,
-    Anchors,
-    CorrespondenceSettings,
-    TargetSurface,
-    correspond,
-    apply_affines,
-    data_blocks,
-    knn_graph,
-    register,
-    registration_frame,
-    stiffness_energy,
-)
+from shapegen_core.correspond import Anchors, CorrespondenceSettings, correspond, register  # noqa: E402
 from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
+from shapegen_core.geometry import (AffineSolver, TargetSurface, data_blocks, knn_graph,  # noqa: E402
+                                    registration_frame, stiffness_energy)
 from shapegen_core.io import read_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,8 +27,8 @@ import numpy as np
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from shapegen_core.datasets import make_vases  # noqa: E402
-from shapegen_core.deform import LinearMeshMap  # noqa: E402
-from shapegen_core.io import read_folder, write_mesh  # noqa: E402
+from shapegen_core.geometry import apply_affines  # noqa: E402
+from shapegen_core.io import read_folder  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 
@@ -156,8 +156,7 @@ def quality(model: GenerativeShapeModel, label: str, n_samples: int, results: di
         after = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
         log_ratio = np.log(np.maximum(after, 1e-12) / before)
         distortion.append(float(np.std(log_ratio)))
-        nodes_after = deformer._from_frame(
-            np.einsum("nk,nkd->nd", np.hstack([deformer._nodes_frame, np.ones((deformer.n_nodes, 1))]), blocks))
+        nodes_after = deformer.from_frame(apply_affines(blocks, deformer.nodes_in_frame))
         diagonal = mesh.bbox_diagonal()
         residual.append(float(np.linalg.norm(nodes_after - lm, axis=1).mean() / diagonal))
         relaxed = deformer.deform(lm, "relax").vertices

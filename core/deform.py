@@ -7,7 +7,9 @@ form: A_j [x; 1] is the new position of x) are fitted to target landmarks u_j:
     E(A) = Σ_j ‖A_j x̃_j − u_j‖²  +  α² Σ_{(i,j) ∈ edges} ‖(A_i − A_j) G‖²_F,   G = diag(1,1,1,γ)
 
 (eq. 6.3 + the stiffness of eq. 4.16, in the stacked form ‖B A − C‖² of method.md §3 with
-B = [α (M⊗G); X], so α enters squared). Every template vertex is then blended over its k
+B = [α (M⊗G); X], so α enters squared): the affine-graph problem of registration, solved
+by the same `AffineSolver` (core/geometry/affine_graph.py) in the same unit-RMS frame of
+the nodes. Every template vertex is then blended over its k
 nearest nodes (eq. 6.1–6.2, with the absolute affines: v' = Σ_j w_j(v) A_j [v; 1],
 w_j = (1 − ‖v − g_j‖/d_max)², d_max the distance to the (k+1)-th node, normalised).
 
@@ -16,8 +18,9 @@ Two ways to fit the affines:
   decreasing schedule solve for affines relative to the current node positions, move the
   nodes, compose. Correspondences are known, so there is one solve per α.
 * `schedule="single"` — one solve at the final α. For fixed template, graph and α the map
-  landmarks → vertices is then LINEAR: `LinearMeshMap` factorises once, after which each
-  new landmark set costs a dense product and a sparse product (method.md §6 **beyond**).
+  landmarks → vertices is then LINEAR: `LinearMeshMap` solves once for all L unit
+  landmark sets, after which each new landmark set costs a dense product and a sparse
+  product (method.md §6 **beyond**).
 
 Optional curvature-flow smoothing (§6.2.4, Desbrun et al. 1999): implicit steps
 (M − h L) V' = M V with the cotangent Laplacian L and lumped (barycentric) mass M,
@@ -31,10 +34,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import factorized, splu
+from scipy.sparse.linalg import factorized
 from scipy.spatial import cKDTree
 
 from .errors import ShapeGenError
+from .geometry import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines,
+                       registration_frame)
 from .mesh import Mesh
 
 __all__ = [
@@ -42,8 +47,6 @@ __all__ = [
     "EmbeddedDeformer",
     "LinearMeshMap",
     "DeformInputError",
-    "stiffness_gram",
-    "data_matrix",
     "blend_matrix",
     "cotangent_laplacian",
     "smooth_curvature_flow",
@@ -81,29 +84,7 @@ class DeformSettings:
         return np.linspace(self.start_alpha, self.final_alpha, max(1, self.n_stages))
 
 
-# ---------------------------------------------------------------------------- matrices
-def stiffness_gram(n_nodes: int, edges: np.ndarray, gamma: float) -> sp.csc_matrix:
-    """(M⊗G)ᵀ(M⊗G) for the edge–node incidence M (E × n) and G = diag(1,1,1,γ): 4n × 4n."""
-    edges = np.asarray(edges, dtype=np.int64)
-    n_edges = len(edges)
-    rows = np.repeat(np.arange(n_edges), 2)
-    cols = edges.ravel()
-    vals = np.tile([1.0, -1.0], n_edges)
-    incidence = sp.csr_matrix((vals, (rows, cols)), shape=(n_edges, n_nodes))
-    g = sp.diags([1.0, 1.0, 1.0, gamma])
-    mg = sp.kron(incidence, g, format="csr")
-    return (mg.T @ mg).tocsc()
-
-
-def data_matrix(points: np.ndarray) -> sp.csr_matrix:
-    """X: row j holds x̃_j = [x_j, 1] in columns 4j..4j+3 (n × 4n), so (X A)_j = x̃_jᵀ A_jᵀ."""
-    n = len(points)
-    homogeneous = np.hstack([points, np.ones((n, 1))])
-    rows = np.repeat(np.arange(n), 4)
-    cols = (4 * np.arange(n)[:, None] + np.arange(4)[None, :]).ravel()
-    return sp.csr_matrix((homogeneous.ravel(), (rows, cols)), shape=(n, 4 * n))
-
-
+# ---------------------------------------------------------------------------- blending
 def blend_matrix(vertices: np.ndarray, nodes: np.ndarray, k: int) -> sp.csr_matrix:
     """Sparse V × 4n matrix W with (W A)_v = Σ_j w_j(v) [v, 1] A_jᵀ (eq. 6.1–6.2)."""
     n_nodes = len(nodes)
@@ -122,21 +103,6 @@ def blend_matrix(vertices: np.ndarray, nodes: np.ndarray, k: int) -> sp.csr_matr
     cols = (4 * index[:, :k, None] + np.arange(4)[None, None, :]).reshape(n_vertices, -1).ravel()
     vals = (weights[:, :, None] * homogeneous[:, None, :]).ravel()
     return sp.csr_matrix((vals, (rows, cols)), shape=(n_vertices, 4 * n_nodes))
-
-
-def _apply_affines(affines_stacked: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """New node positions x̃_jᵀ A_jᵀ for a stacked (4n × 3) affine matrix."""
-    blocks = affines_stacked.reshape(-1, 4, 3)
-    return np.einsum("nk,nkd->nd", np.hstack([points, np.ones((len(points), 1))]), blocks)
-
-
-def _compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """Stacked affines of 'inner then outer' (both 4n × 3 in the x̃ᵀ Aᵀ convention)."""
-    o = outer.reshape(-1, 4, 3)
-    i = inner.reshape(-1, 4, 3)
-    # x̃ᵀ I gives a 3-row; append 1 and multiply by O
-    i_h = np.concatenate([i, np.tile(np.array([0.0, 0.0, 0.0, 1.0])[None, :, None], (len(i), 1, 1))], axis=2)
-    return np.einsum("nab,nbc->nac", i_h, o).reshape(-1, 3)
 
 
 # ---------------------------------------------------------------------------- deformer
@@ -158,20 +124,17 @@ class EmbeddedDeformer:
         self.nodes = nodes
         self.edges = edges
         self.settings = settings
-        # solve in a frame where the nodes are centred with unit RMS radius, so α means the
-        # same for every shape size (as in correspond.py's registration frame)
-        self.frame_centre = nodes.mean(axis=0)
-        self.frame_scale = float(np.sqrt(((nodes - self.frame_centre) ** 2).sum(axis=1).mean()))
-        if not self.frame_scale > 0:
-            raise DeformInputError(f"{label}: all nodes are at one point")
-        self._nodes_frame = self._to_frame(nodes)
-        self.blend = blend_matrix(self._to_frame(template.vertices), self._nodes_frame, settings.k_blend)
-        self._stiffness = stiffness_gram(len(nodes), edges, settings.gamma)
+        # solve in the registration frame of the nodes (unit RMS radius), so α means the
+        # same for every shape size
+        self.frame_centre, self.frame_scale = registration_frame(nodes, label, DeformInputError)
+        self.nodes_in_frame = self.to_frame(nodes)
+        self.blend = blend_matrix(self.to_frame(template.vertices), self.nodes_in_frame, settings.k_blend)
+        self.solver = AffineSolver(edges, len(nodes), settings.gamma)
 
-    def _to_frame(self, points: np.ndarray) -> np.ndarray:
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
         return (points - self.frame_centre) / self.frame_scale
 
-    def _from_frame(self, points: np.ndarray) -> np.ndarray:
+    def from_frame(self, points: np.ndarray) -> np.ndarray:
         return points * self.frame_scale + self.frame_centre
 
     @property
@@ -192,33 +155,33 @@ class EmbeddedDeformer:
         return targets
 
     def solve_affines(self, points: np.ndarray, targets: np.ndarray, alpha: float) -> np.ndarray:
-        """Minimise ‖X A − U‖² + α²‖(M⊗G) A‖² for nodes at `points`: (XᵀX + α²K) A = XᵀU,
-        one sparse LU reused for the three coordinate columns."""
-        x = data_matrix(points)
-        system = (x.T @ x + alpha**2 * self._stiffness).tocsc()
-        return splu(system).solve(np.asarray(x.T @ targets))
+        """Minimise ‖X A − U‖² + α²‖(M⊗G) A‖² for nodes at `points`: (XᵀX + α²K) A = XᵀU
+        (4.31, unit weights), stacked affines (4L × 3)."""
+        n = len(points)
+        blocks, rhs = data_blocks(points, np.arange(n), targets, np.ones(n), n)
+        return self.solver.solve(alpha, blocks, rhs).reshape(-1, 3)
 
     def fit(self, targets: np.ndarray, schedule: str = "relax") -> np.ndarray:
         """Absolute node affines (stacked 4L × 3, in the solve frame) moving the nodes onto
         `targets`."""
-        targets = self._to_frame(self.check_targets(targets))
+        targets = self.to_frame(self.check_targets(targets))
         if schedule == "single":
-            return self.solve_affines(self._nodes_frame, targets, self.settings.final_alpha)
+            return self.solve_affines(self.nodes_in_frame, targets, self.settings.final_alpha)
         if schedule != "relax":
             raise ValueError(f"unknown schedule {schedule!r}: 'relax' or 'single'")
-        total = np.tile(np.vstack([np.eye(3), np.zeros((1, 3))]), (self.n_nodes, 1))
-        points = self._nodes_frame
+        total = identity_affines(self.n_nodes)
+        points = self.nodes_in_frame
         for alpha in self.settings.schedule():
-            step = self.solve_affines(points, targets, alpha)
-            points = _apply_affines(step, points)
-            total = _compose(step, total)
-        return total
+            step = self.solve_affines(points, targets, alpha).reshape(-1, 4, 3)
+            points = apply_affines(step, points)
+            total = compose_affines(step, total)
+        return total.reshape(-1, 3)
 
     def deform(self, targets: np.ndarray, schedule: str = "relax", smooth_iterations: int = 0,
                name: str = "") -> Mesh:
         """The template deformed to `targets` (and optionally smoothed)."""
         affines = self.fit(targets, schedule)
-        vertices = self._from_frame(np.asarray(self.blend @ affines))
+        vertices = self.from_frame(np.asarray(self.blend @ affines))
         mesh = self.template.with_vertices(vertices, name=name or self.template.name)
         if smooth_iterations:
             mesh = smooth_curvature_flow(mesh, smooth_iterations)
@@ -227,9 +190,10 @@ class EmbeddedDeformer:
 
 class LinearMeshMap:
     """The fast path: landmarks U (L × 3) → vertices = W S⁻¹ Xᵀ U for a fixed template,
-    graph and α, with S = XᵀX + α²K factorised once.
+    graph and α, with S = XᵀX + α²K.
 
-    `Q = S⁻¹ Xᵀ` (4L × L, dense, computed from the one factorisation) is kept, so
+    `Q = S⁻¹ Xᵀ` (4L × L, dense: column j holds the affines for the unit landmark set e_j)
+    comes from ONE solve with L right-hand sides (the shared `AffineSolver`) and is kept, so
     `vertices(U) = W (Q U)`: a dense product with L columns and a sparse product with the
     blend matrix. Whole landmark bases can be pushed through the map, so a model whose
     decode is affine in some coefficients becomes mesh = V₀ + Σ c_k V_k (`linear_part`).
@@ -238,17 +202,15 @@ class LinearMeshMap:
     def __init__(self, deformer: EmbeddedDeformer, alpha: float | None = None):
         self.deformer = deformer
         self.alpha = deformer.settings.final_alpha if alpha is None else float(alpha)
-        x = data_matrix(deformer._nodes_frame)
-        system = (x.T @ x + self.alpha**2 * deformer._stiffness).tocsc()
-        solve = factorized(system)
-        xt = x.T.toarray()  # 4L × L, 4 non-zeros per column
-        self.node_map = np.column_stack([solve(xt[:, j]) for j in range(xt.shape[1])])  # Q
+        n = deformer.n_nodes
+        blocks, transposed_x = data_blocks(deformer.nodes_in_frame, np.arange(n), np.eye(n), np.ones(n), n)
+        self.node_map = deformer.solver.solve(self.alpha, blocks, transposed_x).reshape(4 * n, n)  # Q
 
     def vertices(self, targets: np.ndarray) -> np.ndarray:
         """Deformed template vertices for one landmark set (L, 3) → (V, 3)."""
         d = self.deformer
-        frame = d._to_frame(d.check_targets(targets))
-        return d._from_frame(np.asarray(d.blend @ (self.node_map @ frame)))
+        frame = d.to_frame(d.check_targets(targets))
+        return d.from_frame(np.asarray(d.blend @ (self.node_map @ frame)))
 
     def linear_part(self, directions: np.ndarray) -> np.ndarray:
         """The map's linear part applied to landmark displacements (K, L, 3) → (K, V, 3):

@@ -120,7 +120,7 @@ def to_prepared_collection(objects) -> PreparedCollection:
         bary = np.asarray(obj.get(LANDMARK_BARYCENTRIC_KEY, []), dtype=np.float64).reshape(-1, 3)
         if len(faces) != len(points) or (len(faces) and faces.max() >= mesh.n_faces):
             # older Prepare results (or an edited mesh): put each landmark on its nearest face again
-            from ..core.correspond import TargetSurface
+            from ..core.geometry import TargetSurface
 
             placed = TargetSurface(mesh.vertices, mesh.faces).closest(points)
             faces, bary = placed.face_index, placed.barycentric

@@ -5,3 +5,23 @@ Surface queries (closest points on a triangle mesh), the affine graph of per-nod
 Chamfer distances between point sets. Nothing here knows about collections, files or
 shape models.
 """
+
+from .affine_graph import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines, knn_graph,
+                           registration_frame, stiffness_energy, stiffness_matrix, transform_normals)
+from .surface import SurfacePoints, TargetSurface, closest_points_on_triangles
+
+__all__ = [
+    "AffineSolver",
+    "SurfacePoints",
+    "TargetSurface",
+    "apply_affines",
+    "closest_points_on_triangles",
+    "compose_affines",
+    "data_blocks",
+    "identity_affines",
+    "knn_graph",
+    "registration_frame",
+    "stiffness_energy",
+    "stiffness_matrix",
+    "transform_normals",
+]

@@ -1,4 +1,5 @@
-"""Tests of the non-rigid ICP correspondence engine (core/correspond.py, thesis §4.2).
+"""Tests of the non-rigid ICP correspondence engine (core/correspond/ and the geometry it
+uses in core/geometry/, thesis §4.2).
 
 Kept small (few hundred landmarks, coarse meshes): quality and speed at full size are
 measured in bench/correspondence.py, not here.
@@ -6,31 +7,40 @@ measured in bench/correspondence.py, not here.
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
-from shapegen_core import correspond as corr
 from shapegen_core.cli import main
 from shapegen_core.collection import PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
-    AffineSolver,
+    CORRESPONDENCE_FORMAT,
+    CORRESPONDENCE_VERSION,
     Anchors,
     Correspondence,
     CorrespondenceSettings,
-    TargetSurface,
     correspond,
+    register,
+)
+from shapegen_core.correspond.pool import RegistrationRunner
+from shapegen_core.geometry import (
+    AffineSolver,
+    TargetSurface,
+    closest_points_on_triangles,
     data_blocks,
     knn_graph,
-    register,
     registration_frame,
+    stiffness_matrix,
 )
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.errors import Cancelled, CollectionError, MeshError, ModelFileError
 from shapegen_core.landmarks import Landmarks, select_landmarks
 from shapegen_core.mesh import Mesh
+from shapegen_core.npzfile import save_npz
 from shapegen_core.preprocess import PreparedShape, ShapeTransform
 
 
@@ -240,7 +250,7 @@ def test_closest_point_on_surface_agrees_with_trimesh():
     np.testing.assert_allclose(ours.distance, distance, atol=1e-5)
     assert (ours.distance <= distance + 1e-12).all()
     every = np.repeat(queries, len(faces), axis=0)
-    closest, _ = corr.closest_points_on_triangles(every, np.tile(vertices[faces], (len(queries), 1, 1)))
+    closest, _ = closest_points_on_triangles(every, np.tile(vertices[faces], (len(queries), 1, 1)))
     brute = np.linalg.norm(closest - every, axis=1).reshape(len(queries), len(faces)).min(axis=1)
     np.testing.assert_allclose(ours.distance, brute, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(ours.points - queries, axis=1), ours.distance, atol=1e-12)
@@ -268,7 +278,7 @@ def test_tracked_closest_points_stay_exact_while_points_move():
         use = normals if step % 2 else None
         got = tracker.closest(points, use, 0.0)
         every = np.repeat(points, len(faces), axis=0)
-        closest, _ = corr.closest_points_on_triangles(every, np.tile(triangles, (len(points), 1, 1)))
+        closest, _ = closest_points_on_triangles(every, np.tile(triangles, (len(points), 1, 1)))
         brute = np.linalg.norm(closest - every, axis=1).reshape(len(points), len(faces))
         if use is not None:
             brute = np.where(use @ surface.face_normals.T >= 0.0, brute, np.inf)
@@ -310,10 +320,10 @@ def test_knn_graph_is_symmetrised_and_stiffness_is_sparse():
     points = np.random.default_rng(2).normal(size=(50, 3))
     edges = knn_graph(points, 6)
     assert (edges[:, 0] < edges[:, 1]).all() and len(np.unique(edges, axis=0)) == len(edges)
-    _, nn = corr.cKDTree(points).query(points, k=7)
+    _, nn = cKDTree(points).query(points, k=7)
     pairs = {tuple(e) for e in edges.tolist()}
     assert all(tuple(sorted((i, j))) in pairs for i in range(50) for j in nn[i, 1:])
-    matrix = corr.stiffness_matrix(edges, 50, 2.0)
+    matrix = stiffness_matrix(edges, 50, 2.0)
     assert sp.issparse(matrix) and matrix.shape == (200, 200)
 
 
@@ -347,7 +357,7 @@ def test_save_load_round_trip_and_refusal_of_foreign_files(tmp_path, small_vases
         Correspondence.load(foreign)
     arrays = result.to_arrays()
     arrays["edges"] = arrays["edges"] + result.n_landmarks  # out of range
-    corr.save_npz(tmp_path / "bad.npz", corr.CORRESPONDENCE_FORMAT, corr.CORRESPONDENCE_VERSION, arrays)
+    save_npz(tmp_path / "bad.npz", CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, arrays)
     with pytest.raises(ModelFileError, match="landmark graph"):
         Correspondence.load(tmp_path / "bad.npz")
 
@@ -365,6 +375,22 @@ def test_cancel_stops_between_iterations(small_vases):
     with pytest.raises(Cancelled):
         correspond(prepared, jobs=1, progress=progress, should_cancel=stop)
     assert calls.count("register") == 2
+
+
+def test_spawned_workers_start_with_one_openblas_thread(monkeypatch):
+    """OpenBLAS reads OPENBLAS_NUM_THREADS once, when numpy loads in a worker: the pool must
+    put it into the environment its spawned workers start with (unless the caller set it),
+    and give the parent its own environment back when it closes."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    runner = RegistrationRunner(2, lambda *event: None, lambda: False)
+    try:
+        seen = runner.pool.submit(threadpoolctl.threadpool_info).result()
+    finally:
+        runner.close()
+    openblas = [library["num_threads"] for library in seen if library["internal_api"] == "openblas"]
+    assert openblas and set(openblas) == {1}
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
 
 
 def test_cli_runs_in_parallel_and_reports_errors(tmp_path, capsys):

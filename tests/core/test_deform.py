@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 
 from shapegen_core.datasets import make_vases
 from shapegen_core.deform import (DeformInputError, DeformSettings, EmbeddedDeformer, LinearMeshMap,
-                                  blend_matrix, cotangent_laplacian, data_matrix, enclosed_volume,
-                                  smooth_curvature_flow, stiffness_gram)
+                                  blend_matrix, cotangent_laplacian, enclosed_volume, smooth_curvature_flow)
+from shapegen_core.geometry import stiffness_matrix
 from shapegen_core.landmarks import select_landmarks
 
 
@@ -65,14 +65,16 @@ def test_normal_equations_match_dense_least_squares():
     edges = knn_edges(nodes, 3)
     targets = nodes + 0.1 * rng.standard_normal(nodes.shape)
     alpha, gamma = 0.7, 2.0
-    x = data_matrix(nodes).toarray()
+    x = np.zeros((len(nodes), 4 * len(nodes)))  # row j holds [x_j, 1] in columns 4j..4j+3
+    for j, node in enumerate(nodes):
+        x[j, 4 * j:4 * j + 4] = np.r_[node, 1.0]
     incidence = np.zeros((len(edges), len(nodes)))
     incidence[np.arange(len(edges)), edges[:, 0]] = 1
     incidence[np.arange(len(edges)), edges[:, 1]] = -1
     b = np.vstack([alpha * np.kron(incidence, np.diag([1, 1, 1, gamma])), x])
     c = np.vstack([np.zeros((4 * len(edges), 3)), targets])
     dense, *_ = np.linalg.lstsq(b, c, rcond=None)
-    np.testing.assert_allclose(stiffness_gram(len(nodes), edges, gamma).toarray(),
+    np.testing.assert_allclose(stiffness_matrix(edges, len(nodes), gamma).toarray(),
                                (np.kron(incidence, np.diag([1, 1, 1, gamma])).T
                                 @ np.kron(incidence, np.diag([1, 1, 1, gamma]))))
     mesh = make_vases(1, seed=0, resolution=(8, 8))[0].mesh
@@ -153,7 +155,7 @@ def test_bad_targets_are_refused_with_a_clear_error(setup):
 
 def test_stiffness_gram_is_sparse_and_has_rigid_null_space():
     nodes = np.random.default_rng(0).standard_normal((50, 3))
-    gram = stiffness_gram(50, knn_edges(nodes), 2.0)
+    gram = stiffness_matrix(knn_edges(nodes), 50, 2.0)
     assert sp.issparse(gram) and gram.nnz < 0.2 * gram.shape[0] ** 2
     identity = np.tile(np.vstack([np.eye(3), np.zeros((1, 3))]), (50, 1))
     assert np.abs(gram @ identity).max() < 1e-12  # equal affines cost nothing

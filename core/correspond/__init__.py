@@ -1,0 +1,58 @@
+"""Dense landmark correspondence by non-rigid ICP (thesis §4.2, method.md §3).
+
+A template landmark cloud X (L points) is deformed onto every shape of a prepared
+collection by one affine transform per landmark (Amberg et al. 2007):
+
+* data term (4.11, 4.15): each template point x_i pulls towards its closest point v_n(i)
+  on the target *surface*; each target landmark u_j pulls the template point m(j) closest
+  to it, weighted by λ (bidirectional: the template must cover the target, Fig. 4.6);
+  optional match weights (§4.2.2): normal compatibility and 1/(1 + d) (4.12–4.13);
+* stiffness term (4.16, 4.28): Σ_edges ‖(A_i − A_j) G‖²_F, G = diag(1, 1, 1, γ), over the
+  symmetrised k-NN graph of the template landmarks (kept in the output: meshing reuses it);
+* the stacked system ‖B A − C‖²_F, B = [α (M⊗G); W X; √λ W' X'] (4.29), is solved through
+  its normal equations (BᵀB) A = BᵀC (4.31) with ONE sparse LU factorisation per solve,
+  reused for the three coordinate right-hand sides. BᵀB = α² (MᵀM ⊗ G²) + block-diagonal
+  4 × 4 data blocks: sparse, 4L × 4L, never dense;
+* iterative stiffness relaxation (Alg. 3): for α in a decreasing schedule repeat
+  {closest points, solve, move the template points} until the objective changes by less
+  than ε (relative), with per-α and total iteration caps;
+* final placement: every template point goes to its closest point on the target surface
+  (**beyond**: the thesis snapped to the nearest vertex, kept as `snap_to_vertices`);
+* groupwise (§4.2.7): register the template to every shape, replace it by the mean
+  landmark cloud, register again.
+
+Note on α: the thesis writes E = E_D + α E_s (4.18) but stacks α (M⊗G) into B (4.29),
+as Amberg et al. do; we follow the stacked system, i.e. the stiffness energy is weighted
+by α². Registration runs in a frame where the template landmarks have zero mean and unit
+RMS radius, so the thesis's α values mean the same for any input units.
+
+Everything tunable lives in `CorrespondenceSettings` (thesis defaults, one place).
+
+Modules, one layer each (the geometry they share with meshing is core/geometry):
+  settings.py      CorrespondenceSettings
+  registration.py  one template → target registration (Alg. 3): `register`, `Anchors`
+  pool.py          registration tasks in this process or in spawned worker processes
+  groupwise.py     `correspond`: template choice, groupwise rounds, outlier flags
+  result.py        `Correspondence` and its .npz file
+"""
+
+from .groupwise import chamfer_medoid, correspond, flag_outliers
+from .pool import ProgressCallback
+from .registration import Anchors, Registration, register
+from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
+from .settings import CorrespondenceSettings
+
+__all__ = [
+    "CorrespondenceSettings",
+    "Correspondence",
+    "Registration",
+    "Anchors",
+    "ProgressCallback",
+    "correspond",
+    "register",
+    "chamfer_medoid",
+    "flag_outliers",
+    "CORRESPONDENCE_FORMAT",
+    "CORRESPONDENCE_SPEC",
+    "CORRESPONDENCE_VERSION",
+]

@@ -1,0 +1,184 @@
+"""Groupwise correspondence over a prepared collection (thesis §4.2.7): choose a template
+(the Chamfer medoid), register it to every shape, replace it by the mean landmark cloud
+of the shapes that fit, register again; flag shapes that fit badly."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import CollectionError, MeshError
+from ..geometry import SurfacePoints, knn_graph, registration_frame
+from .pool import ProgressCallback, RegistrationRunner, RegistrationTask
+from .registration import Registration
+from .result import Correspondence
+from .settings import CorrespondenceSettings
+
+__all__ = ["chamfer_medoid", "correspond", "flag_outliers"]
+
+
+def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> int:
+    """Index of the set with the smallest summed symmetric Chamfer distance (mean squared
+    nearest-neighbour distance both ways) to all others. Each set is thinned to its first
+    `max_points` points (landmarks come in random order, so these are spread)."""
+    sets = [np.asarray(s, dtype=np.float64)[:max_points] for s in point_sets]
+    trees = [cKDTree(s) for s in sets]
+    total = np.zeros(len(sets))
+    for i in range(len(sets)):
+        for j in range(i + 1, len(sets)):
+            d_ij, _ = trees[j].query(sets[i])
+            d_ji, _ = trees[i].query(sets[j])
+            cost = float(np.mean(d_ij**2) + np.mean(d_ji**2))
+            total[i] += cost
+            total[j] += cost
+    return int(np.argmin(total))
+
+
+def flag_outliers(residuals: np.ndarray, scale_ratios: np.ndarray,
+                  settings: CorrespondenceSettings = CorrespondenceSettings()) -> list[str]:
+    """A reason string per shape ("" = fits). Rules (any one flags):
+    robust: residual > median + f · 1.4826 · MAD and > `outlier_min_ratio` × median
+    (needs 3+ shapes); absolute: residual > `max_residual`; scale: bounding-box diagonal
+    differs from the template's by more than `max_scale_ratio` (either way)."""
+    residuals = np.asarray(residuals, dtype=np.float64)
+    median = float(np.median(residuals))
+    mad = 1.4826 * float(np.median(np.abs(residuals - median)))
+    reasons = []
+    for residual, ratio in zip(residuals, scale_ratios):
+        why = []
+        if len(residuals) >= 3 and residual > median + settings.outlier_mad_factor * mad \
+                and residual > settings.outlier_min_ratio * median:
+            why.append(f"residual {residual:.4f} of the diagonal is far above the collection's median {median:.4f}")
+        elif residual > settings.max_residual:
+            why.append(f"residual {residual:.4f} of the diagonal exceeds {settings.max_residual}")
+        if ratio > settings.max_scale_ratio or ratio < 1.0 / settings.max_scale_ratio:
+            why.append(f"size is {ratio:.3g}× the template's (alignment or scaling failed or is off)")
+        reasons.append("; ".join(why))
+    return reasons
+
+
+def _as_cancel_check(should_cancel) -> Callable[[], bool]:
+    """Accept None, a callable, or a threading.Event-like object with is_set()."""
+    if should_cancel is None:
+        return lambda: False
+    if hasattr(should_cancel, "is_set"):
+        return should_cancel.is_set
+    return should_cancel
+
+
+def _template_index(names: list[str], template: str | None, landmark_sets) -> int:
+    if template is None:
+        return chamfer_medoid(landmark_sets)
+    if template not in names:
+        shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
+        raise CollectionError(f"template {template!r} is not a shape of the collection ({shown})")
+    return names.index(template)
+
+
+def correspond(
+    collection,
+    settings: CorrespondenceSettings = CorrespondenceSettings(),
+    template: str | None = None,
+    jobs: int | None = None,
+    progress: ProgressCallback | None = None,
+    should_cancel=None,
+) -> Correspondence:
+    """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
+
+    template: a shape name, or None for the medoid by symmetric Chamfer distance.
+    jobs: worker processes (None: all cores; 1: in this process).
+    progress: see `ProgressCallback`. should_cancel: callable or Event, checked between
+    ICP iterations; raises errors.Cancelled.
+    """
+    report = progress or (lambda shape, stage, iteration: None)
+    cancelled = _as_cancel_check(should_cancel)
+    names = list(collection.names)
+    if len(names) < 2:
+        raise CollectionError(
+            f"correspondence needs a collection of at least 2 shapes, got {len(names)}"
+            + (f" ({names[0]})" if names else ""))
+    for shape in collection.shapes:
+        if not shape.mesh.area() > 0:
+            raise MeshError(f"{shape.name}: surface area is zero (degenerate mesh); cannot register to it")
+    landmark_sets = [l.points for l in collection.landmarks]
+    start = _template_index(names, template, landmark_sets)
+    template_name = names[start]
+    report(template_name, "template", 0)
+
+    template_points = np.asarray(landmark_sets[start], dtype=np.float64)
+    centre, scale = registration_frame(template_points, template_name)
+    to_frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
+    template_normals = collection.shapes[start].mesh.face_normals()[collection.landmarks[start].face_index]
+    edges = knn_graph(template_points, settings.k_neighbours)
+
+    jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
+    jobs = max(1, min(jobs, len(names)))
+    runner = RegistrationRunner(jobs, report, cancelled)
+    try:
+        current_template, current_normals = template_points, template_normals
+        for round_index in range(settings.groupwise_rounds + 1):
+            if round_index > 0:
+                current_template, current_normals = _mean_template(results, keep)
+                report(template_name, "mean template", round_index)
+            tasks = [
+                RegistrationTask(i, names[i], to_frame(shape.mesh.vertices), shape.mesh.faces,
+                      to_frame(landmarks.points), shape.mesh.face_normals()[landmarks.face_index],
+                      to_frame(current_template), current_normals, edges, settings)
+                for i, (shape, landmarks) in enumerate(zip(collection.shapes, collection.landmarks))
+            ]
+            registrations = runner.run(tasks)
+            results = [_to_normalised(r, centre, scale) for r in registrations]
+            residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
+                                  for r, s in zip(registrations, collection.shapes)])
+            template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
+            ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
+            reasons = flag_outliers(residuals, ratios, settings)
+            keep = np.array([not r for r in reasons])
+    finally:
+        runner.close()
+
+    points = np.stack([r.placed.points for r in results])
+    transforms = [shape.transform for shape in collection.shapes]
+    return Correspondence(
+        names=names,
+        points=points,
+        points_input=np.stack([t.to_input(p) for t, p in zip(transforms, points)]),
+        face_index=np.stack([r.placed.face_index for r in results]),
+        barycentric=np.stack([r.placed.barycentric for r in results]),
+        edges=edges,
+        template_points=np.asarray(current_template, dtype=np.float64),
+        template_name=template_name,
+        transforms=np.stack([t.matrix for t in transforms]),
+        residuals=residuals,
+        iterations=np.array([r.iterations for r in registrations]),
+        outliers=~keep,
+        outlier_reasons=reasons,
+        settings=settings.as_strings(),
+    )
+
+
+def _to_normalised(registration: Registration, centre: np.ndarray, scale: float) -> Registration:
+    """Map a registration's points from the registration frame back to the normalised frame."""
+    placed = registration.placed
+    return replace(
+        registration,
+        placed=SurfacePoints(placed.points * scale + centre, placed.face_index, placed.barycentric,
+                             placed.distance * scale),
+        deformed=registration.deformed * scale + centre,
+        residual=registration.residual * scale,
+    )
+
+
+def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """§4.2.7: the mean landmark cloud over the shapes that fit (all, if none does), with
+    the normalised mean of the target normals at the placed points."""
+    use = [r for r, k in zip(results, keep) if k] or list(results)
+    points = np.mean([r.placed.points for r in use], axis=0)
+    normals = np.sum([r.normals for r in use], axis=0)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    return points, normals

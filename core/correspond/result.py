@@ -1,0 +1,122 @@
+"""The correspondence of a collection (`Correspondence`) and its versioned .npz file."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ModelFileError
+from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+
+__all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
+
+CORRESPONDENCE_FORMAT = "shapegen.correspondence"
+CORRESPONDENCE_VERSION = 1
+
+
+@dataclass
+class Correspondence:
+    """Corresponding landmarks over a collection (the output of `correspond`)."""
+
+    names: list[str]
+    points: np.ndarray  # (M, L, 3) normalised (prepared) frame
+    points_input: np.ndarray  # (M, L, 3) each shape's input coordinates
+    face_index: np.ndarray  # (M, L) face of each point on its shape's prepared mesh
+    barycentric: np.ndarray  # (M, L, 3)
+    edges: np.ndarray  # (E, 2) symmetrised k-NN graph of the template landmarks
+    template_points: np.ndarray  # (L, 3) the template of the last round (normalised frame)
+    template_name: str  # the shape the first template came from
+    transforms: np.ndarray  # (M, 4, 4) input → normalised frame of every shape
+    residuals: np.ndarray  # (M,) fit residual / the shape's bounding-box diagonal
+    iterations: np.ndarray  # (M,) ICP iterations of the last round
+    outliers: np.ndarray  # (M,) bool: fits badly (see outlier_reasons)
+    outlier_reasons: list[str]  # "" for shapes that fit
+    settings: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def n_landmarks(self) -> int:
+        return int(self.points.shape[1])
+
+    def landmark_matrix(self) -> np.ndarray:
+        """Y = N × 3L (method.md §4), rows in the normalised frame."""
+        return self.points.reshape(len(self.names), -1)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "names": np.asarray(self.names, dtype=str),
+            "points": self.points,
+            "points_input": self.points_input,
+            "face_index": self.face_index.astype(np.int64),
+            "barycentric": self.barycentric,
+            "edges": self.edges.astype(np.int64),
+            "template_points": self.template_points,
+            "template_name": np.asarray(self.template_name, dtype=str),
+            "transforms": self.transforms,
+            "residuals": self.residuals,
+            "iterations": self.iterations.astype(np.int64),
+            "outliers": self.outliers.astype(bool),
+            "outlier_reasons": np.asarray(self.outlier_reasons, dtype=str),
+            "settings_keys": np.asarray(list(self.settings.keys()), dtype=str),
+            "settings_values": np.asarray(list(self.settings.values()), dtype=str),
+        }
+
+    def save(self, path: str | os.PathLike) -> Path:
+        return save_npz(path, CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, self.to_arrays())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Correspondence":
+        """Read a file written by `save`; refuses anything else (ModelFileError naming it)."""
+        arrays = load_npz(path, CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, CORRESPONDENCE_SPEC)
+        return cls._from_validated(arrays, str(path))
+
+    @classmethod
+    def from_arrays(cls, arrays, source: str = "correspondence arrays") -> "Correspondence":
+        """Rebuild from `to_arrays()` output held in memory (e.g. inside a model file),
+        with the same validation as `load`; errors start with `source`."""
+        arrays = {k: np.asarray(v) for k, v in dict(arrays).items()}
+        validate_arrays(arrays, CORRESPONDENCE_SPEC, source)
+        return cls._from_validated(arrays, source)
+
+    @classmethod
+    def _from_validated(cls, a: dict, label: str) -> "Correspondence":
+        """Checks beyond dtypes and shapes (graph indices, unique names), then build."""
+        n_landmarks = a["points"].shape[1]
+        edges = a["edges"]
+        if edges.size and (edges.min() < 0 or edges.max() >= n_landmarks):
+            raise ModelFileError(f"{label}: landmark graph refers to landmarks outside [0, {n_landmarks})")
+        if len(set(a["names"].tolist())) != len(a["names"]):
+            raise ModelFileError(f"{label}: shape names are not unique")
+        return cls(
+            names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
+            face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
+            template_points=a["template_points"], template_name=str(a["template_name"]),
+            transforms=a["transforms"], residuals=a["residuals"], iterations=a["iterations"],
+            outliers=a["outliers"], outlier_reasons=a["outlier_reasons"].tolist(),
+            settings=dict(zip(a["settings_keys"].tolist(), a["settings_values"].tolist())),
+        )
+
+
+#: Arrays of a correspondence file / of `Correspondence.to_arrays()`, as checked on load.
+CORRESPONDENCE_SPEC = {
+    "names": ArraySpec("U", ("M",)),
+    "points": ArraySpec("f", ("M", "L", 3)),
+    "points_input": ArraySpec("f", ("M", "L", 3)),
+    "face_index": ArraySpec("i", ("M", "L")),
+    "barycentric": ArraySpec("f", ("M", "L", 3)),
+    "edges": ArraySpec("i", ("E", 2)),
+    "template_points": ArraySpec("f", ("L", 3)),
+    "template_name": ArraySpec("U", ()),
+    "transforms": ArraySpec("f", ("M", 4, 4)),
+    "residuals": ArraySpec("f", ("M",)),
+    "iterations": ArraySpec("i", ("M",)),
+    "outliers": ArraySpec("b", ("M",)),
+    "outlier_reasons": ArraySpec("U", ("M",)),
+    "settings_keys": ArraySpec("U", ("S",)),
+    "settings_values": ArraySpec("U", ("S",)),
+}
