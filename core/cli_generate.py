@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import shutil
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -194,9 +197,6 @@ _WORKER_MODEL = None
 
 def _init_sample_worker(model_path: str) -> None:
     global _WORKER_MODEL
-    import os
-
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     _WORKER_MODEL = _load_model(Path(model_path))
 
 
@@ -205,24 +205,43 @@ def _sample_chunk(items, folder: str, file_format: str, smooth: int, exact: bool
     return len(items)
 
 
+def contiguous_chunks(items: list, parts: int) -> list[list]:
+    """`items` cut into at most `parts` contiguous runs of (nearly) equal length."""
+    size = -(-len(items) // parts)
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+@contextmanager
+def _single_threaded_blas():
+    """OPENBLAS_NUM_THREADS=1 while worker processes start: spawned workers inherit it
+    before they load numpy (set inside a worker it comes too late), so `jobs` workers
+    share the cores instead of each running OpenBLAS on all of them."""
+    previous = os.environ.get("OPENBLAS_NUM_THREADS")
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ["OPENBLAS_NUM_THREADS"]
+        else:
+            os.environ["OPENBLAS_NUM_THREADS"] = previous
+
+
 def _write_samples(args, model, names, landmarks, templates, folder: Path) -> None:
     """Mesh and write every sample, in `args.jobs` processes when there are many."""
-    import concurrent.futures as futures
-    import multiprocessing
-
     items = list(zip(names, landmarks, templates))
     jobs = args.jobs or (os.cpu_count() or 1)
     if jobs == 1 or len(items) < 64:
         _mesh_and_write(model, items, folder, args.format, args.smooth, args.exact)
         return
-    # chunks grouped by template so each worker factorises few templates
+    # each worker gets a contiguous run of the items sorted by template, so it builds the
+    # mesh maps of few templates
     items.sort(key=lambda item: item[2])
-    chunks = [items[i::jobs] for i in range(jobs)]
     context = multiprocessing.get_context("spawn")
-    with futures.ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
-                                     initargs=(str(args.model),)) as pool:
+    with _single_threaded_blas(), ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
+                                                      initargs=(str(args.model),)) as pool:
         done = [pool.submit(_sample_chunk, chunk, str(folder), args.format, args.smooth, args.exact)
-                for chunk in chunks if chunk]
+                for chunk in contiguous_chunks(items, jobs)]
         for future in done:
             future.result()
 

@@ -116,3 +116,42 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert result.returncode == 0, result.stderr
     info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
     assert info["model"] == "ppca" and info["shapes"] == 6 and info["metadata"]["n_shapes"] == "6"
+
+
+# ---------------------------------------------------------------------------- parallel sample
+def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thread(monkeypatch, tmp_path):
+    """Items were dealt round-robin (every worker built every template's mesh map), and
+    OPENBLAS_NUM_THREADS was set in the workers only after numpy had loaded."""
+    import argparse
+    import os
+    from concurrent.futures import Future
+
+    from shapegen_core import cli_generate
+
+    submitted, seen = [], {}
+
+    class RecordingPool:
+        def __init__(self, jobs, **kwargs):
+            seen["jobs"], seen["blas"] = jobs, os.environ.get("OPENBLAS_NUM_THREADS")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, chunk, *rest):
+            submitted.append(chunk)
+            future = Future()
+            future.set_result(len(chunk))
+            return future
+
+    monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
+    templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
+    names = [f"sample_{i:04d}" for i in range(90)]
+    args = argparse.Namespace(jobs=3, format="obj", smooth=0, exact=False, model=tmp_path / "model.npz")
+    cli_generate._write_samples(args, None, names, np.zeros((90, 4, 3)), templates, tmp_path)
+    assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
+    assert [sorted({item[2] for item in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
+    assert sorted(item[0] for chunk in submitted for item in chunk) == names
