@@ -32,7 +32,7 @@ def _console_progress(prefix: str):
 
 # ---------------------------------------------------------------------------- prepare
 def cmd_prepare(args: argparse.Namespace) -> int:
-    from .collection import prepare_meshes
+    from .collection import PrepareSettings, prepare_meshes
     from .io import read_folder
 
     start = time.perf_counter()
@@ -41,8 +41,8 @@ def cmd_prepare(args: argparse.Namespace) -> int:
         if mesh.report.summary() != "clean":
             print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
     prepared = prepare_meshes(
-        meshes, n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
-        scale=args.scale, centre=args.centre, seed=args.seed,
+        meshes, PrepareSettings(n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
+                                scale=args.scale, centre=args.centre, seed=args.seed),
         progress=_console_progress("prepare"),
     )
     prepared.save(args.output)
@@ -59,7 +59,7 @@ def cmd_prepare(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- correspond
 def cmd_correspond(args: argparse.Namespace) -> int:
-    from .collection import PreparedCollection, prepare_meshes
+    from .collection import PrepareSettings, PreparedCollection, prepare_meshes
     import numpy as np
 
     from .correspond import CorrespondenceSettings, correspond
@@ -70,8 +70,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     if source.is_dir():
         meshes = read_folder(source)
         prepared = prepare_meshes(
-            meshes, n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
-            scale=args.scale, centre=args.centre, seed=args.seed,
+            meshes, PrepareSettings(n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
+                                    scale=args.scale, centre=args.centre, seed=args.seed),
             progress=_console_progress("prepare"),
         )
     else:
@@ -113,14 +113,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
     source = Path(args.source)
     if source.is_dir():
-        from .collection import prepare_meshes
+        from .collection import PrepareSettings, prepare_meshes
         from .correspond import CorrespondenceSettings, correspond
         from .io import read_folder
 
         meshes = read_folder(source)
         if args.folds > len(meshes):
             raise EvaluationError(f"--folds {args.folds} is more than the {len(meshes)} shapes in {source}")
-        prepared = prepare_meshes(meshes, n_landmarks=args.landmarks, up_axis=args.up, seed=args.seed,
+        prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=args.landmarks, up_axis=args.up, seed=args.seed),
                                   progress=_console_progress("prepare"))
         report = _console_progress("correspond")
         total = len(prepared) * (CorrespondenceSettings().groupwise_rounds + 1)

@@ -99,7 +99,7 @@ def _meshes_for_correspondence(corr, meshes_dir: Path):
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .collection import PreparedCollection
+    from .collection import PrepareSettings, PreparedCollection
     from .correspond import Correspondence, CorrespondenceSettings
     from .deform import DeformSettings
     from .io import read_folder
@@ -107,7 +107,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     settings = FitSettings(
-        n_landmarks=args.landmarks, up_axis=args.up, align=args.align, scale=args.scale, seed=args.seed,
+        prepare=PrepareSettings(n_landmarks=args.landmarks, up_axis=args.up, align=args.align, scale=args.scale,
+                                seed=args.seed),
         model=args.model, latent_dim=args.latent_dim, template=args.template, jobs=args.jobs,
         correspondence=CorrespondenceSettings(), deform=DeformSettings(final_alpha=args.stiffness),
     )
@@ -160,7 +161,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "outliers": [n for n, o in zip(model.names, corr.outliers) if o],
         "median_residual_percent_of_diagonal": round(100 * float(np.median(corr.residuals)), 4),
         "training_mesh_vertices": [m.n_vertices for m in model.meshes],
-        "deform": {k: getattr(model.deform_settings, k) for k in ("final_alpha", "start_alpha", "n_stages", "gamma", "k_blend")},
+        "settings": model.settings.as_dict(),
         "metadata": model.metadata,
         "names": model.names,
     }
