@@ -220,3 +220,13 @@ def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
 def test_cli_usage_error_exits_2(tmp_path):
     result = _run("prepare", tmp_path)  # missing -o
     assert result.returncode == 2 and "-o/--output" in result.stderr
+
+
+@pytest.mark.parametrize("count", ["2", "-5"])
+def test_cli_too_few_landmarks_is_one_line_naming_the_option(vase_folder, tmp_path, count):
+    """It was a traceback (select_landmarks' ValueError); now PrepareSettings refuses it."""
+    out = tmp_path / "prepared.npz"
+    result = _run("prepare", vase_folder, "-o", out, "--landmarks", count)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"shapegen prepare: error: --landmarks must be at least 4, got {count}"]
+    assert not out.exists()
