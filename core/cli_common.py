@@ -79,7 +79,7 @@ def settings_from_args(cls, args: argparse.Namespace, flags: dict[str, str] | No
     try:
         return cls(**given_options(cls, args), **fixed)
     except SettingsError as exc:
-        raise SettingsError(names.get(exc.option, exc.option), exc.problem) from None
+        raise SettingsError(names.get(exc.option, exc.option), exc.problem, exc.prefix) from None
 
 
 # ---------------------------------------------------------------------------- sources

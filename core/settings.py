@@ -23,12 +23,13 @@ __all__ = ["Settings", "SettingsError", "option", "check_fields", "settings_from
 
 class SettingsError(ShapeGenError, ValueError):
     """A setting outside its allowed values. `option` names it (a field name, or a dotted
-    path into nested settings); the message is "<option> <problem>"."""
+    path into nested settings); the message is "<prefix><option> <problem>"."""
 
-    def __init__(self, option: str, problem: str):
-        super().__init__(f"{option} {problem}")
+    def __init__(self, option: str, problem: str, prefix: str = ""):
+        super().__init__(f"{prefix}{option} {problem}")
         self.option = option
         self.problem = problem
+        self.prefix = prefix
 
 
 def option(default: Any = MISSING, help: str = "", *, flag: str | None = None, choices: Sequence | None = None,
@@ -69,7 +70,7 @@ def check_fields(settings) -> None:
             continue
         choices = meta.get("choices")
         if choices is not None and value not in choices:
-            raise SettingsError(f.name, f"must be one of {', '.join(map(str, choices))}; got {value!r}")
+            raise SettingsError(f.name, f"{value!r}; choose from {', '.join(map(str, choices))}", prefix="unknown ")
         if meta.get("minimum") is not None and not value >= meta["minimum"]:
             raise SettingsError(f.name, f"must be at least {meta['minimum']}, got {value!r}")
         if meta.get("above") is not None and not value > meta["above"]:
