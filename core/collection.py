@@ -43,8 +43,9 @@ class PrepareSettings(Settings):
     seed: int = option(0, "random seed", flag="--seed", minimum=0)
 
     def items(self):
-        """(name, value) pairs. Add-on bridge (issue 11): shapegen_addon/operators.py still
-        reads `prepared.settings` as the old dict; remove once it uses as_dict()."""
+        """(name, value) pairs. Add-on bridge (issue 11): shapegen_addon/prepared.py
+        (build_prepared_collection) still reads `prepared.settings` as the old dict; remove
+        once it uses as_dict()."""
         return asdict(self).items()
 
 
@@ -89,7 +90,7 @@ class PreparedCollection:
     def to_arrays(self) -> dict[str, np.ndarray]:
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
         settings = self.settings
-        if isinstance(settings, Mapping):  # add-on bridge (issue 11): shapegen_addon/fitting.py assigns a dict
+        if isinstance(settings, Mapping):  # add-on bridge (issue 11): shapegen_addon/ops/fit.py assigns a dict
             settings = PrepareSettings.from_dict(settings)
         return {
             "names": np.asarray(self.names, dtype=str),

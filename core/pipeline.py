@@ -87,8 +87,8 @@ class FitSettings(Settings):
     def from_dict(cls, data: Mapping) -> "FitSettings":
         """FitSettings from plain data (JSON): nested objects under "prepare",
         "correspondence" and "deform". Add-on bridge (issue 11): the Prepare options may
-        also come flat at the top level, as shapegen_addon/fitting.py sends them today;
-        remove `_nest_prepare` here once it sends "prepare": {...}."""
+        also come flat at the top level, as shapegen_addon/ui/properties.py (fit_options)
+        sends them today; remove `_nest_prepare` here once it sends "prepare": {...}."""
         return settings_from_dict(cls, _nest_prepare(data))
 
 

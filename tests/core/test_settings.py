@@ -95,7 +95,7 @@ def test_fit_settings_round_trip_nested_and_flat(fitted):
     assert GenerativeShapeModel.load(path).settings == model.settings
     flat = {"n_landmarks": 40, "up_axis": "y", "align": "pca", "scale": "bbox", "centre": "none", "seed": 3,
             "model": "ppca", "latent_dim": None, "correspondence": {"alpha_end": 3.0}, "deform": {"final_alpha": 2.5}}
-    nested = FitSettings.from_dict(flat)  # what shapegen_addon/fitting.fit_settings_dict sends today
+    nested = FitSettings.from_dict(flat)  # what shapegen_addon/ui/properties.fit_options sends today
     assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
                                              seed=3)
     assert nested.correspondence.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
