@@ -128,7 +128,7 @@ def main() -> None:
         else:
             shape_model = pipeline.GenerativeShapeModel(
                 fitted.meshes, fitted.correspondence, models.MODEL_TYPES[kind](n_components=3).fit(Y),
-                settings=fitted.settings, deform_settings=fitted.deform_settings)
+                settings=fitted.settings)
             path = shape_model.save(folder / f"vases_{kind}.npz")
             bpy.ops.shapegen.load_model(filepath=str(path))
         t = time.perf_counter()

@@ -31,7 +31,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import prepare_meshes  # noqa: E402
+from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import Anchors, CorrespondenceSettings, correspond, register  # noqa: E402
 from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
 from shapegen_core.geometry import (AffineSolver, TargetSurface, data_blocks, knn_graph,  # noqa: E402
@@ -253,7 +253,7 @@ def procedural(quick: bool, log) -> dict:
     vertices = [s.mesh.n_vertices for s in shapes]
     log(f"\n== procedural vases: {n} shapes, {min(vertices)}–{max(vertices)} vertices, {LANDMARKS} landmarks")
     start = time.perf_counter()
-    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=LANDMARKS, seed=0)
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=LANDMARKS, seed=0))
     log(f"prepare: {time.perf_counter() - start:.1f} s")
     to_input = lambda pts: np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, pts)])  # noqa: E731
 
@@ -334,7 +334,7 @@ def collection_timing(quick: bool, log) -> dict:
     n = 30 if quick else 131
     shapes = make_vases(n, seed=21)
     start = time.perf_counter()
-    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=LANDMARKS, seed=0)
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=LANDMARKS, seed=0))
     prepare_seconds = time.perf_counter() - start
     start = time.perf_counter()
     result = correspond(prepared, CorrespondenceSettings(), jobs=2)
@@ -369,7 +369,7 @@ def psb(quick: bool, log) -> dict:
         if quick:
             meshes = meshes[:8]
         labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
-        prepared = prepare_meshes(meshes, n_landmarks=landmarks, up_axis="y", seed=0)
+        prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=landmarks, up_axis="y", seed=0))
         start = time.perf_counter()
         result = correspond(prepared, CorrespondenceSettings(), jobs=2)
         seconds = (time.perf_counter() - start) / len(meshes)

@@ -30,6 +30,7 @@ from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.geometry import apply_affines  # noqa: E402
 from shapegen_core.io import read_folder  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.collection import PrepareSettings  # noqa: E402
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -51,7 +52,7 @@ def with_template_mesh(model: GenerativeShapeModel, index: int, mesh: Mesh) -> G
     meshes = list(model.meshes)
     meshes[index] = mesh
     return GenerativeShapeModel(meshes, model.correspondence, model.model, model.settings,
-                                model.deform_settings, model.metadata)
+                                model.metadata)
 
 
 def timed(fn, repeat: int) -> float:
@@ -188,7 +189,7 @@ def main() -> int:
 
     start = time.perf_counter()
     vases = make_vases(12, seed=0)
-    model = fit_meshes([v.mesh for v in vases], FitSettings(n_landmarks=args.landmarks, model="bgplvm", jobs=2))
+    model = fit_meshes([v.mesh for v in vases], FitSettings(prepare=PrepareSettings(n_landmarks=args.landmarks), model="bgplvm", jobs=2))
     print(f"procedural vases: fitted {model.model_type} Q={model.latent_dim} in {time.perf_counter() - start:.1f} s")
     speed(model, results, args.quick)
     quality(model, "procedural vases", 5 if args.quick else 20, results)
@@ -199,8 +200,8 @@ def main() -> int:
             print(f"{cls}: {folder} not found, skipped")
             continue
         start = time.perf_counter()
-        model = fit_meshes(read_folder(folder), FitSettings(n_landmarks=args.landmarks, model="bgplvm",
-                                                            up_axis="y", jobs=2))
+        model = fit_meshes(read_folder(folder), FitSettings(
+            prepare=PrepareSettings(n_landmarks=args.landmarks, up_axis="y"), model="bgplvm", jobs=2))
         print(f"PSB {cls}: fitted {model.model_type} Q={model.latent_dim} in {time.perf_counter() - start:.1f} s; "
               f"{int(model.correspondence.outliers.sum())} correspondence outlier(s)")
         quality(model, f"PSB {cls}", 5 if args.quick else 20, results)

@@ -11,46 +11,27 @@ import sys
 import time
 from pathlib import Path
 
+from .cli_common import (add_settings_options, console_progress, correspond_on_console, flag_of, given_options,
+                         positive_int, prepare_source, read_source, settings_from_args)
+from .cli_generate import add_generate_commands
+from .collection import PrepareSettings
 from .errors import ShapeGenError
+from .pipeline import FitSettings
 
 __all__ = ["main", "build_parser"]
 
 
-def _console_progress(prefix: str):
-    """A progress callback printing one line per 10 % step (or per new message)."""
-    state = {"last": -1.0, "message": None}
-
-    def report(fraction: float, message: str) -> None:
-        step = int(fraction * 10)
-        if step > state["last"] or (message != state["message"] and fraction >= 1.0):
-            print(f"[{prefix}] {100 * fraction:5.1f} %  {message}", file=sys.stderr, flush=True)
-            state["last"] = step
-            state["message"] = message
-
-    return report
-
-
 # ---------------------------------------------------------------------------- prepare
 def cmd_prepare(args: argparse.Namespace) -> int:
-    from .collection import prepare_meshes
-    from .io import read_folder
-
     start = time.perf_counter()
-    meshes = read_folder(args.directory)
-    for mesh in meshes:
-        if mesh.report.summary() != "clean":
-            print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
-    prepared = prepare_meshes(
-        meshes, n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
-        scale=args.scale, centre=args.centre, seed=args.seed,
-        progress=_console_progress("prepare"),
-    )
+    source = read_source(args.directory, args, accepts=("folder",))
+    prepared = prepare_source(source)
     prepared.save(args.output)
     turned = [s.name for s in prepared.shapes if s.orientation_changed]
     counts = [len(l) for l in prepared.landmarks]
     print(
         f"prepared {len(prepared)} shapes -> {args.output}: landmarks {min(counts)}-{max(counts)} "
-        f"(requested {args.landmarks}); consensus re-oriented {len(turned)}"
+        f"(requested {source.prepare.n_landmarks}); consensus re-oriented {len(turned)}"
         + (f" ({', '.join(turned)})" if turned else "")
         + f"; {time.perf_counter() - start:.1f} s"
     )
@@ -59,36 +40,12 @@ def cmd_prepare(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- correspond
 def cmd_correspond(args: argparse.Namespace) -> int:
-    from .collection import PreparedCollection, prepare_meshes
     import numpy as np
 
-    from .correspond import CorrespondenceSettings, correspond
-    from .io import read_folder
-
     start = time.perf_counter()
-    source = Path(args.source)
-    if source.is_dir():
-        meshes = read_folder(source)
-        prepared = prepare_meshes(
-            meshes, n_landmarks=args.landmarks, up_axis=args.up, align=args.align,
-            scale=args.scale, centre=args.centre, seed=args.seed,
-            progress=_console_progress("prepare"),
-        )
-    else:
-        prepared = PreparedCollection.load(source)
-    settings = CorrespondenceSettings()
-    total = len(prepared) * (settings.groupwise_rounds + 1)
-    done = {"count": 0}
-    report = _console_progress("correspond")
-
-    def progress(shape: str, stage: str, iteration: int) -> None:
-        if stage == "registered":
-            done["count"] += 1
-            report(done["count"] / total, f"{shape} registered ({iteration} iterations)")
-        elif stage in ("template", "mean template"):
-            report(done["count"] / total, f"{stage}: {shape}" if stage == "template" else "mean template")
-
-    result = correspond(prepared, settings, template=args.template, jobs=args.jobs, progress=progress)
+    source = read_source(args.source, args, accepts=("folder", "prepared"))
+    options = settings_from_args(FitSettings, args)
+    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -111,41 +68,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     # check the cheap settings before any expensive correspondence work
     models = parse_model_names(args.models)
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
-    source = Path(args.source)
-    if source.is_dir():
-        from .collection import prepare_meshes
-        from .correspond import CorrespondenceSettings, correspond
-        from .io import read_folder
-
-        meshes = read_folder(source)
-        if args.folds > len(meshes):
-            raise EvaluationError(f"--folds {args.folds} is more than the {len(meshes)} shapes in {source}")
-        prepared = prepare_meshes(meshes, n_landmarks=args.landmarks, up_axis=args.up, seed=args.seed,
-                                  progress=_console_progress("prepare"))
-        report = _console_progress("correspond")
-        total = len(prepared) * (CorrespondenceSettings().groupwise_rounds + 1)
-        done = {"count": 0}
-
-        def progress(shape: str, stage: str, iteration: int) -> None:
-            if stage == "registered":
-                done["count"] += 1
-                report(done["count"] / total, f"{shape} registered")
-
-        corr = correspond(prepared, CorrespondenceSettings(), jobs=args.jobs, progress=progress)
+    source = read_source(args.source, args, accepts=("folder", "correspondence"))
+    if source.correspondence is not None:
+        corr = source.correspondence
+        unused = [flag_of(PrepareSettings, name) for name in given_options(PrepareSettings, args) if name != "seed"]
+        if unused:
+            print(f"note: {', '.join(unused)} not used: {source.path} is already corresponded", file=sys.stderr)
+    else:
+        if args.folds > len(source.meshes):
+            raise EvaluationError(f"--folds {args.folds} is more than the {len(source.meshes)} shapes in {source.path}")
+        corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs)
         if args.save_correspondence is not None:
             corr.save(args.save_correspondence)
-    elif source.is_file():
-        from .correspond import Correspondence
-
-        corr = Correspondence.load(source)
-    else:
-        raise EvaluationError(f"{source}: no such folder or correspondence file")
     prepared_seconds = time.perf_counter() - start
     outliers = [n for n, flag in zip(corr.names, corr.outliers) if flag]
-    settings = EvaluationSettings(models=models, folds=args.folds, seed=args.seed, n_samples=args.samples,
+    settings = EvaluationSettings(models=models, folds=args.folds, seed=source.prepare.seed, n_samples=args.samples,
                                   latent_dim=args.latent_dim, regions=regions)
-    result = run_evaluation(corr.landmark_matrix(), corr.names, settings, progress=_console_progress("evaluate"),
-                            extra={"source": source.name, "correspondence_outliers": outliers})
+    result = run_evaluation(corr.landmark_matrix(), corr.names, settings, progress=console_progress("evaluate"),
+                            extra={"source": source.path.name, "correspondence_outliers": outliers})
     paths = write_report(result, args.output, figures=not args.no_figures)
     total_seconds = time.perf_counter() - start
     per_part: dict[str, float] = {}
@@ -158,17 +98,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
-    from .landmarks import DEFAULT_LANDMARKS
-    from .preprocess import CENTRE_MODES, SCALE_MODES, UP_AXES
-
     parser = argparse.ArgumentParser(
         prog="shapegen",
         description="Learn a generative model of 3D shape from a collection of meshes.",
@@ -178,53 +108,35 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("prepare", help="align, scale and landmark a folder of meshes")
     p.add_argument("directory", type=Path, help="folder of .obj/.ply/.stl/.off/.glb files")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
-    p.add_argument("--landmarks", type=int, default=DEFAULT_LANDMARKS, help="landmarks per shape (default %(default)s)")
-    p.add_argument("--align", choices=("consensus", "pca", "none"), default="consensus",
-                   help="orientation: per-shape PCA, PCA then agreement with the collection (default), or none")
-    p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
-    p.add_argument("--scale", choices=SCALE_MODES, default="variance", help="scaling rule (default %(default)s)")
-    p.add_argument("--centre", choices=CENTRE_MODES, default="centroid", help="horizontal centring (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    add_settings_options(p, PrepareSettings)
     p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser("correspond", help="dense corresponding landmarks by non-rigid ICP (folder or prepared .npz)")
     p.add_argument("source", type=Path, help="folder of meshes, or a prepared collection .npz")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
-    p.add_argument("--landmarks", type=int, default=DEFAULT_LANDMARKS,
-                   help="landmarks per shape when given a folder (default %(default)s)")
-    p.add_argument("--template", default=None, help="template shape name (default: the medoid by Chamfer distance)")
-    p.add_argument("--jobs", type=_positive_int, default=None, help="worker processes (default: all cores)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    p.add_argument("--align", choices=("consensus", "pca", "none"), default="consensus",
-                   help="orientation when given a folder (default %(default)s)")
-    p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
-    p.add_argument("--scale", choices=SCALE_MODES, default="variance", help="scaling rule (default %(default)s)")
-    p.add_argument("--centre", choices=CENTRE_MODES, default="centroid", help="horizontal centring (default %(default)s)")
+    add_settings_options(p, PrepareSettings)
+    add_settings_options(p, FitSettings, ("template", "jobs"))
     p.set_defaults(func=cmd_correspond)
+
     p = sub.add_parser("evaluate", help="evaluate shape models: completion, novelty, MMD/coverage/1-NNA, NLL curve, latent map")
     p.add_argument("source", type=Path, help="folder of meshes, or a correspondence .npz")
     p.add_argument("-o", "--output", type=Path, required=True, help="report folder (report.json, summary.md, PNGs)")
     p.add_argument("--models", default="ppca,gplvm,bgplvm", help="comma-separated models (default %(default)s)")
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold protocol (default %(default)s)")
-    p.add_argument("--landmarks", type=int, default=DEFAULT_LANDMARKS,
-                   help="landmarks per shape when given a folder (default %(default)s)")
-    p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of everything (default %(default)s)")
-    p.add_argument("--samples", type=_positive_int, default=100,
+    add_settings_options(p, PrepareSettings)  # --seed also seeds the evaluation
+    p.add_argument("--samples", type=positive_int, default=100,
                    help="samples per model for novelty / specificity (default %(default)s)")
-    p.add_argument("--latent-dim", type=_positive_int, default=None,
+    p.add_argument("--latent-dim", type=positive_int, default=None,
                    help="latent dimension of every model (default: each model's 80 %% variance rule)")
     p.add_argument("--regions", default="top,middle,rear",
                    help="completion regions: top, middle (thirds along up), rear (lowest third along x) (default %(default)s)")
-    p.add_argument("--jobs", type=_positive_int, default=None, help="correspondence worker processes (default: all cores)")
+    add_settings_options(p, FitSettings, ("jobs",))
     p.add_argument("--no-figures", action="store_true", help="write report.json and summary.md only")
     p.add_argument("--save-correspondence", type=Path, default=None, metavar="NPZ",
                    help="when given a folder, also save its correspondence here (to re-evaluate without redoing it)")
     p.set_defaults(func=cmd_evaluate)
 
-    from .cli_generate import add_generate_commands
-
-    add_generate_commands(sub, _positive_int)
+    add_generate_commands(sub)
     return parser
 
 

@@ -10,42 +10,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import shutil
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from .errors import ShapeGenError
+from .cli_common import (CommandError, add_settings_options, console_progress, flag_of, positive_int, read_source,
+                         settings_from_args)
+from .collection import PrepareSettings
+from .deform import DeformSettings
+from .io import ObjWriter, read_folder, write_mesh
+from .npzfile import ArraySpec, load_npz, save_npz
+from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+from .preprocess import ShapeTransform
 
 __all__ = ["add_generate_commands"]
 
 MESH_FORMATS = ("obj", "ply", "glb", "stl", "off")
-
-
-class CommandError(ShapeGenError, ValueError):
-    """A command-line argument that cannot be used (names the argument)."""
-
-
-def _progress(prefix: str):
-    state = {"step": -1}
-
-    def report(fraction: float, stage: str) -> None:
-        step = int(20 * fraction)
-        if step > state["step"]:
-            state["step"] = step
-            print(f"[{prefix}] {100 * fraction:5.1f} %  {stage}", file=sys.stderr, flush=True)
-
-    return report
-
-
-def _load_model(path: Path):
-    from .pipeline import GenerativeShapeModel
-
-    return GenerativeShapeModel.load(path)
 
 
 class _StagedOutput:
@@ -71,19 +60,10 @@ class _StagedOutput:
         return False
 
 
-def _write_mesh(mesh, path: Path) -> None:
-    from .io import write_mesh
-
-    write_mesh(mesh, path)
-
-
 # ---------------------------------------------------------------------------- fit
 def _meshes_for_correspondence(corr, meshes_dir: Path):
     """Normalised training meshes for a correspondence file: re-read the inputs from
     `meshes_dir` and apply the transforms recorded in the file."""
-    from .io import read_folder
-    from .preprocess import ShapeTransform
-
     by_name = {m.name: m for m in read_folder(meshes_dir)}
     missing = [n for n in corr.names if n not in by_name]
     if missing:
@@ -96,41 +76,29 @@ def _meshes_for_correspondence(corr, meshes_dir: Path):
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .collection import PreparedCollection
-    from .correspond import Correspondence, CorrespondenceSettings
-    from .deform import DeformSettings
-    from .io import read_folder
-    from .pipeline import FitSettings, fit_meshes, fit_shape_model
-
     start = time.perf_counter()
-    settings = FitSettings(
-        n_landmarks=args.landmarks, up_axis=args.up, align=args.align, scale=args.scale, seed=args.seed,
-        model=args.model, latent_dim=args.latent_dim, template=args.template, jobs=args.jobs,
-        correspondence=CorrespondenceSettings(), deform=DeformSettings(final_alpha=args.stiffness),
-    )
-    source = Path(args.source)
-    report = _progress("fit")
-    if source.is_dir():
-        model = fit_meshes(read_folder(source), settings, progress=report)
-    elif source.suffix == ".npz":
-        from .npzfile import load_npz
-
-        try:
-            kind = str(np.load(source, allow_pickle=False)["format"])
-        except Exception:
-            kind = ""
-        if kind == "shapegen.prepared":
-            model = fit_meshes(PreparedCollection.load(source), settings, progress=report)
-        else:
-            corr = Correspondence.load(source)  # refuses anything that is not a correspondence file
-            if args.meshes is None:
-                raise CommandError(
-                    f"{source}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
-                    "was computed from) so the training meshes can be meshed")
-            meshes = _meshes_for_correspondence(corr, args.meshes)
-            model = fit_shape_model(meshes, corr, settings, progress=report)
+    # every setting is checked before the source is read
+    settings = settings_from_args(FitSettings, args, flags={"deform.final_alpha": "--stiffness"},
+                                  prepare=settings_from_args(PrepareSettings, args),
+                                  deform=DeformSettings(final_alpha=args.stiffness))
+    source = read_source(args.source, args)
+    settings = replace(settings, prepare=source.prepare)
+    report = console_progress("fit")
+    if source.correspondence is None:
+        if args.meshes is not None:
+            raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
+                               f"{source.kind}")
+        model = fit_meshes(source.meshes if source.prepared is None else source.prepared, settings, progress=report)
     else:
-        raise CommandError(f"{source}: expected a folder of meshes, a prepared .npz or a correspondence .npz")
+        if args.meshes is None:
+            raise CommandError(
+                f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
+                "was computed from) so the training meshes can be meshed")
+        recorded = ", ".join(f"{flag_of(PrepareSettings, k)} {v}" for k, v in settings.prepare.as_dict().items())
+        print(f"note: {source.path} does not record how its shapes were prepared; the model records this "
+              f"command's Prepare options ({recorded})", file=sys.stderr)
+        meshes = _meshes_for_correspondence(source.correspondence, args.meshes)
+        model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
     model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
@@ -144,7 +112,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- info
 def cmd_info(args: argparse.Namespace) -> int:
-    model = _load_model(args.model)
+    model = GenerativeShapeModel.load(args.model)
     corr = model.correspondence
     info = {
         "file": str(args.model),
@@ -157,7 +125,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "outliers": [n for n, o in zip(model.names, corr.outliers) if o],
         "median_residual_percent_of_diagonal": round(100 * float(np.median(corr.residuals)), 4),
         "training_mesh_vertices": [m.n_vertices for m in model.meshes],
-        "deform": {k: getattr(model.deform_settings, k) for k in ("final_alpha", "start_alpha", "n_stages", "gamma", "k_blend")},
+        "settings": model.settings.as_dict(),
         "metadata": model.metadata,
         "names": model.names,
     }
@@ -175,8 +143,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 def _mesh_and_write(model, items, folder: Path, file_format: str, smooth: int, exact: bool) -> None:
     """Mesh (name, landmarks, template) items and write them; OBJ files of one template
     share a pre-formatted face block (io.ObjWriter)."""
-    from .io import ObjWriter
-
     writers = {}
     for name, landmarks, template in items:
         mesh = model.mesh_from_landmarks(landmarks, template=template, smooth=smooth, exact=exact, name=name)
@@ -186,7 +152,7 @@ def _mesh_and_write(model, items, folder: Path, file_format: str, smooth: int, e
                 writers[template] = ObjWriter(mesh.faces)
             writers[template].write(mesh.vertices, path)
         else:
-            _write_mesh(mesh, path)
+            write_mesh(mesh, path)
 
 
 _WORKER_MODEL = None
@@ -194,10 +160,7 @@ _WORKER_MODEL = None
 
 def _init_sample_worker(model_path: str) -> None:
     global _WORKER_MODEL
-    import os
-
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    _WORKER_MODEL = _load_model(Path(model_path))
+    _WORKER_MODEL = GenerativeShapeModel.load(Path(model_path))
 
 
 def _sample_chunk(items, folder: str, file_format: str, smooth: int, exact: bool) -> int:
@@ -205,24 +168,43 @@ def _sample_chunk(items, folder: str, file_format: str, smooth: int, exact: bool
     return len(items)
 
 
+def contiguous_chunks(items: list, parts: int) -> list[list]:
+    """`items` cut into at most `parts` contiguous runs of (nearly) equal length."""
+    size = -(-len(items) // parts)
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+@contextmanager
+def _single_threaded_blas():
+    """OPENBLAS_NUM_THREADS=1 while worker processes start: spawned workers inherit it
+    before they load numpy (set inside a worker it comes too late), so `jobs` workers
+    share the cores instead of each running OpenBLAS on all of them."""
+    previous = os.environ.get("OPENBLAS_NUM_THREADS")
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ["OPENBLAS_NUM_THREADS"]
+        else:
+            os.environ["OPENBLAS_NUM_THREADS"] = previous
+
+
 def _write_samples(args, model, names, landmarks, templates, folder: Path) -> None:
     """Mesh and write every sample, in `args.jobs` processes when there are many."""
-    import concurrent.futures as futures
-    import multiprocessing
-
     items = list(zip(names, landmarks, templates))
     jobs = args.jobs or (os.cpu_count() or 1)
     if jobs == 1 or len(items) < 64:
         _mesh_and_write(model, items, folder, args.format, args.smooth, args.exact)
         return
-    # chunks grouped by template so each worker factorises few templates
+    # each worker gets a contiguous run of the items sorted by template, so it builds the
+    # mesh maps of few templates
     items.sort(key=lambda item: item[2])
-    chunks = [items[i::jobs] for i in range(jobs)]
     context = multiprocessing.get_context("spawn")
-    with futures.ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
-                                     initargs=(str(args.model),)) as pool:
+    with _single_threaded_blas(), ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
+                                                      initargs=(str(args.model),)) as pool:
         done = [pool.submit(_sample_chunk, chunk, str(folder), args.format, args.smooth, args.exact)
-                for chunk in chunks if chunk]
+                for chunk in contiguous_chunks(items, jobs)]
         for future in done:
             future.result()
 
@@ -231,7 +213,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.n < 1:
         raise CommandError(f"-n must be at least 1, got {args.n}")
-    model = _load_model(args.model)
+    model = GenerativeShapeModel.load(args.model)
     rng = np.random.default_rng(args.seed)
     landmarks, latents = model.sample(args.n, rng)
     names = [f"sample_{i:04d}" for i in range(args.n)]
@@ -242,8 +224,6 @@ def cmd_sample(args: argparse.Namespace) -> int:
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
         if latents is not None:
             arrays["latents"] = latents
-        from .npzfile import save_npz
-
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
     seconds = time.perf_counter() - start
     print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz -> {args.output} "
@@ -253,9 +233,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- complete
 def cmd_complete(args: argparse.Namespace) -> int:
-    from .npzfile import ArraySpec, load_npz, save_npz
-
-    model = _load_model(args.model)
+    model = GenerativeShapeModel.load(args.model)
     arrays = load_npz(args.partial, "shapegen.partial", 1,
                       {"landmarks": ArraySpec("f", (None, None, 3), finite=False)})
     partial = arrays["landmarks"]
@@ -270,7 +248,7 @@ def cmd_complete(args: argparse.Namespace) -> int:
                  {"landmarks": completed, "observed": np.isfinite(partial).all(axis=2)})
         for i, lm in enumerate(completed):
             mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"completed_{i:04d}")
-            _write_mesh(mesh, staging / f"completed_{i:04d}.{args.format}")
+            write_mesh(mesh, staging / f"completed_{i:04d}.{args.format}")
     missing = int((~np.isfinite(partial).all(axis=2)).sum())
     print(f"completed {len(completed)} shape(s) ({missing} missing landmarks filled) -> {args.output}")
     return 0
@@ -280,7 +258,7 @@ def cmd_complete(args: argparse.Namespace) -> int:
 def cmd_morph(args: argparse.Namespace) -> int:
     if args.n < 2:
         raise CommandError(f"-n must be at least 2 (both ends), got {args.n}")
-    model = _load_model(args.model)
+    model = GenerativeShapeModel.load(args.model)
     index_a, index_b = model.shape_index(args.name_a), model.shape_index(args.name_b)
     latents = model.training_latents()
     weights = np.linspace(0.0, 1.0, args.n)[:, None]
@@ -289,9 +267,7 @@ def cmd_morph(args: argparse.Namespace) -> int:
     with _StagedOutput(args.output) as staging:
         for k, (lm, w) in enumerate(zip(landmarks, weights[:, 0])):
             mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"morph_{k:03d}")
-            _write_mesh(mesh, staging / f"morph_{k:03d}.{args.format}")
-        from .npzfile import save_npz
-
+            write_mesh(mesh, staging / f"morph_{k:03d}.{args.format}")
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1,
                  {"landmarks": landmarks, "latents": line, "weights": weights[:, 0],
                   "ends": np.asarray([args.name_a, args.name_b])})
@@ -300,25 +276,15 @@ def cmd_morph(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- parser
-def add_generate_commands(sub, positive_int) -> None:
-    from .landmarks import DEFAULT_LANDMARKS
-    from .models import MODEL_TYPES
-    from .preprocess import SCALE_MODES, UP_AXES
-
+def add_generate_commands(sub) -> None:
     p = sub.add_parser("fit", help="fit a generative shape model (folder, prepared .npz or correspondence .npz)")
     p.add_argument("source", type=Path, help="folder of meshes, prepared .npz, or correspondence .npz (+ --meshes)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output model .npz")
-    p.add_argument("--model", choices=tuple(MODEL_TYPES), default="bgplvm", help="shape model (default %(default)s)")
-    p.add_argument("--latent-dim", type=positive_int, default=None, help="latent dimension (default: 80 %% variance rule)")
-    p.add_argument("--landmarks", type=positive_int, default=DEFAULT_LANDMARKS, help="landmarks per shape (default %(default)s)")
-    p.add_argument("--template", default=None, help="correspondence template shape (default: Chamfer medoid)")
+    add_settings_options(p, FitSettings)
+    add_settings_options(p, PrepareSettings)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
-    p.add_argument("--up", choices=UP_AXES, default="z", help="input axis that points up (default %(default)s)")
-    p.add_argument("--align", choices=("consensus", "pca", "none"), default="consensus", help="orientation rule")
-    p.add_argument("--scale", choices=SCALE_MODES, default="variance", help="scaling rule (default %(default)s)")
-    p.add_argument("--stiffness", type=float, default=2.0, help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
-    p.add_argument("--jobs", type=positive_int, default=None, help="worker processes (default: all cores)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--stiffness", type=float, default=DeformSettings().final_alpha,
+                   help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("info", help="describe a fitted model file")

@@ -1,38 +1,79 @@
 """A prepared collection: aligned, scaled and landmarked shapes, saved as one `.npz`.
 
 This is the hand-off from intake (§3.4 alignment, §4.2.1 landmarks) to correspondence.
-`prepare_meshes` runs both steps; `PreparedCollection.save/load` persist the result
-(meshes in the normalised frame, the per-shape transforms back to input coordinates, the
-landmarks and the settings used).
+`prepare_meshes` runs both steps with one `PrepareSettings`; `PreparedCollection.save/load`
+persist the result (meshes in the normalised frame, the per-shape transforms back to input
+coordinates, the landmarks and the settings used, as one JSON string).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from .errors import CollectionError, ModelFileError
-from .landmarks import DEFAULT_LANDMARKS, Landmarks, select_landmarks
+from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
 from . import meshset
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz
-from .preprocess import PreparedShape, ShapeTransform, prepare_collection
+from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
+from .settings import Settings, SettingsError, legacy_settings, option
 
-__all__ = ["PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
+__all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
 
 PREPARED_FORMAT = "shapegen.prepared"
 PREPARED_VERSION = 1
 
 
+@dataclass(frozen=True)
+class PrepareSettings(Settings):
+    """How a collection is aligned, scaled and landmarked (thesis §3.4, §4.2.1)."""
+
+    n_landmarks: int = option(DEFAULT_LANDMARKS, "landmarks per shape", flag="--landmarks", minimum=MIN_LANDMARKS)
+    up_axis: str = option("z", "input axis that points up", flag="--up", choices=UP_AXES)
+    align: str = option("consensus", "orientation: per-shape PCA, PCA then agreement with the collection "
+                        "(consensus), or none", flag="--align", choices=ALIGN_MODES)
+    scale: str = option("variance", "scaling rule", flag="--scale", choices=SCALE_MODES)
+    centre: str = option("centroid", "horizontal centring", flag="--centre", choices=CENTRE_MODES)
+    seed: int = option(0, "random seed", flag="--seed", minimum=0)
+
+    def items(self):
+        """(name, value) pairs. Add-on bridge (issue 11): shapegen_addon/prepared.py
+        (build_prepared_collection) still reads `prepared.settings` as the old dict; remove
+        once it uses as_dict()."""
+        return asdict(self).items()
+
+
+#: Arrays of a prepared-collection file besides its settings.
+_SPEC = {
+    "names": ArraySpec("U", ("M",)),
+    **meshset.spec(),
+    "transforms": ArraySpec("f", ("M", 4, 4)),
+    "orientation_changed": ArraySpec("b", ("M",)),
+    "landmarks": ArraySpec("f", ("Ltot", 3)),
+    "landmark_faces": ArraySpec("i", ("Ltot",)),
+    "landmark_barycentric": ArraySpec("f", ("Ltot", 3)),
+    "landmark_offsets": ArraySpec("i", ("M+1",)),
+    "landmark_radius": ArraySpec("f", ("M",)),
+}
+#: The settings: one JSON string ("null": not recorded); files before it held key/value strings.
+_SETTINGS_SPEC = {"settings": ArraySpec("U", ())}
+_LEGACY_SETTINGS_SPEC = {"settings_keys": ArraySpec("U", ("S",)), "settings_values": ArraySpec("U", ("S",))}
+
+
 @dataclass
 class PreparedCollection:
+    """Prepared shapes with their landmarks; `settings` says how they were prepared (None:
+    not recorded, e.g. a collection assembled from shapes prepared elsewhere)."""
+
     shapes: list[PreparedShape]
     landmarks: list[Landmarks]
-    settings: dict = field(default_factory=dict)
+    settings: PrepareSettings | None = None
 
     @property
     def names(self) -> list[str]:
@@ -48,6 +89,9 @@ class PreparedCollection:
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
+        settings = self.settings
+        if isinstance(settings, Mapping):  # add-on bridge (issue 11): shapegen_addon/ops/fit.py assigns a dict
+            settings = PrepareSettings.from_dict(settings)
         return {
             "names": np.asarray(self.names, dtype=str),
             **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
@@ -58,8 +102,7 @@ class PreparedCollection:
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
             "landmark_offsets": l_off.astype(np.int64),
             "landmark_radius": np.asarray([l.radius for l in self.landmarks]),
-            "settings_keys": np.asarray(list(self.settings.keys()), dtype=str),
-            "settings_values": np.asarray([str(v) for v in self.settings.values()], dtype=str),
+            "settings": np.asarray("null" if settings is None else settings.to_json()),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -67,20 +110,7 @@ class PreparedCollection:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "PreparedCollection":
-        spec = {
-            "names": ArraySpec("U", ("M",)),
-            **meshset.spec(),
-            "transforms": ArraySpec("f", ("M", 4, 4)),
-            "orientation_changed": ArraySpec("b", ("M",)),
-            "landmarks": ArraySpec("f", ("Ltot", 3)),
-            "landmark_faces": ArraySpec("i", ("Ltot",)),
-            "landmark_barycentric": ArraySpec("f", ("Ltot", 3)),
-            "landmark_offsets": ArraySpec("i", ("M+1",)),
-            "landmark_radius": ArraySpec("f", ("M",)),
-            "settings_keys": ArraySpec("U", ("S",)),
-            "settings_values": ArraySpec("U", ("S",)),
-        }
-        a = load_npz(path, PREPARED_FORMAT, PREPARED_VERSION, spec)
+        a = load_npz(path, PREPARED_FORMAT, PREPARED_VERSION, _SPEC)
         m = len(a["names"])
         lo = a["landmark_offsets"]
         if len(lo) != m + 1 or lo[0] != 0 or lo[-1] != len(a["landmarks"]) or np.any(np.diff(lo) < 0):
@@ -100,18 +130,27 @@ class PreparedCollection:
                 raise ModelFileError(f"{path}: shape {name!r} has landmark face indices out of range")
             landmarks.append(Landmarks(a["landmarks"][sl], faces, a["landmark_barycentric"][sl],
                                        float(a["landmark_radius"][i])))
-        settings = dict(zip(a["settings_keys"].tolist(), a["settings_values"].tolist()))
-        return cls(shapes, landmarks, settings)
+        return cls(shapes, landmarks, _load_settings(a, path))
+
+
+def _load_settings(arrays: dict, path) -> PrepareSettings | None:
+    """The recorded PrepareSettings of a loaded file (JSON, or the key/value strings of
+    files written before); invalid settings are a ModelFileError naming the file."""
+    try:
+        if "settings" in arrays or "settings_keys" not in arrays:
+            validate_arrays(arrays, _SETTINGS_SPEC, str(path))
+            text = str(arrays["settings"])
+            return None if text == "null" else PrepareSettings.from_json(text)
+        validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
+        legacy = legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())
+        return PrepareSettings.from_dict(legacy) if legacy else None
+    except SettingsError as exc:
+        raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None
 
 
 def prepare_meshes(
     meshes: Sequence[Mesh],
-    n_landmarks: int = DEFAULT_LANDMARKS,
-    up_axis: str = "z",
-    align: str = "consensus",
-    scale: str = "variance",
-    centre: str = "centroid",
-    seed: int = 0,
+    settings: PrepareSettings = PrepareSettings(),
     min_shapes: int = 2,
     progress: Callable[[float, str], None] | None = None,
 ) -> PreparedCollection:
@@ -128,13 +167,11 @@ def prepare_meshes(
         raise CollectionError(f"shape names must be unique; repeated: {duplicates}")
     report = progress or (lambda fraction, message: None)
     shapes = prepare_collection(
-        meshes, up_axis=up_axis, align=align, centre=centre, scale=scale, seed=seed,
-        progress=lambda f, msg: report(0.6 * f, msg),
+        meshes, up_axis=settings.up_axis, align=settings.align, centre=settings.centre, scale=settings.scale,
+        seed=settings.seed, progress=lambda f, msg: report(0.6 * f, msg),
     )
     landmarks = []
     for i, shape in enumerate(shapes):
-        landmarks.append(select_landmarks(shape.mesh, n_landmarks, seed=seed + i))
+        landmarks.append(select_landmarks(shape.mesh, settings.n_landmarks, seed=settings.seed + i))
         report(0.6 + 0.4 * (i + 1) / len(shapes), f"landmarks on {shape.name}")
-    settings = {"n_landmarks": n_landmarks, "up_axis": up_axis, "align": align, "scale": scale,
-                "centre": centre, "seed": seed}
     return PreparedCollection(shapes, landmarks, settings)

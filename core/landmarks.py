@@ -19,9 +19,10 @@ from scipy.spatial import cKDTree
 from .errors import MeshError
 from .mesh import Mesh
 
-__all__ = ["Landmarks", "select_landmarks", "radius_select", "DEFAULT_LANDMARKS"]
+__all__ = ["Landmarks", "select_landmarks", "radius_select", "DEFAULT_LANDMARKS", "MIN_LANDMARKS"]
 
 DEFAULT_LANDMARKS = 800
+MIN_LANDMARKS = 4
 #: Dense samples per requested landmark (at least MIN_DENSE_SAMPLES in all).
 DENSE_SAMPLES_PER_LANDMARK = 25
 MIN_DENSE_SAMPLES = 20_000
@@ -71,8 +72,8 @@ def select_landmarks(
     closest count found is returned.
     """
     label = mesh.name or "mesh"
-    if n_landmarks < 4:
-        raise ValueError(f"{label}: need at least 4 landmarks, asked for {n_landmarks}")
+    if n_landmarks < MIN_LANDMARKS:
+        raise ValueError(f"{label}: need at least {MIN_LANDMARKS} landmarks, asked for {n_landmarks}")
     rng = np.random.default_rng(seed)
     if n_dense is None:
         n_dense = max(MIN_DENSE_SAMPLES, DENSE_SAMPLES_PER_LANDMARK * n_landmarks)

@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import ModelFileError
 
-__all__ = ["save_npz", "load_npz", "validate_arrays", "ArraySpec"]
+__all__ = ["save_npz", "load_npz", "read_format", "validate_arrays", "ArraySpec"]
 
 
 class ArraySpec:
@@ -62,15 +62,9 @@ def save_npz(path: str | os.PathLike, file_format: str, version: int, arrays: Ma
     return path
 
 
-def load_npz(
-    path: str | os.PathLike,
-    file_format: str,
-    version: int,
-    spec: Mapping[str, ArraySpec],
-) -> dict[str, np.ndarray]:
-    """Read and validate a file written by `save_npz`. Raises ModelFileError on anything
-    unexpected; the message starts with the path."""
-    path = Path(path)
+def _read_arrays(path: Path, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file (only `keys`, where present, if given), read without
+    pickle and with the file closed again; ModelFileError starting with the path."""
     label = str(path)
     if not path.is_file():
         raise ModelFileError(f"{label}: no such file")
@@ -81,7 +75,7 @@ def load_npz(
             raise ModelFileError(f"{label}: is a single .npy array, not a ShapeGen .npz file")
         with data:
             arrays = {}
-            for key in data.files:
+            for key in data.files if keys is None else [k for k in keys if k in data.files]:
                 try:
                     arrays[key] = data[key]
                 except ValueError as exc:
@@ -94,6 +88,30 @@ def load_npz(
         raise
     except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error) as exc:
         raise ModelFileError(f"{label}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    return arrays
+
+
+def read_format(path: str | os.PathLike) -> str:
+    """The format tag of a ShapeGen .npz (e.g. "shapegen.prepared"), read without loading
+    the other arrays, so a caller can tell which kind of file it was given."""
+    path = Path(path)
+    tag = _read_arrays(path, ("format",)).get("format")
+    if tag is None or tag.shape != () or tag.dtype.kind != "U":
+        raise ModelFileError(f"{path}: not a ShapeGen file (no format tag)")
+    return str(tag)
+
+
+def load_npz(
+    path: str | os.PathLike,
+    file_format: str,
+    version: int,
+    spec: Mapping[str, ArraySpec],
+) -> dict[str, np.ndarray]:
+    """Read and validate a file written by `save_npz`. Raises ModelFileError on anything
+    unexpected; the message starts with the path."""
+    path = Path(path)
+    label = str(path)
+    arrays = _read_arrays(path)
     if "format" not in arrays or "format_version" not in arrays:
         raise ModelFileError(f"{label}: not a ShapeGen file (no format tag); expected {file_format!r}")
     tag, tag_version = arrays.pop("format"), arrays.pop("format_version")
@@ -103,8 +121,6 @@ def load_npz(
     if tag_version.shape != () or tag_version.dtype.kind not in "iu":
         raise ModelFileError(f"{label}: format_version {str(tag_version)!r} is not an integer version")
     found_version = int(tag_version)
-    if found != file_format:
-        raise ModelFileError(f"{label}: is a {found!r} file, expected {file_format!r}")
     if found_version != version:
         raise ModelFileError(
             f"{label}: {file_format} version {found_version} is not supported (this ShapeGen reads version {version})"

@@ -8,7 +8,7 @@ versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 * the correspondence: landmarks (M, L, 3), the template's k-NN graph (kept for meshing,
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
-* settings and metadata.
+* the fit's settings (`FitSettings`, one JSON string) and metadata.
 
 Generation: `sample_landmarks` → `mesh_from_landmarks` (embedded deformation of a
 template training mesh, §6), with the template chosen by name, nearest training shape in
@@ -20,20 +20,22 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from .collection import PreparedCollection, prepare_meshes
+from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import Cancelled, ModelFileError, ShapeGenError
 from . import meshset
 from .mesh import Mesh
 from .models import MODEL_TYPES, make_model, model_from_arrays
-from .npzfile import ArraySpec, load_npz, save_npz
+from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .settings import Settings, SettingsError, legacy_settings, option, settings_from_dict
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
@@ -51,60 +53,76 @@ class TemplateError(ShapeGenError, ValueError):
 
 
 @dataclass(frozen=True)
-class FitSettings:
+class FitSettings(Settings):
     """Everything a fit needs besides the meshes (defaults: thesis / method.md)."""
 
-    n_landmarks: int = 800
-    up_axis: str = "z"
-    align: str = "consensus"
-    scale: str = "variance"
-    centre: str = "centroid"
-    seed: int = 0
-    model: str = "bgplvm"
-    latent_dim: int | None = None
-    template: str | None = None  # correspondence template; None = Chamfer medoid
-    jobs: int | None = None  # correspondence worker processes; None = all cores
-    correspondence: CorrespondenceSettings = field(default_factory=CorrespondenceSettings)
-    deform: DeformSettings = field(default_factory=DeformSettings)
+    prepare: PrepareSettings = option(default_factory=PrepareSettings,
+                                      help="alignment, scaling and landmarks; prepare.seed also seeds the model")
+    model: str = option("bgplvm", "shape model", flag="--model", choices=tuple(MODEL_TYPES))
+    latent_dim: int | None = option(None, "latent dimension (default: 80 % variance rule)", flag="--latent-dim",
+                                    minimum=1)
+    template: str | None = option(None, "correspondence template shape (default: the Chamfer medoid)",
+                                  flag="--template")
+    jobs: int | None = option(None, "correspondence worker processes (default: all cores)", flag="--jobs", minimum=1)
+    mesh_template: str = option("nearest-data", "template mesh of generated shapes when none is asked for: "
+                                "nearest-data, nearest-latent or a training shape's name", flag="--mesh-template")
+    correspondence: CorrespondenceSettings = option(default_factory=CorrespondenceSettings,
+                                                    help="the correspondence engine (§4.2)")
+    deform: DeformSettings = option(default_factory=DeformSettings, help="meshing by embedded deformation (§6)")
 
     def __post_init__(self):
-        if self.model not in MODEL_TYPES:
-            raise ValueError(f"unknown model {self.model!r}; choose from {', '.join(MODEL_TYPES)}")
+        super().__post_init__()
+        if not self.mesh_template:
+            raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's name")
+        # DeformSettings (core/deform.py) does not check itself: a zero stiffness would only
+        # fail when a sample is meshed ("Factor is exactly singular")
+        for name in ("final_alpha", "start_alpha", "gamma"):
+            value = getattr(self.deform, name)
+            if not value > 0:
+                raise SettingsError(f"deform.{name}", f"must be greater than 0, got {value!r}")
+        if self.deform.k_blend < 1:
+            raise SettingsError("deform.k_blend", f"must be at least 1, got {self.deform.k_blend!r}")
 
     @classmethod
-    def from_dict(cls, options: dict) -> "FitSettings":
-        """FitSettings from plain data (JSON), the stage settings as nested dicts under
-        "correspondence" and "deform". Unknown or invalid fields raise TypeError/ValueError."""
-        rest = dict(options)
-        return cls(correspondence=CorrespondenceSettings(**rest.pop("correspondence", {})),
-                   deform=DeformSettings(**rest.pop("deform", {})), **rest)
+    def from_dict(cls, data: Mapping) -> "FitSettings":
+        """FitSettings from plain data (JSON): nested objects under "prepare",
+        "correspondence" and "deform". Add-on bridge (issue 11): the Prepare options may
+        also come flat at the top level, as shapegen_addon/ui/properties.py (fit_options)
+        sends them today; remove `_nest_prepare` here once it sends "prepare": {...}."""
+        return settings_from_dict(cls, _nest_prepare(data))
 
 
-def _scalar_settings(settings: FitSettings) -> dict[str, str]:
-    out = {}
-    for f in fields(settings):
-        value = getattr(settings, f.name)
-        if f.name in ("correspondence", "deform"):
-            for sub in fields(value):
-                out[f"{f.name}.{sub.name}"] = repr(getattr(value, sub.name))
-        else:
-            out[f.name] = repr(value)
-    return out
+def _nest_prepare(data: Mapping) -> dict:
+    """`data` with Prepare options given flat at the top level (n_landmarks, up_axis, ...;
+    as model files before issue 11 and the add-on hold them) moved under "prepare"."""
+    if not isinstance(data, Mapping):
+        return data
+    names = {f.name for f in fields(PrepareSettings)}
+    flat = {key: value for key, value in data.items() if key in names}
+    rest = {key: value for key, value in data.items() if key not in names}
+    if flat:
+        rest["prepare"] = {**rest.get("prepare", {}), **flat}
+    return rest
+
+
+def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
+    """The default meshing template must be a choice or one of the training shapes."""
+    if settings.mesh_template not in TEMPLATE_CHOICES and settings.mesh_template not in names:
+        raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's "
+                            f"name; no shape is named {settings.mesh_template!r}")
 
 
 class GenerativeShapeModel:
     """A fitted shape class: sample, encode, complete and mesh new shapes."""
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
-                 settings: dict[str, str] | None = None, deform_settings: DeformSettings = DeformSettings(),
-                 metadata: dict[str, str] | None = None):
+                 settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None):
         if len(meshes) != len(correspondence.names):
             raise ShapeGenError(f"{len(meshes)} meshes for {len(correspondence.names)} corresponded shapes")
         self.meshes = meshes
         self.correspondence = correspondence
         self.model = model
-        self.settings = dict(settings or {})
-        self.deform_settings = deform_settings
+        self.settings = settings
         self.metadata = dict(metadata or {})
         self._linear_maps: dict[int, LinearMeshMap] = {}
         self._deformers: dict[int, EmbeddedDeformer] = {}
@@ -114,6 +132,10 @@ class GenerativeShapeModel:
     @property
     def names(self) -> list[str]:
         return list(self.correspondence.names)
+
+    @property
+    def deform_settings(self) -> DeformSettings:
+        return self.settings.deform
 
     @property
     def n_landmarks(self) -> int:
@@ -176,8 +198,7 @@ class GenerativeShapeModel:
         """Index of the training shape whose mesh is deformed (§6.2.5)."""
         landmarks = self._check_landmarks(landmarks)
         if template is None:
-            template = self.settings.get("default_template") or "nearest-data"
-            template = template.strip("'")
+            template = self.settings.mesh_template
         if template == "nearest-data":
             distances = ((self.correspondence.points - landmarks[None]) ** 2).sum(axis=(1, 2))
             return int(np.argmin(distances))
@@ -243,11 +264,7 @@ class GenerativeShapeModel:
         arrays = {f"corr__{k}": v for k, v in self.correspondence.to_arrays().items()}
         arrays.update({f"model__{k}": v for k, v in self.model.to_arrays().items()})
         arrays.update(meshset.pack([m.vertices for m in self.meshes], [m.faces for m in self.meshes], prefix="mesh_"))
-        deform = {f.name: getattr(self.deform_settings, f.name) for f in fields(self.deform_settings)}
-        arrays["deform_keys"] = np.asarray(list(deform), dtype=str)
-        arrays["deform_values"] = np.asarray(list(deform.values()), dtype=np.float64)
-        arrays["settings_keys"] = np.asarray(list(self.settings), dtype=str)
-        arrays["settings_values"] = np.asarray(list(self.settings.values()), dtype=str)
+        arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
         return arrays
@@ -259,10 +276,6 @@ class GenerativeShapeModel:
     def load(cls, path: str | os.PathLike) -> "GenerativeShapeModel":
         spec = {
             **meshset.spec(prefix="mesh_"),
-            "deform_keys": ArraySpec("U", ("K",)),
-            "deform_values": ArraySpec("f", ("K",)),
-            "settings_keys": ArraySpec("U", ("S",)),
-            "settings_values": ArraySpec("U", ("S",)),
             "metadata_keys": ArraySpec("U", ("T",)),
             "metadata_values": ArraySpec("U", ("T",)),
         }
@@ -278,17 +291,35 @@ class GenerativeShapeModel:
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")
-        known = {f.name: f for f in fields(DeformSettings)}
-        deform_values = {}
-        for key, value in zip(arrays["deform_keys"].tolist(), arrays["deform_values"].tolist()):
-            if key not in known:
-                raise ModelFileError(f"{path}: unknown deformation setting {key!r}")
-            deform_values[key] = int(value) if known[key].type in ("int", int) else float(value)
-        return cls(meshes, correspondence, model,
-                   settings=dict(zip(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())),
-                   deform_settings=DeformSettings(**deform_values),
+        return cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
                    metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())))
 
+
+#: Model files before issue 11: settings as repr strings by (dotted) key, deformation
+#: settings as numbers by key.
+_LEGACY_SETTINGS_SPEC = {
+    "settings_keys": ArraySpec("U", ("S",)),
+    "settings_values": ArraySpec("U", ("S",)),
+    "deform_keys": ArraySpec("U", ("K",)),
+    "deform_values": ArraySpec("f", ("K",)),
+}
+
+
+def _load_fit_settings(arrays: dict, path) -> FitSettings:
+    """The FitSettings a model file records (one JSON string, or the key/value arrays of
+    files written before); invalid settings are a ModelFileError naming the file."""
+    try:
+        if "settings" in arrays or "settings_keys" not in arrays:
+            validate_arrays(arrays, {"settings": ArraySpec("U", ())}, str(path))
+            return FitSettings.from_json(str(arrays["settings"]))
+        validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
+        options = _nest_prepare(legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist()))
+        defaults = DeformSettings()
+        options["deform"] = {key: type(getattr(defaults, key, 0.0))(value)
+                             for key, value in zip(arrays["deform_keys"].tolist(), arrays["deform_values"].tolist())}
+        return FitSettings.from_dict(options)
+    except SettingsError as exc:
+        raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None
 
 class LatentMesher:
     """Mesh vertices of one template as a direct function of a latent vector z.
@@ -332,6 +363,10 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
                should_cancel: Callable[[], bool] | None = None) -> GenerativeShapeModel:
     """The whole fit: prepare (§3.4, §4.2.1) → correspond (§4.2) → shape model (§5.3).
 
+    Given a PreparedCollection, its own recorded settings win over `settings.prepare`
+    (the model records how its shapes were really prepared); `settings.prepare` is used
+    only for raw meshes or a collection that records none.
+
     Progress fractions: prepare 0–0.15, correspondence 0.15–0.75, model 0.75–1.
     `should_cancel` is polled between steps and inside correspondence; a cancel raises
     errors.Cancelled and nothing is returned.
@@ -346,11 +381,14 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
 
     if isinstance(meshes_or_prepared, PreparedCollection):
         prepared = meshes_or_prepared
+        if prepared.settings is not None:
+            settings = replace(settings, prepare=prepared.settings)
+        _check_mesh_template(settings, prepared.names)
     else:
-        prepared = prepare_meshes(
-            meshes_or_prepared, n_landmarks=settings.n_landmarks, up_axis=settings.up_axis,
-            align=settings.align, scale=settings.scale, centre=settings.centre, seed=settings.seed,
-            progress=lambda f, msg: report(0.15 * f, f"prepare: {msg}"))
+        meshes = list(meshes_or_prepared)
+        _check_mesh_template(settings, [m.name for m in meshes])
+        prepared = prepare_meshes(meshes, settings.prepare,
+                                  progress=lambda f, msg: report(0.15 * f, f"prepare: {msg}"))
     check()
     n_shapes = len(prepared)
     done = {"count": 0, "round": 0}
@@ -386,7 +424,8 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
         if cancelled():
             raise Cancelled("fit cancelled")
 
-    model = make_model(settings.model, settings.latent_dim, settings.seed)
+    _check_mesh_template(settings, list(corr.names))
+    model = make_model(settings.model, settings.latent_dim, settings.prepare.seed)
     model.fit(corr.landmark_matrix(),
               progress=lambda f, msg: (check(), report(low + (high - low) * f, f"{settings.model}: {msg}")))
     check()
@@ -395,5 +434,4 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
 
     metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",
                 "n_shapes": str(len(meshes)), "shapegen_version": __version__}
-    return GenerativeShapeModel(list(meshes), corr, model, settings=_scalar_settings(settings),
-                                deform_settings=settings.deform, metadata=metadata)
+    return GenerativeShapeModel(list(meshes), corr, model, settings=settings, metadata=metadata)

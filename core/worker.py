@@ -51,7 +51,8 @@ class _CancelFlag:
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
     """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz) or from an
-    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare)."""
+    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare);
+    `settings` are FitSettings as plain data (FitSettings.from_dict)."""
     from .collection import PreparedCollection
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, fit_meshes
@@ -77,12 +78,13 @@ def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
 
 def task_prepare(arguments: dict, progress, should_cancel) -> str:
     """Align, scale and landmark meshes from an .npz (core.meshset) into a prepared
-    collection .npz (PreparedCollection.save); `settings` are prepare_meshes' options.
+    collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data.
     Cancel is checked at every progress step (after each shape's stage)."""
-    from .collection import prepare_meshes
+    from .collection import PrepareSettings, prepare_meshes
     from .errors import Cancelled
     from .meshset import load_mesh_set
 
+    settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     meshes = load_mesh_set(arguments["meshes"])
 
     def report(fraction: float, stage: str) -> None:
@@ -90,7 +92,7 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
             raise Cancelled("prepare cancelled")
         progress(fraction, stage)
 
-    prepared = prepare_meshes(meshes, progress=report, **arguments.get("settings", {}))
+    prepared = prepare_meshes(meshes, settings, progress=report)
     return _save_result(prepared, arguments, should_cancel, "prepare")
 
 

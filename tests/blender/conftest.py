@@ -120,12 +120,13 @@ def model_files(extension, tmp_path_factory):
     datasets = addon_module(extension, "core.datasets")
     pipeline = addon_module(extension, "core.pipeline")
     correspond = addon_module(extension, "core.correspond")
+    collection = addon_module(extension, "core.collection")
     meshes = [s.mesh for s in datasets.make_vases(6, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
     folder = tmp_path_factory.mktemp("models")
     files = {}
     for kind in ("ppca", "gplvm", "bgplvm"):
         settings = pipeline.FitSettings(
-            n_landmarks=100, model=kind, latent_dim=2, jobs=1,
+            prepare=collection.PrepareSettings(n_landmarks=100), model=kind, latent_dim=2, jobs=1,
             correspondence=correspond.CorrespondenceSettings(**FAST_FIT["correspondence"]))
         files[kind] = pipeline.fit_meshes(meshes, settings).save(folder / f"vases_{kind}.npz")
     return files

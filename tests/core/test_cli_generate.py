@@ -116,3 +116,86 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert result.returncode == 0, result.stderr
     info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
     assert info["model"] == "ppca" and info["shapes"] == 6 and info["metadata"]["n_shapes"] == "6"
+
+
+# ---------------------------------------------------------------------------- settings on the command line
+def test_every_source_command_takes_the_same_prepare_options(tmp_path):
+    from shapegen_core.cli import build_parser
+    from shapegen_core.collection import PrepareSettings
+    from shapegen_core.cli_common import settings_from_args
+
+    options = ["--landmarks", "50", "--up", "y", "--align", "pca", "--scale", "bbox", "--centre", "none", "--seed", "3"]
+    expected = PrepareSettings(n_landmarks=50, up_axis="y", align="pca", scale="bbox", centre="none", seed=3)
+    for command in ("prepare", "correspond", "fit", "evaluate"):
+        args = build_parser().parse_args([command, str(tmp_path), "-o", str(tmp_path / "out"), *options])
+        assert settings_from_args(PrepareSettings, args) == expected, command
+
+
+@pytest.mark.parametrize("option,message", [
+    (["--landmarks", "2"], "--landmarks must be at least 4, got 2"),
+    (["--stiffness", "0"], "--stiffness must be greater than 0, got 0.0"),
+    (["--latent-dim", "0"], "--latent-dim must be at least 1, got 0"),
+])
+def test_fit_refuses_bad_settings_in_one_line_before_any_work(model_file, tmp_path, option, message):
+    """--stiffness 0 was saved, and `sample` then failed with "Factor is exactly singular"."""
+    result = run("fit", model_file.parent / "data", "-o", tmp_path / "m.npz", *option)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"shapegen fit: error: {message}"]
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_fit_of_a_prepared_file_records_its_settings_and_refuses_conflicts(model_file, tmp_path):
+    """It recorded the CLI's defaults (800 landmarks, up z) instead of the file's."""
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    prepared = tmp_path / "prepared.npz"
+    assert run("prepare", model_file.parent / "data", "-o", prepared, "--landmarks", 50, "--up", "y").returncode == 0
+    result = run("fit", prepared, "-o", tmp_path / "m.npz", "--model", "ppca", "--jobs", 1)
+    assert result.returncode == 0, result.stderr
+    recorded = GenerativeShapeModel.load(tmp_path / "m.npz").settings.prepare
+    assert (recorded.n_landmarks, recorded.up_axis) == (50, "y")
+    info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
+    assert info["settings"]["prepare"]["up_axis"] == "y"
+    result = run("fit", prepared, "-o", tmp_path / "m2.npz", "--model", "ppca", "--up", "z")
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert f"--up z conflicts with {prepared}, prepared with --up y" in result.stderr
+    assert not (tmp_path / "m2.npz").exists()
+
+
+# ---------------------------------------------------------------------------- parallel sample
+def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thread(monkeypatch, tmp_path):
+    """Items were dealt round-robin (every worker built every template's mesh map), and
+    OPENBLAS_NUM_THREADS was set in the workers only after numpy had loaded."""
+    import argparse
+    import os
+    from concurrent.futures import Future
+
+    from shapegen_core import cli_generate
+
+    submitted, seen = [], {}
+
+    class RecordingPool:
+        def __init__(self, jobs, **kwargs):
+            seen["jobs"], seen["blas"] = jobs, os.environ.get("OPENBLAS_NUM_THREADS")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, chunk, *rest):
+            submitted.append(chunk)
+            future = Future()
+            future.set_result(len(chunk))
+            return future
+
+    monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
+    templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
+    names = [f"sample_{i:04d}" for i in range(90)]
+    args = argparse.Namespace(jobs=3, format="obj", smooth=0, exact=False, model=tmp_path / "model.npz")
+    cli_generate._write_samples(args, None, names, np.zeros((90, 4, 3)), templates, tmp_path)
+    assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
+    assert [sorted({item[2] for item in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
+    assert sorted(item[0] for chunk in submitted for item in chunk) == names

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PREPARED_FORMAT, PreparedCollection, prepare_meshes
+from shapegen_core.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.errors import CollectionError, ModelFileError
 from shapegen_core.npzfile import save_npz
@@ -21,7 +21,7 @@ SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
 @pytest.fixture(scope="module")
 def prepared(small_vases):
-    return prepare_meshes([s.mesh for s in small_vases[:3]], n_landmarks=50, align="pca", seed=4)
+    return prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=50, align="pca", seed=4))
 
 
 @pytest.fixture(scope="module")
@@ -44,15 +44,15 @@ def test_save_load_round_trip(prepared, saved):
         np.testing.assert_array_equal(a.barycentric, b.barycentric)
         assert a.radius == b.radius
         np.testing.assert_allclose(back.landmarks_input(i), prepared.landmarks_input(i), atol=1e-12)
-    assert back.settings["align"] == "pca" and back.settings["n_landmarks"] == "50"
+    assert back.settings.align == "pca" and back.settings.n_landmarks == 50
     assert [p.name for p in saved.parent.iterdir()] == ["prepared.npz"]  # no temporary left
 
 
 def test_prepare_meshes_needs_two_unique_shapes(small_vases):
     with pytest.raises(CollectionError, match=r"at least 2 meshes.*\(vase_000\)"):
-        prepare_meshes([small_vases[0].mesh], n_landmarks=20)
+        prepare_meshes([small_vases[0].mesh], PrepareSettings(n_landmarks=20))
     with pytest.raises(CollectionError, match="repeated"):
-        prepare_meshes([small_vases[0].mesh, small_vases[0].mesh], n_landmarks=20)
+        prepare_meshes([small_vases[0].mesh, small_vases[0].mesh], PrepareSettings(n_landmarks=20))
 
 
 # ---------------------------------------------------------------------------- refused files
@@ -157,7 +157,7 @@ def test_cli_prepare_writes_the_file(vase_folder, tmp_path):
     loaded = PreparedCollection.load(out)
     assert loaded.names == ["vase_000", "vase_001", "vase_002"]
     assert all(abs(len(l) - 40) <= 1 for l in loaded.landmarks)
-    assert loaded.settings["scale"] == "bbox" and loaded.settings["seed"] == "3"
+    assert loaded.settings.scale == "bbox" and loaded.settings.seed == 3
     assert sorted(p.name for p in out.parent.iterdir()) == ["prepared.npz"]
 
 
@@ -220,3 +220,13 @@ def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
 def test_cli_usage_error_exits_2(tmp_path):
     result = _run("prepare", tmp_path)  # missing -o
     assert result.returncode == 2 and "-o/--output" in result.stderr
+
+
+@pytest.mark.parametrize("count", ["2", "-5"])
+def test_cli_too_few_landmarks_is_one_line_naming_the_option(vase_folder, tmp_path, count):
+    """It was a traceback (select_landmarks' ValueError); now PrepareSettings refuses it."""
+    out = tmp_path / "prepared.npz"
+    result = _run("prepare", vase_folder, "-o", out, "--landmarks", count)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"shapegen prepare: error: --landmarks must be at least 4, got {count}"]
+    assert not out.exists()

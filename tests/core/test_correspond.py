@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from shapegen_core.cli import main
-from shapegen_core.collection import PreparedCollection, prepare_meshes
+from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
     CORRESPONDENCE_FORMAT,
     CORRESPONDENCE_VERSION,
@@ -68,7 +68,7 @@ def _bent_vase_collection(n: int, landmarks: int, seed: int = 4):
     height = v[:, 2].max()
     v[:, 0] += 0.35 * height * (v[:, 2] / height) ** 2
     meshes[0] = Mesh(v, meshes[0].faces, name=meshes[0].name)
-    prepared = prepare_meshes(meshes, n_landmarks=landmarks, seed=0, align="none", scale="none", centre="none")
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=landmarks, seed=0, align="none", scale="none", centre="none"))
     return shapes, prepared
 
 
@@ -87,7 +87,7 @@ def _consensus_error(shapes, result: Correspondence, skip=(0,)) -> float:
 @pytest.fixture(scope="module")
 def small_vases():
     shapes = make_vases(4, seed=7, resolution=(16, 24))
-    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=150, seed=0)
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
     return shapes, prepared
 
 
@@ -224,7 +224,7 @@ def test_a_huge_scale_mismatch_with_scaling_off_is_flagged():
     shapes = make_vases(4, seed=2, resolution=(16, 24), pose=False)
     meshes = [s.mesh for s in shapes]
     meshes[3] = meshes[3].with_vertices(meshes[3].vertices * 1000.0)
-    prepared = prepare_meshes(meshes, n_landmarks=120, seed=0, scale="none")
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=120, seed=0, scale="none"))
     result = correspond(prepared, CorrespondenceSettings(groupwise_rounds=0), template=meshes[0].name, jobs=1)
     assert result.outliers.tolist() == [False, False, False, True]
     assert "size" in result.outlier_reasons[3]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.collection import prepare_meshes
+from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import correspond
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.evaluation import (EvaluationError, EvaluationSettings, TrainingSetModel, choose_morph_endpoints,
@@ -211,7 +211,7 @@ def tiny_collection(tmp_path_factory):
     folder = tmp_path_factory.mktemp("vases")
     shapes = make_vases(8, seed=5, resolution=(12, 16))
     write_collection(shapes, folder / "meshes")
-    prepared = prepare_meshes([s.mesh for s in shapes], n_landmarks=60, seed=0)
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=60, seed=0))
     corr = correspond(prepared, jobs=1)
     return folder / "meshes", corr.save(folder / "corr.npz")
 

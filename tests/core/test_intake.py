@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from shapegen_core.collection import PrepareSettings
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.deform import enclosed_volume
 from shapegen_core.errors import MeshError
@@ -203,7 +204,7 @@ def stl_model(tmp_path_factory):
     shapes = make_vases(6, seed=2, resolution=(14, 18))
     write_collection(shapes, folder, "stl")
     meshes = read_folder(folder)
-    return folder, shapes, meshes, fit_meshes(meshes, FitSettings(n_landmarks=80, model="ppca", jobs=1))
+    return folder, shapes, meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", jobs=1))
 
 
 def test_stl_files_are_read_as_connected_outward_surfaces(stl_model):

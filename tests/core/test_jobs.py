@@ -59,11 +59,11 @@ def test_poll_never_blocks(tmp_path):
 
 
 def test_correspond_task_writes_a_correspondence_file(tmp_path):
-    from shapegen_core.collection import prepare_meshes
+    from shapegen_core.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence
     from shapegen_core.datasets import make_vases
 
-    prepared = prepare_meshes([s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))], n_landmarks=60)
+    prepared = prepare_meshes([s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))], PrepareSettings(n_landmarks=60))
     prepared.save(tmp_path / "prepared.npz")
     status = BackgroundJob("correspond", {
         "prepared": str(tmp_path / "prepared.npz"), "output": str(tmp_path / "corr.npz"), "jobs": 1,
@@ -75,7 +75,7 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
 
 
 def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
-    from shapegen_core.collection import PreparedCollection, prepare_meshes
+    from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
     from shapegen_core.datasets import make_vases
     from shapegen_core.meshset import save_mesh_set
 
@@ -87,7 +87,7 @@ def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
                                        "output": str(tmp_path / "prepared.npz")}).start().wait(300)
     assert status.state == "done", status.error
     in_worker = PreparedCollection.load(tmp_path / "prepared.npz")
-    here = prepare_meshes(meshes, **options)
+    here = prepare_meshes(meshes, PrepareSettings(**options))
     assert in_worker.names == here.names
     for a, b in zip(in_worker.landmarks, here.landmarks):
         np.testing.assert_allclose(a.points, b.points, atol=1e-12)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shapegen_core.collection import PrepareSettings
 from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.models import MODEL_TYPES
@@ -15,7 +16,7 @@ from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 @pytest.fixture(scope="module")
 def fitted():
     shapes = make_vases(6, seed=1, resolution=(12, 16))
-    settings = FitSettings(n_landmarks=80, model="ppca", latent_dim=2, jobs=1,
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", latent_dim=2, jobs=1,
                            correspondence=CorrespondenceSettings(alpha_steps=2, max_iterations=6, groupwise_rounds=0))
     return fit_meshes([s.mesh for s in shapes], settings)
 
@@ -24,7 +25,7 @@ def fitted():
 def test_latent_mesher_equals_meshing_the_decoded_landmarks(fitted, kind):
     model = fitted if kind == "ppca" else GenerativeShapeModel(
         fitted.meshes, fitted.correspondence, MODEL_TYPES[kind](n_components=2).fit(fitted.training_matrix()),
-        deform_settings=fitted.deform_settings)
+        settings=fitted.settings)
     index = model.mean_template()
     mesher = model.latent_mesher(index, dtype=np.float64)
     assert mesher.n_vertices == model.meshes[index].n_vertices and mesher.template_name == model.names[index]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shapegen_core.collection import PrepareSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.models import PPCA
@@ -15,7 +16,7 @@ from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     shapes = make_vases(6, seed=2, resolution=(14, 18))
-    model = fit_meshes([s.mesh for s in shapes], FitSettings(n_landmarks=80, model="ppca", jobs=1))
+    model = fit_meshes([s.mesh for s in shapes], FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", jobs=1))
     path = tmp_path_factory.mktemp("model") / "model.npz"
     model.save(path)
     return model, path
@@ -40,7 +41,7 @@ def test_sampling_follows_the_models_noise_setting(fitted, tmp_path):
     arrays = model.model.to_arrays()
     arrays["param_sample_noise"] = np.array(1)
     noisy = GenerativeShapeModel(model.meshes, model.correspondence, PPCA.from_arrays(arrays),
-                                 settings=model.settings, deform_settings=model.deform_settings)
+                                 settings=model.settings)
     landmarks, latents = noisy.sample(3, np.random.default_rng(4))
     expected = noisy.model.sample(3, np.random.default_rng(4)).reshape(landmarks.shape)
     np.testing.assert_array_equal(landmarks, expected)

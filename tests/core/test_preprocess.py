@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import prepare_meshes
+from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.datasets import make_vases
 from shapegen_core.errors import CollectionError
 from shapegen_core.mesh import Mesh
@@ -59,7 +59,7 @@ def test_round_trip_input_normalised_input(small_vases, align, scale, centre):
 def test_landmarks_map_back_to_the_input_surface(small_vases):
     meshes = [s.mesh for s in small_vases[:3]]
     for align, scale in (("pca", "variance"), ("none", "bbox"), ("consensus", "variance")):
-        prepared = prepare_meshes(meshes, n_landmarks=60, align=align, scale=scale, seed=3)
+        prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=60, align=align, scale=scale, seed=3))
         for i, mesh in enumerate(meshes):
             lm = prepared.landmarks[i]
             on_input = np.einsum("nk,nkd->nd", lm.barycentric, mesh.triangles[lm.face_index])

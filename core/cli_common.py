@@ -1,0 +1,183 @@
+"""What the `shapegen` commands share: options built from settings dataclasses, the one
+source resolver (folder, prepared .npz or correspondence .npz) and the console progress
+printer."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import types
+from dataclasses import MISSING, dataclass, fields
+from pathlib import Path
+from typing import Union, get_args, get_origin, get_type_hints
+
+from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, prepare_meshes
+from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
+from .errors import ShapeGenError
+from .io import read_folder
+from .mesh import Mesh
+from .npzfile import read_format
+from .settings import SettingsError
+
+__all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
+           "settings_from_args", "read_source", "prepare_source", "correspond_on_console", "console_progress"]
+
+
+class CommandError(ShapeGenError, ValueError):
+    """A command-line argument that cannot be used (names the argument)."""
+
+
+# ---------------------------------------------------------------------------- options
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _flagged_fields(cls, names: tuple[str, ...] | None = None):
+    return [f for f in fields(cls) if f.metadata.get("flag") and (names is None or f.name in names)]
+
+
+def _argument_type(hint):
+    """int / float / str for a field typed X or X | None."""
+    if get_origin(hint) in (Union, types.UnionType):
+        hint = next(h for h in get_args(hint) if h is not type(None))
+    return hint
+
+
+def add_settings_options(parser: argparse.ArgumentParser, cls, names: tuple[str, ...] | None = None) -> None:
+    """One option per field of the settings dataclass `cls` that declares a flag (only
+    `names`, if given), help text and choices from the field. Options left out are not
+    set on the parsed namespace, so `settings_from_args` can tell them from given ones."""
+    hints = get_type_hints(cls)
+    for f in _flagged_fields(cls, names):
+        default = f.default if f.default is not MISSING else None
+        text = f.metadata["help"] + ("" if default is None else f" (default {default})")
+        flag, choices = f.metadata["flag"], f.metadata.get("choices")
+        parser.add_argument(flag, dest=f.name, type=_argument_type(hints[f.name]), choices=choices,
+                            metavar=None if choices else flag.lstrip("-").upper().replace("-", "_"),
+                            default=argparse.SUPPRESS, help=text.replace("%", "%%"))
+
+
+def given_options(cls, args: argparse.Namespace) -> dict:
+    """The options of `cls` given on the command line: {field name: value}."""
+    return {f.name: getattr(args, f.name) for f in _flagged_fields(cls) if hasattr(args, f.name)}
+
+
+def flag_of(cls, name: str) -> str:
+    """The command-line option of field `name` of `cls`."""
+    return next(f.metadata["flag"] for f in fields(cls) if f.name == name)
+
+
+def settings_from_args(cls, args: argparse.Namespace, flags: dict[str, str] | None = None, **fixed):
+    """`cls` from the options given on the command line (the rest at their defaults) and
+    the `fixed` fields. A SettingsError names the command-line option: the field's flag,
+    or `flags[option]` for options set through `fixed` (e.g. "deform.final_alpha")."""
+    names = {f.name: f.metadata["flag"] for f in _flagged_fields(cls)} | dict(flags or {})
+    try:
+        return cls(**given_options(cls, args), **fixed)
+    except SettingsError as exc:
+        raise SettingsError(names.get(exc.option, exc.option), exc.problem, exc.prefix) from None
+
+
+# ---------------------------------------------------------------------------- sources
+SOURCE_KINDS = ("folder", "prepared", "correspondence")
+
+
+_DESCRIPTIONS = {"folder": "a folder of meshes", "prepared": f"a prepared .npz ({PREPARED_FORMAT!r})",
+                 "correspondence": f"a correspondence .npz ({CORRESPONDENCE_FORMAT!r})"}
+
+
+def _either(things: list[str]) -> str:
+    return things[0] if len(things) == 1 else f"{', '.join(things[:-1])} or {things[-1]}"
+
+
+@dataclass
+class Source:
+    """A command's input. `prepare` says how its shapes are (or are to be) prepared: the
+    command line's options for a folder or a correspondence file (which does not record
+    them), the file's own for a prepared collection."""
+
+    path: Path
+    kind: str  # one of SOURCE_KINDS
+    prepare: PrepareSettings
+    meshes: list[Mesh] | None = None  # folder: the meshes read from it
+    prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
+    correspondence: Correspondence | None = None  # correspondence .npz
+
+
+def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS) -> Source:
+    """Read a folder of meshes, a prepared .npz or a correspondence .npz (the file's format
+    tag decides). Prepare options given with a prepared file must agree with the file's."""
+    path = Path(path)
+    expected = _either([_DESCRIPTIONS[k] for k in accepts])
+    if not path.exists():
+        raise CommandError(f"{path}: no such {_either(['folder'] + [f'{k} file' for k in accepts if k != 'folder'])}")
+    if path.is_dir():
+        kind = "folder"
+    else:
+        file_format = read_format(path)
+        kind = {PREPARED_FORMAT: "prepared", CORRESPONDENCE_FORMAT: "correspondence"}.get(file_format)
+        if kind not in accepts:
+            raise CommandError(f"{path}: is a {file_format!r} file; expected {expected}")
+    if kind not in accepts:
+        raise CommandError(f"{path}: is a folder; expected {expected}")
+    if kind == "folder":
+        for mesh in (meshes := read_folder(path)):
+            if mesh.report.summary() != "clean":
+                print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
+        return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes)
+    if kind == "correspondence":
+        return Source(path, kind, settings_from_args(PrepareSettings, args), correspondence=Correspondence.load(path))
+    prepared = PreparedCollection.load(path)
+    if prepared.settings is None:
+        return Source(path, kind, settings_from_args(PrepareSettings, args), prepared=prepared)
+    for name, value in given_options(PrepareSettings, args).items():
+        recorded = getattr(prepared.settings, name)
+        if value != recorded:
+            flag = flag_of(PrepareSettings, name)
+            raise CommandError(f"{flag} {value} conflicts with {path}, prepared with {flag} {recorded}; "
+                               f"leave {flag} out to use the file's")
+    return Source(path, kind, prepared.settings, prepared=prepared)
+
+
+def prepare_source(source: Source) -> PreparedCollection:
+    """The prepared collection of a folder (prepared now, with console progress) or of a
+    prepared file."""
+    if source.prepared is None:
+        source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"))
+    return source.prepared
+
+
+def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None):
+    """`correspond.correspond` with the default settings and console progress."""
+    settings = CorrespondenceSettings()
+    total = len(prepared) * (settings.groupwise_rounds + 1)
+    done = {"count": 0}
+    report = console_progress("correspond")
+
+    def progress(shape: str, stage: str, iteration: int) -> None:
+        if stage == "registered":
+            done["count"] += 1
+            report(done["count"] / total, f"{shape} registered ({iteration} iterations)")
+        elif stage in ("template", "mean template"):
+            report(done["count"] / total, f"{stage}: {shape}" if stage == "template" else "mean template")
+
+    return correspond(prepared, settings, template=template, jobs=jobs, progress=progress)
+
+
+# ---------------------------------------------------------------------------- progress
+def console_progress(prefix: str):
+    """A progress callback printing one line per 10 % step (or per new message at the end)."""
+    state = {"last": -1, "message": None}
+
+    def report(fraction: float, message: str) -> None:
+        step = int(fraction * 10)
+        if step > state["last"] or (message != state["message"] and fraction >= 1.0):
+            print(f"[{prefix}] {100 * fraction:5.1f} %  {message}", file=sys.stderr, flush=True)
+            state["last"] = step
+            state["message"] = message
+
+    return report

@@ -1,0 +1,156 @@
+"""Typed settings: frozen dataclasses that check themselves and travel as one JSON string.
+
+A settings class derives from `Settings` and declares each option with `option(...)`: its
+help text, its command-line flag and its allowed values live on the field, so the checks
+here, the command line (`cli_common.add_settings_options`) and the saved JSON all read
+the same declaration. Nested settings (e.g. `FitSettings.prepare`) are dataclass fields
+and nest in the JSON.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import types
+from dataclasses import MISSING, asdict, field, fields, is_dataclass
+from typing import Any, Mapping, Sequence, Union, get_args, get_origin, get_type_hints
+
+from .errors import ShapeGenError
+
+__all__ = ["Settings", "SettingsError", "option", "check_fields", "settings_from_dict", "settings_from_json",
+           "settings_to_json", "legacy_settings"]
+
+
+class SettingsError(ShapeGenError, ValueError):
+    """A setting outside its allowed values. `option` names it (a field name, or a dotted
+    path into nested settings); the message is "<prefix><option> <problem>"."""
+
+    def __init__(self, option: str, problem: str, prefix: str = ""):
+        super().__init__(f"{prefix}{option} {problem}")
+        self.option = option
+        self.problem = problem
+        self.prefix = prefix
+
+
+def option(default: Any = MISSING, help: str = "", *, flag: str | None = None, choices: Sequence | None = None,
+           minimum: float | None = None, above: float | None = None, default_factory: Any = MISSING):
+    """A settings field: `help` (one line), `flag` (the command-line option, if any),
+    `choices` (allowed values), `minimum` (value >= minimum) or `above` (value > above)."""
+    metadata = {"help": help, "flag": flag, "choices": tuple(choices) if choices is not None else None,
+                "minimum": minimum, "above": above}
+    return field(default=default, default_factory=default_factory, metadata=metadata)
+
+
+def _type_text(hint) -> str:
+    if get_origin(hint) in (Union, types.UnionType):
+        return " or ".join(_type_text(h) for h in get_args(hint))
+    return {int: "an integer", float: "a number", str: "text", bool: "true or false",
+            type(None): "none"}.get(hint, getattr(hint, "__name__", str(hint)))
+
+
+def _has_type(value, hint) -> bool:
+    if get_origin(hint) in (Union, types.UnionType):
+        return any(_has_type(value, h) for h in get_args(hint))
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def check_fields(settings) -> None:
+    """Check every field of a settings dataclass against its type and `option` limits;
+    raise SettingsError naming the first one that is off."""
+    hints = get_type_hints(type(settings))
+    for f in fields(settings):
+        value, meta = getattr(settings, f.name), f.metadata
+        if not _has_type(value, hints[f.name]):
+            raise SettingsError(f.name, f"must be {_type_text(hints[f.name])}, got {value!r}")
+        if value is None or is_dataclass(value):
+            continue
+        choices = meta.get("choices")
+        if choices is not None and value not in choices:
+            raise SettingsError(f.name, f"{value!r}; choose from {', '.join(map(str, choices))}", prefix="unknown ")
+        if meta.get("minimum") is not None and not value >= meta["minimum"]:
+            raise SettingsError(f.name, f"must be at least {meta['minimum']}, got {value!r}")
+        if meta.get("above") is not None and not value > meta["above"]:
+            raise SettingsError(f.name, f"must be greater than {meta['above']}, got {value!r}")
+
+
+def settings_to_json(settings) -> str:
+    """One JSON object of a settings dataclass (nested settings as nested objects)."""
+    return json.dumps(asdict(settings))
+
+
+def settings_from_dict(cls, data: Mapping, path: str = ""):
+    """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
+    nested objects, missing fields at their defaults. Unknown names and invalid values
+    raise SettingsError (also for dataclasses that check themselves with ValueError)."""
+    label = path or cls.__name__
+    if not isinstance(data, Mapping):
+        raise SettingsError(label, f"must be a JSON object, got {data!r}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise SettingsError(label, f"has no option {unknown[0]!r} (options: {', '.join(sorted(known))})")
+    hints = get_type_hints(cls)
+    values = {}
+    for name, value in data.items():
+        if is_dataclass(hints[name]) and isinstance(value, Mapping):
+            value = settings_from_dict(hints[name], value, f"{path}.{name}" if path else name)
+        values[name] = value
+    try:
+        return cls(**values)
+    except SettingsError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise SettingsError(label, f"is invalid: {exc}") from None
+
+
+def settings_from_json(cls, text: str):
+    """`settings_from_dict` of one JSON string; a broken string raises SettingsError."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise SettingsError(cls.__name__, f"is not valid JSON ({exc})") from None
+    return settings_from_dict(cls, data)
+
+
+def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
+    """Plain data from the key/value string arrays of files written before settings were
+    one JSON string: values were str() or repr() of scalars ("800", "'z'", "consensus",
+    "None"); dotted keys ("deform.gamma") name nested settings."""
+    data: dict = {}
+    for key, text in zip(keys, values):
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text  # str() of a word, e.g. consensus
+        *parents, name = key.split(".")
+        target = data
+        for parent in parents:
+            target = target.setdefault(parent, {})
+        target[name] = value
+    return data
+
+
+class Settings:
+    """Base of frozen settings dataclasses: checks its fields after construction and
+    round-trips through plain data / JSON."""
+
+    def __post_init__(self):
+        check_fields(self)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return settings_to_json(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping):
+        return settings_from_dict(cls, data)
+
+    @classmethod
+    def from_json(cls, text: str):
+        return settings_from_json(cls, text)

@@ -1,0 +1,165 @@
+"""Typed settings: PrepareSettings / FitSettings check themselves, travel as one JSON
+string, and files written before that (key/value strings) still load."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.correspond import CorrespondenceSettings
+from shapegen_core.deform import DeformSettings
+from shapegen_core.errors import ModelFileError, ShapeGenError
+from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.settings import SettingsError
+
+
+@pytest.fixture(scope="module")
+def prepared(small_vases):
+    return prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=30, up_axis="y", seed=2))
+
+
+@pytest.fixture(scope="module")
+def fitted(small_vases, tmp_path_factory):
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", jobs=1, mesh_template="vase_003",
+                           correspondence=CorrespondenceSettings(alpha_steps=2, max_iterations=6, groupwise_rounds=0))
+    model = fit_meshes([s.mesh for s in small_vases[:4]], settings)
+    return model, model.save(tmp_path_factory.mktemp("model") / "model.npz")
+
+
+def _rewrite(path, target, drop=(), **changes):
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k not in drop}
+    arrays.update(changes)
+    np.savez(target, **arrays)
+    return target
+
+
+# ---------------------------------------------------------------------------- checks
+@pytest.mark.parametrize("options,named,message", [
+    ({"n_landmarks": 2}, "n_landmarks", "n_landmarks must be at least 4, got 2"),
+    ({"n_landmarks": -5}, "n_landmarks", "n_landmarks must be at least 4, got -5"),
+    ({"n_landmarks": 80.5}, "n_landmarks", "n_landmarks must be an integer, got 80.5"),
+    ({"up_axis": "w"}, "up_axis", "unknown up_axis 'w'; choose from x, y, z, -x, -y, -z"),
+    ({"align": "best"}, "align", "unknown align 'best'; choose from consensus, pca, none"),
+    ({"scale": "area"}, "scale", "unknown scale 'area'; choose from variance, bbox, none"),
+    ({"centre": "middle"}, "centre", "unknown centre 'middle'; choose from centroid, highest, none"),
+    ({"seed": -1}, "seed", "seed must be at least 0, got -1"),
+])
+def test_invalid_prepare_settings_name_the_option_and_what_is_allowed(options, named, message):
+    with pytest.raises(ShapeGenError) as caught:
+        PrepareSettings(**options)
+    assert isinstance(caught.value, SettingsError) and caught.value.option == named
+    assert str(caught.value) == message
+
+
+@pytest.mark.parametrize("options,named", [
+    ({"latent_dim": 0}, "latent_dim"),
+    ({"jobs": 0}, "jobs"),
+    ({"mesh_template": ""}, "mesh_template"),
+    ({"deform": DeformSettings(final_alpha=0.0)}, "deform.final_alpha"),
+    ({"deform": DeformSettings(gamma=-1.0)}, "deform.gamma"),
+])
+def test_invalid_fit_settings_name_the_option(options, named):
+    with pytest.raises(SettingsError, match=f"^{named} must be") as caught:
+        FitSettings(**options)
+    assert caught.value.option == named
+    with pytest.raises(SettingsError, match=r"^unknown model 'gpr'; choose from ppca, gplvm, bgplvm$"):
+        FitSettings(model="gpr")
+
+
+def test_from_dict_refuses_unknown_names_and_wrong_types():
+    with pytest.raises(SettingsError, match="has no option 'landmarks'"):
+        PrepareSettings.from_dict({"landmarks": 100})
+    with pytest.raises(SettingsError, match="^n_landmarks must be an integer"):
+        PrepareSettings.from_dict({"n_landmarks": "100"})
+    with pytest.raises(SettingsError, match="correspondence .*gamma"):  # a ValueError of a nested dataclass
+        FitSettings.from_dict({"correspondence": {"gamma": -1}})
+
+
+# ---------------------------------------------------------------------------- round trips
+def test_prepare_settings_round_trip_through_json_and_the_prepared_file(prepared, tmp_path):
+    settings = PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
+    assert PrepareSettings.from_json(settings.to_json()) == settings
+    back = PreparedCollection.load(prepared.save(tmp_path / "prepared.npz"))
+    assert back.settings == settings
+    with np.load(tmp_path / "prepared.npz") as data:
+        assert data["settings"].shape == () and "settings_keys" not in data.files
+
+
+def test_fit_settings_round_trip_nested_and_flat(fitted):
+    model, path = fitted
+    assert FitSettings.from_json(model.settings.to_json()) == model.settings
+    assert GenerativeShapeModel.load(path).settings == model.settings
+    flat = {"n_landmarks": 40, "up_axis": "y", "align": "pca", "scale": "bbox", "centre": "none", "seed": 3,
+            "model": "ppca", "latent_dim": None, "correspondence": {"alpha_end": 3.0}, "deform": {"final_alpha": 2.5}}
+    nested = FitSettings.from_dict(flat)  # what shapegen_addon/ui/properties.fit_options sends today
+    assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
+                                             seed=3)
+    assert nested.correspondence.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
+    assert FitSettings.from_dict(nested.as_dict()) == nested
+
+
+def test_an_invalid_recorded_setting_is_a_clear_file_error(prepared, tmp_path):
+    path = prepared.save(tmp_path / "prepared.npz")
+    bad = _rewrite(path, tmp_path / "bad.npz", settings=np.asarray('{"n_landmarks": 2}'))
+    with pytest.raises(ModelFileError, match=f"^{bad}: recorded settings are invalid: n_landmarks must be"):
+        PreparedCollection.load(bad)
+
+
+# ---------------------------------------------------------------------------- older files
+def test_prepared_files_of_the_previous_version_still_load(prepared, tmp_path):
+    """Before: settings as str() values by key (and none at all from the add-on's copies)."""
+    path = prepared.save(tmp_path / "prepared.npz")
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings",),
+                   settings_keys=np.asarray(["n_landmarks", "up_axis", "align", "scale", "centre", "seed"]),
+                   settings_values=np.asarray(["30", "y", "consensus", "variance", "centroid", "2"]))
+    assert PreparedCollection.load(old).settings == prepared.settings
+    empty = _rewrite(path, tmp_path / "empty.npz", drop=("settings",), settings_keys=np.zeros(0, dtype=str),
+                     settings_values=np.zeros(0, dtype=str))
+    assert PreparedCollection.load(empty).settings is None
+
+
+def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
+    """Before: settings as repr() values by (dotted) key, deformation settings as numbers."""
+    model, path = fitted
+    s = model.settings
+    keys = ([f"{k}" for k in s.prepare.as_dict()] + ["model", "latent_dim", "template", "jobs"]
+            + [f"correspondence.{k}" for k in s.correspondence.__dataclass_fields__])
+    values = ([repr(v) for v in s.prepare.as_dict().values()] + [repr(s.model), "None", "None", "1"]
+              + [repr(getattr(s.correspondence, k)) for k in s.correspondence.__dataclass_fields__])
+    deform = s.deform.__dataclass_fields__
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings",), settings_keys=np.asarray(keys),
+                   settings_values=np.asarray(values), deform_keys=np.asarray(list(deform)),
+                   deform_values=np.asarray([float(getattr(s.deform, k)) for k in deform]))
+    loaded = GenerativeShapeModel.load(old)
+    assert loaded.settings == replace(s, mesh_template="nearest-data")
+    assert isinstance(loaded.deform_settings.n_stages, int)
+
+
+# ---------------------------------------------------------------------------- defaults it records
+def test_choose_template_reads_the_recorded_mesh_template(fitted):
+    """The default meshing template is a recorded setting (it read a key nothing wrote)."""
+    model, path = fitted
+    loaded = GenerativeShapeModel.load(path)
+    assert loaded.settings.mesh_template == "vase_003"
+    first = loaded.correspondence.points[0]
+    assert loaded.choose_template(first, "nearest-data") == 0
+    assert loaded.choose_template(first, None) == loaded.names.index("vase_003")
+
+
+def test_an_unknown_mesh_template_is_refused_before_fitting(small_vases):
+    with pytest.raises(SettingsError, match="no shape is named 'vase_999'"):
+        fit_meshes([s.mesh for s in small_vases[:2]], FitSettings(mesh_template="vase_999"))
+
+
+def test_a_prepared_collection_fits_with_its_own_settings(prepared):
+    """The model records how its shapes were prepared, not FitSettings' defaults."""
+    settings = FitSettings(model="ppca", jobs=1, correspondence=CorrespondenceSettings(
+        alpha_steps=1, max_iterations=3, groupwise_rounds=0))
+    model = fit_meshes(prepared, settings)
+    assert model.settings.prepare == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
+    unrecorded = PreparedCollection(prepared.shapes, prepared.landmarks)
+    assert fit_meshes(unrecorded, settings).settings.prepare == settings.prepare
