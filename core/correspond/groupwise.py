@@ -9,10 +9,9 @@ from dataclasses import replace
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import CollectionError, MeshError
-from ..geometry import SurfacePoints, knn_graph, registration_frame
+from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_frame
 from .pool import ProgressCallback, RegistrationRunner, RegistrationTask
 from .registration import Registration
 from .result import Correspondence
@@ -22,20 +21,11 @@ __all__ = ["chamfer_medoid", "correspond", "flag_outliers"]
 
 
 def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> int:
-    """Index of the set with the smallest summed symmetric Chamfer distance (mean squared
-    nearest-neighbour distance both ways) to all others. Each set is thinned to its first
-    `max_points` points (landmarks come in random order, so these are spread)."""
+    """Index of the set with the smallest summed symmetric Chamfer distance
+    (geometry.chamfer) to all others. Each set is thinned to its first `max_points` points
+    (landmarks come in random order, so these are spread)."""
     sets = [np.asarray(s, dtype=np.float64)[:max_points] for s in point_sets]
-    trees = [cKDTree(s) for s in sets]
-    total = np.zeros(len(sets))
-    for i in range(len(sets)):
-        for j in range(i + 1, len(sets)):
-            d_ij, _ = trees[j].query(sets[i])
-            d_ji, _ = trees[i].query(sets[j])
-            cost = float(np.mean(d_ij**2) + np.mean(d_ji**2))
-            total[i] += cost
-            total[j] += cost
-    return int(np.argmin(total))
+    return int(np.argmin(chamfer_matrix(sets).sum(axis=1)))
 
 
 def flag_outliers(residuals: np.ndarray, scale_ratios: np.ndarray,

@@ -8,6 +8,7 @@ shape models.
 
 from .affine_graph import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines, knn_graph,
                            registration_frame, stiffness_energy, stiffness_matrix, transform_normals)
+from .chamfer import chamfer_distance, chamfer_matrix
 from .surface import SurfacePoints, TargetSurface, closest_points_on_triangles
 
 __all__ = [
@@ -15,6 +16,8 @@ __all__ = [
     "SurfacePoints",
     "TargetSurface",
     "apply_affines",
+    "chamfer_distance",
+    "chamfer_matrix",
     "closest_points_on_triangles",
     "compose_affines",
     "data_blocks",
