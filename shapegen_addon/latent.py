@@ -23,6 +23,7 @@ from ..core.latent_units import LatentUnits
 from . import store
 from .convert import mesh_data_from_arrays
 from .keys import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY, TEMPLATE_KEY
+from .placement import place_one, union_box, vertex_box
 
 __all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "set_values",
            "slider_units", "reset_sliders",
@@ -158,13 +159,16 @@ def update_live(scene: bpy.types.Scene) -> bool:
 
 
 def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.Object:
-    """Create (or rebuild) the live object on the template nearest the mean shape."""
+    """Create (or rebuild) the live object on the template nearest the mean shape; a new one
+    goes beside the scene's objects (placement.place_one), a rebuilt one stays where it is."""
     index = model.shape_index(template) if template else model.mean_template()
     source = model.meshes[index]
     data = mesh_data_from_arrays(f"{LIVE_NAME} mesh", source.vertices, source.faces)
     obj = live_object(scene)
     if obj is None:
         obj = bpy.data.objects.new(LIVE_NAME, data)
+        # room for any shape of the class, as the sliders change it
+        obj.location = place_one(scene, union_box([vertex_box(mesh.vertices) for mesh in model.meshes]))
         scene.collection.objects.link(obj)
         scene.shapegen.live_object = obj
     else:

@@ -22,8 +22,8 @@ from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, PREPARED_KEY,
                    SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, prepare_setting_key)
-from .preview import (add_correspondence_markers, add_landmark_markers, grid_offsets, landmark_index_colours,
-                      new_collection)
+from .placement import grid_offsets, place, vertex_box
+from .preview import add_correspondence_markers, add_landmark_markers, landmark_index_colours, new_collection
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects",
            "prepared_collection_for", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
@@ -36,22 +36,24 @@ PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed"
 def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collection, objects,
                               prepared: PreparedCollection, preview_spacing: float) -> bpy.types.Collection:
     """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
-    (object-local), laid out on a grid, each tagged with its transform and landmarks, plus
-    landmark markers. The user's objects are not modified."""
+    (object-local), laid out on a grid beside the scene's objects (placement.place), each
+    tagged with its transform and landmarks, plus landmark markers. The user's objects are
+    not modified."""
+    boxes = [vertex_box(s.mesh.vertices) for s in prepared.shapes]
+    size = max(float(np.ptp(box, axis=0).max()) for box in boxes)
+    locations = place(scene, boxes, grid_offsets(len(prepared), preview_spacing * size))
     target = new_collection(scene, f"{source.name} Prepared")
     target[PREPARED_KEY] = True
     target[SOURCE_COLLECTION_KEY] = source.name
     for key, value in prepared.settings.items():
         target[prepare_setting_key(key)] = value
-    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
-    offsets = grid_offsets(len(prepared), preview_spacing * size)
-    for obj, shape, landmarks, offset in zip(objects, prepared.shapes, prepared.landmarks, offsets):
+    for obj, shape, landmarks, location in zip(objects, prepared.shapes, prepared.landmarks, locations):
         data = obj.data.copy()
         data.name = f"{obj.name} prepared"
         data.transform(obj.matrix_world)  # input coordinates = the original's world frame
         data.transform(Matrix(shape.transform.matrix.tolist()))  # → normalised frame (object-local)
         copy = bpy.data.objects.new(f"{obj.name} prepared", data)
-        copy.location = offset
+        copy.location = location
         copy[SOURCE_KEY] = obj.name
         copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
         copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
