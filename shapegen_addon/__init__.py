@@ -11,8 +11,9 @@
   Correspondences and Fit (polling, reporting the outcome), the operator mixin.
 * helpers: `keys` (every `shapegen_*` key of the .blend), `prepared` (the prepared-object
   format), `latent` (sliders, live object, latent tags), `store` (the model packed in a
-  Text datablock), `handlers` (file load), `convert` (bpy <-> core data), `preview`
-  (collections, layout, markers), `picture` (numpy drawing of the latent map).
+  Text datablock), `handlers` (file load), `convert` (bpy <-> core data), `placement`
+  (where new objects go: beside the scene's objects), `preview` (collections, markers),
+  `picture` (numpy drawing of the latent map).
 """
 
 from __future__ import annotations

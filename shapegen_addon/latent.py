@@ -19,11 +19,14 @@ import bpy
 import numpy as np
 
 from ..core.errors import ShapeGenError
+from ..core.latent_units import LatentUnits
 from . import store
 from .convert import mesh_data_from_arrays
 from .keys import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY, TEMPLATE_KEY
+from .placement import place_one, union_box, vertex_box
 
-__all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "reset_sliders",
+__all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "set_values",
+           "slider_units", "reset_sliders",
            "live_object", "create_live", "model_changed", "write_positions", "tag_object", "object_latent",
            "tagged_latents", "forget_cache", "LIVE_NAME"]
 
@@ -49,44 +52,52 @@ def sliders_batch():
 
 
 # ------------------------------------------------------------------------------ sliders
-def _latent_statistics(model) -> tuple[np.ndarray, np.ndarray]:
-    z = model.training_latents()
-    centre = z.mean(axis=0)
-    scale = z.std(axis=0)
-    scale[~(scale > 1e-9)] = 1.0
-    return centre, scale
-
-
 def rebuild_sliders(scene: bpy.types.Scene, model) -> None:
-    """One slider per latent dimension of `model`, all at the training mean."""
+    """One slider per latent dimension of `model`, all at the training mean, in training
+    standard deviations (core.latent_units: ±3 covers every training shape)."""
     settings = scene.shapegen
-    centre, scale = _latent_statistics(model)
+    units = LatentUnits.from_training(model.training_latents())
     with sliders_batch():
         settings.latents.clear()
         for k in range(model.latent_dim):
             item = settings.latents.add()
             item.name = f"z{k + 1}"
-            item.centre = float(centre[k])
-            item.scale = float(scale[k])
+            item.centre = float(units.centre[k])
+            item.scale = float(units.scale[k])
             item.value = 0.0
+
+
+def slider_units(scene: bpy.types.Scene) -> LatentUnits:
+    """The sliders' units: centre and scale per dimension."""
+    items = scene.shapegen.latents
+    return LatentUnits(np.array([item.centre for item in items], dtype=np.float64),
+                       np.array([item.scale for item in items], dtype=np.float64))
 
 
 def current_latent(scene: bpy.types.Scene) -> np.ndarray:
     """z from the sliders: centre + value × scale per dimension."""
-    items = scene.shapegen.latents
-    return np.array([item.centre + item.value * item.scale for item in items], dtype=np.float64)
+    values = np.array([item.value for item in scene.shapegen.latents], dtype=np.float64)
+    return slider_units(scene).to_latent(values)
+
+
+def _sized(scene: bpy.types.Scene, vector) -> np.ndarray:
+    vector = np.asarray(vector, dtype=np.float64).ravel()
+    if len(vector) != len(scene.shapegen.latents):
+        raise ShapeGenError(f"latent vector has {len(vector)} values, the sliders {len(scene.shapegen.latents)}")
+    return vector
+
+
+def set_values(scene: bpy.types.Scene, values: np.ndarray) -> None:
+    """Set every slider (in its units), then re-mesh once."""
+    with sliders_batch():
+        for item, value in zip(scene.shapegen.latents, _sized(scene, values)):
+            item.value = float(value)
+    update_live(scene)
 
 
 def set_latent(scene: bpy.types.Scene, z: np.ndarray) -> None:
     """Move every slider so the sliders express `z`, then re-mesh once."""
-    items = scene.shapegen.latents
-    z = np.asarray(z, dtype=np.float64).ravel()
-    if len(z) != len(items):
-        raise ShapeGenError(f"latent vector has {len(z)} values, the sliders {len(items)}")
-    with sliders_batch():
-        for item, value in zip(items, z):
-            item.value = float((value - item.centre) / item.scale)
-    update_live(scene)
+    set_values(scene, slider_units(scene).to_values(_sized(scene, z)))
 
 
 def reset_sliders(scene: bpy.types.Scene) -> None:
@@ -148,13 +159,16 @@ def update_live(scene: bpy.types.Scene) -> bool:
 
 
 def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.Object:
-    """Create (or rebuild) the live object on the template nearest the mean shape."""
+    """Create (or rebuild) the live object on the template nearest the mean shape; a new one
+    goes beside the scene's objects (placement.place_one), a rebuilt one stays where it is."""
     index = model.shape_index(template) if template else model.mean_template()
     source = model.meshes[index]
     data = mesh_data_from_arrays(f"{LIVE_NAME} mesh", source.vertices, source.faces)
     obj = live_object(scene)
     if obj is None:
         obj = bpy.data.objects.new(LIVE_NAME, data)
+        # room for any shape of the class, as the sliders change it
+        obj.location = place_one(scene, union_box([vertex_box(mesh.vertices) for mesh in model.meshes]))
         scene.collection.objects.link(obj)
         scene.shapegen.live_object = obj
     else:

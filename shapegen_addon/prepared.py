@@ -24,8 +24,8 @@ from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
                    PREPARED_KEY, SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source, prepare_setting_key)
-from .preview import (add_correspondence_markers, add_landmark_markers, grid_offsets, landmark_index_colours,
-                      new_collection)
+from .placement import grid_offsets, place, vertex_box
+from .preview import add_correspondence_markers, add_landmark_markers, landmark_index_colours, new_collection
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects",
            "prepared_collection_for", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
@@ -39,23 +39,25 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
                               prepared: PreparedCollection, preview_spacing: float, world_meshes,
                               evaluated: bool) -> bpy.types.Collection:
     """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
-    (object-local), laid out on a grid, each tagged with its transform, landmarks and mesh
-    source, plus landmark markers. `world_meshes` are the objects' meshes as Prepare read
-    them (convert.world_mesh_copy, world coordinates, evaluated or not); they become the
-    copies' data. The user's objects are not modified."""
+    (object-local), laid out on a grid beside the scene's objects (placement.place), each
+    tagged with its transform, landmarks and mesh source, plus landmark markers.
+    `world_meshes` are the objects' meshes as Prepare read them (convert.world_mesh_copy,
+    world coordinates, evaluated or not); they become the copies' data. The user's objects
+    are not modified."""
+    boxes = [vertex_box(s.mesh.vertices) for s in prepared.shapes]
+    size = max(float(np.ptp(box, axis=0).max()) for box in boxes)
+    locations = place(scene, boxes, grid_offsets(len(prepared), preview_spacing * size))
     target = new_collection(scene, f"{source.name} Prepared")
     target[PREPARED_KEY] = True
     target[SOURCE_COLLECTION_KEY] = source.name
     for key, value in prepared.settings.items():
         target[prepare_setting_key(key)] = value
-    size = max(float(np.ptp(s.mesh.vertices, axis=0).max()) for s in prepared.shapes)
-    offsets = grid_offsets(len(prepared), preview_spacing * size)
-    for obj, data, shape, landmarks, offset in zip(objects, world_meshes, prepared.shapes, prepared.landmarks,
-                                                   offsets):
+    for obj, data, shape, landmarks, location in zip(objects, world_meshes, prepared.shapes, prepared.landmarks,
+                                                     locations):
         data.name = f"{obj.name} prepared"
         data.transform(Matrix(shape.transform.matrix.tolist()))  # world (input) → normalised frame (object-local)
         copy = bpy.data.objects.new(f"{obj.name} prepared", data)
-        copy.location = offset
+        copy.location = location
         copy[SOURCE_KEY] = obj.name
         copy[MESH_SOURCE_KEY] = mesh_source(evaluated)
         copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()

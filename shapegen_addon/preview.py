@@ -1,4 +1,5 @@
-"""Where ShapeGen's data appears in the scene: collections, grid layout, landmark markers.
+"""Where ShapeGen's data appears in the scene: collections and landmark markers (placement.py
+says where new objects go).
 
 Landmarks are shown as one mesh of small octahedra (a marker per landmark), so they
 render in every engine (Workbench, Cycles, EEVEE) and need no geometry nodes. The
@@ -11,15 +12,13 @@ as RGB), so a user can judge correspondence by eye (thesis Fig. 4.2–4.4).
 
 from __future__ import annotations
 
-import math
-
 import bpy
 import numpy as np
 
 from .convert import mesh_data_from_arrays
 
 __all__ = ["marker_mesh_arrays", "add_landmark_markers", "add_correspondence_markers", "landmark_index_colours",
-           "grid_offsets", "landmark_material", "new_collection", "ensure_collection", "COLOUR_ATTRIBUTE"]
+           "landmark_material", "new_collection", "ensure_collection", "COLOUR_ATTRIBUTE"]
 
 COLOUR_ATTRIBUTE = "landmark_index_colour"
 
@@ -113,10 +112,3 @@ def add_correspondence_markers(parent: bpy.types.Object, points: np.ndarray, col
     for collection in parent.users_collection:
         collection.objects.link(markers)
     return markers
-
-
-def grid_offsets(count: int, spacing: float) -> np.ndarray:
-    """x–y offsets laying `count` shapes out on a near-square grid, rows along -y."""
-    columns = max(1, math.ceil(math.sqrt(count)))
-    index = np.arange(count)
-    return np.stack([(index % columns) * spacing, -(index // columns) * spacing, np.zeros(count)], axis=1)

@@ -175,19 +175,22 @@ def shrunk_spectrum(eigvals: np.ndarray, n_features: int, shrinkage: float) -> t
     return (1.0 - shrinkage) * eigvals + floor, floor
 
 
-def latent_dim_for_variance(spectrum: np.ndarray, total: float, fraction: float) -> int:
-    """Smallest q whose q largest eigenvalues explain `fraction` of the total variance (§5.4.1)."""
-    cumulative = np.cumsum(spectrum) / total
-    return int(np.searchsorted(cumulative, fraction - 1e-12) + 1)
+def latent_dim_for_variance(eigvals: np.ndarray, fraction: float, n_samples: int, n_features: int) -> int:
+    """Smallest q whose q largest sample eigenvalues explain `fraction` of the data's total
+    variance (§5.4.1), 1 <= q <= min(N, D) - 1. The explained variance of the data itself,
+    never of a shrunk spectrum: shrinkage moves variance off the data span, so the shrunk
+    leading eigenvalues would never add up to the fraction and every collection would get
+    N - 1 dimensions."""
+    if not 0.0 < fraction <= 1.0:
+        raise ModelInputError(f"variance_fraction must be in (0, 1], got {fraction}")
+    cumulative = np.cumsum(eigvals) / eigvals.sum()
+    q = int(np.searchsorted(cumulative, fraction - 1e-12) + 1)
+    return max(1, min(q, n_samples - 1, n_features - 1 if n_features > 1 else 1))
 
 
 def default_latent_dim(Yc: np.ndarray, fraction: float = 0.8) -> int:
-    """The 80 % rule on the Ledoit-Wolf shrunk covariance, capped at N - 1 (used by all models)."""
-    n, d = Yc.shape
-    _, eigvals, _ = principal_axes(Yc)
-    spectrum, _ = shrunk_spectrum(eigvals, d, ledoit_wolf_shrinkage(Yc))
-    q = latent_dim_for_variance(spectrum, eigvals.sum(), fraction)
-    return max(1, min(q, n - 1, d - 1 if d > 1 else 1))
+    """The 80 % rule (`latent_dim_for_variance`) on centred data Yc (used by all models)."""
+    return latent_dim_for_variance(principal_axes(Yc)[1], fraction, *Yc.shape)
 
 
 def pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:

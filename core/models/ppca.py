@@ -27,8 +27,8 @@ class PPCA(ShapeModel):
     Parameters
     ----------
     n_components : int, None or "heldout"
-        Latent dimension q; None = smallest q explaining `variance_fraction` of the (shrunk)
-        variance (thesis §5.4.1, 80 %); "heldout" = the q with the highest mean held-out
+        Latent dimension q; None = smallest q explaining `variance_fraction` of the data's
+        (unshrunk) variance (thesis §5.4.1, 80 %); "heldout" = the q with the highest mean held-out
         log-likelihood in K-fold cross-validation (method.md §4 **beyond**; K = min(5, N) folds
         of a fixed shuffle, q from 1 to the smallest training fold size - 1, the same shrinkage
         setting in every fold). The per-q scores are kept in `heldout_scores_` (q -> mean
@@ -76,14 +76,9 @@ class PPCA(ShapeModel):
         Yc = Y - mean
         _, eigvals, axes = principal_axes(Yc)
         shrinkage = self._shrinkage_value(Yc)
-        spectrum, floor = shrunk_spectrum(eigvals, d, shrinkage)
-        total = eigvals.sum()
+        spectrum, _ = shrunk_spectrum(eigvals, d, shrinkage)
         if self.n_components is None:
-            if not 0.0 < self.variance_fraction <= 1.0:
-                raise ModelInputError(f"variance_fraction must be in (0, 1], got {self.variance_fraction}")
-            q = latent_dim_for_variance(spectrum, total, self.variance_fraction)
-            q = min(q, n - 1, d - 1, spectrum.size)
-            q = max(q, 1)
+            q = latent_dim_for_variance(eigvals, self.variance_fraction, n, d)
         elif isinstance(self.n_components, str) and self.n_components == "heldout":
             self.heldout_scores_ = self._heldout_scores(Y)
             q = max(self.heldout_scores_, key=self.heldout_scores_.get)

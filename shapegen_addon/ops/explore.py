@@ -14,8 +14,8 @@ from bpy.props import IntProperty, StringProperty
 from ...core.errors import ShapeGenError
 from .. import store
 from ..keys import MAP_BOUNDS_KEY, MAP_DIMS_KEY, MODEL_ID_KEY, TEMPLATE_KEY
-from ..latent import (bake_live, create_live, current_latent, live_object, reset_sliders, set_latent,
-                     tagged_latents)
+from ..latent import (bake_live, create_live, current_latent, live_object, reset_sliders, set_latent, set_values,
+                     slider_units, tagged_latents)
 from ..picture import latent_map_pixels
 
 __all__ = ["CLASSES"]
@@ -68,7 +68,8 @@ class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
-    """Draw a latent vector from the model's latent distribution and show it"""
+    """Draw a latent vector from the model's latent distribution, within ±3 on every slider,
+    and show it"""
 
     bl_idname = "shapegen.explore_randomise"
     bl_label = "Randomise"
@@ -79,10 +80,12 @@ class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
             scene = context.scene
             model = store.require_model(scene)
             seed = scene.shapegen.explore_seed
-            z = model.model.sample_latents(1, np.random.default_rng(seed))[0]
-            set_latent(scene, z)
+            drawn = slider_units(scene).random(model.model.sample_latents, np.random.default_rng(seed))
+            set_values(scene, drawn.values)
             scene.shapegen.explore_seed = seed + 1
-            return f"Random shape (seed {seed})"
+            if drawn.clipped:
+                return f"Random shape (seed {seed}): no draw within ±3 in {drawn.redraws + 1}, clipped to ±3"
+            return f"Random shape (seed {seed}{f', {drawn.redraws} redrawn beyond ±3' if drawn.redraws else ''})"
 
         return _run(self, work)
 
@@ -113,10 +116,9 @@ class SHAPEGEN_OT_explore_snap(_NeedsLive, bpy.types.Operator):
         def work():
             scene = context.scene
             model = store.require_model(scene)
-            items = scene.shapegen.latents
-            scale = np.array([item.scale for item in items])
+            units = slider_units(scene)
             training = model.training_latents()
-            distances = (((training - current_latent(scene)) / scale) ** 2).sum(axis=1)
+            distances = ((units.to_values(training) - units.to_values(current_latent(scene))) ** 2).sum(axis=1)
             index = int(np.argmin(distances))
             set_latent(scene, training[index])
             return f"Snapped to '{model.names[index]}'"

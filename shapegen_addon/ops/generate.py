@@ -17,7 +17,8 @@ from .. import store
 from ..convert import mesh_data_from_arrays
 from ..keys import INTERPOLATION_KEY
 from ..latent import object_latent, tag_object
-from ..preview import ensure_collection, grid_offsets
+from ..placement import grid_offsets, place, place_one, vertex_box
+from ..preview import ensure_collection
 from ..ui.properties import INTERPOLATION_ITEMS
 
 __all__ = ["CLASSES", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
@@ -33,7 +34,8 @@ def shape_size(model) -> float:
 
 
 class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
-    """Sample new shapes from the model into the "ShapeGen Samples" collection, on a grid"""
+    """Sample new shapes from the model into the "ShapeGen Samples" collection, on a grid
+    beside the scene's objects"""
 
     bl_idname = "shapegen.sample"
     bl_label = "Sample"
@@ -62,16 +64,14 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        collection = ensure_collection(scene, SAMPLES_COLLECTION)
         spacing = settings.preview_spacing * shape_size(model)
-        offsets = grid_offsets(count, spacing)
-        if len(collection.objects):  # a new batch goes on rows below the earlier ones
-            offsets[:, 1] += min(o.location.y for o in collection.objects) - spacing
+        locations = place(scene, [vertex_box(mesh.vertices) for *_, mesh in results], grid_offsets(count, spacing))
+        collection = ensure_collection(scene, SAMPLES_COLLECTION)
         name = store.model_name(scene)
-        for (seed, z, template, mesh), offset in zip(results, offsets):
+        for (seed, z, template, mesh), location in zip(results, locations):
             label = f"{name} sample {seed}"
             obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, mesh.vertices, mesh.faces))
-            obj.location = offset
+            obj.location = location
             tag_object(obj, scene, z, template, seed=seed)
             collection.objects.link(obj)
         self.report({"INFO"}, f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
@@ -129,10 +129,12 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
         base = f"{first.name} to {second.name}"
         spacing = settings.preview_spacing * shape_size(model)
         if mode == "OBJECTS":
-            for k in range(1, steps + 1):
+            locations = place(scene, [vertex_box(shape) for shape in shapes[1:-1]],
+                              grid_offsets(steps, spacing, columns=steps))
+            for k, location in enumerate(locations, start=1):
                 label = f"{base} {k}"
                 obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, shapes[k], faces))
-                obj.location = (k * spacing, 0.0, 0.0)
+                obj.location = location
                 tag_object(obj, scene, (1 - ts[k]) * z_a + ts[k] * z_b, model.names[index])
                 obj[INTERPOLATION_KEY] = float(ts[k])
                 collection.objects.link(obj)
@@ -141,6 +143,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             return {"FINISHED"}
 
         obj = bpy.data.objects.new(f"{base} morph", mesh_data_from_arrays(f"{base} morph", shapes[0], faces))
+        obj.location = place_one(scene, vertex_box(np.concatenate(shapes)))
         collection.objects.link(obj)
         tag_object(obj, scene, z_a, model.names[index])
         obj.shape_key_add(name="Basis", from_mix=False)
@@ -208,6 +211,8 @@ class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
             return {"CANCELLED"}
         name = f"{store.model_name(scene)} modes"
         obj = bpy.data.objects.new(name, mesh_data_from_arrays(name, mean, model.meshes[index].faces))
+        # room for every mode key at ±3
+        obj.location = place_one(scene, vertex_box(np.concatenate([mean[None], mean + 3 * modes, mean - 3 * modes])))
         ensure_collection(scene, MODES_COLLECTION).objects.link(obj)
         tag_object(obj, scene, np.zeros(model.latent_dim), model.names[index])
         obj.shape_key_add(name="Mean", from_mix=False)
