@@ -17,6 +17,7 @@ from .errors import ShapeGenError
 from .io import read_folder
 from .mesh import Mesh
 from .npzfile import read_format
+from .progress import Progress
 from .settings import SettingsError
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
@@ -153,24 +154,13 @@ def prepare_source(source: Source) -> PreparedCollection:
 
 def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None):
     """`correspond.correspond` with the default settings and console progress."""
-    settings = CorrespondenceSettings()
-    total = len(prepared) * (settings.groupwise_rounds + 1)
-    done = {"count": 0}
-    report = console_progress("correspond")
-
-    def progress(shape: str, stage: str, iteration: int) -> None:
-        if stage == "registered":
-            done["count"] += 1
-            report(done["count"] / total, f"{shape} registered ({iteration} iterations)")
-        elif stage in ("template", "mean template"):
-            report(done["count"] / total, f"{stage}: {shape}" if stage == "template" else "mean template")
-
-    return correspond(prepared, settings, template=template, jobs=jobs, progress=progress)
+    return correspond(prepared, CorrespondenceSettings(), template=template, jobs=jobs,
+                      progress=console_progress("correspond"))
 
 
 # ---------------------------------------------------------------------------- progress
-def console_progress(prefix: str):
-    """A progress callback printing one line per 10 % step (or per new message at the end)."""
+def console_progress(prefix: str) -> Progress:
+    """A progress printing one line per 10 % step (or per new message at the end)."""
     state = {"last": -1, "message": None}
 
     def report(fraction: float, message: str) -> None:

@@ -12,7 +12,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -22,6 +22,7 @@ from . import meshset
 from .mesh import Mesh
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
+from .progress import CancelCheck, Progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
@@ -152,9 +153,11 @@ def prepare_meshes(
     meshes: Sequence[Mesh],
     settings: PrepareSettings = PrepareSettings(),
     min_shapes: int = 2,
-    progress: Callable[[float, str], None] | None = None,
+    progress: Progress | None = None,
+    should_cancel=None,
 ) -> PreparedCollection:
-    """Align, scale and landmark a collection (thesis §3.4 and §4.2.1)."""
+    """Align, scale and landmark a collection (thesis §3.4 and §4.2.1). `progress` and
+    `should_cancel` as in core/progress.py; cancel is checked at every progress step."""
     meshes = list(meshes)
     if len(meshes) < min_shapes:
         names = ", ".join(m.name or "?" for m in meshes) or "none"
@@ -165,10 +168,10 @@ def prepare_meshes(
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
         raise CollectionError(f"shape names must be unique; repeated: {duplicates}")
-    report = progress or (lambda fraction, message: None)
+    report = CancelCheck(should_cancel, "prepare").before(progress)
     shapes = prepare_collection(
         meshes, up_axis=settings.up_axis, align=settings.align, centre=settings.centre, scale=settings.scale,
-        seed=settings.seed, progress=lambda f, msg: report(0.6 * f, msg),
+        seed=settings.seed, progress=sub_range(report, 0.0, 0.6),
     )
     landmarks = []
     for i, shape in enumerate(shapes):

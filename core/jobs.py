@@ -3,9 +3,10 @@
 The Blender layer (and tests, and anything else) starts a `BackgroundJob`, then polls it;
 polling never blocks. The worker is a plain Python process running `core/worker.py` with
 the core importable (it never imports bpy: a child of Blender cannot). It talks back over
-its stdout, one JSON object per line:
+its stdout, one JSON object per line (progress as in core/progress.py):
 
-    {"event": "progress", "fraction": 0.42, "stage": "correspondence: register vase_003"}
+    {"event": "progress", "fraction": 0.42,
+     "stage": "correspondence: registering vase_003 (round 1 of 2, iteration 7)"}
     {"event": "done", "output": "/tmp/.../model.npz"}
     {"event": "failed", "error": "vase_007: mesh has no faces"}
     {"event": "cancelled"}

@@ -23,18 +23,18 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
-from .errors import Cancelled, ModelFileError, ShapeGenError
+from .errors import ModelFileError, ShapeGenError
 from . import meshset
 from .mesh import Mesh
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option, settings_from_dict
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
@@ -43,9 +43,6 @@ __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FO
 MODEL_FILE_FORMAT = "shapegen.model"
 MODEL_FILE_VERSION = 1
 TEMPLATE_CHOICES = ("nearest-data", "nearest-latent")
-
-#: progress(fraction in [0, 1], stage text)
-Progress = Callable[[float, str], None]
 
 
 class TemplateError(ShapeGenError, ValueError):
@@ -360,25 +357,19 @@ class LatentMesher:
 
 
 def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progress: Progress | None = None,
-               should_cancel: Callable[[], bool] | None = None) -> GenerativeShapeModel:
+               should_cancel=None) -> GenerativeShapeModel:
     """The whole fit: prepare (§3.4, §4.2.1) → correspond (§4.2) → shape model (§5.3).
 
     Given a PreparedCollection, its own recorded settings win over `settings.prepare`
     (the model records how its shapes were really prepared); `settings.prepare` is used
     only for raw meshes or a collection that records none.
 
-    Progress fractions: prepare 0–0.15, correspondence 0.15–0.75, model 0.75–1.
-    `should_cancel` is polled between steps and inside correspondence; a cancel raises
-    errors.Cancelled and nothing is returned.
+    Progress fractions (core/progress.py): prepare 0–0.15, correspondence 0.15–0.75,
+    model 0.75–1. `should_cancel` (None, a callable or an Event) is polled inside every
+    step and between them; a cancel raises errors.Cancelled and nothing is returned.
     """
-    report = progress or (lambda fraction, stage: None)
-    cancelled = should_cancel or (lambda: False)
+    cancel = CancelCheck(should_cancel, "fit")
     start = time.perf_counter()
-
-    def check():
-        if cancelled():
-            raise Cancelled("fit cancelled")
-
     if isinstance(meshes_or_prepared, PreparedCollection):
         prepared = meshes_or_prepared
         if prepared.settings is not None:
@@ -387,49 +378,32 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
     else:
         meshes = list(meshes_or_prepared)
         _check_mesh_template(settings, [m.name for m in meshes])
-        prepared = prepare_meshes(meshes, settings.prepare,
-                                  progress=lambda f, msg: report(0.15 * f, f"prepare: {msg}"))
-    check()
-    n_shapes = len(prepared)
-    done = {"count": 0, "round": 0}
-
-    def correspondence_progress(shape: str, stage: str, iteration: int) -> None:
-        if stage == "registered":
-            done["count"] += 1
-        elif stage == "mean template":
-            done["round"] = iteration
-        rounds = settings.correspondence.groupwise_rounds + 1
-        fraction = min(1.0, done["count"] / (n_shapes * rounds))
-        report(0.15 + 0.6 * fraction, f"correspondence: {stage} {shape}")
-
+        prepared = prepare_meshes(meshes, settings.prepare, progress=sub_range(progress, 0.0, 0.15, "prepare: "),
+                                  should_cancel=cancel)
+    cancel()
     corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=settings.jobs,
-                      progress=correspondence_progress, should_cancel=cancelled)
-    check()
-    return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings, progress=report,
-                           should_cancel=cancelled, span=(0.75, 1.0), started=start)
+                      progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel)
+    cancel()
+    return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings,
+                           progress=sub_range(progress, 0.75, 1.0), should_cancel=cancel, started=start)
 
 
 def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSettings = FitSettings(),
-                    progress: Progress | None = None, should_cancel: Callable[[], bool] | None = None,
-                    span: tuple[float, float] = (0.0, 1.0), started: float | None = None) -> GenerativeShapeModel:
+                    progress: Progress | None = None, should_cancel=None,
+                    started: float | None = None) -> GenerativeShapeModel:
     """The shape-model stage (§5.3) on a finished correspondence of `meshes` (normalised
     frame): fit `settings.model` to the landmark matrix and bundle the fitted whole.
-    Progress is reported within `span`; `started` (perf_counter) dates the fit's start."""
-    report = progress or (lambda fraction, stage: None)
-    cancelled = should_cancel or (lambda: False)
+    `progress` and `should_cancel` as in core/progress.py (cancel is checked at every
+    progress step of the model fit); `started` (perf_counter) dates the fit's start."""
+    report = progress or no_progress
+    cancel = CancelCheck(should_cancel, "fit")
     start = time.perf_counter() if started is None else started
-    low, high = span
-
-    def check():
-        if cancelled():
-            raise Cancelled("fit cancelled")
 
     _check_mesh_template(settings, list(corr.names))
     model = make_model(settings.model, settings.latent_dim, settings.prepare.seed)
-    model.fit(corr.landmark_matrix(),
-              progress=lambda f, msg: (check(), report(low + (high - low) * f, f"{settings.model}: {msg}")))
-    check()
-    report(high, "fitted")
+    model.fit(corr.landmark_matrix(), progress=cancel.before(sub_range(report, 0.0, 1.0, f"{settings.model}: ")))
+    cancel()
+    report(1.0, "fitted")
     from . import __version__
 
     metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",

@@ -30,23 +30,19 @@ def _emit(**message) -> None:
     sys.stdout.flush()
 
 
-class _CancelFlag:
-    """Set when the parent writes "cancel" on stdin (or closes it)."""
+def _cancel_on_stdin() -> threading.Event:
+    """An Event set when the parent writes "cancel" on stdin (or closes it: the parent is
+    gone, so stop as soon as possible); tasks get it as their `should_cancel`."""
+    event = threading.Event()
 
-    def __init__(self):
-        self._event = threading.Event()
-        threading.Thread(target=self._listen, daemon=True).start()
-
-    def _listen(self) -> None:
+    def listen() -> None:
         for line in sys.stdin:
             if line.strip() == "cancel":
-                self._event.set()
-                return
-        # stdin closed: the parent is gone; stop as soon as possible
-        self._event.set()
+                break
+        event.set()
 
-    def __call__(self) -> bool:
-        return self._event.is_set()
+    threading.Thread(target=listen, daemon=True).start()
+    return event
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
@@ -67,10 +63,9 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
 def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
     """The shared end of a task: nothing is written once cancelled; else `result.save` to
     arguments["output"], whose path is the task's output."""
-    from .errors import Cancelled
+    from .progress import CancelCheck
 
-    if should_cancel():
-        raise Cancelled(f"{task} cancelled")
+    CancelCheck(should_cancel, task)()
     output = Path(arguments["output"])
     result.save(output)
     return str(output)
@@ -81,18 +76,11 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
     collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data.
     Cancel is checked at every progress step (after each shape's stage)."""
     from .collection import PrepareSettings, prepare_meshes
-    from .errors import Cancelled
     from .meshset import load_mesh_set
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     meshes = load_mesh_set(arguments["meshes"])
-
-    def report(fraction: float, stage: str) -> None:
-        if should_cancel():
-            raise Cancelled("prepare cancelled")
-        progress(fraction, stage)
-
-    prepared = prepare_meshes(meshes, settings, progress=report)
+    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel)
     return _save_result(prepared, arguments, should_cancel, "prepare")
 
 
@@ -103,16 +91,8 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
 
     prepared = PreparedCollection.load(arguments["prepared"])
     settings = CorrespondenceSettings(**arguments.get("settings", {}))
-    total = len(prepared) * (settings.groupwise_rounds + 1)
-    done = {"count": 0}
-
-    def report(shape: str, stage: str, iteration: int) -> None:
-        if stage == "registered":
-            done["count"] += 1
-        progress(min(1.0, done["count"] / total), f"{stage} {shape}")
-
     result = correspond(prepared, settings, template=arguments.get("template") or None,
-                        jobs=arguments.get("jobs"), progress=report, should_cancel=should_cancel)
+                        jobs=arguments.get("jobs"), progress=progress, should_cancel=should_cancel)
     return _save_result(result, arguments, should_cancel, "correspondence")
 
 
@@ -120,12 +100,13 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     """A tiny task for tests of the job machinery: counts, sleeps, can fail or crash."""
     import time
 
-    from .errors import Cancelled, ShapeGenError
+    from .errors import ShapeGenError
+    from .progress import CancelCheck
 
+    cancel = CancelCheck(should_cancel, "selftest")
     steps = int(arguments.get("steps", 10))
     for i in range(steps):
-        if should_cancel():
-            raise Cancelled("selftest cancelled")
+        cancel()
         progress((i + 1) / steps, f"step {i + 1} of {steps}")
         time.sleep(float(arguments.get("sleep", 0.01)))
         if arguments.get("fail_at") == i:
@@ -149,7 +130,7 @@ def main(argv: list[str]) -> int:
     from .errors import Cancelled, ShapeGenError
 
     task, arguments = TASKS[argv[0]], json.loads(argv[1])
-    should_cancel = _CancelFlag()
+    should_cancel = _cancel_on_stdin()
     try:
         output = task(arguments, lambda f, stage: _emit(event="progress", fraction=f, stage=stage), should_cancel)
     except Cancelled:

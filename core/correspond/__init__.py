@@ -31,13 +31,13 @@ Everything tunable lives in `CorrespondenceSettings` (thesis defaults, one place
 Modules, one layer each (the geometry they share with meshing is core/geometry):
   settings.py      CorrespondenceSettings
   registration.py  one template → target registration (Alg. 3): `register`, `Anchors`
-  pool.py          registration tasks in this process or in spawned worker processes
+  pool.py          registration tasks in this process or in spawned worker processes, their
+                   ICP iterations turned into progress fractions
   groupwise.py     `correspond`: template choice, groupwise rounds, outlier flags
   result.py        `Correspondence` and its .npz file
 """
 
 from .groupwise import chamfer_medoid, correspond, flag_outliers
-from .pool import ProgressCallback
 from .registration import Anchors, Registration, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
 from .settings import CorrespondenceSettings
@@ -47,7 +47,6 @@ __all__ = [
     "Correspondence",
     "Registration",
     "Anchors",
-    "ProgressCallback",
     "correspond",
     "register",
     "chamfer_medoid",

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import replace
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_frame
-from .pool import ProgressCallback, RegistrationRunner, RegistrationTask
+from ..progress import Progress, no_progress, sub_range
+from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
@@ -51,15 +52,6 @@ def flag_outliers(residuals: np.ndarray, scale_ratios: np.ndarray,
     return reasons
 
 
-def _as_cancel_check(should_cancel) -> Callable[[], bool]:
-    """Accept None, a callable, or a threading.Event-like object with is_set()."""
-    if should_cancel is None:
-        return lambda: False
-    if hasattr(should_cancel, "is_set"):
-        return should_cancel.is_set
-    return should_cancel
-
-
 def _template_index(names: list[str], template: str | None, landmark_sets) -> int:
     if template is None:
         return chamfer_medoid(landmark_sets)
@@ -74,18 +66,20 @@ def correspond(
     settings: CorrespondenceSettings = CorrespondenceSettings(),
     template: str | None = None,
     jobs: int | None = None,
-    progress: ProgressCallback | None = None,
+    progress: Progress | None = None,
     should_cancel=None,
 ) -> Correspondence:
     """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
 
     template: a shape name, or None for the medoid by symmetric Chamfer distance.
     jobs: worker processes (None: all cores; 1: in this process).
-    progress: see `ProgressCallback`. should_cancel: callable or Event, checked between
-    ICP iterations; raises errors.Cancelled.
+    progress: fractions over the R = groupwise_rounds + 1 rounds of registrations, each
+    round an equal share filled as its shapes' ICP iterations run (core/progress.py);
+    messages name the template, the shape being registered and the round.
+    should_cancel: None, a callable or an Event, checked between ICP iterations; raises
+    errors.Cancelled.
     """
-    report = progress or (lambda shape, stage, iteration: None)
-    cancelled = _as_cancel_check(should_cancel)
+    report = progress or no_progress
     names = list(collection.names)
     if len(names) < 2:
         raise CollectionError(
@@ -97,7 +91,7 @@ def correspond(
     landmark_sets = [l.points for l in collection.landmarks]
     start = _template_index(names, template, landmark_sets)
     template_name = names[start]
-    report(template_name, "template", 0)
+    report(0.0, f"template {template_name}")
 
     template_points = np.asarray(landmark_sets[start], dtype=np.float64)
     centre, scale = registration_frame(template_points, template_name)
@@ -107,20 +101,23 @@ def correspond(
 
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
-    runner = RegistrationRunner(jobs, report, cancelled)
+    rounds = settings.groupwise_rounds + 1
+    runner = RegistrationRunner(jobs, should_cancel)
     try:
         current_template, current_normals = template_points, template_normals
-        for round_index in range(settings.groupwise_rounds + 1):
+        for round_index in range(rounds):
+            label = f"round {round_index + 1} of {rounds}"
             if round_index > 0:
                 current_template, current_normals = _mean_template(results, keep)
-                report(template_name, "mean template", round_index)
+                report(round_index / rounds, f"mean template ({label})")
             tasks = [
                 RegistrationTask(i, names[i], to_frame(shape.mesh.vertices), shape.mesh.faces,
                       to_frame(landmarks.points), shape.mesh.face_normals()[landmarks.face_index],
                       to_frame(current_template), current_normals, edges, settings)
                 for i, (shape, landmarks) in enumerate(zip(collection.shapes, collection.landmarks))
             ]
-            registrations = runner.run(tasks)
+            registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds),
+                                       label)
             results = [_to_normalised(r, centre, scale) for r in registrations]
             residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
                                   for r, s in zip(registrations, collection.shapes)])
@@ -130,6 +127,7 @@ def correspond(
             keep = np.array([not r for r in reasons])
     finally:
         runner.close()
+    report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
 
     points = np.stack([r.placed.points for r in results])
     transforms = [shape.transform for shape in collection.shapes]

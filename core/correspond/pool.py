@@ -1,5 +1,5 @@
 """Registration tasks run in this process or in a pool of spawned worker processes, with
-per-iteration progress forwarded to the caller and cooperative cancel."""
+cooperative cancel and the one conversion of their ICP iterations into progress fractions."""
 
 from __future__ import annotations
 
@@ -8,30 +8,23 @@ import multiprocessing
 import os
 import queue as queue_module
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import Cancelled
 from ..geometry import TargetSurface
+from ..progress import CancelCheck, Progress
 from .registration import Registration, register
 from .settings import CorrespondenceSettings
 
-__all__ = ["ProgressCallback", "RegistrationRunner", "RegistrationTask"]
-
-#: progress(shape_name, stage, iteration). Stages, in order of a run:
-#: "template" (template chosen; shape = its name, iteration 0),
-#: "register" (one ICP iteration done on `shape`; iteration counts from 1),
-#: "registered" (`shape` finished; iteration = iterations used),
-#: "mean template" (groupwise re-estimation; iteration = round number, from 1).
-ProgressCallback = Callable[[str, str, int], None]
+__all__ = ["RegistrationRunner", "RegistrationTask"]
 
 
 @dataclass(frozen=True)
 class RegistrationTask:
     """Everything one worker needs to register the template to one shape (picklable)."""
 
-    index: int
+    index: int  # position in the run's task list
     name: str
     vertices: np.ndarray  # registration frame
     faces: np.ndarray
@@ -52,22 +45,47 @@ def _init_worker(progress_queue, cancel_event) -> None:
     _WORKER["cancel"] = cancel_event
 
 
-def _run_task(task: RegistrationTask, report=None, should_cancel=None) -> tuple[int, Registration]:
-    """Register one shape (in this process or a worker)."""
-    if report is None and "queue" in _WORKER:
-        progress_queue = _WORKER["queue"]
-        report = lambda name, stage, it: progress_queue.put((name, stage, it))  # noqa: E731
-        should_cancel = _WORKER["cancel"].is_set
+def _register(task: RegistrationTask, on_iteration, should_cancel) -> Registration:
+    """Register the template to one shape (in this process or a worker)."""
     surface = TargetSurface(task.vertices, task.faces)
-    on_iteration = None if report is None else (lambda it: report(task.name, "register", it))
-    result = register(task.template, task.edges, surface, task.landmarks, task.settings,
-                      task.template_normals, task.landmark_normals, on_iteration, should_cancel)
+    return register(task.template, task.edges, surface, task.landmarks, task.settings, task.template_normals,
+                    task.landmark_normals, on_iteration, should_cancel)
+
+
+def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:
+    """A pool worker's task: iterations go to the parent's queue as (run, index, iteration)."""
+    progress_queue = _WORKER["queue"]
+    result = _register(task, lambda iteration: progress_queue.put((run, task.index, iteration)), _WORKER["cancel"])
     return task.index, result
+
+
+class _RunProgress:
+    """Progress of one run of registration tasks, its own 0..1: every task has an equal
+    share, filled by its ICP iterations up to its cap (settings.max_iterations) and
+    completely once it has finished. Late iteration events of a finished task change
+    nothing, so the fraction never decreases and is 1.0 when all tasks have finished."""
+
+    def __init__(self, tasks: Sequence[RegistrationTask], progress: Progress, label: str):
+        self.tasks, self.progress, self.label = tasks, progress, label
+        self.shares = [0.0] * len(tasks)
+
+    def iteration(self, index: int, iteration: int) -> None:
+        task = self.tasks[index]
+        self.shares[index] = max(self.shares[index], min(iteration / task.settings.max_iterations, 1.0))
+        self._report(f"registering {task.name} ({self.label}, iteration {iteration})")
+
+    def finished(self, index: int, iterations: int) -> None:
+        self.shares[index] = 1.0
+        self._report(f"registered {self.tasks[index].name} ({self.label}, {iterations} iterations)")
+
+    def _report(self, message: str) -> None:
+        self.progress(sum(self.shares) / len(self.shares), message)
 
 
 class RegistrationRunner:
     """Runs registration tasks in-process (jobs = 1) or in a pool of spawned processes,
-    forwarding per-iteration progress and cooperative cancel.
+    with progress per ICP iteration and cooperative cancel (`should_cancel`: None, a
+    callable or an Event-like object; see core/progress.py).
 
     A spawned worker loads numpy, and with it OpenBLAS, before any code of ours runs in it,
     and OpenBLAS reads OPENBLAS_NUM_THREADS only then. So while the pool is open this
@@ -75,11 +93,11 @@ class RegistrationRunner:
     the workers inherit when they start; this process's BLAS, loaded already, keeps its
     threads, and `close` takes the variable out again."""
 
-    def __init__(self, jobs: int, report: ProgressCallback, should_cancel: Callable[[], bool]):
+    def __init__(self, jobs: int, should_cancel=None):
         self.jobs = jobs
-        self.report = report
-        self.should_cancel = should_cancel
+        self.cancel = CancelCheck(should_cancel, "correspondence")
         self.pool = None
+        self._runs = 0
         self._set_blas_threads = False
         if jobs > 1:
             self._set_blas_threads = "OPENBLAS_NUM_THREADS" not in os.environ
@@ -92,27 +110,29 @@ class RegistrationRunner:
                 max_workers=jobs, mp_context=context, initializer=_init_worker,
                 initargs=(self.queue, self.cancel_event))
 
-    def run(self, tasks: Sequence[RegistrationTask]) -> list[Registration]:
+    def run(self, tasks: Sequence[RegistrationTask], progress: Progress, label: str) -> list[Registration]:
+        """Register every task; `progress` gets this run's own fraction (see `_RunProgress`),
+        its messages name the shape and `label` (e.g. "round 1 of 2")."""
+        self._runs += 1
+        tracker = _RunProgress(tasks, progress, label)
         results: list[Registration | None] = [None] * len(tasks)
         if self.pool is None:
             for task in tasks:
-                index, result = _run_task(task, self.report, self.should_cancel)
-                results[index] = result
-                self.report(task.name, "registered", result.iterations)
+                result = _register(task, lambda iteration: tracker.iteration(task.index, iteration), self.cancel)
+                results[task.index] = result
+                tracker.finished(task.index, result.iterations)
             return results
-        pending = {self.pool.submit(_run_task, task): task for task in tasks}
+        pending = {self.pool.submit(_run_in_worker, task, self._runs): task for task in tasks}
         try:
             while pending:
                 done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
-                self._drain()
-                if self.should_cancel():
-                    self.cancel_event.set()
-                    raise Cancelled("correspondence cancelled")
+                self._drain(tracker)
+                self.cancel()
                 for future in done:
-                    task = pending.pop(future)
+                    pending.pop(future)
                     index, result = future.result()
                     results[index] = result
-                    self.report(task.name, "registered", result.iterations)
+                    tracker.finished(index, result.iterations)
         except BaseException:
             self.cancel_event.set()
             for future in pending:
@@ -120,18 +140,20 @@ class RegistrationRunner:
             raise
         return results
 
-    def _drain(self) -> None:
+    def _drain(self, tracker: _RunProgress | None) -> None:
+        """Pass the queued iteration events of the current run to `tracker` (None: drop them)."""
         while True:
             try:
-                name, stage, iteration = self.queue.get_nowait()
+                run, index, iteration = self.queue.get_nowait()
             except queue_module.Empty:
                 return
-            self.report(name, stage, iteration)
+            if tracker is not None and run == self._runs:
+                tracker.iteration(index, iteration)
 
     def close(self) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
-            self._drain()
+            self._drain(None)
             self.queue.close()
         if self._set_blas_threads:
             os.environ.pop("OPENBLAS_NUM_THREADS", None)

@@ -16,9 +16,9 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import Cancelled
 from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, stiffness_energy,
                         transform_normals)
+from ..progress import CancelCheck
 from .settings import CorrespondenceSettings
 
 __all__ = ["Anchors", "Registration", "register"]
@@ -118,7 +118,7 @@ def register(
     template_normals: np.ndarray | None = None,
     target_landmark_normals: np.ndarray | None = None,
     on_iteration: Callable[[int], None] | None = None,
-    should_cancel: Callable[[], bool] | None = None,
+    should_cancel=None,
     anchors: Anchors | None = None,
     initial_points: np.ndarray | None = None,
 ) -> Registration:
@@ -131,7 +131,8 @@ def register(
     points (the thesis's Alg. 3); otherwise from the original template (Amberg et al.).
     `initial_points` (L, 3): a warm start, where the template points begin (e.g. an earlier
     registration's `deformed`); the affines still act on `template`. Raises Cancelled
-    between iterations when `should_cancel()` is true."""
+    between iterations once `should_cancel` (None, a callable or an Event-like object;
+    core/progress.py) says so."""
     base = np.asarray(template, dtype=np.float64)
     if anchors is not None and (np.asarray(anchors.indices) >= len(base)).any():
         raise ValueError(f"anchor indices must be < {len(base)} (the template's point count)")
@@ -144,6 +145,7 @@ def register(
                              f"got {initial_points.shape}")
         points = initial_points.copy()
     n_points = len(points)
+    cancel = CancelCheck(should_cancel, "correspondence")
     solver = AffineSolver(edges, n_points, settings.gamma)
     finder = target.tracker()  # closest points with candidate faces kept between iterations
     lam = settings.bidirectional_weight
@@ -152,8 +154,7 @@ def register(
     iteration = 0
     for alpha in settings.alphas:
         for _ in range(settings.max_iterations_per_alpha):
-            if should_cancel is not None and should_cancel():
-                raise Cancelled("correspondence cancelled")
+            cancel()
             forward, weights = _forward_matches(target, points, normals, settings, finder)
             rows, goals = np.arange(n_points), forward.points
             if lam > 0:

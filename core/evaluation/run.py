@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..models import MODEL_TYPES, GPLVM, make_model
+from ..progress import Progress, no_progress
 from .baselines import MeanShapeModel, TrainingSetModel
 from .completion import REGIONS, completion_errors, hidden_coordinates, region_mask
 from .curves import generalisation_curve, ppca_nll_curve, specificity_curve
@@ -27,8 +28,6 @@ from .metrics import (EvaluationError, as_point_sets, coverage, landmark_rms_mat
 from .protocol import heldout_folds, random_stream
 
 __all__ = ["EvaluationSettings", "EvaluationResult", "parse_model_names", "run_evaluation"]
-
-Progress = Callable[[float, str], None]
 
 #: Baselines fitted in every fold next to the models (name -> class).
 BASELINES = {"training-set": TrainingSetModel, "mean-shape": MeanShapeModel}
@@ -108,7 +107,7 @@ class _Steps:
     """Progress over a known number of steps: `next` reports the fraction done, then counts."""
 
     def __init__(self, progress: Progress | None, total: int):
-        self.progress = progress or (lambda fraction, message: None)
+        self.progress = progress or no_progress
         self.total = total
         self.done = 0
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 import inspect
-from typing import Callable, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
@@ -22,7 +22,6 @@ from ..npzfile import ArraySpec, validate_arrays
 __all__ = [
     "ModelInputError",
     "ShapeModel",
-    "ProgressCallback",
     "as_generator",
     "check_training_data",
     "check_rows",
@@ -36,8 +35,6 @@ __all__ = [
     "pca_latents",
     "standardised_pca_latents",
 ]
-
-ProgressCallback = Callable[[float, str], None]
 
 
 class ModelInputError(ShapeGenError, ValueError):

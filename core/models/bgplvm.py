@@ -34,7 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 from ..npzfile import ArraySpec
-from .base import ModelInputError, ProgressCallback, as_generator, pca_latents, standardised_pca_latents
+from ..progress import Progress
+from .base import ModelInputError, as_generator, pca_latents, standardised_pca_latents
 from .kernels import PsiStatistics, rbf
 from .latent_variable import (FitProblem, LatentVariableModel, OptimiserRun, TrainingData, best_start,
                               inverse_cholesky, lbfgs)
@@ -187,7 +188,7 @@ class _BoundProblem(FitProblem):
     variance; the inducing inputs are M latents drawn by `rng`, slightly perturbed."""
 
     def __init__(self, data: TrainingData, m: int, jitter: float, rng: np.random.Generator,
-                 progress: ProgressCallback | None, ftol: float, stall: tuple[int, float], warm_up: int):
+                 progress: Progress | None, ftol: float, stall: tuple[int, float], warm_up: int):
         n, q, data_var, Yc = data.gram.shape[0], data.latent_dim, data.variance, data.centred
         self.layout = BoundLayout(n, q, m)
         self.Y_root = gram_root(data.gram)                    # N x r, Y_root Y_root^T = Y Y^T

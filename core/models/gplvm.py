@@ -18,8 +18,9 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from ..npzfile import ArraySpec
+from ..progress import Progress
 from . import kde
-from .base import ProgressCallback, as_generator, pca_latents, standardised_pca_latents
+from .base import as_generator, pca_latents, standardised_pca_latents
 from .kernels import rbf, rbf_from_sq_dists, sq_dists
 from .latent_variable import (FitProblem, LatentVariableModel, OptimiserRun, TrainingData, best_start,
                               inverse_cholesky, lbfgs)
@@ -63,7 +64,7 @@ class _MapProblem(FitProblem):
     (b) GPy's: PCA of the column-standardised data, each latent scaled to unit variance,
     noise 10 %. The final run stops once `stall` iterations together gained too little."""
 
-    def __init__(self, data: TrainingData, progress: ProgressCallback | None, stall: tuple[int, float]):
+    def __init__(self, data: TrainingData, progress: Progress | None, stall: tuple[int, float]):
         n, q, data_var = data.gram.shape[0], data.latent_dim, data.variance
         self.data, self.progress, self.stall = data, progress, stall
         # noise variance kept >= 1e-8 of the data variance so K stays positive definite;

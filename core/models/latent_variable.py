@@ -24,7 +24,8 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
-from .base import (ProgressCallback, ShapeModel, check_latent_dim, check_rows, check_training_data,
+from ..progress import Progress
+from .base import (ShapeModel, check_latent_dim, check_rows, check_training_data,
                    default_latent_dim)
 
 __all__ = ["LatentVariableModel", "TrainingData", "FitProblem", "OptimiserRun", "two_start_search", "best_start",
@@ -42,7 +43,7 @@ def inverse_cholesky(matrix: np.ndarray, name: str, log_det: bool = False):
     return (L_inv, 2.0 * np.log(L.diagonal()).sum()) if log_det else L_inv
 
 
-def lbfgs(objective, x0, *, max_iter: int, progress: ProgressCallback | None, message: str,
+def lbfgs(objective, x0, *, max_iter: int, progress: Progress | None, message: str,
           bounds=None, progress_span: tuple[float, float] = (0.0, 1.0), gtol: float = 1e-6,
           ftol: float = 1e-12, stall: tuple[int, float] | None = None):
     """Minimise objective(x) -> (value, gradient) with scipy's L-BFGS-B.
@@ -185,7 +186,7 @@ class LatentVariableModel(ShapeModel):
     _START_ITERS: ClassVar[int] = 0
 
     # ------------------------------------------------------------------ fit
-    def fit(self, Y, progress: ProgressCallback | None = None):
+    def fit(self, Y, progress: Progress | None = None):
         """Optimise from two starting points and keep the better optimum; returns self."""
         data = self._training_data(Y, progress)
         problem = self._fit_problem(data, progress)
@@ -198,7 +199,7 @@ class LatentVariableModel(ShapeModel):
             progress(1.0, f"{self._LABEL}: done")
         return self
 
-    def _training_data(self, Y, progress: ProgressCallback | None) -> TrainingData:
+    def _training_data(self, Y, progress: Progress | None) -> TrainingData:
         Y = check_training_data(Y)
         mean = Y.mean(0)
         Yc = Y - mean
@@ -208,7 +209,7 @@ class LatentVariableModel(ShapeModel):
             progress(0.0, f"{self._LABEL}: PCA initialisation")
         return TrainingData(mean, Yc, Yc @ Yc.T, q)
 
-    def _fit_problem(self, data: TrainingData, progress: ProgressCallback | None) -> FitProblem:
+    def _fit_problem(self, data: TrainingData, progress: Progress | None) -> FitProblem:
         raise NotImplementedError
 
     def _set_optimum(self, data: TrainingData, problem: FitProblem, optimum: OptimiserRun) -> None:

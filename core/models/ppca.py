@@ -12,7 +12,8 @@ import numpy as np
 
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec
-from .base import (ModelInputError, ProgressCallback, ShapeModel, as_generator, check_latent_dim,
+from ..progress import Progress
+from .base import (ModelInputError, ShapeModel, as_generator, check_latent_dim,
                    check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
                    principal_axes, shrunk_spectrum)
 
@@ -66,7 +67,7 @@ class PPCA(ShapeModel):
         self.sample_noise = sample_noise
 
     # ------------------------------------------------------------------ fit
-    def fit(self, Y, progress: ProgressCallback | None = None) -> "PPCA":
+    def fit(self, Y, progress: Progress | None = None) -> "PPCA":
         """Closed-form fit (eqs. 5.18-5.19) on the shrunk covariance; returns self."""
         Y = check_training_data(Y)
         n, d = Y.shape

@@ -340,9 +340,34 @@ def test_result_arrays_progress_and_transforms(small_vases, small_result):
         np.testing.assert_allclose(shape.transform.to_normalised(result.points_input[i]), result.points[i], atol=1e-9)
         on_input = np.einsum("nk,nkd->nd", result.barycentric[i], shapes[i].mesh.vertices[shapes[i].mesh.faces[result.face_index[i]]])
         np.testing.assert_allclose(on_input, result.points_input[i], atol=1e-9)
-    stages = [e[1] for e in events]
-    assert stages[0] == "template" and stages.count("registered") == 2 * m and "mean template" in stages
+    messages = [message for _, message in events]
+    assert messages[0].startswith("template") and sum(s.startswith("registered ") for s in messages) == 2 * m \
+        and any(s.startswith("mean template") for s in messages)
     assert not result.outliers.any()
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_progress_is_monotone_ends_at_one_and_names_every_shape(small_vases, small_result, jobs):
+    """correspond reports fractions itself (core/progress.py): never decreasing, 1.0 at the
+    end, the messages naming the template, each shape being registered and its round; the
+    same in this process and with a pool whose workers send their iterations back."""
+    _, prepared = small_vases
+    if jobs == 1:
+        events = small_result[1]
+    else:
+        events = []
+        correspond(prepared, jobs=2, progress=lambda f, m: events.append((f, m)))
+    fractions = [f for f, _ in events]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert all(0.0 <= f <= 1.0 for f in fractions) and any(0.0 < f < 0.5 for f in fractions)
+    messages = [m for _, m in events]
+    rounds = CorrespondenceSettings().groupwise_rounds + 1
+    for name in prepared.names:
+        for r in range(1, rounds + 1):
+            assert any(m.startswith(f"registering {name} (round {r} of {rounds}, iteration ") for m in messages)
+            assert any(m.startswith(f"registered {name} (round {r} of {rounds}, ") for m in messages)
+    # the first round ends where the mean template replaces the chosen one
+    assert (1 / rounds, f"mean template (round 2 of {rounds})") in events
 
 
 def test_save_load_round_trip_and_refusal_of_foreign_files(tmp_path, small_vases, small_result):
@@ -367,14 +392,14 @@ def test_cancel_stops_between_iterations(small_vases):
     stop = threading.Event()
     calls = []
 
-    def progress(shape, stage, iteration):
-        calls.append(stage)
-        if stage == "register" and iteration == 2:
+    def progress(fraction, message):
+        calls.append(message.split()[0])
+        if message.endswith("iteration 2)"):
             stop.set()
 
     with pytest.raises(Cancelled):
         correspond(prepared, jobs=1, progress=progress, should_cancel=stop)
-    assert calls.count("register") == 2
+    assert calls.count("registering") == 2
 
 
 def test_spawned_workers_start_with_one_openblas_thread(monkeypatch):
@@ -383,7 +408,7 @@ def test_spawned_workers_start_with_one_openblas_thread(monkeypatch):
     and give the parent its own environment back when it closes."""
     threadpoolctl = pytest.importorskip("threadpoolctl")
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
-    runner = RegistrationRunner(2, lambda *event: None, lambda: False)
+    runner = RegistrationRunner(2, lambda: False)
     try:
         seen = runner.pool.submit(threadpoolctl.threadpool_info).result()
     finally:

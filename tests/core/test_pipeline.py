@@ -95,3 +95,34 @@ def test_foreign_and_truncated_model_files_are_refused(fitted, tmp_path):
     np.savez(plain, x=np.zeros(3))
     with pytest.raises(ModelFileError, match="no format tag"):
         GenerativeShapeModel.load(plain)
+
+
+def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_them():
+    """One progress over the whole fit: prepare 0–0.15, correspondence 0.15–0.75, model
+    0.75–1, never decreasing, ending at 1.0; a cancel (here an Event) stops it in any stage."""
+    import threading
+
+    from shapegen_core.errors import Cancelled
+
+    meshes = [s.mesh for s in make_vases(4, seed=5, resolution=(12, 16))]
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca", jobs=1)
+    events = []
+    fit_meshes(meshes, settings, progress=lambda f, m: events.append((f, m)))
+    fractions = [f for f, _ in events]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and events[-1][1] == "fitted"
+    stages = [m.split(":")[0] for _, m in events]
+    assert stages.index("prepare") < stages.index("correspondence") < stages.index("ppca")
+    assert all(f <= 0.15 for f, m in events if m.startswith("prepare: "))
+    assert all(0.15 <= f <= 0.75 for f, m in events if m.startswith("correspondence: "))
+    assert any(m.startswith(f"correspondence: registering {meshes[0].name} (round 1 of 2") for _, m in events)
+    for stage in ("prepare: ", "correspondence: registering", "ppca: "):
+        stop, seen = threading.Event(), []
+
+        def progress(fraction, message, stage=stage):
+            seen.append(message)
+            if message.startswith(stage):
+                stop.set()
+
+        with pytest.raises(Cancelled):
+            fit_meshes(meshes, settings, progress=progress, should_cancel=stop)
+        assert seen[-1].startswith(stage)  # stopped at the next check, before another report
