@@ -60,3 +60,21 @@ def test_built_wheel_holds_every_core_module(tmp_path):
         for path in CORE.rglob("*.py") if "__pycache__" not in path.parts
     }
     assert expected <= shipped, f"modules missing from the wheel: {sorted(expected - shipped)}"
+
+
+def test_readme_layout_names_every_module():
+    """The README's layout table is the map of the tree: every module and package of core/
+    and shapegen_addon/ is named there (in backticks), so a new file cannot hide."""
+    readme = (ROOT / "README.md").read_text()
+    layout = readme[readme.index("## Layout"):readme.index("## Environments")]
+    missing = []
+    for top in ("core", "shapegen_addon"):
+        for path in (ROOT / top).rglob("*.py"):
+            if "__pycache__" in path.parts:
+                continue
+            name = path.parent.name if path.name == "__init__.py" else path.stem
+            if path.name == "__init__.py" and path.parent.name == top:
+                continue
+            if f"`{name}`" not in layout and f"{name}/`" not in layout and f"/{name}.py`" not in layout:
+                missing.append(str(path.relative_to(ROOT)))
+    assert not missing, f"README layout table does not name: {missing}"
