@@ -118,13 +118,7 @@ class Mesh:
             if not np.all(np.equal(np.mod(faces_in, 1), 0)):
                 raise MeshError(f"{label}: face indices must be integers")
         faces = faces_in.astype(np.int64, copy=True)
-        out_of_range = (faces < 0) | (faces >= vertices.shape[0])
-        if out_of_range.any():
-            row = int(np.flatnonzero(out_of_range.any(axis=1))[0])
-            raise MeshError(
-                f"{label}: face {row} has vertex index {faces[row].tolist()} out of range "
-                f"[0, {vertices.shape[0]})"
-            )
+        _check_face_indices(faces, vertices.shape[0], label)
         vertices.flags.writeable = False
         faces.flags.writeable = False
         object.__setattr__(self, "vertices", vertices)
@@ -152,13 +146,7 @@ class Mesh:
         if triangles.shape[0] == 0:
             raise MeshError(f"{label}: mesh has no faces")
         # index range is checked before area so the error names the real problem
-        out_of_range = (triangles < 0) | (triangles >= vertices.shape[0])
-        if out_of_range.any():
-            row = int(np.flatnonzero(out_of_range.any(axis=1))[0])
-            raise MeshError(
-                f"{label}: face {row} has vertex index {triangles[row].tolist()} out of range "
-                f"[0, {vertices.shape[0]})"
-            )
+        _check_face_indices(triangles, vertices.shape[0], label)
         if not np.isfinite(vertices).all():
             first = int(np.flatnonzero(~np.isfinite(vertices).all(axis=1))[0])
             raise MeshError(f"{label}: vertex {first} has a NaN or infinite coordinate")
@@ -264,6 +252,14 @@ class Mesh:
         tri = self.triangles[face_index]
         points = np.einsum("nk,nkd->nd", bary, tri)
         return SurfaceSamples(points, face_index.astype(np.int64), bary)
+
+
+def _check_face_indices(faces: np.ndarray, n_vertices: int, label: str) -> None:
+    """MeshError naming the first face whose vertex index is outside [0, n_vertices)."""
+    out_of_range = (faces < 0) | (faces >= n_vertices)
+    if out_of_range.any():
+        row = int(np.flatnonzero(out_of_range.any(axis=1))[0])
+        raise MeshError(f"{label}: face {row} has vertex index {faces[row].tolist()} out of range [0, {n_vertices})")
 
 
 def _triangulate(polygons, label: str) -> tuple[np.ndarray, int, int]:
