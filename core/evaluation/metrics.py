@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ShapeGenError
+from ..models.kernels import rbf_from_sq_dists
 
 __all__ = [
     "EvaluationError",
@@ -169,7 +170,7 @@ def mmd(samples, reference, bandwidth: float | None = None) -> float:
         raise EvaluationError(f"MMD bandwidth must be positive, got {h}")
 
     def kernel_mean(P, Q):
-        return float(np.mean(np.exp(-landmark_rms_matrix(P, Q) ** 2 / (2.0 * h * h))))
+        return float(np.mean(rbf_from_sq_dists(landmark_rms_matrix(P, Q) ** 2, 1.0, h * h)))
 
     value = kernel_mean(X, X) + kernel_mean(R, R) - 2.0 * kernel_mean(X, R)
     return float(np.sqrt(max(value, 0.0)))
