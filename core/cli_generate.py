@@ -78,9 +78,8 @@ def _meshes_for_correspondence(corr, meshes_dir: Path):
 def cmd_fit(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # every setting is checked before the source is read
-    settings = settings_from_args(FitSettings, args, flags={"deform.final_alpha": "--stiffness"},
-                                  prepare=settings_from_args(PrepareSettings, args),
-                                  deform=DeformSettings(final_alpha=args.stiffness))
+    settings = settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
+                                  deform=settings_from_args(DeformSettings, args))
     source = read_source(args.source, args)
     settings = replace(settings, prepare=source.prepare)
     report = console_progress("fit")
@@ -283,8 +282,7 @@ def add_generate_commands(sub) -> None:
     add_settings_options(p, FitSettings)
     add_settings_options(p, PrepareSettings)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
-    p.add_argument("--stiffness", type=float, default=DeformSettings().final_alpha,
-                   help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
+    add_settings_options(p, DeformSettings)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("info", help="describe a fitted model file")

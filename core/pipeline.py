@@ -74,14 +74,6 @@ class FitSettings(Settings):
         super().__post_init__()
         if not self.mesh_template:
             raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's name")
-        # DeformSettings (core/deform.py) does not check itself: a zero stiffness would only
-        # fail when a sample is meshed ("Factor is exactly singular")
-        for name in ("final_alpha", "start_alpha", "gamma"):
-            value = getattr(self.deform, name)
-            if not value > 0:
-                raise SettingsError(f"deform.{name}", f"must be greater than 0, got {value!r}")
-        if self.deform.k_blend < 1:
-            raise SettingsError("deform.k_blend", f"must be at least 1, got {self.deform.k_blend!r}")
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "FitSettings":

@@ -85,7 +85,8 @@ def settings_to_json(settings) -> str:
 def settings_from_dict(cls, data: Mapping, path: str = ""):
     """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
     nested objects, missing fields at their defaults. Unknown names and invalid values
-    raise SettingsError (also for dataclasses that check themselves with ValueError)."""
+    raise SettingsError; an error of nested settings names the option by its dotted path
+    ("deform.final_alpha")."""
     label = path or cls.__name__
     if not isinstance(data, Mapping):
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
@@ -101,8 +102,10 @@ def settings_from_dict(cls, data: Mapping, path: str = ""):
         values[name] = value
     try:
         return cls(**values)
-    except SettingsError:
-        raise
+    except SettingsError as exc:
+        if not path:
+            raise
+        raise SettingsError(f"{path}.{exc.option}", exc.problem, exc.prefix) from None
     except (TypeError, ValueError) as exc:
         raise SettingsError(label, f"is invalid: {exc}") from None
 

@@ -59,15 +59,28 @@ def test_invalid_prepare_settings_name_the_option_and_what_is_allowed(options, n
     ({"latent_dim": 0}, "latent_dim"),
     ({"jobs": 0}, "jobs"),
     ({"mesh_template": ""}, "mesh_template"),
-    ({"deform": DeformSettings(final_alpha=0.0)}, "deform.final_alpha"),
-    ({"deform": DeformSettings(gamma=-1.0)}, "deform.gamma"),
+    ({"deform": {"final_alpha": 0.0}}, "deform.final_alpha"),
+    ({"deform": {"gamma": -1.0}}, "deform.gamma"),
 ])
 def test_invalid_fit_settings_name_the_option(options, named):
     with pytest.raises(SettingsError, match=f"^{named} must be") as caught:
-        FitSettings(**options)
+        FitSettings.from_dict(options)
     assert caught.value.option == named
     with pytest.raises(SettingsError, match=r"^unknown model 'gpr'; choose from ppca, gplvm, bgplvm$"):
         FitSettings(model="gpr")
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"final_alpha": 0.0}, "final_alpha must be greater than 0, got 0.0"),
+    ({"start_alpha": -1.0}, "start_alpha must be greater than 0, got -1.0"),
+    ({"gamma": 0}, "gamma must be greater than 0, got 0"),
+    ({"n_stages": 0}, "n_stages must be at least 1, got 0"),
+    ({"k_blend": 0}, "k_blend must be at least 1, got 0"),
+])
+def test_deform_settings_check_themselves(options, message):
+    with pytest.raises(SettingsError) as caught:
+        DeformSettings(**options)
+    assert str(caught.value) == message and caught.value.option == next(iter(options))
 
 
 def test_from_dict_refuses_unknown_names_and_wrong_types():
