@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_common import (CommandError, add_settings_options, console_progress, flag_of, positive_int, read_source,
+from .cli_common import (CommandError, add_settings_options, console_progress, positive_int, read_source,
                          settings_from_args)
 from .collection import PrepareSettings
 from .deform import DeformSettings
@@ -93,9 +93,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
             raise CommandError(
                 f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
                 "was computed from) so the training meshes can be meshed")
-        recorded = ", ".join(f"{flag_of(PrepareSettings, k)} {v}" for k, v in settings.prepare.as_dict().items())
-        print(f"note: {source.path} does not record how its shapes were prepared; the model records this "
-              f"command's Prepare options ({recorded})", file=sys.stderr)
         meshes = _meshes_for_correspondence(source.correspondence, args.meshes)
         model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
     model.save(args.output)

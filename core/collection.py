@@ -20,9 +20,9 @@ from .errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
 from . import meshset
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .npzfile import ArraySpec, load_npz, save_npz
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
-from .settings import Settings, SettingsError, legacy_settings, option
+from .settings import Settings, option, recorded_settings
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
 
@@ -49,7 +49,8 @@ class PrepareSettings(Settings):
         return asdict(self).items()
 
 
-#: Arrays of a prepared-collection file besides its settings.
+#: Arrays of a prepared-collection file besides its settings (one JSON string, "null": not
+#: recorded; `settings.recorded_settings` also reads the key/value strings of older files).
 _SPEC = {
     "names": ArraySpec("U", ("M",)),
     **meshset.spec(),
@@ -61,9 +62,6 @@ _SPEC = {
     "landmark_offsets": ArraySpec("i", ("M+1",)),
     "landmark_radius": ArraySpec("f", ("M",)),
 }
-#: The settings: one JSON string ("null": not recorded); files before it held key/value strings.
-_SETTINGS_SPEC = {"settings": ArraySpec("U", ())}
-_LEGACY_SETTINGS_SPEC = {"settings_keys": ArraySpec("U", ("S",)), "settings_values": ArraySpec("U", ("S",))}
 
 
 @dataclass
@@ -130,22 +128,7 @@ class PreparedCollection:
                 raise ModelFileError(f"{path}: shape {name!r} has landmark face indices out of range")
             landmarks.append(Landmarks(a["landmarks"][sl], faces, a["landmark_barycentric"][sl],
                                        float(a["landmark_radius"][i])))
-        return cls(shapes, landmarks, _load_settings(a, path))
-
-
-def _load_settings(arrays: dict, path) -> PrepareSettings | None:
-    """The recorded PrepareSettings of a loaded file (JSON, or the key/value strings of
-    files written before); invalid settings are a ModelFileError naming the file."""
-    try:
-        if "settings" in arrays or "settings_keys" not in arrays:
-            validate_arrays(arrays, _SETTINGS_SPEC, str(path))
-            text = str(arrays["settings"])
-            return None if text == "null" else PrepareSettings.from_json(text)
-        validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
-        legacy = legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())
-        return PrepareSettings.from_dict(legacy) if legacy else None
-    except SettingsError as exc:
-        raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None
+        return cls(shapes, landmarks, recorded_settings(PrepareSettings, a, str(path)))
 
 
 def prepare_meshes(

@@ -102,7 +102,7 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
     from .correspond import CorrespondenceSettings, correspond
 
     prepared = PreparedCollection.load(arguments["prepared"])
-    settings = CorrespondenceSettings(**arguments.get("settings", {}))
+    settings = CorrespondenceSettings.from_dict(arguments.get("settings", {}))
     total = len(prepared) * (settings.groupwise_rounds + 1)
     done = {"count": 0}
 

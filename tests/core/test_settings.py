@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.correspond import CorrespondenceSettings
+from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.deform import DeformSettings
 from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
@@ -19,6 +19,11 @@ from shapegen_core.settings import SettingsError
 @pytest.fixture(scope="module")
 def prepared(small_vases):
     return prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=30, up_axis="y", seed=2))
+
+
+@pytest.fixture(scope="module")
+def corresponded(prepared):
+    return correspond(prepared, CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0), jobs=1)
 
 
 @pytest.fixture(scope="module")
@@ -83,12 +88,32 @@ def test_deform_settings_check_themselves(options, message):
     assert str(caught.value) == message and caught.value.option == next(iter(options))
 
 
+@pytest.mark.parametrize("options,message", [
+    ({"gamma": 0.0}, "gamma must be greater than 0, got 0.0"),
+    ({"k_neighbours": 0}, "k_neighbours must be at least 1, got 0"),
+    ({"alpha_end": 0.0}, "alpha_end must be greater than 0, got 0.0"),
+    ({"alpha_start": 4.0}, "alpha_start must be at least alpha_end (5.0), got 4.0"),
+    ({"alpha_steps": 0}, "alpha_steps must be at least 1, got 0"),
+    ({"bidirectional_weight": -1.0}, "bidirectional_weight must be at least 0, got -1.0"),
+    ({"tolerance": -1e-3}, "tolerance must be at least 0, got -0.001"),
+    ({"ridge": -1.0}, "ridge must be at least 0, got -1.0"),
+    ({"max_iterations": 0}, "max_iterations must be at least 1, got 0"),
+    ({"max_iterations_per_alpha": 0}, "max_iterations_per_alpha must be at least 1, got 0"),
+    ({"groupwise_rounds": -1}, "groupwise_rounds must be at least 0, got -1"),
+    ({"snap_to_vertices": 1}, "snap_to_vertices must be true or false, got 1"),
+])
+def test_correspondence_settings_check_themselves(options, message):
+    with pytest.raises(SettingsError) as caught:
+        CorrespondenceSettings(**options)
+    assert str(caught.value) == message and caught.value.option == next(iter(options))
+
+
 def test_from_dict_refuses_unknown_names_and_wrong_types():
     with pytest.raises(SettingsError, match="has no option 'landmarks'"):
         PrepareSettings.from_dict({"landmarks": 100})
     with pytest.raises(SettingsError, match="^n_landmarks must be an integer"):
         PrepareSettings.from_dict({"n_landmarks": "100"})
-    with pytest.raises(SettingsError, match="correspondence .*gamma"):  # a ValueError of a nested dataclass
+    with pytest.raises(SettingsError, match=r"^correspondence\.gamma must be greater than 0"):  # nested settings
         FitSettings.from_dict({"correspondence": {"gamma": -1}})
 
 
@@ -115,6 +140,19 @@ def test_fit_settings_round_trip_nested_and_flat(fitted):
     assert FitSettings.from_dict(nested.as_dict()) == nested
 
 
+def test_correspondence_files_record_their_settings_and_the_prepare_settings(prepared, corresponded, tmp_path):
+    path = corresponded.save(tmp_path / "corr.npz")
+    loaded = Correspondence.load(path)
+    assert loaded.settings == CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0)
+    assert loaded.prepare == prepared.settings == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
+    with np.load(path) as data:
+        assert data["settings"].shape == () and data["prepare_settings"].shape == ()
+        assert "settings_keys" not in data.files
+    unrecorded = replace(corresponded, settings=None, prepare=None)
+    back = Correspondence.load(unrecorded.save(tmp_path / "unrecorded.npz"))
+    assert back.settings is None and back.prepare is None
+
+
 def test_an_invalid_recorded_setting_is_a_clear_file_error(prepared, tmp_path):
     path = prepared.save(tmp_path / "prepared.npz")
     bad = _rewrite(path, tmp_path / "bad.npz", settings=np.asarray('{"n_landmarks": 2}'))
@@ -135,6 +173,18 @@ def test_prepared_files_of_the_previous_version_still_load(prepared, tmp_path):
     assert PreparedCollection.load(empty).settings is None
 
 
+def test_correspondence_files_of_the_previous_version_still_load(corresponded, tmp_path):
+    """Before: settings as repr() values by key, the Prepare settings not recorded."""
+    path = corresponded.save(tmp_path / "corr.npz")
+    recorded = corresponded.settings.as_dict()
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "prepare_settings"),
+                   settings_keys=np.asarray(list(recorded)),
+                   settings_values=np.asarray([repr(v) for v in recorded.values()]))
+    loaded = Correspondence.load(old)
+    assert loaded.settings == corresponded.settings and loaded.prepare is None
+    np.testing.assert_array_equal(loaded.points, corresponded.points)
+
+
 def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     """Before: settings as repr() values by (dotted) key, deformation settings as numbers."""
     model, path = fitted
@@ -144,9 +194,13 @@ def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     values = ([repr(v) for v in s.prepare.as_dict().values()] + [repr(s.model), "None", "None", "1"]
               + [repr(getattr(s.correspondence, k)) for k in s.correspondence.__dataclass_fields__])
     deform = s.deform.__dataclass_fields__
-    old = _rewrite(path, tmp_path / "old.npz", drop=("settings",), settings_keys=np.asarray(keys),
-                   settings_values=np.asarray(values), deform_keys=np.asarray(list(deform)),
-                   deform_values=np.asarray([float(getattr(s.deform, k)) for k in deform]))
+    corr = s.correspondence.as_dict()
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "corr__settings", "corr__prepare_settings"),
+                   settings_keys=np.asarray(keys), settings_values=np.asarray(values),
+                   deform_keys=np.asarray(list(deform)),
+                   deform_values=np.asarray([float(getattr(s.deform, k)) for k in deform]),
+                   corr__settings_keys=np.asarray(list(corr)),
+                   corr__settings_values=np.asarray([repr(v) for v in corr.values()]))
     loaded = GenerativeShapeModel.load(old)
     assert loaded.settings == replace(s, mesh_template="nearest-data")
     assert isinstance(loaded.deform_settings.n_stages, int)
