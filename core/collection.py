@@ -9,8 +9,7 @@ coordinates, the landmarks and the settings used, as one JSON string).
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -41,12 +40,6 @@ class PrepareSettings(Settings):
     scale: str = option("variance", "scaling rule", flag="--scale", choices=SCALE_MODES)
     centre: str = option("centroid", "horizontal centring", flag="--centre", choices=CENTRE_MODES)
     seed: int = option(0, "random seed", flag="--seed", minimum=0)
-
-    def items(self):
-        """(name, value) pairs. Add-on bridge (issue 11): shapegen_addon/prepared.py
-        (build_prepared_collection) still reads `prepared.settings` as the old dict; remove
-        once it uses as_dict()."""
-        return asdict(self).items()
 
 
 #: Arrays of a prepared-collection file besides its settings (one JSON string, "null": not
@@ -87,9 +80,6 @@ class PreparedCollection:
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
-        settings = self.settings
-        if isinstance(settings, Mapping):  # add-on bridge (issue 11): shapegen_addon/ops/fit.py assigns a dict
-            settings = PrepareSettings.from_dict(settings)
         return {
             "names": np.asarray(self.names, dtype=str),
             **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
@@ -100,7 +90,7 @@ class PreparedCollection:
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
             "landmark_offsets": l_off.astype(np.int64),
             "landmark_radius": np.asarray([l.radius for l in self.landmarks]),
-            "settings": np.asarray("null" if settings is None else settings.to_json()),
+            "settings": np.asarray("null" if self.settings is None else self.settings.to_json()),
         }
 
     def save(self, path: str | os.PathLike) -> Path:

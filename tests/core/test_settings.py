@@ -12,7 +12,7 @@ from shapegen_core.collection import PrepareSettings, PreparedCollection, prepar
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.deform import DeformSettings
 from shapegen_core.errors import ModelFileError, ShapeGenError
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.settings import SettingsError
 
 
@@ -127,13 +127,15 @@ def test_prepare_settings_round_trip_through_json_and_the_prepared_file(prepared
         assert data["settings"].shape == () and "settings_keys" not in data.files
 
 
-def test_fit_settings_round_trip_nested_and_flat(fitted):
+def test_fit_settings_round_trip_nested_and_old_files_flat(fitted):
     model, path = fitted
     assert FitSettings.from_json(model.settings.to_json()) == model.settings
     assert GenerativeShapeModel.load(path).settings == model.settings
     flat = {"n_landmarks": 40, "up_axis": "y", "align": "pca", "scale": "bbox", "centre": "none", "seed": 3,
             "model": "ppca", "latent_dim": None, "correspondence": {"alpha_end": 3.0}, "deform": {"final_alpha": 2.5}}
-    nested = FitSettings.from_dict(flat)  # what shapegen_addon/ui/properties.fit_options sends today
+    with pytest.raises(SettingsError, match="has no option 'align'"):  # Prepare options nest under "prepare"
+        FitSettings.from_dict(flat)
+    nested = FitSettings.from_dict(_nest_prepare(flat))  # how the settings of old model files are read
     assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
                                              seed=3)
     assert nested.correspondence.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
