@@ -68,7 +68,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     # check the cheap settings before any expensive correspondence work
     models = parse_model_names(args.models)
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
-    source = read_source(args.source, args, accepts=("folder", "correspondence"))
+    source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",))
     if source.correspondence is not None:
         corr = source.correspondence
         unused = [flag_of(PrepareSettings, name) for name in given_options(PrepareSettings, args) if name != "seed"]
@@ -82,7 +82,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             corr.save(args.save_correspondence)
     prepared_seconds = time.perf_counter() - start
     outliers = [n for n, flag in zip(corr.names, corr.outliers) if flag]
-    settings = EvaluationSettings(models=models, folds=args.folds, seed=source.prepare.seed, n_samples=args.samples,
+    seed = settings_from_args(PrepareSettings, args).seed  # --seed seeds the evaluation (and a folder's Prepare)
+    settings = EvaluationSettings(models=models, folds=args.folds, seed=seed, n_samples=args.samples,
                                   latent_dim=args.latent_dim, regions=regions)
     result = run_evaluation(corr.landmark_matrix(), corr.names, settings, progress=console_progress("evaluate"),
                             extra={"source": source.path.name, "correspondence_outliers": outliers})

@@ -98,8 +98,8 @@ def _either(things: list[str]) -> str:
 @dataclass
 class Source:
     """A command's input. `prepare` says how its shapes are (or are to be) prepared: the
-    command line's options for a folder or a correspondence file (which does not record
-    them), the file's own for a prepared collection."""
+    command line's options for a folder, the file's own for a prepared or correspondence
+    file (the command line's if the file records none)."""
 
     path: Path
     kind: str  # one of SOURCE_KINDS
@@ -109,9 +109,12 @@ class Source:
     correspondence: Correspondence | None = None  # correspondence .npz
 
 
-def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS) -> Source:
+def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS,
+                own: tuple[str, ...] = ()) -> Source:
     """Read a folder of meshes, a prepared .npz or a correspondence .npz (the file's format
-    tag decides). Prepare options given with a prepared file must agree with the file's."""
+    tag decides). Prepare options given with a file must agree with the Prepare settings
+    it records, except the `own` ones, which the command uses for itself (evaluate's
+    --seed seeds the evaluation)."""
     path = Path(path)
     expected = _either([_DESCRIPTIONS[k] for k in accepts])
     if not path.exists():
@@ -131,17 +134,25 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
         return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes)
     if kind == "correspondence":
-        return Source(path, kind, settings_from_args(PrepareSettings, args), correspondence=Correspondence.load(path))
+        correspondence = Correspondence.load(path)
+        return Source(path, kind, _recorded_prepare(path, correspondence.prepare, args, own), correspondence=correspondence)
     prepared = PreparedCollection.load(path)
-    if prepared.settings is None:
-        return Source(path, kind, settings_from_args(PrepareSettings, args), prepared=prepared)
+    return Source(path, kind, _recorded_prepare(path, prepared.settings, args, own), prepared=prepared)
+
+
+def _recorded_prepare(path: Path, recorded: PrepareSettings | None, args: argparse.Namespace,
+                      own: tuple[str, ...]) -> PrepareSettings:
+    """The Prepare settings a file records (the command line's when it records none);
+    Prepare options given on the command line, but the `own` ones, must agree with the
+    file's."""
+    if recorded is None:
+        return settings_from_args(PrepareSettings, args)
     for name, value in given_options(PrepareSettings, args).items():
-        recorded = getattr(prepared.settings, name)
-        if value != recorded:
+        if name not in own and value != getattr(recorded, name):
             flag = flag_of(PrepareSettings, name)
-            raise CommandError(f"{flag} {value} conflicts with {path}, prepared with {flag} {recorded}; "
-                               f"leave {flag} out to use the file's")
-    return Source(path, kind, prepared.settings, prepared=prepared)
+            raise CommandError(f"{flag} {value} conflicts with {path}, prepared with {flag} "
+                               f"{getattr(recorded, name)}; leave {flag} out to use the file's")
+    return recorded
 
 
 def prepare_source(source: Source) -> PreparedCollection:

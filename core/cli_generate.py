@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_common import (CommandError, add_settings_options, console_progress, flag_of, positive_int, read_source,
+from .cli_common import (CommandError, add_settings_options, console_progress, positive_int, read_source,
                          settings_from_args)
 from .collection import PrepareSettings
 from .deform import DeformSettings
@@ -78,9 +78,8 @@ def _meshes_for_correspondence(corr, meshes_dir: Path):
 def cmd_fit(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # every setting is checked before the source is read
-    settings = settings_from_args(FitSettings, args, flags={"deform.final_alpha": "--stiffness"},
-                                  prepare=settings_from_args(PrepareSettings, args),
-                                  deform=DeformSettings(final_alpha=args.stiffness))
+    settings = settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
+                                  deform=settings_from_args(DeformSettings, args))
     source = read_source(args.source, args)
     settings = replace(settings, prepare=source.prepare)
     report = console_progress("fit")
@@ -94,9 +93,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
             raise CommandError(
                 f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
                 "was computed from) so the training meshes can be meshed")
-        recorded = ", ".join(f"{flag_of(PrepareSettings, k)} {v}" for k, v in settings.prepare.as_dict().items())
-        print(f"note: {source.path} does not record how its shapes were prepared; the model records this "
-              f"command's Prepare options ({recorded})", file=sys.stderr)
         meshes = _meshes_for_correspondence(source.correspondence, args.meshes)
         model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
     model.save(args.output)
@@ -283,8 +279,7 @@ def add_generate_commands(sub) -> None:
     add_settings_options(p, FitSettings)
     add_settings_options(p, PrepareSettings)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
-    p.add_argument("--stiffness", type=float, default=DeformSettings().final_alpha,
-                   help="meshing stiffness: final α of the embedded deformation (default %(default)s)")
+    add_settings_options(p, DeformSettings)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("info", help="describe a fitted model file")

@@ -9,8 +9,7 @@ coordinates, the landmarks and the settings used, as one JSON string).
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -20,10 +19,10 @@ from .errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
 from . import meshset
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .npzfile import ArraySpec, load_npz, save_npz
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .progress import CancelCheck, Progress, sub_range
-from .settings import Settings, SettingsError, legacy_settings, option
+from .settings import Settings, option, recorded_settings
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
 
@@ -43,14 +42,9 @@ class PrepareSettings(Settings):
     centre: str = option("centroid", "horizontal centring", flag="--centre", choices=CENTRE_MODES)
     seed: int = option(0, "random seed", flag="--seed", minimum=0)
 
-    def items(self):
-        """(name, value) pairs. Add-on bridge (issue 11): shapegen_addon/prepared.py
-        (build_prepared_collection) still reads `prepared.settings` as the old dict; remove
-        once it uses as_dict()."""
-        return asdict(self).items()
 
-
-#: Arrays of a prepared-collection file besides its settings.
+#: Arrays of a prepared-collection file besides its settings (one JSON string, "null": not
+#: recorded; `settings.recorded_settings` also reads the key/value strings of older files).
 _SPEC = {
     "names": ArraySpec("U", ("M",)),
     **meshset.spec(),
@@ -62,9 +56,6 @@ _SPEC = {
     "landmark_offsets": ArraySpec("i", ("M+1",)),
     "landmark_radius": ArraySpec("f", ("M",)),
 }
-#: The settings: one JSON string ("null": not recorded); files before it held key/value strings.
-_SETTINGS_SPEC = {"settings": ArraySpec("U", ())}
-_LEGACY_SETTINGS_SPEC = {"settings_keys": ArraySpec("U", ("S",)), "settings_values": ArraySpec("U", ("S",))}
 
 
 @dataclass
@@ -90,9 +81,6 @@ class PreparedCollection:
     # ------------------------------------------------------------------ persistence
     def to_arrays(self) -> dict[str, np.ndarray]:
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
-        settings = self.settings
-        if isinstance(settings, Mapping):  # add-on bridge (issue 11): shapegen_addon/ops/fit.py assigns a dict
-            settings = PrepareSettings.from_dict(settings)
         return {
             "names": np.asarray(self.names, dtype=str),
             **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
@@ -103,7 +91,7 @@ class PreparedCollection:
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
             "landmark_offsets": l_off.astype(np.int64),
             "landmark_radius": np.asarray([l.radius for l in self.landmarks]),
-            "settings": np.asarray("null" if settings is None else settings.to_json()),
+            "settings": np.asarray("null" if self.settings is None else self.settings.to_json()),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -131,22 +119,7 @@ class PreparedCollection:
                 raise ModelFileError(f"{path}: shape {name!r} has landmark face indices out of range")
             landmarks.append(Landmarks(a["landmarks"][sl], faces, a["landmark_barycentric"][sl],
                                        float(a["landmark_radius"][i])))
-        return cls(shapes, landmarks, _load_settings(a, path))
-
-
-def _load_settings(arrays: dict, path) -> PrepareSettings | None:
-    """The recorded PrepareSettings of a loaded file (JSON, or the key/value strings of
-    files written before); invalid settings are a ModelFileError naming the file."""
-    try:
-        if "settings" in arrays or "settings_keys" not in arrays:
-            validate_arrays(arrays, _SETTINGS_SPEC, str(path))
-            text = str(arrays["settings"])
-            return None if text == "null" else PrepareSettings.from_json(text)
-        validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
-        legacy = legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())
-        return PrepareSettings.from_dict(legacy) if legacy else None
-    except SettingsError as exc:
-        raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None
+        return cls(shapes, landmarks, recorded_settings(PrepareSettings, a, str(path)))
 
 
 def prepare_meshes(

@@ -41,6 +41,7 @@ from .errors import ShapeGenError
 from .geometry import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines,
                        registration_frame)
 from .mesh import Mesh
+from .settings import Settings, option
 
 __all__ = [
     "DeformSettings",
@@ -59,7 +60,7 @@ class DeformInputError(ShapeGenError, ValueError):
 
 
 @dataclass(frozen=True)
-class DeformSettings:
+class DeformSettings(Settings):
     """Embedded-deformation parameters (thesis §6; defaults as the thesis used for vases).
 
     final_alpha: stiffness of the last (or only) solve; low = follow landmarks closely,
@@ -72,16 +73,19 @@ class DeformSettings:
     n_stages: number of evenly spaced α values from start_alpha to final_alpha.
     gamma: weight of the translation column in the stiffness (G = diag(1,1,1,γ); thesis 2).
     k_blend: nodes that influence each vertex (Sumner et al.: 4).
+    Every value is checked on construction (SettingsError naming the option): a zero
+    stiffness would only fail when a sample is meshed ("Factor is exactly singular").
     """
 
-    final_alpha: float = 2.0
-    start_alpha: float = 100.0
-    n_stages: int = 8
-    gamma: float = 2.0
-    k_blend: int = 4
+    final_alpha: float = option(2.0, "meshing stiffness: final α of the embedded deformation", flag="--stiffness",
+                                above=0)
+    start_alpha: float = option(100.0, "first α of the relaxation schedule", above=0)
+    n_stages: int = option(8, "α values of the relaxation schedule", minimum=1)
+    gamma: float = option(2.0, "weight of the translation column in the stiffness", above=0)
+    k_blend: int = option(4, "nodes that influence each vertex", minimum=1)
 
     def schedule(self) -> np.ndarray:
-        return np.linspace(self.start_alpha, self.final_alpha, max(1, self.n_stages))
+        return np.linspace(self.start_alpha, self.final_alpha, self.n_stages)
 
 
 # ---------------------------------------------------------------------------- blending

@@ -35,7 +35,7 @@ from .mesh import Mesh
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
-from .settings import Settings, SettingsError, legacy_settings, option, settings_from_dict
+from .settings import Settings, SettingsError, legacy_settings, option
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
@@ -71,35 +71,16 @@ class FitSettings(Settings):
         super().__post_init__()
         if not self.mesh_template:
             raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's name")
-        # DeformSettings (core/deform.py) does not check itself: a zero stiffness would only
-        # fail when a sample is meshed ("Factor is exactly singular")
-        for name in ("final_alpha", "start_alpha", "gamma"):
-            value = getattr(self.deform, name)
-            if not value > 0:
-                raise SettingsError(f"deform.{name}", f"must be greater than 0, got {value!r}")
-        if self.deform.k_blend < 1:
-            raise SettingsError("deform.k_blend", f"must be at least 1, got {self.deform.k_blend!r}")
-
-    @classmethod
-    def from_dict(cls, data: Mapping) -> "FitSettings":
-        """FitSettings from plain data (JSON): nested objects under "prepare",
-        "correspondence" and "deform". Add-on bridge (issue 11): the Prepare options may
-        also come flat at the top level, as shapegen_addon/ui/properties.py (fit_options)
-        sends them today; remove `_nest_prepare` here once it sends "prepare": {...}."""
-        return settings_from_dict(cls, _nest_prepare(data))
 
 
 def _nest_prepare(data: Mapping) -> dict:
     """`data` with Prepare options given flat at the top level (n_landmarks, up_axis, ...;
-    as model files before issue 11 and the add-on hold them) moved under "prepare"."""
-    if not isinstance(data, Mapping):
-        return data
+    as the key/value settings of model files before issue 11 hold them) moved under
+    "prepare"."""
     names = {f.name for f in fields(PrepareSettings)}
-    flat = {key: value for key, value in data.items() if key in names}
-    rest = {key: value for key, value in data.items() if key not in names}
-    if flat:
-        rest["prepare"] = {**rest.get("prepare", {}), **flat}
-    return rest
+    nested = {key: value for key, value in data.items() if key not in names}
+    nested["prepare"] = {key: value for key, value in data.items() if key in names}
+    return nested
 
 
 def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:

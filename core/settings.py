@@ -15,10 +15,11 @@ import types
 from dataclasses import MISSING, asdict, field, fields, is_dataclass
 from typing import Any, Mapping, Sequence, Union, get_args, get_origin, get_type_hints
 
-from .errors import ShapeGenError
+from .errors import ModelFileError, ShapeGenError
+from .npzfile import ArraySpec, validate_arrays
 
 __all__ = ["Settings", "SettingsError", "option", "check_fields", "settings_from_dict", "settings_from_json",
-           "settings_to_json", "legacy_settings"]
+           "settings_to_json", "legacy_settings", "recorded_settings"]
 
 
 class SettingsError(ShapeGenError, ValueError):
@@ -85,7 +86,8 @@ def settings_to_json(settings) -> str:
 def settings_from_dict(cls, data: Mapping, path: str = ""):
     """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
     nested objects, missing fields at their defaults. Unknown names and invalid values
-    raise SettingsError (also for dataclasses that check themselves with ValueError)."""
+    raise SettingsError; an error of nested settings names the option by its dotted path
+    ("deform.final_alpha")."""
     label = path or cls.__name__
     if not isinstance(data, Mapping):
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
@@ -101,8 +103,10 @@ def settings_from_dict(cls, data: Mapping, path: str = ""):
         values[name] = value
     try:
         return cls(**values)
-    except SettingsError:
-        raise
+    except SettingsError as exc:
+        if not path:
+            raise
+        raise SettingsError(f"{path}.{exc.option}", exc.problem, exc.prefix) from None
     except (TypeError, ValueError) as exc:
         raise SettingsError(label, f"is invalid: {exc}") from None
 
@@ -132,6 +136,24 @@ def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
             target = target.setdefault(parent, {})
         target[name] = value
     return data
+
+
+def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
+    """The `cls` settings a loaded file records in array `key`: one JSON string ("null":
+    none recorded), or in files written before that, the key/value string arrays
+    `<key>_keys` / `<key>_values` (`legacy_settings`; none: nothing recorded). Invalid
+    settings are a ModelFileError starting with `label`."""
+    keys, values = f"{key}_keys", f"{key}_values"
+    try:
+        if key in arrays or keys not in arrays:
+            validate_arrays(arrays, {key: ArraySpec("U", ())}, label)
+            text = str(arrays[key])
+            return None if text == "null" else cls.from_json(text)
+        validate_arrays(arrays, {keys: ArraySpec("U", ("S",)), values: ArraySpec("U", ("S",))}, label)
+        legacy = legacy_settings(arrays[keys].tolist(), arrays[values].tolist())
+        return cls.from_dict(legacy) if legacy else None
+    except SettingsError as exc:
+        raise ModelFileError(f"{label}: recorded settings are invalid: {exc}") from None
 
 
 class Settings:

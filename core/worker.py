@@ -90,7 +90,7 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
     from .correspond import CorrespondenceSettings, correspond
 
     prepared = PreparedCollection.load(arguments["prepared"])
-    settings = CorrespondenceSettings(**arguments.get("settings", {}))
+    settings = CorrespondenceSettings.from_dict(arguments.get("settings", {}))
     result = correspond(prepared, settings, template=arguments.get("template") or None,
                         jobs=arguments.get("jobs"), progress=progress, should_cancel=should_cancel)
     return _save_result(result, arguments, should_cancel, "correspondence")

@@ -26,11 +26,7 @@ OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
 PREPARED_KEY = "shapegen_prepared"  # True: made by Prepare
 SOURCE_COLLECTION_KEY = "shapegen_source_collection"  # name of the user's collection it was prepared from
 CORRESPONDENCE_TEMPLATE_KEY = "shapegen_correspondence_template"  # template of the last Find Correspondences
-
-
-def prepare_setting_key(name: str) -> str:
-    """The prepared collection's key recording Prepare setting `name` (e.g. "shapegen_seed")."""
-    return f"shapegen_{name}"
+PREPARE_SETTINGS_KEY = "shapegen_prepare_settings"  # PrepareSettings it was made with, one JSON string
 
 
 # ------------------------------------------------------------------ a prepared shape object

@@ -2,7 +2,7 @@
 Correspondences and Fit read back. Written and read here only.
 
 A prepared collection ("<source> Prepared", keys.PREPARED_KEY) records its source
-collection and the six Prepare settings it was made with. Each prepared shape object is a
+collection and the Prepare settings it was made with (one JSON string). Each prepared shape object is a
 copy of a user's object as Prepare read it (the evaluated mesh, or the base mesh when the
 panel asks; keys.MESH_SOURCE_KEY says which) in the normalised frame (object-local), wound
 outwards like the core's Mesh, tagged with its source's name, the transform input (world)
@@ -13,25 +13,28 @@ corresponded landmarks and index-coloured markers.
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.collection import PreparedCollection
+from ..core.collection import PrepareSettings, PreparedCollection
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
+from ..core.settings import SettingsError
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
-                   PREPARED_KEY, SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source, prepare_setting_key)
+                   PREPARE_SETTINGS_KEY, PREPARED_KEY, SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source)
 from .placement import grid_offsets, place, vertex_box
 from .preview import add_correspondence_markers, add_landmark_markers, landmark_index_colours, new_collection
 
-__all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects",
-           "prepared_collection_for", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
+__all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects", "prepared_collection_for",
+           "recorded_prepare_settings", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
-PREPARE_SETTINGS = ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")
+PREPARE_SETTINGS = tuple(f.name for f in fields(PrepareSettings))
 
 
 # ------------------------------------------------------------------------------ write
@@ -50,8 +53,8 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
     target = new_collection(scene, f"{source.name} Prepared")
     target[PREPARED_KEY] = True
     target[SOURCE_COLLECTION_KEY] = source.name
-    for key, value in prepared.settings.items():
-        target[prepare_setting_key(key)] = value
+    if prepared.settings is not None:
+        target[PREPARE_SETTINGS_KEY] = prepared.settings.to_json()
     for obj, data, shape, landmarks, location in zip(objects, world_meshes, prepared.shapes, prepared.landmarks,
                                                      locations):
         data.name = f"{obj.name} prepared"
@@ -111,6 +114,17 @@ def prepared_collection_for(collection: bpy.types.Collection | None) -> bpy.type
     return None
 
 
+def recorded_prepare_settings(collection: bpy.types.Collection) -> PrepareSettings | None:
+    """The Prepare settings a prepared collection records (None: none recorded, e.g. by
+    the per-setting keys of collections prepared before they were one JSON string, or
+    unreadable)."""
+    text = collection.get(PREPARE_SETTINGS_KEY)
+    try:
+        return None if text is None else PrepareSettings.from_json(text)
+    except SettingsError:
+        return None
+
+
 def to_prepared_collection(objects) -> PreparedCollection:
     """Core data of prepared objects: their (normalised) meshes, transforms, landmarks."""
     shapes, landmarks = [], []
@@ -134,15 +148,17 @@ def to_prepared_collection(objects) -> PreparedCollection:
 
 def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
     """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
-    when Prepare ran on them with the same settings as this fit (`options`), read them the
+    when Prepare ran on them with the same settings as this fit (`options`, FitSettings as
+    plain data: its "prepare" part), read them the
     same way (`evaluated`: modifiers applied, or the base mesh) and none has changed since:
     every copy equals its source as read now, in world coordinates, under its stored
     transform (bulk reads, well under 1 ms per 100k vertices), so editing a modifier makes
     the copies stale. Else None (Fit prepares again in the worker). Returns (prepared bpy
     collection, copies in `objects` order)."""
+    settings = PrepareSettings.from_dict(options["prepare"])
     candidates = [c for c in bpy.data.collections
                   if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name
-                  and all(str(c.get(prepare_setting_key(k))) == str(options[k]) for k in PREPARE_SETTINGS)]
+                  and recorded_prepare_settings(c) == settings]
     depsgraph = bpy.context.evaluated_depsgraph_get()
     for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
         copies = {o.get(SOURCE_KEY): o for o in prepared_objects(prepared)}

@@ -145,7 +145,8 @@ def correspond(
         iterations=np.array([r.iterations for r in registrations]),
         outliers=~keep,
         outlier_reasons=reasons,
-        settings=settings.as_strings(),
+        settings=settings,
+        prepare=collection.settings,
     )
 
 

@@ -1,15 +1,23 @@
-"""The correspondence of a collection (`Correspondence`) and its versioned .npz file."""
+"""The correspondence of a collection (`Correspondence`) and its versioned .npz file.
+
+The file records how the correspondence was computed (`CorrespondenceSettings`) and how
+its collection was prepared (`PrepareSettings`), each as one JSON string ("null": not
+recorded); files written before held the correspondence settings as repr strings by key
+and no Prepare settings, and still load."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..collection import PrepareSettings
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from ..settings import recorded_settings
+from .settings import CorrespondenceSettings
 
 __all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
 
@@ -34,7 +42,8 @@ class Correspondence:
     iterations: np.ndarray  # (M,) ICP iterations of the last round
     outliers: np.ndarray  # (M,) bool: fits badly (see outlier_reasons)
     outlier_reasons: list[str]  # "" for shapes that fit
-    settings: dict[str, str] = field(default_factory=dict)
+    settings: CorrespondenceSettings | None = None  # how it was computed (None: not recorded)
+    prepare: PrepareSettings | None = None  # how its collection was prepared (None: not recorded)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -62,8 +71,8 @@ class Correspondence:
             "iterations": self.iterations.astype(np.int64),
             "outliers": self.outliers.astype(bool),
             "outlier_reasons": np.asarray(self.outlier_reasons, dtype=str),
-            "settings_keys": np.asarray(list(self.settings.keys()), dtype=str),
-            "settings_values": np.asarray(list(self.settings.values()), dtype=str),
+            "settings": np.asarray(_json(self.settings)),
+            "prepare_settings": np.asarray(_json(self.prepare)),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -98,11 +107,17 @@ class Correspondence:
             template_points=a["template_points"], template_name=str(a["template_name"]),
             transforms=a["transforms"], residuals=a["residuals"], iterations=a["iterations"],
             outliers=a["outliers"], outlier_reasons=a["outlier_reasons"].tolist(),
-            settings=dict(zip(a["settings_keys"].tolist(), a["settings_values"].tolist())),
+            settings=recorded_settings(CorrespondenceSettings, a, label),
+            prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
         )
 
 
-#: Arrays of a correspondence file / of `Correspondence.to_arrays()`, as checked on load.
+def _json(settings) -> str:
+    return "null" if settings is None else settings.to_json()
+
+
+#: Arrays of a correspondence file / of `Correspondence.to_arrays()`, as checked on load
+#: (the settings are read by `settings.recorded_settings`).
 CORRESPONDENCE_SPEC = {
     "names": ArraySpec("U", ("M",)),
     "points": ArraySpec("f", ("M", "L", 3)),
@@ -117,6 +132,4 @@ CORRESPONDENCE_SPEC = {
     "iterations": ArraySpec("i", ("M",)),
     "outliers": ArraySpec("b", ("M",)),
     "outlier_reasons": ArraySpec("U", ("M",)),
-    "settings_keys": ArraySpec("U", ("S",)),
-    "settings_values": ArraySpec("U", ("S",)),
 }

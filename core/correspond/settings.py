@@ -1,16 +1,19 @@
-"""Every tunable parameter of the correspondence engine, in one frozen dataclass."""
+"""Every tunable parameter of the correspondence engine, in one frozen settings dataclass
+(core/settings.py: checks itself, travels as one JSON string)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
+
+from ..settings import Settings, SettingsError, option
 
 __all__ = ["CorrespondenceSettings"]
 
 
 @dataclass(frozen=True)
-class CorrespondenceSettings:
+class CorrespondenceSettings(Settings):
     """Every parameter of the correspondence engine, with the thesis defaults (§4.2.8)
     except where a measurement said otherwise (`normal_max_angle`, `update_template`).
 
@@ -68,35 +71,31 @@ class CorrespondenceSettings:
         more than this factor (alignment/scaling failed or was switched off).
     """
 
-    gamma: float = 2.0
-    k_neighbours: int = 6
-    alpha_start: float = 100.0
-    alpha_end: float = 5.0
-    alpha_steps: int = 5
-    bidirectional_weight: float = 1.0
-    normal_max_angle: float | None = 60.0
-    distance_weights: bool = False
-    snap_to_vertices: bool = False
-    update_template: bool = False
-    tolerance: float = 1e-3
-    max_iterations_per_alpha: int = 4
-    max_iterations: int = 20
-    ridge: float = 1e-9
-    groupwise_rounds: int = 1
-    outlier_mad_factor: float = 3.0
-    outlier_min_ratio: float = 1.5
-    max_residual: float = 0.05
-    max_scale_ratio: float = 3.0
+    gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
+    k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
+    alpha_start: float = option(100.0, "first stiffness α of the schedule (at least alpha_end)")
+    alpha_end: float = option(5.0, "last stiffness α of the schedule", above=0)
+    alpha_steps: int = option(5, "α values of the schedule", minimum=1)
+    bidirectional_weight: float = option(1.0, "λ: weight of target landmarks pulling the template", minimum=0)
+    normal_max_angle: float | None = option(60.0, "largest angle (degrees) between matched normals; None: off")
+    distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
+    snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")
+    update_template: bool = option(False, "every solve starts from the moved points (the thesis's Alg. 3)")
+    tolerance: float = option(1e-3, "ε: relative energy change that ends the iterations at one α", minimum=0)
+    max_iterations_per_alpha: int = option(4, "ICP iterations at one α at most", minimum=1)
+    max_iterations: int = option(20, "ICP iterations over the whole schedule at most", minimum=1)
+    ridge: float = option(1e-9, "Tikhonov weight pulling each affine towards no change", minimum=0)
+    groupwise_rounds: int = option(1, "rounds with the mean landmark cloud as template", minimum=0)
+    outlier_mad_factor: float = option(3.0, "outlier: residual above median + factor · MAD ...")
+    outlier_min_ratio: float = option(1.5, "... and above this multiple of the median")
+    max_residual: float = option(0.05, "outlier: residual above this fraction of the diagonal")
+    max_scale_ratio: float = option(3.0, "outlier: size differs from the template's by more than this factor")
 
     def __post_init__(self):
-        if self.gamma <= 0 or self.k_neighbours < 1 or self.alpha_steps < 1:
-            raise ValueError("gamma must be > 0, k_neighbours >= 1 and alpha_steps >= 1")
-        if self.alpha_end <= 0 or self.alpha_start < self.alpha_end:
-            raise ValueError("the stiffness schedule needs alpha_start >= alpha_end > 0")
-        if self.bidirectional_weight < 0 or self.tolerance < 0 or self.ridge < 0:
-            raise ValueError("bidirectional_weight, tolerance and ridge must be >= 0")
-        if self.max_iterations < 1 or self.max_iterations_per_alpha < 1 or self.groupwise_rounds < 0:
-            raise ValueError("iteration caps must be >= 1 and groupwise_rounds >= 0")
+        super().__post_init__()
+        if self.alpha_start < self.alpha_end:
+            raise SettingsError("alpha_start", f"must be at least alpha_end ({self.alpha_end!r}), got "
+                                f"{self.alpha_start!r}")
 
     @property
     def alphas(self) -> np.ndarray:
@@ -104,6 +103,3 @@ class CorrespondenceSettings:
         if self.alpha_steps == 1:
             return np.array([self.alpha_end], dtype=float)
         return np.linspace(self.alpha_start, self.alpha_end, self.alpha_steps)
-
-    def as_strings(self) -> dict[str, str]:
-        return {key: repr(value) for key, value in asdict(self).items()}

@@ -47,7 +47,8 @@ class JobOperator:
     extra_settings: StringProperty(
         name="Extra Settings", default="",
         description='More settings as JSON over the panel\'s: Prepare options, CorrespondenceSettings fields '
-                    '(Find Correspondences) or FitSettings fields (Fit), e.g. {"jobs": 1}',
+                    '(Find Correspondences) or FitSettings fields, nested as FitSettings nests them (Fit), '
+                    'e.g. {"jobs": 1, "prepare": {"seed": 2}}',
     )
     wait: BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
                        description="Block until the job ends (scripts and background mode)")

@@ -16,7 +16,8 @@ import bpy
 
 from ...core.jobs import BackgroundJob, JobStatus
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
-from ..prepared import apply_correspondence, prepared_collection_for, prepared_objects, to_prepared_collection
+from ..prepared import (apply_correspondence, prepared_collection_for, prepared_objects, recorded_prepare_settings,
+                        to_prepared_collection)
 
 __all__ = ["CLASSES"]
 
@@ -50,7 +51,7 @@ def _finish(status: JobStatus, result) -> None:
 def _check_correspondence_settings(options: dict) -> None:
     from ...core.correspond import CorrespondenceSettings
 
-    CorrespondenceSettings(**options)
+    CorrespondenceSettings.from_dict(options)
 
 
 class SHAPEGEN_OT_find_correspondences(JobOperator, bpy.types.Operator):
@@ -87,7 +88,9 @@ class SHAPEGEN_OT_find_correspondences(JobOperator, bpy.types.Operator):
             return {"CANCELLED"}
 
         def start(folder: Path) -> None:
-            to_prepared_collection(objects).save(folder / "prepared.npz")
+            prepared = to_prepared_collection(objects)
+            prepared.settings = recorded_prepare_settings(collection)  # the correspondence records them
+            prepared.save(folder / "prepared.npz")
             job = BackgroundJob("correspond", {"prepared": str(folder / "prepared.npz"), "settings": options,
                                                "output": str(folder / "correspondence.npz")})
             MANAGER.start(job, _finish, label=f"correspond '{collection.name}'", folder=folder,

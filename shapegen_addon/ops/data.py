@@ -18,6 +18,7 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
+from ...core.collection import PrepareSettings
 from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
 from ...core.meshset import save_mesh_set
@@ -162,6 +163,7 @@ def _check_prepare_options(options: dict) -> None:
     unknown = sorted(set(options) - set(PREPARE_SETTINGS))
     if unknown:
         raise ValueError(f"unknown option(s) {', '.join(unknown)} (known: {', '.join(PREPARE_SETTINGS)})")
+    PrepareSettings.from_dict(options)
 
 
 class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):

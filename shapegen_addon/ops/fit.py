@@ -23,11 +23,12 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
+from ...core.collection import PrepareSettings
 from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob
 from .. import fitting, store
 from ..jobs import MANAGER, JobOperator, no_job_running
-from ..prepared import PREPARE_SETTINGS, reusable_prepared, to_prepared_collection
+from ..prepared import reusable_prepared, to_prepared_collection
 
 __all__ = ["CLASSES"]
 
@@ -62,7 +63,7 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
             payload = {"scene": scene.name, "name": collection.name}
             if reuse is not None:  # Prepare's result is current: the worker starts at correspondence
                 prepared = to_prepared_collection(reuse[1])
-                prepared.settings = {k: options[k] for k in PREPARE_SETTINGS}
+                prepared.settings = PrepareSettings.from_dict(options["prepare"])
                 inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name
                 setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
             else:

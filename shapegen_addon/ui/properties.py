@@ -162,9 +162,10 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness)}
 
     def fit_options(self) -> dict:
-        """FitSettings fields: Prepare's, the model's, correspondence and meshing stiffness."""
+        """FitSettings as plain data (`FitSettings.as_dict()`-shaped): Prepare's options
+        nested under "prepare", the model's, correspondence and meshing stiffness."""
         return {
-            **self.prepare_options(),
+            "prepare": self.prepare_options(),
             "model": self.fit_model, "latent_dim": self.latent_dim or None,
             "correspondence": self.correspondence_options(),
             "deform": {"final_alpha": self.mesh_stiffness, "start_alpha": max(100.0, self.mesh_stiffness)},

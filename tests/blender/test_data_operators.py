@@ -4,6 +4,7 @@ Import Training Collection (Blender's own importers) and Prepare."""
 from __future__ import annotations
 
 import importlib
+import json
 import time
 
 import bpy
@@ -134,7 +135,7 @@ def test_prepare_extra_settings_override_the_panel_and_unknown_ones_are_refused(
     assert settings.job_state == "IDLE"  # refused before any worker started
     assert bpy.ops.shapegen.prepare(wait=True, extra_settings='{"n_landmarks": 40}') == {"FINISHED"}
     prepared = bpy.data.collections["vases Prepared"]
-    assert int(prepared["shapegen_n_landmarks"]) == 40
+    assert int(json.loads(prepared["shapegen_prepare_settings"])["n_landmarks"]) == 40
     assert all(len(o["shapegen_landmarks"]) <= 3 * 40 for o in prepared.objects if "shapegen_landmarks" in o)
 
 

@@ -166,6 +166,10 @@ def test_fit_refuses_bad_input_before_starting_a_worker(extension, jobs):
         bpy.ops.shapegen.fit(extra_settings='{"model": "nope"}')
     with pytest.raises(RuntimeError, match="Invalid fit settings"):
         bpy.ops.shapegen.fit(extra_settings='{"correspondence": {"no_such_option": 1}}')
+    with pytest.raises(RuntimeError, match=r"Invalid fit settings: prepare\.n_landmarks must be at least 4, got 2"):
+        bpy.ops.shapegen.fit(extra_settings='{"prepare": {"n_landmarks": 2}}')  # nested over the panel's
+    with pytest.raises(RuntimeError, match="Invalid fit settings: FitSettings has no option 'seed'"):
+        bpy.ops.shapegen.fit(extra_settings='{"seed": 2}')  # Prepare's options nest under "prepare"
     with pytest.raises(RuntimeError, match="No collection named 'missing'"):
         bpy.ops.shapegen.fit(collection_name="missing")
     assert not manager.running and bpy.context.scene.shapegen.job_state == "IDLE"

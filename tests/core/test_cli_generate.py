@@ -116,6 +116,10 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert result.returncode == 0, result.stderr
     info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
     assert info["model"] == "ppca" and info["shapes"] == 6 and info["metadata"]["n_shapes"] == "6"
+    assert info["settings"]["prepare"]["n_landmarks"] == 60  # the file records how it was prepared
+    assert "note:" not in result.stderr
+    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--landmarks", 100)
+    assert result.returncode == 2 and f"--landmarks 100 conflicts with {corr}" in result.stderr
 
 
 # ---------------------------------------------------------------------------- settings on the command line

@@ -9,16 +9,21 @@ import numpy as np
 import pytest
 
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.correspond import CorrespondenceSettings
+from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.deform import DeformSettings
 from shapegen_core.errors import ModelFileError, ShapeGenError
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.settings import SettingsError
 
 
 @pytest.fixture(scope="module")
 def prepared(small_vases):
     return prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=30, up_axis="y", seed=2))
+
+
+@pytest.fixture(scope="module")
+def corresponded(prepared):
+    return correspond(prepared, CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0), jobs=1)
 
 
 @pytest.fixture(scope="module")
@@ -59,15 +64,48 @@ def test_invalid_prepare_settings_name_the_option_and_what_is_allowed(options, n
     ({"latent_dim": 0}, "latent_dim"),
     ({"jobs": 0}, "jobs"),
     ({"mesh_template": ""}, "mesh_template"),
-    ({"deform": DeformSettings(final_alpha=0.0)}, "deform.final_alpha"),
-    ({"deform": DeformSettings(gamma=-1.0)}, "deform.gamma"),
+    ({"deform": {"final_alpha": 0.0}}, "deform.final_alpha"),
+    ({"deform": {"gamma": -1.0}}, "deform.gamma"),
 ])
 def test_invalid_fit_settings_name_the_option(options, named):
     with pytest.raises(SettingsError, match=f"^{named} must be") as caught:
-        FitSettings(**options)
+        FitSettings.from_dict(options)
     assert caught.value.option == named
     with pytest.raises(SettingsError, match=r"^unknown model 'gpr'; choose from ppca, gplvm, bgplvm$"):
         FitSettings(model="gpr")
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"final_alpha": 0.0}, "final_alpha must be greater than 0, got 0.0"),
+    ({"start_alpha": -1.0}, "start_alpha must be greater than 0, got -1.0"),
+    ({"gamma": 0}, "gamma must be greater than 0, got 0"),
+    ({"n_stages": 0}, "n_stages must be at least 1, got 0"),
+    ({"k_blend": 0}, "k_blend must be at least 1, got 0"),
+])
+def test_deform_settings_check_themselves(options, message):
+    with pytest.raises(SettingsError) as caught:
+        DeformSettings(**options)
+    assert str(caught.value) == message and caught.value.option == next(iter(options))
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"gamma": 0.0}, "gamma must be greater than 0, got 0.0"),
+    ({"k_neighbours": 0}, "k_neighbours must be at least 1, got 0"),
+    ({"alpha_end": 0.0}, "alpha_end must be greater than 0, got 0.0"),
+    ({"alpha_start": 4.0}, "alpha_start must be at least alpha_end (5.0), got 4.0"),
+    ({"alpha_steps": 0}, "alpha_steps must be at least 1, got 0"),
+    ({"bidirectional_weight": -1.0}, "bidirectional_weight must be at least 0, got -1.0"),
+    ({"tolerance": -1e-3}, "tolerance must be at least 0, got -0.001"),
+    ({"ridge": -1.0}, "ridge must be at least 0, got -1.0"),
+    ({"max_iterations": 0}, "max_iterations must be at least 1, got 0"),
+    ({"max_iterations_per_alpha": 0}, "max_iterations_per_alpha must be at least 1, got 0"),
+    ({"groupwise_rounds": -1}, "groupwise_rounds must be at least 0, got -1"),
+    ({"snap_to_vertices": 1}, "snap_to_vertices must be true or false, got 1"),
+])
+def test_correspondence_settings_check_themselves(options, message):
+    with pytest.raises(SettingsError) as caught:
+        CorrespondenceSettings(**options)
+    assert str(caught.value) == message and caught.value.option == next(iter(options))
 
 
 def test_from_dict_refuses_unknown_names_and_wrong_types():
@@ -75,7 +113,7 @@ def test_from_dict_refuses_unknown_names_and_wrong_types():
         PrepareSettings.from_dict({"landmarks": 100})
     with pytest.raises(SettingsError, match="^n_landmarks must be an integer"):
         PrepareSettings.from_dict({"n_landmarks": "100"})
-    with pytest.raises(SettingsError, match="correspondence .*gamma"):  # a ValueError of a nested dataclass
+    with pytest.raises(SettingsError, match=r"^correspondence\.gamma must be greater than 0"):  # nested settings
         FitSettings.from_dict({"correspondence": {"gamma": -1}})
 
 
@@ -89,17 +127,32 @@ def test_prepare_settings_round_trip_through_json_and_the_prepared_file(prepared
         assert data["settings"].shape == () and "settings_keys" not in data.files
 
 
-def test_fit_settings_round_trip_nested_and_flat(fitted):
+def test_fit_settings_round_trip_nested_and_old_files_flat(fitted):
     model, path = fitted
     assert FitSettings.from_json(model.settings.to_json()) == model.settings
     assert GenerativeShapeModel.load(path).settings == model.settings
     flat = {"n_landmarks": 40, "up_axis": "y", "align": "pca", "scale": "bbox", "centre": "none", "seed": 3,
             "model": "ppca", "latent_dim": None, "correspondence": {"alpha_end": 3.0}, "deform": {"final_alpha": 2.5}}
-    nested = FitSettings.from_dict(flat)  # what shapegen_addon/ui/properties.fit_options sends today
+    with pytest.raises(SettingsError, match="has no option 'align'"):  # Prepare options nest under "prepare"
+        FitSettings.from_dict(flat)
+    nested = FitSettings.from_dict(_nest_prepare(flat))  # how the settings of old model files are read
     assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
                                              seed=3)
     assert nested.correspondence.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
     assert FitSettings.from_dict(nested.as_dict()) == nested
+
+
+def test_correspondence_files_record_their_settings_and_the_prepare_settings(prepared, corresponded, tmp_path):
+    path = corresponded.save(tmp_path / "corr.npz")
+    loaded = Correspondence.load(path)
+    assert loaded.settings == CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0)
+    assert loaded.prepare == prepared.settings == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
+    with np.load(path) as data:
+        assert data["settings"].shape == () and data["prepare_settings"].shape == ()
+        assert "settings_keys" not in data.files
+    unrecorded = replace(corresponded, settings=None, prepare=None)
+    back = Correspondence.load(unrecorded.save(tmp_path / "unrecorded.npz"))
+    assert back.settings is None and back.prepare is None
 
 
 def test_an_invalid_recorded_setting_is_a_clear_file_error(prepared, tmp_path):
@@ -122,6 +175,18 @@ def test_prepared_files_of_the_previous_version_still_load(prepared, tmp_path):
     assert PreparedCollection.load(empty).settings is None
 
 
+def test_correspondence_files_of_the_previous_version_still_load(corresponded, tmp_path):
+    """Before: settings as repr() values by key, the Prepare settings not recorded."""
+    path = corresponded.save(tmp_path / "corr.npz")
+    recorded = corresponded.settings.as_dict()
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "prepare_settings"),
+                   settings_keys=np.asarray(list(recorded)),
+                   settings_values=np.asarray([repr(v) for v in recorded.values()]))
+    loaded = Correspondence.load(old)
+    assert loaded.settings == corresponded.settings and loaded.prepare is None
+    np.testing.assert_array_equal(loaded.points, corresponded.points)
+
+
 def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     """Before: settings as repr() values by (dotted) key, deformation settings as numbers."""
     model, path = fitted
@@ -131,9 +196,13 @@ def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     values = ([repr(v) for v in s.prepare.as_dict().values()] + [repr(s.model), "None", "None", "1"]
               + [repr(getattr(s.correspondence, k)) for k in s.correspondence.__dataclass_fields__])
     deform = s.deform.__dataclass_fields__
-    old = _rewrite(path, tmp_path / "old.npz", drop=("settings",), settings_keys=np.asarray(keys),
-                   settings_values=np.asarray(values), deform_keys=np.asarray(list(deform)),
-                   deform_values=np.asarray([float(getattr(s.deform, k)) for k in deform]))
+    corr = s.correspondence.as_dict()
+    old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "corr__settings", "corr__prepare_settings"),
+                   settings_keys=np.asarray(keys), settings_values=np.asarray(values),
+                   deform_keys=np.asarray(list(deform)),
+                   deform_values=np.asarray([float(getattr(s.deform, k)) for k in deform]),
+                   corr__settings_keys=np.asarray(list(corr)),
+                   corr__settings_values=np.asarray([repr(v) for v in corr.values()]))
     loaded = GenerativeShapeModel.load(old)
     assert loaded.settings == replace(s, mesh_template="nearest-data")
     assert isinstance(loaded.deform_settings.n_stages, int)
