@@ -15,9 +15,10 @@ directions, then refines the best turn by a bounded scalar search; an exact axis
 is kept when it is within `snap` of the refined cost (a file written on another axis is
 turned by exactly 90°, not 89.6°).
 
-Nearest shapes are found by a rotation-invariant descriptor (quantiles of the distance of
-the samples to the centroid and the square roots of the sorted covariance eigenvalues),
-so a shape in a wrong pose still finds the shapes it resembles.
+Nearest shapes are those with the smallest cost over the 24 axis rotations, so a shape in
+a wrong pose still finds the shapes it resembles (a bowl finds bowls, not jugs: with a
+rotation-invariant descriptor of radii and spreads, PSB bowls found jugs and were laid on
+their sides to fit them).
 """
 
 from __future__ import annotations
@@ -36,9 +37,6 @@ from .rotations import AXIS_ROTATIONS, TILTS, yaw_rotation
 
 __all__ = ["PoseSearch", "Fit"]
 
-_DESCRIPTOR_QUANTILES = np.linspace(0.05, 0.95, 10)
-
-
 @dataclass(frozen=True)
 class Fit:
     """A rotation of one shape and its cost against the references it was fitted to."""
@@ -50,33 +48,34 @@ class Fit:
 class PoseSearch:
     """Surface samples of a collection in base pose, their trees and descriptors."""
 
-    def __init__(self, samples: Sequence[np.ndarray], descriptors: np.ndarray):
+    def __init__(self, samples: Sequence[np.ndarray]):
         self.samples = [np.asarray(s, dtype=np.float64) for s in samples]
         self.trees = [cKDTree(s) for s in self.samples]
-        self.descriptors = np.asarray(descriptors, dtype=np.float64)
+        n = len(self.samples)
+        #: rotation-minimised cost between every pair: min over the 24 axis rotations
+        self.distance = np.zeros((n, n))
+        for j in range(n):
+            for i in range(j + 1, n):
+                self.distance[i, j] = self.distance[j, i] = min(
+                    self.cost(j, r, [(i, np.eye(3))]) for r in AXIS_ROTATIONS)
 
     @classmethod
     def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int) -> "PoseSearch":
         """`points` samples of every shape (generator seed + i) in its base rotation."""
-        samples, descriptors = [], []
+        samples = []
         for i, (mesh, rotation) in enumerate(zip(meshes, base)):
             _, mean, cov = surface_moments(mesh)
-            size = np.sqrt(np.trace(cov))
             pts = mesh.sample_surface(points, np.random.default_rng(seed + i)).points
-            samples.append((pts - mean) @ rotation.T / size)
-            radii = np.linalg.norm(samples[-1], axis=1)
-            spread = np.sqrt(np.clip(np.linalg.eigvalsh(cov), 0.0, None)) / size
-            descriptors.append(np.concatenate([np.quantile(radii, _DESCRIPTOR_QUANTILES), spread]))
-        return cls(samples, np.asarray(descriptors))
+            samples.append((pts - mean) @ rotation.T / np.sqrt(np.trace(cov)))
+        return cls(samples)
 
     def __len__(self) -> int:
         return len(self.samples)
 
     def nearest(self, j: int, pool: Sequence[int], count: int) -> list[int]:
-        """The `count` shapes of `pool` (j excluded) most like shape j by descriptor."""
+        """The `count` shapes of `pool` (j excluded) most like shape j in any axis pose."""
         pool = [int(i) for i in pool if i != j]
-        distance = np.linalg.norm(self.descriptors[pool] - self.descriptors[j], axis=1)
-        return [pool[k] for k in np.argsort(distance, kind="stable")[:count]]
+        return [pool[k] for k in np.argsort(self.distance[j, pool], kind="stable")[:count]]
 
     def cost(self, j: int, rotation: np.ndarray, references: Sequence[tuple[int, np.ndarray]]) -> float:
         """f_j(rotation): mean Chamfer distance of shape j turned by `rotation` to each
@@ -86,19 +85,22 @@ class PoseSearch:
             for i, r_i in references]))
 
     def best_rotation(self, j: int, references: Sequence[tuple[int, np.ndarray]], yaw_step: float,
-                      tilts: int, refine: bool, snap: float) -> Fit:
-        """The rotation of shape j that fits the references best: the 24 axis rotations,
-        then turns about z every `yaw_step` degrees for the `tilts` best up directions,
-        then (refine) a bounded search within one grid step of the best turn. An axis
-        rotation within `snap` (relative) of the best cost is preferred."""
+                      tilts: int, refine: bool, snap: float) -> tuple[Fit, Fit]:
+        """The rotations of shape j that fit the references best, (upright, any): the 24
+        axis rotations, then turns about z every `yaw_step` degrees for the up direction
+        kept and the `tilts` best others, then (refine) a bounded search within one grid
+        step of each best turn. An axis rotation within `snap` (relative) of a best cost
+        is preferred to it."""
         axis_costs = np.array([self.cost(j, r, references) for r in AXIS_ROTATIONS])
-        best_axis = int(np.argmin(axis_costs))
-        fit = Fit(AXIS_ROTATIONS[best_axis], float(axis_costs[best_axis]))
-        for d in np.argsort(axis_costs.reshape(6, 4).min(axis=1), kind="stable")[:tilts]:
-            fit = min(fit, self._best_yaw(j, references, TILTS[d], yaw_step, refine), key=lambda f: f.cost)
-        if axis_costs[best_axis] <= (1.0 + snap) * fit.cost:
-            return Fit(AXIS_ROTATIONS[best_axis], float(axis_costs[best_axis]))
-        return fit
+        by_tilt = axis_costs.reshape(6, 4)
+        fits = {}
+        for d in {0, *np.argsort(by_tilt.min(axis=1), kind="stable")[:tilts]}:
+            fit = self._best_yaw(j, references, TILTS[d], yaw_step, refine)
+            k = int(np.argmin(by_tilt[d]))
+            if by_tilt[d, k] <= (1.0 + snap) * fit.cost:
+                fit = Fit(AXIS_ROTATIONS[4 * d + k], float(by_tilt[d, k]))
+            fits[int(d)] = fit
+        return fits[0], min(fits.values(), key=lambda f: f.cost)
 
     def _best_yaw(self, j: int, references: Sequence[tuple[int, np.ndarray]], tilt: np.ndarray,
                   yaw_step: float, refine: bool) -> Fit:
