@@ -7,7 +7,7 @@ Sets:
       symmetric top-to-bottom), random size and position, at --seeds seeds;
   (b) the same with a known subset (--perturbed shapes) turned by a random one of the 23
       non-identity axis rotations (axis permutations, half turns), or by a random turn
-      about up (every third perturbed shape);
+      about up of 45°-315° (every third perturbed shape);
   (c) the shared PSB classes (files y-up: --up y).
 
 Counts per set: "changed" = shapes whose rotation is not the up rotation alone (for the
@@ -96,7 +96,7 @@ def perturbations(n: int, count: int, seed: int) -> dict[int, np.ndarray]:
     """A known subset of `count` shapes and the turn applied to each."""
     rng = np.random.default_rng(2000 + seed)
     chosen = rng.choice(n, count, replace=False)
-    return {int(i): (yaw_rotation(float(rng.uniform(20, 340))) if k % 3 == 2 else AXIS_ROTATIONS[rng.integers(1, 24)])
+    return {int(i): (yaw_rotation(float(rng.uniform(45, 315))) if k % 3 == 2 else AXIS_ROTATIONS[rng.integers(1, 24)])
             for k, i in enumerate(chosen)}
 
 
@@ -213,9 +213,11 @@ def main(argv=None) -> int:
     parser.add_argument("--perturbed", type=int, default=3)
     parser.add_argument("--sets", nargs="+", default=["a", "c"], help="a (with b), c")
     parser.add_argument("--before", default=BEFORE, help="git revision of the old default")
+    parser.add_argument("--methods", nargs="+", default=["before", "after"])
     parser.add_argument("--no-render", action="store_true")
     args = parser.parse_args(argv)
-    methods = {"before": load_before(args.before), "after": prepare_collection}
+    methods = {"before": lambda: load_before(args.before), "after": lambda: prepare_collection}
+    methods = {name: methods[name]() for name in args.methods}
     can_render = False
     if not args.no_render:
         try:

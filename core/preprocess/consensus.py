@@ -20,8 +20,8 @@ B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is fl
    < −`up_agreement`), and turned about z by the angle its facing signature differs by,
    when the facing is shared (coherence > `coherence`) and the angle exceeds
    `facing_angle` (`refine_angle` for a shape turned anyway). Calibration: consistent
-   vases and barrels differ by at most 2.5° in facing (coherence ≥ 0.95, top-bottom
-   correlation ≥ 0.95); flipped ones score ≤ −0.95, and a 37° turn is measured as
+   vases and barrels differ in facing from their nearest shapes by up to 16° (coarse
+   vases, 20 seeds; coherence ≥ 0.95, top-bottom correlation ≥ 0.95); flipped ones score ≤ −0.95, and a 37° turn is measured as
    35-39°. The signatures decide only what the cost cannot see: a turn they ask for is
    made only if it raises the cost by at most `tolerance` (on PSB fish the top-bottom
    signature alone flipped upright fish).
@@ -88,7 +88,7 @@ class ConsensusSettings:
     #: top-bottom signature correlation below minus this flips a shape (0..1)
     up_agreement: float = 0.9
     #: facing difference (degrees) above which a shape is turned about z
-    facing_angle: float = 15.0
+    facing_angle: float = 30.0
     #: the same for a shape turned anyway (the signature's facing refines the cost's turn)
     refine_angle: float = 5.0
     #: Legendre polynomials in height in the facing signature
