@@ -10,6 +10,10 @@ axis measured from the lip. Equal (s, θ) on two vases is
 their true correspondence, so correspondence error can be measured exactly
 (method.md §5 **beyond**).
 
+Barrels (`make_barrels`): closed barrels nearly symmetric top-to-bottom (a bulging body, a
+small knob on the lid, a tap at mid height giving the facing), for orientation tests and
+benchmarks: their third moments along the axis are small, so a sign rule is noise there.
+
 Meshes are triangulated differently on purpose: ring and segment counts, ring offsets and
 quad diagonals vary per shape. Each shape is also placed in a random input pose (scale,
 yaw, translation), so alignment has work to do.
@@ -26,8 +30,8 @@ from scipy.interpolate import PchipInterpolator
 from .mesh import Mesh
 from .preprocess import ShapeTransform
 
-__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "vase_surface", "write_collection",
-           "PROFILE_BREAKS"]
+__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "make_barrels", "vase_surface",
+           "write_collection", "PROFILE_BREAKS"]
 
 #: s-values where the profile changes part: base disk | outer wall | rim | inner wall | floor.
 PROFILE_BREAKS = np.array([0.0, 0.12, 0.58, 0.64, 0.9, 1.0])
@@ -235,15 +239,70 @@ def make_vases(
         n_rings = int(rng.integers(resolution[0], resolution[1] + 1))
         n_around = int(round(n_rings * rng.uniform(1.1, 1.5)))
         vertices, faces, st = _vase_mesh(params, rng, n_rings, n_around)
-        if pose:
-            yaw = rng.uniform(-np.pi, np.pi)
-            c, s = np.cos(yaw), np.sin(yaw)
-            rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            placement = ShapeTransform(rotation, float(rng.uniform(0.5, 2.0)), rng.uniform(-1, 1, 3))
-        else:
-            placement = ShapeTransform.identity()
+        placement = _random_placement(rng) if pose else ShapeTransform.identity()
         mesh = Mesh(placement.to_normalised(vertices), faces, name=f"vase_{i:03d}")
         shapes.append(ProceduralShape(mesh, params, st, placement))
+    return shapes
+
+
+def _random_placement(rng: np.random.Generator) -> ShapeTransform:
+    """Random yaw about z, scale in [0.5, 2] and translation in [-1, 1]³."""
+    yaw = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return ShapeTransform(rotation, float(rng.uniform(0.5, 2.0)), rng.uniform(-1, 1, 3))
+
+
+def _revolved_mesh(profile: np.ndarray, radius_scale, rng: np.random.Generator,
+                   n_around: int) -> tuple[np.ndarray, np.ndarray]:
+    """Closed surface of revolution about z: profile (rings, 2) rows (r, z) from the bottom
+    pole to the top pole (r = 0 at both ends), outward faces; radius_scale(theta, z)
+    multiplies the radius; each ring gets its own angular offset."""
+    rings = profile[1:-1]
+    offsets = rng.uniform(0, 2 * np.pi / n_around, len(rings))
+    theta = 2 * np.pi * np.arange(n_around)[None, :] / n_around + offsets[:, None]
+    z = np.broadcast_to(rings[:, 1:2], theta.shape)
+    r = rings[:, 0:1] * radius_scale(np.angle(np.exp(1j * theta)), z)
+    ring_points = np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=-1).reshape(-1, 3)
+    vertices = np.vstack([[0.0, 0.0, profile[0, 1]], ring_points, [0.0, 0.0, profile[-1, 1]]])
+    ring = lambda k: 1 + k * n_around + np.arange(n_around)  # noqa: E731
+    j = np.arange(n_around)
+    first, last, top = ring(0), ring(len(rings) - 1), len(vertices) - 1
+    faces = [np.stack([np.zeros(n_around, int), first[(j + 1) % n_around], first[j]], axis=1)]
+    for k in range(len(rings) - 1):
+        a, b = ring(k), ring(k + 1)
+        faces.append(np.stack([a[j], a[(j + 1) % n_around], b[(j + 1) % n_around]], axis=1))
+        faces.append(np.stack([a[j], b[(j + 1) % n_around], b[j]], axis=1))
+    faces.append(np.stack([np.full(n_around, top), last[j], last[(j + 1) % n_around]], axis=1))
+    return vertices, np.concatenate(faces)
+
+
+def make_barrels(n: int = 24, seed: int = 0, rings: tuple[int, int] = (14, 22), pose: bool = True) -> list[Mesh]:
+    """`n` random barrels standing on +z, the tap towards +x (before the optional random
+    input pose: yaw, scale, translation). The body bulges symmetrically top-to-bottom; only
+    the lid's knob (about 8 % of the height) tells top from bottom."""
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for i in range(n):
+        height = rng.uniform(1.0, 1.4)
+        end = rng.uniform(0.3, 0.4)
+        bulge = rng.uniform(0.1, 0.25)
+        knob_radius, knob_height = rng.uniform(0.08, 0.12), rng.uniform(0.06, 0.1) * height
+        tap, ellipticity = rng.uniform(0.2, 0.3), rng.uniform(0.0, 0.05)
+        body = np.linspace(0.0, height, int(rng.integers(rings[0], rings[1] + 1)))
+        profile = np.concatenate([
+            [[0.0, 0.0]],
+            np.stack([end * (1.0 + bulge * np.sin(np.pi * body / height)), body], axis=1),
+            [[knob_radius, height], [knob_radius, height + knob_height], [0.0, height + knob_height]],
+        ])
+
+        def radius_scale(theta, z, height=height, tap=tap, ellipticity=ellipticity):
+            shaped = 1.0 + tap * np.exp(-(theta / 0.3) ** 2 - ((z / height - 0.5) / 0.08) ** 2)
+            return shaped * (1.0 + ellipticity * np.cos(2.0 * theta))
+
+        vertices, faces = _revolved_mesh(profile, radius_scale, rng, int(rng.integers(28, 40)))
+        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"barrel_{i:03d}"))
     return shapes
 
 

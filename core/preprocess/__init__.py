@@ -8,19 +8,20 @@ coordinates: `ShapeTransform.to_input`.
 Steps, in order (`prepare_collection`):
 
 1. Up axis: the input axis named by `up_axis` becomes +z.
-2. Horizontal PCA (`align="pca"`): the first principal axis of the x–y spread becomes x,
-   sign by the rule "the heavier third moment goes to +x" (skewness of x positive).
-3. Consensus (`align="consensus"`, default): the orientation of every shape is made to
-   agree with the collection. Each shape has 24 candidate poses: any of its six axis
-   directions turned up, the horizontal PCA (and sign rule) redone in that upright frame,
-   then a quarter turn k·90° about z; candidate 0 is its step-2 pose. Each shape keeps
-   the candidate with the smallest symmetric Chamfer distance to a reference shape (the
-   medoid); then the majority decides: if most shapes had to leave their own pose to
-   match the reference, the reference was the odd one out and is replaced by a member of
-   that majority (see `consensus`). This fixes shapes whose file uses another
-   up axis, and shapes that are upside down or facing backwards, which a per-shape sign
-   rule cannot decide (a vase's third moment flips with small details), while the
-   orientation most input files agree on is kept.
+2. Horizontal PCA (`align="pca"` only): the first principal axis of the x–y spread
+   becomes x, sign by the rule "the heavier third moment goes to +x" (skewness of x
+   positive). It turns every shape, also shapes whose inputs already agree, and its sign
+   is noise for near-symmetric shapes; consensus no longer starts from it (issue 12).
+3. Consensus (`align="consensus"`, default): a shape's pose changes only when the
+   collection visibly disagrees with it. Every shape starts in its input pose with the
+   given up axis (no yaw), and is turned only on evidence much stronger than sampling
+   noise: against its nearest shapes, a rotation (24 axis rotations, then any turn about
+   up) fits `margin` times better (Chamfer cost), or its top and bottom or its facing
+   disagree with theirs (exact odd-moment signatures, any angle). The majority's poses
+   are the collection's and are never changed; shapes with `keep_pose` are never turned.
+   Each change is reported (`PreparedShape.pose_change`, `pose_rotation`), and a pose
+   that still looks wrong is flagged with its reason (`PreparedShape.pose_outlier`, in
+   every align mode). Details and the calibration in `consensus`.
 4. Floor at z = 0 and centring (`centre`: "centroid" of the x–y surface spread,
    "highest" vertex, or "none").
 5. Scale (`scale`): "variance" — every shape gets the same total surface variance
@@ -32,9 +33,10 @@ Moments are exact surface integrals (uniform density over the surface), so neith
 resolution nor interior vertices bias them (method.md §1 **beyond**).
 
 Modules: `transform` (ShapeTransform, PreparedShape), `moments` (exact surface moments,
-scale measures), `rotations` (up axis, horizontal PCA, the 24 candidate poses),
-`consensus` (step 3 in named steps, its constants in `ConsensusSettings`) and `prepare`
-(`prepare_collection`).
+scale measures), `rotations` (up axis, horizontal PCA, axis rotations, turns about z and
+their description), `posesearch` (Chamfer costs between posed shapes, rotation search),
+`signature` (odd-moment signatures: top/bottom and facing), `consensus` (step 3 and the
+pose flags, its constants in `ConsensusSettings`) and `prepare` (`prepare_collection`).
 """
 
 from .consensus import ConsensusSettings

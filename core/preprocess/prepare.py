@@ -9,9 +9,11 @@ import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..mesh import Mesh
-from .consensus import consensus_rotations
+from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .moments import SCALE_MODES, scale_measure, surface_moments
-from .rotations import horizontal_pca_rotation, up_rotation
+from .posesearch import PoseSearch
+from .rotations import describe_rotation, horizontal_pca_rotation, up_rotation
+from .signature import Signatures
 from .transform import PreparedShape, ShapeTransform
 
 __all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection"]
@@ -28,8 +30,13 @@ def prepare_collection(
     scale: str = "variance",
     seed: int = 0,
     progress: Callable[[float, str], None] | None = None,
+    keep_pose: Sequence[bool] | None = None,
+    consensus: ConsensusSettings = ConsensusSettings(),
 ) -> list[PreparedShape]:
-    """Align and scale a collection of meshes (see the package docstring for the steps)."""
+    """Align and scale a collection of meshes (see the package docstring for the steps).
+
+    keep_pose: per shape, True to never turn it beyond the up axis (any align mode); its
+    pose is still checked and flagged (`PreparedShape.pose_outlier`)."""
     if align not in ALIGN_MODES:
         raise ValueError(f"unknown align mode {align!r}; choose from {ALIGN_MODES}")
     if centre not in CENTRE_MODES:
@@ -39,33 +46,44 @@ def prepare_collection(
     meshes = list(meshes)
     if not meshes:
         raise CollectionError("the collection is empty: nothing to prepare")
+    keep = [False] * len(meshes) if keep_pose is None else [bool(k) for k in keep_pose]
+    if len(keep) != len(meshes):
+        raise ValueError(f"keep_pose has {len(keep)} entries for {len(meshes)} shapes")
     report = progress or (lambda fraction, message: None)
 
     up = up_rotation(up_axis)
-    rotations = [_own_rotation(mesh, up, align) for mesh in meshes]
-    report(0.2, "principal axes")
-    changed = [False] * len(meshes)
-    if align == "consensus" and len(meshes) > 1:
-        rotations, changed = consensus_rotations(meshes, rotations, seed, report, up)
-    report(0.8, "floor, centre and scale")
+    search = signatures = None
+    if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
+        search = PoseSearch.of(meshes, [up] * len(meshes), consensus.points, seed)
+        signatures = Signatures(meshes, [up] * len(meshes), consensus.facing_order)
+    report(0.2, "surface samples")
+    if align == "consensus" and search is not None:
+        decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report)
+    else:
+        decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
+    outliers = [""] * len(meshes)
+    if len(meshes) > 2:
+        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus)
+    report(0.9, "floor, centre and scale")
 
-    transforms = [_floor_and_centre(mesh, rotation, centre) for mesh, rotation in zip(meshes, rotations)]
+    transforms = [_floor_and_centre(mesh, d.rotation @ up, centre) for mesh, d in zip(meshes, decisions)]
     if scale != "none":
         transforms = _equal_size(meshes, transforms, scale)
     prepared = [
-        PreparedShape(mesh.with_vertices(t.to_normalised(mesh.vertices)), t, c)
-        for mesh, t, c in zip(meshes, transforms, changed)
+        PreparedShape(mesh.with_vertices(t.to_normalised(mesh.vertices)), t, d.changed, d.rotation, d.reason, why)
+        for mesh, t, d, why in zip(meshes, transforms, decisions, outliers)
     ]
     report(1.0, "prepared")
     return prepared
 
 
-def _own_rotation(mesh: Mesh, up: np.ndarray, align: str) -> np.ndarray:
-    """Steps 1-2: the up rotation, then (align "pca" or "consensus") the horizontal PCA."""
-    if align not in ("pca", "consensus"):
-        return up
-    upright = mesh.with_vertices(mesh.vertices @ up.T)
-    return horizontal_pca_rotation(upright) @ up
+def _own_decision(mesh: Mesh, up: np.ndarray, align: str, keep: bool) -> PoseDecision:
+    """The turn after the up rotation without consensus: the horizontal PCA (align "pca",
+    unless the pose is kept), else none."""
+    if align == "none" or keep:
+        return PoseDecision(np.eye(3))
+    yaw = horizontal_pca_rotation(mesh.with_vertices(mesh.vertices @ up.T))
+    return PoseDecision(yaw, f"{describe_rotation(yaw)}: its principal horizontal axis to x (align pca)")
 
 
 def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTransform:

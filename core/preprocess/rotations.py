@@ -1,8 +1,9 @@
 """Rotations of the preparation step (thesis §3.4): the up axis, the horizontal PCA with
-its third-moment sign rule, and the 24 candidate poses the consensus chooses from.
+its third-moment sign rule, the 24 axis rotations and the turns about z the consensus
+searches, and the words that report a rotation ("turned 180° about x").
 
-A candidate pose is numbered 4·d + k: up direction d (+z, -z, +x, -x, +y, -y of the
-up-rotated frame) and a quarter turn k·90° about z; candidate 0 is the shape's PCA pose.
+Axis rotation 4·d + k: up direction d (+z, -z, +x, -x, +y, -y of the up-rotated frame)
+turned to +z, then a quarter turn k·90° about z; axis rotation 0 is the identity.
 """
 
 from __future__ import annotations
@@ -10,9 +11,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import Mesh
+from scipy.spatial.transform import Rotation
+
 from .moments import surface_moments, third_central_moment
 
-__all__ = ["UP_AXES", "up_rotation", "horizontal_pca_rotation", "candidate_poses", "half_turn"]
+__all__ = ["UP_AXES", "up_rotation", "horizontal_pca_rotation", "AXIS_ROTATIONS", "TILTS", "yaw_rotation",
+           "describe_rotation"]
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
@@ -46,55 +50,41 @@ def horizontal_pca_rotation(mesh: Mesh) -> np.ndarray:
     return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _quarter_turns() -> np.ndarray:
-    """Rotations by k·90° about z, k = 0..3, with exact 0 / ±1 entries."""
-    out = []
-    for k in range(4):
-        c, s = np.round(np.cos(k * np.pi / 2)), np.round(np.sin(k * np.pi / 2))
-        out.append(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
-    return np.stack(out)
+def yaw_rotation(degrees: float) -> np.ndarray:
+    """Rotation by an angle (degrees) about z; exact 0 / ±1 entries at quarter turns."""
+    if float(degrees) % 90.0 == 0.0:
+        k = int(round(float(degrees) / 90.0)) % 4
+        c, s = (1.0, 0.0, -1.0, 0.0)[k], (0.0, 1.0, 0.0, -1.0)[k]
+    else:
+        c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _tilts() -> np.ndarray:
-    """Proper rotations taking +z, -z, +x, -x, +y, -y (in that order) to +z."""
-    return np.stack([
-        np.eye(3),
-        np.diag([1.0, -1.0, -1.0]),
-        np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
-        np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
-        np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
-        np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-    ])
+#: proper rotations taking +z, -z, +x, -x, +y, -y (in that order) to +z
+TILTS = np.stack([
+    np.eye(3),
+    np.diag([1.0, -1.0, -1.0]),
+    np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
+    np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+    np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+])
+
+#: the 24 rotations of the cube, (24, 3, 3): number 4·d + k is TILTS[d], then k·90° about z
+AXIS_ROTATIONS = np.stack([yaw_rotation(90.0 * k) @ tilt for tilt in TILTS for k in range(4)])
 
 
-_QUARTER_TURNS = _quarter_turns()
-_TILTS = _tilts()
-
-
-def candidate_poses(mesh: Mesh, up: np.ndarray) -> np.ndarray:
-    """The 24 candidate orientations of one shape, (24, 3, 3), index 0 = its PCA pose.
-
-    Candidate 4·d + k: the axis d of the up-rotated frame (+z, -z, +x, -x, +y, -y) is
-    turned to +z, the horizontal PCA with its sign rule is redone in that upright frame
-    (so a shape lying on its side still gets its own principal horizontal axis on x), then
-    a turn of k·90° about z. Every candidate is built from the shape's own moments, so the
-    choice between them is the only thing the collection decides.
-    """
-    _, mean, cov = surface_moments(mesh)
-    poses = []
-    for d in range(6):
-        tilt = _TILTS[d] @ up
-        c2 = (tilt @ cov @ tilt.T)[:2, :2]
-        _, evecs = np.linalg.eigh(c2)
-        main = np.array([evecs[0, 1], evecs[1, 1], 0.0])
-        if third_central_moment(mesh, tilt.T @ main, mean) < 0:
-            main = -main
-        yaw = np.array([[main[0], main[1], 0.0], [-main[1], main[0], 0.0], [0.0, 0.0, 1.0]])
-        for k in range(4):
-            poses.append(_QUARTER_TURNS[k] @ yaw @ tilt)
-    return np.stack(poses)
-
-
-def half_turn(candidate: int) -> int:
-    """The candidate with the same up direction turned a further 180° about z (k <-> k + 2)."""
-    return 4 * (candidate // 4) + (candidate % 4 + 2) % 4
+def describe_rotation(rotation: np.ndarray) -> str:
+    """'turned 37° about z' for a rotation (axis and angle, axis named when it is within
+    a degree of a coordinate axis, else given as a unit vector); 'unturned' for identity."""
+    vector = Rotation.from_matrix(rotation).as_rotvec()
+    angle = float(np.degrees(np.linalg.norm(vector)))
+    if angle < 0.05:
+        return "unturned"
+    axis = vector / np.linalg.norm(vector)
+    main = int(np.argmax(np.abs(axis)))
+    if abs(axis[main]) > np.cos(np.radians(1.0)):
+        name = ("-" if axis[main] < 0 else "") + "xyz"[main]
+    else:
+        name = "(" + ", ".join(f"{a:.2f}" for a in axis) + ")"
+    return f"turned {angle:.0f}° about {name}"

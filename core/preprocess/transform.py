@@ -3,7 +3,7 @@ inverse (thesis §3.4), and the prepared shape that carries it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -72,7 +72,15 @@ class PreparedShape:
 
     mesh: Mesh  # normalised coordinates
     transform: ShapeTransform
-    orientation_changed: bool = False  # consensus picked a different orientation than PCA
+    #: Prepare turned the shape beyond its given up axis (consensus or PCA)
+    orientation_changed: bool = False
+    #: the turn applied after the up-axis rotation (identity when the pose was kept)
+    pose_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    #: why and how the pose was changed ("turned 180° about x: its 3 nearest shapes
+    #: (a, b, c) fit 4.2× better"), empty when it was kept
+    pose_change: str = ""
+    #: why the final pose looks wrong (see consensus.pose_outliers), empty when it does not
+    pose_outlier: str = ""
 
     @property
     def name(self) -> str:

@@ -192,7 +192,9 @@ def test_pca_sign_rule_is_deterministic_under_yaw():
 def test_consensus_restores_one_orientation():
     """Vases in random yaw; some written upside down, some y-up. With up_axis 'z', PCA
     alone leaves those wrong; consensus brings every one upright and facing the same way
-    (the spout, at +x in each vase's canonical frame, points the same way for all)."""
+    (the spout, at +x in each vase's canonical frame, points the same way for all, to
+    within the vases' own variation of about 10°). The inputs disagree in facing, so the
+    facing is the one of a shape whose pose is kept, not the PCA axis (issue 12)."""
     vases = make_vases(9, seed=3, resolution=(12, 16))
     extra = [np.eye(3), Z_TO_MINUS_Z, Z_TO_Y] * 3
     meshes = [v.mesh.with_vertices(v.mesh.vertices @ r.T) for v, r in zip(vases, extra)]
@@ -207,23 +209,27 @@ def test_consensus_restores_one_orientation():
     rotations = canonical_to_normalised(prepared)
     for r in rotations:
         assert r[2, 2] == pytest.approx(1.0, abs=1e-6)  # upright
-    facing = [np.sign(r[0, 0]) for r in rotations]
-    assert len(set(facing)) == 1  # one facing
-    for r in rotations:
-        assert abs(r[0, 0]) > 0.99  # spout on the x axis (the PCA axis)
-    # the flags name exactly the shapes that were turned
-    assert [s.orientation_changed for s in prepared] == [not np.allclose(r, np.eye(3)) for r in extra]
+        relative = r @ rotations[0].T
+        assert np.degrees(abs(np.arctan2(relative[1, 0], relative[0, 0]))) < 12.0  # one facing
+    # every shape written on another axis was turned, each flag matches its rotation
+    for s, r in zip(prepared, extra):
+        assert s.orientation_changed == (not np.array_equal(s.pose_rotation, np.eye(3))) == bool(s.pose_change)
+        if not np.allclose(r, np.eye(3)):
+            assert s.orientation_changed
 
 
 def test_consensus_keeps_the_majority_orientation():
-    """When the reference would be one of the odd shapes, the majority's pose still wins."""
-    vases = make_vases(5, seed=8, resolution=(12, 16))
+    """When the reference would be one of the odd shapes, the majority's pose still wins,
+    and its members are not turned at all."""
+    vases = make_vases(5, seed=8, resolution=(12, 16), pose=False)
     extra = [Z_TO_Y, np.eye(3), np.eye(3), Z_TO_MINUS_Z, np.eye(3)]
     meshes = [v.mesh.with_vertices(v.mesh.vertices @ r.T) for v, r in zip(vases, extra)]
     prepared = prepare_collection(meshes, align="consensus")
     for s, r, v in zip(prepared, extra, vases):
         assert (s.transform.rotation @ r @ v.pose.rotation)[2, 2] == pytest.approx(1.0, abs=1e-6)
     assert [s.orientation_changed for s in prepared] == [True, False, False, True, False]
+    for s in (prepared[1], prepared[2], prepared[4]):
+        assert np.array_equal(s.transform.rotation, np.eye(3))
 
 
 def test_consensus_is_deterministic(small_vases):

@@ -1,0 +1,120 @@
+"""How well shapes of a collection fit each other in given poses, and the rotation of one
+shape that fits given others best (the measurements behind `consensus`).
+
+Every shape is represented by surface samples in its base pose (the input frame turned by
+the up rotation), centred at the exact surface centroid and scaled to unit total
+variance, so the cost of a pose is free of position and size. The cost of shape j in
+rotation R against reference shapes i in rotations R_i is the mean symmetric Chamfer
+distance (`geometry.chamfer`) over the references:
+
+    f_j(R) = mean_i C(R P_j, R_i P_i) = mean_i C(R_iᵀ R P_j, P_i),
+
+so both KD-trees are built once per shape. The rotation search (`best_rotation`) tries the
+24 axis rotations, then every turn about z on a grid for the most promising up
+directions, then refines the best turn by a bounded scalar search; an exact axis rotation
+is kept when it is within `snap` of the refined cost (a file written on another axis is
+turned by exactly 90°, not 89.6°).
+
+Nearest shapes are those with the smallest cost over the 24 axis rotations, so a shape in
+a wrong pose still finds the shapes it resembles (a bowl finds bowls, not jugs: with a
+rotation-invariant descriptor of radii and spreads, PSB bowls found jugs and were laid on
+their sides to fit them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+from scipy.spatial import cKDTree
+
+from ..geometry.chamfer import chamfer_distance
+from ..mesh import Mesh
+from .moments import surface_moments
+from .rotations import AXIS_ROTATIONS, TILTS, yaw_rotation
+
+__all__ = ["PoseSearch", "Fit"]
+
+@dataclass(frozen=True)
+class Fit:
+    """A rotation of one shape and its cost against the references it was fitted to."""
+
+    rotation: np.ndarray
+    cost: float
+
+
+class PoseSearch:
+    """Surface samples of a collection in base pose, their trees and descriptors."""
+
+    def __init__(self, samples: Sequence[np.ndarray]):
+        self.samples = [np.asarray(s, dtype=np.float64) for s in samples]
+        self.trees = [cKDTree(s) for s in self.samples]
+        n = len(self.samples)
+        #: rotation-minimised cost between every pair: min over the 24 axis rotations
+        self.distance = np.zeros((n, n))
+        for j in range(n):
+            for i in range(j + 1, n):
+                self.distance[i, j] = self.distance[j, i] = min(
+                    self.cost(j, r, [(i, np.eye(3))]) for r in AXIS_ROTATIONS)
+
+    @classmethod
+    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int) -> "PoseSearch":
+        """`points` samples of every shape (generator seed + i) in its base rotation."""
+        samples = []
+        for i, (mesh, rotation) in enumerate(zip(meshes, base)):
+            _, mean, cov = surface_moments(mesh)
+            pts = mesh.sample_surface(points, np.random.default_rng(seed + i)).points
+            samples.append((pts - mean) @ rotation.T / np.sqrt(np.trace(cov)))
+        return cls(samples)
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def nearest(self, j: int, pool: Sequence[int], count: int) -> list[int]:
+        """The `count` shapes of `pool` (j excluded) most like shape j in any axis pose."""
+        pool = [int(i) for i in pool if i != j]
+        return [pool[k] for k in np.argsort(self.distance[j, pool], kind="stable")[:count]]
+
+    def cost(self, j: int, rotation: np.ndarray, references: Sequence[tuple[int, np.ndarray]]) -> float:
+        """f_j(rotation): mean Chamfer distance of shape j turned by `rotation` to each
+        reference shape i turned by its R_i (module docstring)."""
+        return float(np.mean([
+            chamfer_distance(self.samples[j], self.samples[i], r_i.T @ rotation, self.trees[j], self.trees[i])
+            for i, r_i in references]))
+
+    def best_rotation(self, j: int, references: Sequence[tuple[int, np.ndarray]], yaw_step: float,
+                      tilts: int, refine: bool, snap: float) -> tuple[Fit, Fit]:
+        """The rotations of shape j that fit the references best, (upright, any): the 24
+        axis rotations, then turns about z every `yaw_step` degrees for the up direction
+        kept and the `tilts` best others, then (refine) a bounded search within one grid
+        step of each best turn. An axis rotation within `snap` (relative) of a best cost
+        is preferred to it."""
+        axis_costs = np.array([self.cost(j, r, references) for r in AXIS_ROTATIONS])
+        by_tilt = axis_costs.reshape(6, 4)
+        fits = {}
+        for d in {0, *np.argsort(by_tilt.min(axis=1), kind="stable")[:tilts]}:
+            fit = self._best_yaw(j, references, TILTS[d], yaw_step, refine)
+            k = int(np.argmin(by_tilt[d]))
+            if by_tilt[d, k] <= (1.0 + snap) * fit.cost:
+                fit = Fit(AXIS_ROTATIONS[4 * d + k], float(by_tilt[d, k]))
+            fits[int(d)] = fit
+        return fits[0], min(fits.values(), key=lambda f: f.cost)
+
+    def _best_yaw(self, j: int, references: Sequence[tuple[int, np.ndarray]], tilt: np.ndarray,
+                  yaw_step: float, refine: bool) -> Fit:
+        """Best turn about z after `tilt`: a grid every yaw_step degrees, then (refine) a
+        bounded scalar search (to 0.2°) within one step of the best grid angle."""
+        def f(angle: float) -> float:
+            return self.cost(j, yaw_rotation(angle) @ tilt, references)
+
+        grid = np.arange(0.0, 360.0, yaw_step)
+        values = np.array([f(a) for a in grid])
+        angle, value = float(grid[np.argmin(values)]), float(values.min())
+        if refine:
+            result = minimize_scalar(f, bounds=(angle - yaw_step, angle + yaw_step), method="bounded",
+                                     options={"xatol": 0.2})
+            if result.fun < value:
+                angle, value = float(result.x), float(result.fun)
+        return Fit(yaw_rotation(angle) @ tilt, value)

@@ -1,0 +1,90 @@
+"""Orientation you can trust (issue 12): consensus turns nobody when the inputs agree,
+restores a perturbed subset (any axis, any yaw) without moving anyone else, respects
+keep_pose, reports every change and flags a pose that stays wrong, with its reason."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.preprocess import ShapeTransform, prepare_collection
+from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, describe_rotation, yaw_rotation
+
+UPSIDE_DOWN = AXIS_ROTATIONS[4]  # 180° about x
+ON_ITS_SIDE = AXIS_ROTATIONS[9]  # +x up, then a quarter turn
+HALF_TURN = yaw_rotation(180.0)
+
+
+def _upright(n: int, seed: int, kind: str) -> list:
+    """Consistent input: upright, facing +x, random size and position."""
+    rng = np.random.default_rng(seed)
+    meshes = make_barrels(n, seed=seed, pose=False) if kind == "barrel" else \
+        [v.mesh for v in make_vases(n, seed=seed, resolution=(12, 16), pose=False)]
+    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
+                            .to_normalised(m.vertices)) for m in meshes]
+
+
+def _turned(meshes, turns: dict) -> list:
+    return [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
+
+
+def _angle(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("kind,seed", [("vase", 2), ("barrel", 3)])
+def test_consistent_input_keeps_every_pose_exactly(kind, seed):
+    prepared = prepare_collection(_upright(10, seed, kind))
+    for shape in prepared:
+        assert np.array_equal(shape.transform.rotation, np.eye(3))
+        assert np.array_equal(shape.pose_rotation, np.eye(3))
+        assert not shape.orientation_changed and shape.pose_change == "" and shape.pose_outlier == ""
+
+
+def test_perturbed_subset_is_restored_and_nobody_else_moves():
+    meshes = _upright(10, 5, "barrel")
+    turns = {1: UPSIDE_DOWN, 4: ON_ITS_SIDE, 6: yaw_rotation(37.0), 8: HALF_TURN}
+    prepared = prepare_collection(_turned(meshes, turns))
+    for i, shape in enumerate(prepared):
+        if i in turns:
+            assert shape.orientation_changed and shape.pose_change.startswith("turned")
+            # the applied turn undoes the perturbation to within a few degrees
+            assert _angle(shape.pose_rotation @ turns[i]) < 3.0, shape.pose_change
+        else:
+            assert np.array_equal(shape.pose_rotation, np.eye(3)) and not shape.orientation_changed
+        assert shape.pose_outlier == ""
+    assert "37° about -z" in prepared[6].pose_change and "facing" in prepared[6].pose_change
+
+
+def test_keep_pose_is_respected_and_the_wrong_pose_flagged():
+    meshes = _turned(_upright(10, 7, "barrel"), {2: UPSIDE_DOWN})
+    keep = [i == 2 for i in range(10)]
+    prepared = prepare_collection(meshes, keep_pose=keep)
+    assert np.array_equal(prepared[2].pose_rotation, np.eye(3)) and not prepared[2].orientation_changed
+    assert "upside down" in prepared[2].pose_outlier and "kept by request" in prepared[2].pose_outlier
+    assert all(not s.orientation_changed and s.pose_outlier == "" for i, s in enumerate(prepared) if i != 2)
+    with pytest.raises(ValueError, match="keep_pose has 2 entries for 10 shapes"):
+        prepare_collection(meshes, keep_pose=[True, False])
+
+
+@pytest.mark.parametrize("turn,words", [(UPSIDE_DOWN, "upside down"), (ON_ITS_SIDE, "fit them")])
+def test_wrong_pose_is_flagged_without_consensus(turn, words):
+    """align 'none' turns nobody, but a shape upside down or on its side inside an upright
+    class is named with its reason."""
+    prepared = prepare_collection(_turned(_upright(8, 11, "vase"), {3: turn}), align="none")
+    assert words in prepared[3].pose_outlier
+    assert [bool(s.pose_outlier) for s in prepared] == [i == 3 for i in range(8)]
+
+
+def test_pca_reports_its_turn():
+    prepared = prepare_collection(_upright(3, 1, "vase"), align="pca")
+    for shape in prepared:
+        assert shape.pose_change.endswith("(align pca)") == shape.orientation_changed
+
+
+def test_describe_rotation():
+    assert describe_rotation(np.eye(3)) == "unturned"
+    assert describe_rotation(UPSIDE_DOWN) == "turned 180° about x"
+    assert describe_rotation(yaw_rotation(-37.0)) == "turned 37° about -z"
+    assert describe_rotation(AXIS_ROTATIONS[8]) == "turned 90° about -y"
