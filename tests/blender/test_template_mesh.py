@@ -108,11 +108,10 @@ def signed_volume(obj) -> float:
     return float(np.einsum("ij,ij->i", co[:, 0], np.cross(co[:, 1], co[:, 2])).sum() / 6.0)
 
 
-@pytest.fixture
-def vessels(extension, jobs):
+def add_vessels(name: str = "vessels") -> dict:
     """Six vessels (0 mirrored, 1 and 4 with a welded seam, 5 inside out with custom
-    normals), fitted with PPCA in the scene."""
-    collection = bpy.data.collections.new("vessels")
+    normals) in a new collection, chosen for a PPCA fit."""
+    collection = bpy.data.collections.new(name)
     bpy.context.scene.collection.children.link(collection)
     rng = np.random.default_rng(3)
     objects = [add_vessel(collection, f"vessel {i}", rng, seam=i in (1, 4), inside_out=i == 5) for i in range(6)]
@@ -122,9 +121,21 @@ def vessels(extension, jobs):
     settings.n_landmarks = 100
     settings.latent_dim = 2
     settings.fit_model = "ppca"
+    return {o.name: o for o in objects}
+
+
+def fit() -> None:
+    settings = bpy.context.scene.shapegen
     assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
     assert settings.model_text is not None, settings.job_message
-    return {o.name: o for o in objects}
+
+
+@pytest.fixture
+def vessels(extension, jobs):
+    """`add_vessels`, fitted in the scene."""
+    found = add_vessels()
+    fit()
+    return found
 
 
 def _expected(intake, template, flat_core_vertices) -> np.ndarray:
@@ -235,3 +246,55 @@ def test_a_missing_template_falls_back_to_a_triangle_mesh_and_says_so(extension,
     assert "has changed since the fit" in capfd.readouterr().out
     assert bpy.ops.shapegen.explore(template="vessel 5") == {"FINISHED"}
     assert signature(bpy.context.scene.shapegen.live_object) == signature(vessels["vessel 5"])
+
+
+@pytest.mark.parametrize("base", [False, True])
+def test_the_copy_is_the_mesh_the_fit_read(extension, jobs, base):
+    """With modifiers applied (the default) a generated object is a copy of the evaluated
+    mesh; with Base Mesh, of the object's own data without its shape keys. The prepared
+    copies record which, so changing the panel's choice after the fit changes nothing."""
+    vessels = add_vessels()
+    for obj in vessels.values():
+        obj.modifiers.new("subdivide", "SUBSURF").levels = 1
+        obj.shape_key_add(name="Basis")
+        obj.shape_key_add(name="Taller").data[0].co.z += 0.1
+    settings = bpy.context.scene.shapegen
+    settings.use_base_mesh = base
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    fit()
+    assert "reusing" in settings.job_message
+    settings.use_base_mesh = not base
+    assert bpy.ops.shapegen.sample(count=2, seed=1) == {"FINISHED"}
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    for obj in bpy.data.collections["ShapeGen Samples"].objects:
+        template = vessels[obj["shapegen_template"]]
+        if base:
+            assert len(obj.data.polygons) == len(template.data.polygons)
+        else:
+            evaluated = template.evaluated_get(depsgraph).data
+            assert len(obj.data.polygons) == len(evaluated.polygons) > len(template.data.polygons)
+            assert [layer.name for layer in obj.data.uv_layers] == ["UVMap", "Detail"]
+        assert obj.data.shape_keys is None
+        assert [m.name for m in obj.data.materials] == ["Body", "Cap"]
+        assert signed_volume(obj) > 0
+
+
+def test_the_live_object_on_a_welded_template_keeps_updating_after_reopening(extension, vessels, tmp_path):
+    scene = bpy.context.scene
+    assert bpy.ops.shapegen.explore(template="vessel 1") == {"FINISHED"}
+    assert "shapegen_vertex_map" in scene.shapegen.live_object  # vessel 1's seam was welded
+    blend = tmp_path / "vessels.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    scene = bpy.context.scene
+    live = scene.shapegen.live_object
+    before = vertices(live).copy()
+    scene.shapegen.latents[1].value = -2.0
+    moved = vertices(live)
+    assert not np.allclose(before, moved)
+    store = addon_module(extension, "shapegen_addon.store")
+    model = store.get_model(scene)
+    mesher = model.latent_mesher(model.shape_index("vessel 1"), dtype=np.float64)
+    intake = addon_module(extension, "core.intake")
+    expected = _expected(intake, bpy.data.objects["vessel 1"], mesher.flat_vertices(np.asarray(live["shapegen_latent"])))
+    np.testing.assert_allclose(moved, expected, atol=1e-4)
