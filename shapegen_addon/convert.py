@@ -31,7 +31,8 @@ from ..core.intake import clean_mesh
 from ..core.mesh import Mesh
 
 __all__ = ["ObjectTriangles", "ObjectReading", "object_triangles", "read_object", "object_to_mesh",
-           "mesh_copy", "reverse_polygons", "winding_to_reverse", "world_mesh_copy", "evaluated_depsgraph", "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
+           "mesh_copy", "reverse_polygons", "winding_to_reverse", "world_mesh_copy", "evaluated_depsgraph",
+           "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
 
 
 @dataclass(frozen=True)

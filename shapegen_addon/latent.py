@@ -23,8 +23,8 @@ import numpy as np
 from ..core.errors import ShapeGenError
 from ..core.latent_units import LatentUnits
 from . import store
-from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY, TEMPLATE_KEY,
-                   VERTEX_MAP_KEY)
+from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY,
+                   TEMPLATE_KEY, VERTEX_MAP_KEY)
 from .placement import place_one, union_box, vertex_box
 from .template_mesh import TemplateMeshes
 

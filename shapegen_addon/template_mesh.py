@@ -27,7 +27,8 @@ import numpy as np
 
 from ..core.errors import MeshError
 from . import store
-from .convert import evaluated_depsgraph, mesh_copy, mesh_data_from_arrays, read_object, reverse_polygons, winding_to_reverse
+from .convert import (evaluated_depsgraph, mesh_copy, mesh_data_from_arrays, read_object, reverse_polygons,
+                      winding_to_reverse)
 from .keys import MESH_SOURCE_KEY, SOURCE_KEY, mesh_source
 from .prepared import prepared_collection_for, prepared_objects
 

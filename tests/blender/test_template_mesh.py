@@ -183,7 +183,8 @@ def test_every_generated_object_keeps_the_template_mesh(extension, vessels, capf
 
     # in-between objects, then one object with a shape-key animation
     settings = scene.shapegen
-    assert bpy.ops.shapegen.interpolate(object_a="vessel 0", object_b="vessel 4", steps=2, mode="OBJECTS") == {"FINISHED"}
+    assert bpy.ops.shapegen.interpolate(object_a="vessel 0", object_b="vessel 4", steps=2,
+                                        mode="OBJECTS") == {"FINISHED"}
     for obj in bpy.data.collections["ShapeGen Interpolation"].objects:
         check(obj)
     assert bpy.ops.shapegen.interpolate(object_a="vessel 1", object_b="vessel 2", steps=2,
@@ -296,5 +297,6 @@ def test_the_live_object_on_a_welded_template_keeps_updating_after_reopening(ext
     model = store.get_model(scene)
     mesher = model.latent_mesher(model.shape_index("vessel 1"), dtype=np.float64)
     intake = addon_module(extension, "core.intake")
-    expected = _expected(intake, bpy.data.objects["vessel 1"], mesher.flat_vertices(np.asarray(live["shapegen_latent"])))
+    z = np.asarray(live["shapegen_latent"])
+    expected = _expected(intake, bpy.data.objects["vessel 1"], mesher.flat_vertices(z))
     np.testing.assert_allclose(moved, expected, atol=1e-4)
