@@ -8,8 +8,9 @@
 * `read_object` / `object_to_mesh`: the same as a core `Mesh` through `intake.clean_mesh`
   (welded, wound outwards, what changed in its report), plus the polygons whose winding
   the core reversed.
-* `world_mesh_copy`: a new mesh datablock of an object as read, in world coordinates, its
-  winding as the core's Mesh has it (the prepared copies).
+* `mesh_copy`: a new mesh datablock of an object as read (object-local, every layer kept);
+  `world_mesh_copy`: the same in world coordinates, its winding as the core's Mesh has it
+  (the prepared copies); `reverse_polygons` / `winding_to_reverse` turn a copy's polygons.
 * `mesh_data_from_arrays`: a new bpy mesh from vertex / face arrays (`foreach_set`).
 * `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF); OFF,
   which Blender cannot read, through the core reader (trimesh, bundled).
@@ -30,7 +31,8 @@ from ..core.intake import clean_mesh
 from ..core.mesh import Mesh
 
 __all__ = ["ObjectTriangles", "ObjectReading", "object_triangles", "read_object", "object_to_mesh",
-           "world_mesh_copy", "evaluated_depsgraph", "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
+           "mesh_copy", "reverse_polygons", "winding_to_reverse", "world_mesh_copy", "evaluated_depsgraph",
+           "mesh_data_from_arrays", "import_mesh_file", "BLENDER_IMPORTERS"]
 
 
 @dataclass(frozen=True)
@@ -152,31 +154,50 @@ def object_to_mesh(obj: bpy.types.Object, world: bool = True, evaluated: bool = 
     return read_object(obj, world, evaluated, depsgraph).mesh
 
 
+def mesh_copy(obj: bpy.types.Object, evaluated: bool = True, depsgraph=None) -> bpy.types.Mesh:
+    """A new mesh datablock of `obj` as read, object-local: the evaluated mesh (modifiers
+    applied, every data layer kept) or a copy of its own data; polygons, UV maps,
+    materials, sharp edges, smooth flags and vertex weights come with it."""
+    if not evaluated:
+        return obj.data.copy()
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    return bpy.data.meshes.new_from_object(obj.evaluated_get(depsgraph), preserve_all_data_layers=True,
+                                           depsgraph=depsgraph)
+
+
+def reverse_polygons(data: bpy.types.Mesh, flip: np.ndarray) -> None:
+    """Reverse the winding of the polygons where `flip` (P,) is True (their corners and
+    corner data such as UVs, through bmesh)."""
+    if not flip.any():
+        return
+    editable = bmesh.new()
+    editable.from_mesh(data)
+    editable.faces.ensure_lookup_table()
+    bmesh.ops.reverse_faces(editable, faces=[editable.faces[i] for i in np.flatnonzero(flip)])
+    editable.to_mesh(data)
+    editable.free()
+
+
+def winding_to_reverse(n_polygons: int, mirrored: bool, reversed_polygons=()) -> np.ndarray:
+    """(P,) bool: the polygons to reverse so a copy is wound like its core Mesh: every
+    polygon when read through a mirroring matrix, xor `reversed_polygons` (`read_object`'s)."""
+    flip = np.zeros(n_polygons, dtype=bool)
+    flip[np.asarray(reversed_polygons, dtype=np.int64)] = True
+    return ~flip if mirrored else flip
+
+
 def world_mesh_copy(obj: bpy.types.Object, name: str, evaluated: bool = True, depsgraph=None,
                     reversed_polygons=()) -> bpy.types.Mesh:
-    """A new mesh datablock of `obj` as read (evaluated or its own data, with polygons, UV
-    maps and materials) in world coordinates, wound like its core Mesh: every polygon
-    reversed when the world matrix mirrors, and `reversed_polygons` (`read_object`'s)."""
+    """A new mesh datablock of `obj` as read (`mesh_copy`) in world coordinates, wound like
+    its core Mesh: every polygon reversed when the world matrix mirrors, and
+    `reversed_polygons` (`read_object`'s)."""
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
-    evaluated_object = obj.evaluated_get(depsgraph)
-    if evaluated:
-        data = bpy.data.meshes.new_from_object(evaluated_object, preserve_all_data_layers=True, depsgraph=depsgraph)
-    else:
-        data = obj.data.copy()
+    data = mesh_copy(obj, evaluated, depsgraph)
     data.name = name
-    matrix = evaluated_object.matrix_world.copy()
+    matrix = obj.evaluated_get(depsgraph).matrix_world.copy()
     data.transform(matrix)
-    flip = np.zeros(len(data.polygons), dtype=bool)
-    flip[np.asarray(reversed_polygons, dtype=np.int64)] = True
-    if matrix.to_3x3().determinant() < 0:
-        flip = ~flip
-    if flip.any():
-        editable = bmesh.new()
-        editable.from_mesh(data)
-        editable.faces.ensure_lookup_table()
-        bmesh.ops.reverse_faces(editable, faces=[editable.faces[i] for i in np.flatnonzero(flip)])
-        editable.to_mesh(data)
-        editable.free()
+    reverse_polygons(data, winding_to_reverse(len(data.polygons), matrix.to_3x3().determinant() < 0,
+                                              reversed_polygons))
     return data
 
 

@@ -53,6 +53,7 @@ SEED_KEY = "shapegen_seed"  # a sample's seed
 INTERPOLATION_KEY = "shapegen_interpolation"  # an in-between shape's position t in [0, 1]
 LIVE_KEY = "shapegen_live"  # the live object: id of the model whose sliders drive it
 TEMPLATE_INDEX_KEY = "shapegen_template_index"  # the live object: index of its template shape
+VERTEX_MAP_KEY = "shapegen_vertex_map"  # the live object: core template vertex of each mesh vertex (absent: identity)
 
 # ------------------------------------------------------------------ the latent-map image (and MODEL_ID_KEY)
 MAP_DIMS_KEY = "shapegen_dims"  # latent dimensions on x and y

@@ -1,10 +1,12 @@
 """Latent vectors in the scene: the sliders, the live object they drive, and the latent
 tag of every object ShapeGen generates.
 
-The live object is a copy of one template training mesh. Each slider change re-meshes it
-through the core's `LatentMesher` (vertices = offset + features(z) @ basis, the basis
-computed once per model and template) and one bulk write of the position attribute, so a
-drag costs a small matrix product and a `foreach_set`, for every model type.
+The live object is a copy of one template training shape's own mesh (template_mesh: its
+polygons, UV maps and materials; a triangle mesh when the template's object is gone).
+Each slider change re-meshes it through the core's `LatentMesher` (vertices = offset +
+features(z) @ basis, the basis computed once per model and template) and one bulk write
+of the position attribute (through the copy's vertex map when the core welded vertices),
+so a drag costs a small matrix product and a `foreach_set`, for every model type.
 
 Generated objects (samples, in-between shapes, modes, the live object) carry their latent
 vector, model and template (keys.LATENT_KEY, ...): written by `tag_object`, read by
@@ -21,9 +23,10 @@ import numpy as np
 from ..core.errors import ShapeGenError
 from ..core.latent_units import LatentUnits
 from . import store
-from .convert import mesh_data_from_arrays
-from .keys import LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY, TEMPLATE_KEY
+from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY,
+                   TEMPLATE_KEY, VERTEX_MAP_KEY)
 from .placement import place_one, union_box, vertex_box
+from .template_mesh import TemplateMeshes
 
 __all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "set_values",
            "slider_units", "reset_sliders",
@@ -34,11 +37,14 @@ LIVE_NAME = "ShapeGen Live"
 
 # (model id, template index) -> LatentMesher; process memory, rebuilt lazily
 _MESHERS: dict[tuple[str, int], object] = {}
+# live mesh datablock name -> its vertex map (keys.VERTEX_MAP_KEY as an array); rebuilt lazily
+_VERTEX_MAPS: dict[str, np.ndarray] = {}
 _SUSPENDED = [0]
 
 
 def forget_cache() -> None:
     _MESHERS.clear()
+    _VERTEX_MAPS.clear()
 
 
 @contextlib.contextmanager
@@ -149,21 +155,37 @@ def update_live(scene: bpy.types.Scene) -> bool:
     if obj[LIVE_KEY] != store.model_id(scene):
         raise ShapeGenError(f"'{obj.name}' belongs to another model: press Explore to rebuild it")
     mesher = _mesher(scene, model, int(obj[TEMPLATE_INDEX_KEY]))
-    if len(obj.data.vertices) != mesher.n_vertices:
+    vertex_map = _vertex_map(obj)
+    expected = mesher.n_vertices if vertex_map is None else len(vertex_map)
+    if len(obj.data.vertices) != expected or (vertex_map is not None and vertex_map.max() >= mesher.n_vertices):
         raise ShapeGenError(f"'{obj.name}' has {len(obj.data.vertices)} vertices, its template "
                             f"'{mesher.template_name}' {mesher.n_vertices}: press Explore to rebuild it")
     z = current_latent(scene)
-    write_positions(obj.data, mesher.flat_vertices(z))
+    flat = mesher.flat_vertices(z)
+    write_positions(obj.data, flat if vertex_map is None else flat.reshape(-1, 3)[vertex_map].ravel())
     obj[LATENT_KEY] = z.tolist()
     return True
 
 
-def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.Object:
-    """Create (or rebuild) the live object on the template nearest the mean shape; a new one
-    goes beside the scene's objects (placement.place_one), a rebuilt one stays where it is."""
+def _vertex_map(obj: bpy.types.Object) -> np.ndarray | None:
+    """The live object's vertex map (keys.VERTEX_MAP_KEY), None when it is the identity."""
+    if VERTEX_MAP_KEY not in obj:
+        return None
+    found = _VERTEX_MAPS.get(obj.data.name)
+    if found is None or len(found) != len(obj.data.vertices):
+        found = _VERTEX_MAPS[obj.data.name] = np.asarray(obj[VERTEX_MAP_KEY], dtype=np.int64)
+    return found
+
+
+def create_live(scene: bpy.types.Scene, model, template: str = "") -> tuple[bpy.types.Object, str]:
+    """Create (or rebuild) the live object on the template nearest the mean shape, a copy of
+    the template's own mesh (template_mesh); a new one goes beside the scene's objects
+    (placement.place_one), a rebuilt one stays where it is. Returns (object, note: empty,
+    or why it is a plain triangle mesh)."""
     index = model.shape_index(template) if template else model.mean_template()
-    source = model.meshes[index]
-    data = mesh_data_from_arrays(f"{LIVE_NAME} mesh", source.vertices, source.faces)
+    meshes = TemplateMeshes(scene, model)
+    data = meshes.mesh(f"{LIVE_NAME} mesh", index, model.meshes[index].vertices)
+    found = meshes.template(index)
     obj = live_object(scene)
     if obj is None:
         obj = bpy.data.objects.new(LIVE_NAME, data)
@@ -178,6 +200,11 @@ def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.
             bpy.data.meshes.remove(old)
         if obj.name not in scene.objects:  # deleted from the scene but still referenced
             scene.collection.objects.link(obj)
+    _VERTEX_MAPS.pop(data.name, None)
+    if found is not None and found.vertex_map is not None:
+        obj[VERTEX_MAP_KEY] = found.vertex_map.tolist()
+    elif VERTEX_MAP_KEY in obj:
+        del obj[VERTEX_MAP_KEY]
     obj[LIVE_KEY] = store.model_id(scene)
     obj[MODEL_KEY] = store.model_name(scene)
     obj[MODEL_ID_KEY] = store.model_id(scene)
@@ -186,7 +213,7 @@ def create_live(scene: bpy.types.Scene, model, template: str = "") -> bpy.types.
     if len(scene.shapegen.latents) != model.latent_dim:
         rebuild_sliders(scene, model)
     update_live(scene)
-    return obj
+    return obj, meshes.note
 
 
 def bake_live(scene: bpy.types.Scene) -> bpy.types.Object:
@@ -194,6 +221,8 @@ def bake_live(scene: bpy.types.Scene) -> bpy.types.Object:
     obj = live_object(scene)
     del obj[LIVE_KEY]
     del obj[TEMPLATE_INDEX_KEY]
+    if VERTEX_MAP_KEY in obj:
+        del obj[VERTEX_MAP_KEY]
     obj.name = f"{store.model_name(scene)} baked"
     obj.data.name = obj.name
     scene.shapegen.live_object = None

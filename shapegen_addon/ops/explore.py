@@ -61,8 +61,8 @@ class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
     def execute(self, context):
         def work():
             model = store.require_model(context.scene)
-            obj = create_live(context.scene, model, self.template)
-            return f"'{obj.name}': {model.latent_dim} sliders on template '{obj[TEMPLATE_KEY]}'"
+            obj, note = create_live(context.scene, model, self.template)
+            return f"'{obj.name}': {model.latent_dim} sliders on template '{obj[TEMPLATE_KEY]}'.{note}"
 
         return _run(self, work)
 

@@ -2,8 +2,11 @@
 
 Every generated object is an ordinary mesh object tagged with its latent vector, model
 and template (latent.tag_object; a sample also with its seed), so later operators
-(Interpolate, Latent Map) can find its latent vector again. Meshes come from the core (`GenerativeShapeModel.sample`,
-`mesh_from_landmarks`, `LatentMesher`); nothing here is an algorithm.
+(Interpolate, Latent Map) can find its latent vector again. Vertex positions come from the
+core (`GenerativeShapeModel.sample`, `mesh_from_landmarks`, `LatentMesher`), the mesh
+around them is a copy of the template's own (template_mesh.TemplateMeshes; a plain
+triangle mesh, said in the report, when the template's object is gone); nothing here is
+an algorithm.
 """
 
 from __future__ import annotations
@@ -14,11 +17,11 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from ...core.errors import ShapeGenError
 from .. import store
-from ..convert import mesh_data_from_arrays
 from ..keys import INTERPOLATION_KEY
 from ..latent import object_latent, tag_object
 from ..placement import grid_offsets, place, place_one, vertex_box
 from ..preview import ensure_collection
+from ..template_mesh import TemplateMeshes
 from ..ui.properties import INTERPOLATION_ITEMS
 
 __all__ = ["CLASSES", "SAMPLES_COLLECTION", "INTERPOLATION_COLLECTION", "MODES_COLLECTION"]
@@ -60,7 +63,7 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
                 index = model.choose_template(landmarks[0], settings.sample_template)
                 mesh = model.mesh_from_landmarks(landmarks[0], template=model.names[index])
                 z = latents[0] if latents is not None else model.encode(landmarks)[0]
-                results.append((first_seed + i, z, model.names[index], mesh))
+                results.append((first_seed + i, z, index, mesh))
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -68,14 +71,14 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
         locations = place(scene, [vertex_box(mesh.vertices) for *_, mesh in results], grid_offsets(count, spacing))
         collection = ensure_collection(scene, SAMPLES_COLLECTION)
         name = store.model_name(scene)
-        for (seed, z, template, mesh), location in zip(results, locations):
-            label = f"{name} sample {seed}"
-            obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, mesh.vertices, mesh.faces))
+        meshes = TemplateMeshes(scene, model)
+        for (seed, z, index, mesh), location in zip(results, locations):
+            obj = meshes.new_object(f"{name} sample {seed}", index, mesh.vertices)
             obj.location = location
-            tag_object(obj, scene, z, template, seed=seed)
+            tag_object(obj, scene, z, model.names[index], seed=seed)
             collection.objects.link(obj)
         self.report({"INFO"}, f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
-                    f"(seeds {first_seed}-{first_seed + count - 1})")
+                    f"(seeds {first_seed}-{first_seed + count - 1}).{meshes.note}")
         return {"FINISHED"}
 
 
@@ -124,7 +127,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        faces = model.meshes[index].faces
+        meshes = TemplateMeshes(scene, model)
         collection = ensure_collection(scene, INTERPOLATION_COLLECTION)
         base = f"{first.name} to {second.name}"
         spacing = settings.preview_spacing * shape_size(model)
@@ -132,17 +135,16 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             locations = place(scene, [vertex_box(shape) for shape in shapes[1:-1]],
                               grid_offsets(steps, spacing, columns=steps))
             for k, location in enumerate(locations, start=1):
-                label = f"{base} {k}"
-                obj = bpy.data.objects.new(label, mesh_data_from_arrays(label, shapes[k], faces))
+                obj = meshes.new_object(f"{base} {k}", index, shapes[k])
                 obj.location = location
                 tag_object(obj, scene, (1 - ts[k]) * z_a + ts[k] * z_b, model.names[index])
                 obj[INTERPOLATION_KEY] = float(ts[k])
                 collection.objects.link(obj)
             self.report({"INFO"}, f"{steps} in-between shape(s) of '{first.name}' and '{second.name}' in "
-                        f"'{collection.name}'")
+                        f"'{collection.name}'.{meshes.note}")
             return {"FINISHED"}
 
-        obj = bpy.data.objects.new(f"{base} morph", mesh_data_from_arrays(f"{base} morph", shapes[0], faces))
+        obj = meshes.new_object(f"{base} morph", index, shapes[0])
         obj.location = place_one(scene, vertex_box(np.concatenate(shapes)))
         collection.objects.link(obj)
         tag_object(obj, scene, z_a, model.names[index])
@@ -151,7 +153,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
         start = scene.frame_start
         for k in range(1, len(shapes)):
             key = obj.shape_key_add(name=f"t={ts[k]:.3f}", from_mix=False)
-            key.data.foreach_set("co", shapes[k].astype(np.float32).ravel())
+            key.data.foreach_set("co", meshes.positions(index, shapes[k]))
             # crossfade: key k rises from 0 at step k-1 to 1 at step k and falls to 0 at step k+1
             for frame, value in ((start + (k - 1) * frames, 0.0), (start + k * frames, 1.0),
                                  (start + (k + 1) * frames, 0.0)):
@@ -166,7 +168,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             key.value = 0.0
         scene.frame_end = max(scene.frame_end, start + (len(shapes) - 1) * frames)
         self.report({"INFO"}, f"'{obj.name}': {len(shapes) - 1} shape keys animated over frames "
-                    f"{start}-{start + (len(shapes) - 1) * frames}")
+                    f"{start}-{start + (len(shapes) - 1) * frames}.{meshes.note}")
         return {"FINISHED"}
 
 
@@ -209,8 +211,8 @@ class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        name = f"{store.model_name(scene)} modes"
-        obj = bpy.data.objects.new(name, mesh_data_from_arrays(name, mean, model.meshes[index].faces))
+        meshes = TemplateMeshes(scene, model)
+        obj = meshes.new_object(f"{store.model_name(scene)} modes", index, mean)
         # room for every mode key at ±3
         obj.location = place_one(scene, vertex_box(np.concatenate([mean[None], mean + 3 * modes, mean - 3 * modes])))
         ensure_collection(scene, MODES_COLLECTION).objects.link(obj)
@@ -218,10 +220,10 @@ class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
         obj.shape_key_add(name="Mean", from_mix=False)
         for k, mode in enumerate(modes):
             key = obj.shape_key_add(name=f"Mode {k + 1}", from_mix=False)
-            key.data.foreach_set("co", (mean + mode).astype(np.float32).ravel())
+            key.data.foreach_set("co", meshes.positions(index, mean + mode))
             key.slider_min, key.slider_max = -3.0, 3.0
             key.value = 0.0
-        self.report({"INFO"}, f"'{obj.name}': {model.latent_dim} mode shape keys (range ±3)")
+        self.report({"INFO"}, f"'{obj.name}': {model.latent_dim} mode shape keys (range ±3).{meshes.note}")
         return {"FINISHED"}
 
 
