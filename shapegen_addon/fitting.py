@@ -89,6 +89,10 @@ def finish(status: JobStatus, loaded) -> None:
     if status.state != "done":
         report_outcome(settings, "FAILED", f"Fit failed: {status.error or 'unknown error'}; {kept}")
         return
+    if bpy.data.collections.get(payload["name"]) is None:  # as Prepare refuses: its shapes are gone
+        report_outcome(settings, "FAILED", f"Fit finished but collection '{payload['name']}' was deleted "
+                       f"meanwhile; {kept}")
+        return
     try:
         if isinstance(loaded, Exception):
             raise loaded

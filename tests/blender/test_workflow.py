@@ -258,3 +258,40 @@ def test_job_manager_setup_prepare_and_cancel_before_the_worker_starts(extension
     run(prepare=lambda status: (tmp_path / "out").read_text())
     wait()
     assert finished[-1][0].state == "done" and finished[-1][1] == "ok"
+
+
+def test_poll_fit_after_a_file_load_says_cancelled(extension, jobs, tmp_path):
+    """File › Open stops the running job; a script polling `poll_fit` sees it end."""
+    add_vase_collection(extension)
+    poll_fit = addon_module(extension, "shapegen_addon.fitting").poll_fit
+    blend = tmp_path / "other.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    slow = json.dumps({"jobs": 1, "correspondence": {"alpha_steps": 5, "max_iterations": 40, "groupwise_rounds": 2}})
+    assert bpy.ops.shapegen.fit(extra_settings=slow) == {"FINISHED"}
+    _pump(jobs, lambda s: s is not None and s.fraction > 0.0, poll=poll_fit)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    status = poll_fit()
+    assert status.finished and status.state == "cancelled"
+    assert status.stage == "cancelled: a new file was loaded"
+    assert not jobs.MANAGER.running and bpy.context.scene.shapegen.job_state == "IDLE"
+
+
+def test_a_fit_whose_collection_was_deleted_installs_nothing(extension, jobs):
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model = "ppca"
+    assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
+    bpy.data.collections.remove(collection)
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished)
+    assert statuses[-1].state == "done"  # the worker finished; its model is refused, as Prepare refuses
+    assert settings.job_state == "FAILED" and "'vases' was deleted" in settings.job_message
+    assert settings.model_text is None and len(bpy.data.texts) == 0
+
+
+def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words(extension, jobs):
+    add_vase_collection(extension, n=2)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model, settings.latent_dim = "ppca", 0
+    with pytest.raises(RuntimeError, match=r"add training shapes or choose another Model \(gplvm or bgplvm\)"):
+        bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
+    assert "shrinkage" not in settings.job_message
