@@ -295,3 +295,32 @@ def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words(extension, jobs)
     with pytest.raises(RuntimeError, match=r"add training shapes or choose another Model \(gplvm or bgplvm\)"):
         bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
     assert "shrinkage" not in settings.job_message
+
+
+def test_installing_a_model_never_encodes_on_the_main_thread(extension, model_files, monkeypatch):
+    """The worker encodes the training shapes and the model file keeps them: a fit's
+    install, Load Model, Explore, Snap and Latent Map read them (no encode, which took
+    1.8-2.8 s on the main thread for a Bayesian GP-LVM of 20 shapes)."""
+    models = addon_module(extension, "core.models")
+    fitting = addon_module(extension, "shapegen_addon.fitting")
+    store = addon_module(extension, "shapegen_addon.store")
+    encoded = []
+
+    def refuse(model, *_args, **_kwargs):
+        encoded.append(type(model).__name__)
+        raise AssertionError("encoded on the main thread")
+
+    for kind in ("ppca", "gplvm", "bgplvm"):
+        monkeypatch.setattr(models.MODEL_TYPES[kind], "encode", refuse)
+    scene = bpy.context.scene
+    for kind, path in model_files.items():
+        loaded = store.read_model_file(path)  # Fit's helper thread
+        started = time.perf_counter()
+        model = fitting.install_model(scene, path, f"vases {kind}", loaded)
+        installed = time.perf_counter() - started
+        assert len(scene.shapegen.latents) == model.latent_dim and installed < 1.0
+        load_model(kind, model_files)
+        assert bpy.ops.shapegen.explore() == {"FINISHED"}
+        assert bpy.ops.shapegen.explore_snap() == {"FINISHED"}
+        assert bpy.ops.shapegen.latent_map(size=64) == {"FINISHED"}
+    assert encoded == []
