@@ -69,17 +69,24 @@ class _CancelOnStdin:
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
-    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz) or from an
-    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare);
-    `settings` are FitSettings as plain data (FitSettings.from_dict)."""
+    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz), from an
+    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare) or
+    from the meshes and correspondence of an earlier model (`correspondence_of`: a model
+    file; only the shape model is fitted); `settings` are FitSettings as plain data
+    (FitSettings.from_dict)."""
     from .collection import PreparedCollection
     from .meshset import load_mesh_set
-    from .pipeline import FitSettings, fit_meshes
+    from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 
-    source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
-              else load_mesh_set(arguments["meshes"]))
     settings = FitSettings.from_dict(arguments.get("settings", {}))
-    model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
+    if "correspondence_of" in arguments:
+        earlier = GenerativeShapeModel.load(arguments["correspondence_of"])
+        model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
+                                should_cancel=should_cancel)
+    else:
+        source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
+                  else load_mesh_set(arguments["meshes"]))
+        model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
     return _save_result(model, arguments, should_cancel, "fit")
 
 

@@ -106,6 +106,35 @@ def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension,
     assert "reusing" not in settings.job_message
 
 
+
+def test_changing_only_the_model_type_reuses_the_correspondence(extension, jobs):
+    """After a fit on a current Prepare, a fit that changes only the model part (type,
+    latent dimension) starts from the scene's model's correspondence; other correspondence
+    settings, or an edited shape, correspond again."""
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    store = addon_module(extension, "shapegen_addon.store")
+    settings.fit_model = "ppca"
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    first = store.get_model(bpy.context.scene)
+    assert "correspondence of model" not in settings.job_message
+
+    settings.fit_model, settings.latent_dim = "gplvm", 1
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert "reusing 'vases Prepared' and the correspondence of model 'vases'" in settings.job_message
+    second = store.get_model(bpy.context.scene)
+    assert second.model_type == "gplvm" and second.latent_dim == 1
+    np.testing.assert_array_equal(second.correspondence.points, first.correspondence.points)
+    assert second.names == first.names
+
+    other = fast_fit_json(correspondence={**json.loads(fast_fit_json())["correspondence"], "max_iterations": 5})
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=other) == {"FINISHED"}
+    assert "correspondence of model" not in settings.job_message
+    sorted(collection.objects, key=lambda o: o.name)[1].data.vertices[0].co.z += 0.05  # Prepare is stale now
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=other) == {"FINISHED"}
+    assert "reusing" not in settings.job_message
+
 def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, jobs, model_files):
     load_model("ppca", model_files)
     add_vase_collection(extension)
