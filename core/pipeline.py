@@ -8,7 +8,12 @@ versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 * the correspondence: landmarks (M, L, 3), the template's k-NN graph (kept for meshing,
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
-* the fit's settings (`FitSettings`, one JSON string) and metadata.
+* the fit's settings (`FitSettings`, one JSON string) and metadata;
+* what Blender needs at once when a model is installed, computed where the model is
+  fitted (the worker), so installing it costs no encoding on Blender's main thread: the
+  training shapes' latent vectors `training_latents` (N, Q; the latent map's points, Snap's
+  targets) and the sliders' units `latent_centre` / `latent_scale` (core/latent_units.py).
+  Files written before these arrays existed still load: they are computed on load.
 
 Generation: `sample_landmarks` → `mesh_from_landmarks` (embedded deformation of a
 template training mesh, §6), with the template chosen by name, nearest training shape in
@@ -30,6 +35,7 @@ from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import ModelFileError, ShapeGenError
+from .latent_units import LatentUnits
 from . import meshset
 from .mesh import Mesh
 from .models import MODEL_TYPES, make_model, model_from_arrays
@@ -94,7 +100,8 @@ class GenerativeShapeModel:
     """A fitted shape class: sample, encode, complete and mesh new shapes."""
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
-                 settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None):
+                 settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None,
+                 training_latents: np.ndarray | None = None, latent_units: LatentUnits | None = None):
         if len(meshes) != len(correspondence.names):
             raise ShapeGenError(f"{len(meshes)} meshes for {len(correspondence.names)} corresponded shapes")
         self.meshes = meshes
@@ -104,7 +111,8 @@ class GenerativeShapeModel:
         self.metadata = dict(metadata or {})
         self._linear_maps: dict[int, LinearMeshMap] = {}
         self._deformers: dict[int, EmbeddedDeformer] = {}
-        self._training_latents: np.ndarray | None = None
+        self._training_latents = training_latents
+        self._latent_units = latent_units
 
     # ------------------------------------------------------------------ basics
     @property
@@ -132,9 +140,17 @@ class GenerativeShapeModel:
         return self.correspondence.landmark_matrix()
 
     def training_latents(self) -> np.ndarray:
+        """The training shapes' latent vectors (N, Q): encoded once (a search per shape for
+        the GP-LVMs), then kept and saved with the model."""
         if self._training_latents is None:
             self._training_latents = self.model.encode(self.training_matrix())
         return self._training_latents
+
+    def latent_units(self) -> LatentUnits:
+        """The sliders' units (core/latent_units.py) from the training latents."""
+        if self._latent_units is None:
+            self._latent_units = LatentUnits.from_training(self.training_latents())
+        return self._latent_units
 
     def shape_index(self, name: str) -> int:
         try:
@@ -245,6 +261,9 @@ class GenerativeShapeModel:
         arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
+        units = self.latent_units()
+        arrays["training_latents"] = self.training_latents()
+        arrays["latent_centre"], arrays["latent_scale"] = units.centre, units.scale
         return arrays
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -269,8 +288,25 @@ class GenerativeShapeModel:
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")
-        return cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
-                   metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())))
+        loaded = cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
+                     metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())),
+                     **_load_latents(arrays, path, len(meshes), model.latent_dim))
+        loaded.latent_units()  # a file from before the arrays existed: computed now, on load
+        return loaded
+
+
+def _load_latents(arrays: dict, path, n_shapes: int, latent_dim: int) -> dict:
+    """training_latents and latent_units as a model file records them ({} when it does not:
+    files written before they were saved)."""
+    if "training_latents" not in arrays:
+        return {}
+    spec = {"training_latents": ArraySpec("f", (n_shapes, latent_dim)),
+            "latent_centre": ArraySpec("f", (latent_dim,)), "latent_scale": ArraySpec("f", (latent_dim,))}
+    validate_arrays(arrays, spec, str(path))
+    if not np.all(arrays["latent_scale"] > 0):
+        raise ModelFileError(f"{path}: array 'latent_scale' must be positive")
+    return {"training_latents": arrays["training_latents"],
+            "latent_units": LatentUnits(arrays["latent_centre"], arrays["latent_scale"])}
 
 
 #: Model files before issue 11: settings as repr strings by (dotted) key, deformation
@@ -373,7 +409,8 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
                     progress: Progress | None = None, should_cancel=None,
                     started: float | None = None) -> GenerativeShapeModel:
     """The shape-model stage (§5.3) on a finished correspondence of `meshes` (normalised
-    frame): fit `settings.model` to the landmark matrix and bundle the fitted whole.
+    frame): fit `settings.model` to the landmark matrix, encode the training shapes (saved
+    with the model, so nobody encodes them again) and bundle the fitted whole.
     `progress` and `should_cancel` as in core/progress.py (cancel is checked at every
     progress step of the model fit); `started` (perf_counter) dates the fit's start."""
     report = progress or no_progress
@@ -382,11 +419,15 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
 
     _check_mesh_template(settings, list(corr.names))
     model = make_model(settings.model, settings.latent_dim, settings.prepare.seed)
-    model.fit(corr.landmark_matrix(), progress=cancel.before(sub_range(report, 0.0, 1.0, f"{settings.model}: ")))
+    model.fit(corr.landmark_matrix(), progress=cancel.before(sub_range(report, 0.0, 0.95, f"{settings.model}: ")))
+    cancel()
+    report(0.95, "encoding the training shapes")
+    latents = model.encode(corr.landmark_matrix())
     cancel()
     report(1.0, "fitted")
     from . import __version__
 
     metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",
                 "n_shapes": str(len(meshes)), "shapegen_version": __version__}
-    return GenerativeShapeModel(list(meshes), corr, model, settings=settings, metadata=metadata)
+    return GenerativeShapeModel(list(meshes), corr, model, settings=settings, metadata=metadata,
+                                training_latents=latents)

@@ -6,6 +6,7 @@ Runs one task from `TASKS`, reporting progress as JSON lines on stdout and honou
 
 from __future__ import annotations
 
+import _thread
 import json
 import sys
 import threading
@@ -30,33 +31,62 @@ def _emit(**message) -> None:
     sys.stdout.flush()
 
 
-def _cancel_on_stdin() -> threading.Event:
-    """An Event set when the parent writes "cancel" on stdin (or closes it: the parent is
-    gone, so stop as soon as possible); tasks get it as their `should_cancel`."""
-    event = threading.Event()
+#: seconds a task has to stop by itself (its own cancel checks) after a cancel before the
+#: worker interrupts it
+CANCEL_GRACE = 0.5
 
-    def listen() -> None:
+
+class _CancelOnStdin:
+    """Cancel from the parent: `event` (the tasks' `should_cancel`) is set when the parent
+    writes "cancel" on stdin, or closes it (the parent is gone). A task that has not
+    stopped by itself `CANCEL_GRACE` s later (a step with no cancel check, e.g. a long
+    loop in a library) is interrupted: `_thread.interrupt_main` raises KeyboardInterrupt
+    in the main thread at its next Python instruction, which `main` reports as cancelled.
+    So a cancel takes effect within about `CANCEL_GRACE` s in every stage."""
+
+    def __init__(self, grace: float = CANCEL_GRACE):
+        self.event = threading.Event()
+        self.grace = grace
+        self._ended = threading.Event()
+        self._lock = threading.Lock()
+        threading.Thread(target=self._listen, daemon=True).start()
+
+    def _listen(self) -> None:
         for line in sys.stdin:
             if line.strip() == "cancel":
                 break
-        event.set()
+        self.event.set()
+        if self._ended.wait(self.grace):
+            return
+        with self._lock:
+            if not self._ended.is_set():
+                _thread.interrupt_main()
 
-    threading.Thread(target=listen, daemon=True).start()
-    return event
+    def task_ended(self) -> None:
+        """The task returned or raised: nothing may interrupt the main thread any more."""
+        with self._lock:
+            self._ended.set()
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
-    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz) or from an
-    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare);
-    `settings` are FitSettings as plain data (FitSettings.from_dict)."""
+    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz), from an
+    already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare) or
+    from the meshes and correspondence of an earlier model (`correspondence_of`: a model
+    file; only the shape model is fitted); `settings` are FitSettings as plain data
+    (FitSettings.from_dict)."""
     from .collection import PreparedCollection
     from .meshset import load_mesh_set
-    from .pipeline import FitSettings, fit_meshes
+    from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 
-    source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
-              else load_mesh_set(arguments["meshes"]))
     settings = FitSettings.from_dict(arguments.get("settings", {}))
-    model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
+    if "correspondence_of" in arguments:
+        earlier = GenerativeShapeModel.load(arguments["correspondence_of"])
+        model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
+                                should_cancel=should_cancel)
+    else:
+        source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
+                  else load_mesh_set(arguments["meshes"]))
+        model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
     return _save_result(model, arguments, should_cancel, "fit")
 
 
@@ -97,7 +127,8 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
 
 
 def task_selftest(arguments: dict, progress, should_cancel) -> str:
-    """A tiny task for tests of the job machinery: counts, sleeps, can fail or crash."""
+    """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash or run a
+    step that never checks cancel (`busy_at`, for `busy` seconds)."""
     import time
 
     from .errors import ShapeGenError
@@ -106,6 +137,10 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     cancel = CancelCheck(should_cancel, "selftest")
     steps = int(arguments.get("steps", 10))
     for i in range(steps):
+        if arguments.get("busy_at") == i:  # a long step that never checks cancel
+            end = time.monotonic() + float(arguments.get("busy", 30.0))
+            while time.monotonic() < end:
+                pass
         cancel()
         progress((i + 1) / steps, f"step {i + 1} of {steps}")
         time.sleep(float(arguments.get("sleep", 0.01)))
@@ -130,10 +165,14 @@ def main(argv: list[str]) -> int:
     from .errors import Cancelled, ShapeGenError
 
     task, arguments = TASKS[argv[0]], json.loads(argv[1])
-    should_cancel = _cancel_on_stdin()
+    cancel = _CancelOnStdin()
     try:
-        output = task(arguments, lambda f, stage: _emit(event="progress", fraction=f, stage=stage), should_cancel)
-    except Cancelled:
+        try:
+            output = task(arguments, lambda f, stage: _emit(event="progress", fraction=f, stage=stage),
+                          cancel.event)
+        finally:
+            cancel.task_ended()
+    except (Cancelled, KeyboardInterrupt):
         _emit(event="cancelled")
         return 0
     except ShapeGenError as exc:

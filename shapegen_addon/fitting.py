@@ -16,6 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ..core.collection import PreparedCollection
 from ..core.errors import ShapeGenError
 from ..core.jobs import JobStatus
 from ..core.meshset import save_mesh_set
@@ -24,7 +25,7 @@ from . import latent, store
 from .convert import object_triangles
 from .jobs import MANAGER, job_settings, poll_job, report_outcome
 
-__all__ = ["check_fit_settings", "gather_meshes", "save_meshes", "install_model", "load_result", "finish",
+__all__ = ["check_fit_settings", "reusable_correspondence", "gather_meshes", "save_meshes", "install_model", "load_result", "finish",
            "poll_fit"]
 
 
@@ -34,6 +35,30 @@ def poll_fit() -> JobStatus | None:
     job has run. Loop until `status.finished`; the job's end is applied to the scene by
     this call, exactly as the UI timer would (`jobs.poll_job`)."""
     return poll_job()
+
+
+def reusable_correspondence(scene: bpy.types.Scene, prepared: PreparedCollection, options: dict):
+    """The scene's model when its correspondence can be reused for this fit (only the model
+    part changes: model type, latent dimension, meshing): it was computed with the same
+    Prepare, correspondence and template settings on this `prepared` collection (Prepare's
+    current result, prepared.reusable_prepared), i.e. the same shapes (names, meshes and
+    transforms equal). Else None."""
+    model = store.get_model(scene)
+    if model is None:
+        return None
+    wanted, had = FitSettings.from_dict(options), model.settings
+    if (had.prepare, had.correspondence, had.template) != (wanted.prepare, wanted.correspondence, wanted.template):
+        return None
+    if model.names != prepared.names:
+        return None
+    transforms = model.correspondence.transforms
+    for mesh, shape, transform in zip(model.meshes, prepared.shapes, transforms):
+        size = max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-12)
+        if (mesh.vertices.shape != shape.mesh.vertices.shape or not np.array_equal(mesh.faces, shape.mesh.faces)
+                or np.abs(mesh.vertices - shape.mesh.vertices).max() > 1e-5 * size
+                or np.abs(transform - shape.transform.matrix).max() > 1e-6 * max(1.0, np.abs(transform).max())):
+            return None
+    return model
 
 
 def check_fit_settings(options: dict) -> None:
@@ -89,6 +114,10 @@ def finish(status: JobStatus, loaded) -> None:
     if status.state != "done":
         report_outcome(settings, "FAILED", f"Fit failed: {status.error or 'unknown error'}; {kept}")
         return
+    if bpy.data.collections.get(payload["name"]) is None:  # as Prepare refuses: its shapes are gone
+        report_outcome(settings, "FAILED", f"Fit finished but collection '{payload['name']}' was deleted "
+                       f"meanwhile; {kept}")
+        return
     try:
         if isinstance(loaded, Exception):
             raise loaded
@@ -96,7 +125,7 @@ def finish(status: JobStatus, loaded) -> None:
     except (ShapeGenError, OSError) as exc:
         report_outcome(settings, "FAILED", f"Fit finished but its model could not be loaded: {exc}")
         return
-    reused = f", reusing '{payload['reused']}'" if payload.get("reused") else ""
+    reused = f", reusing {payload['reused']}" if payload.get("reused") else ""
     report_outcome(settings, "DONE", f"Fitted {model.model_type} to {len(model.names)} shapes of '{payload['name']}': "
                    f"{model.latent_dim} latent dimensions, {model.n_landmarks} landmarks "
                    f"({MANAGER.elapsed:.1f} s{reused})", "fitted")

@@ -22,7 +22,7 @@ __all__ = ["register_handlers", "unregister_handlers"]
 def _load_pre(*_args):
     if MANAGER.running:  # the job belongs to the file being closed
         print(f"ShapeGen: a new file is loading; stopping the running job ({MANAGER.label})")
-        MANAGER.kill()
+        MANAGER.kill("a new file was loaded")
 
 
 @persistent

@@ -60,9 +60,10 @@ def sliders_batch():
 # ------------------------------------------------------------------------------ sliders
 def rebuild_sliders(scene: bpy.types.Scene, model) -> None:
     """One slider per latent dimension of `model`, all at the training mean, in training
-    standard deviations (core.latent_units: ±3 covers every training shape)."""
+    standard deviations (core.latent_units: ±3 covers every training shape), as the model
+    file records them (nothing is encoded here)."""
     settings = scene.shapegen
-    units = LatentUnits.from_training(model.training_latents())
+    units = model.latent_units()
     with sliders_batch():
         settings.latents.clear()
         for k in range(model.latent_dim):

@@ -115,9 +115,11 @@ class PPCA(ShapeModel):
         d = mean.shape[0]
         noise_variance = (total - spectrum[:q].sum()) / (d - q)
         if not noise_variance > 1e-12 * total / d:
+            smaller = f"choose a Latent Dimension below {q} (--latent-dim), " if q > 1 else ""
             raise ModelInputError(
-                f"PPCA noise variance is zero with q = {q}: the data span only {q} directions; "
-                "choose fewer components or use shrinkage"
+                f"PPCA cannot fit {q} latent dimension(s): the training shapes vary in only {q} "
+                f"direction(s), which leaves no noise to model; {smaller}add training shapes "
+                "or choose another Model (gplvm or bgplvm)"
             )
         self.mean_ = mean
         self.components_ = axes[:, :q] * np.sqrt(np.maximum(spectrum[:q] - noise_variance, 0.0))

@@ -170,12 +170,17 @@ class JobManager:
         self.job.cancel()
         return True
 
-    def kill(self) -> None:
-        """Stop the worker now and forget the job without calling back (unregister, file load)."""
+    def kill(self, reason: str = "the job was stopped") -> None:
+        """Stop the worker now and forget the job without calling back (unregister, file
+        load). The status says so: state "cancelled", stage "cancelled: <reason>" (error:
+        `reason`), so a script polling the job sees it end."""
         if self._setup_thread is not None:
             self._setup_thread.join()  # let it finish starting the worker, then stop that
         if self.job is not None:
             self.job.kill()
+            fraction = self.last_status.fraction if self.last_status is not None else 0.0
+            self.last_status = JobStatus(state="cancelled", fraction=fraction, stage=f"cancelled: {reason}",
+                                         error=reason)
         self._clear()
 
     def _clear(self) -> None:

@@ -13,6 +13,7 @@ into scene data; they hold no algorithm.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import bpy
@@ -130,9 +131,28 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
         "base meshes (modifiers ignored)"
     report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}' from their {read}: "
                    f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus"
-                   + _intake_notes(payload["notes"]), "prepared")
+                   + _intake_notes(payload["notes"])
+                   + (f"; {payload['triangulated']}" if payload["triangulated"] else ""), "prepared")
     if not bpy.app.background and not payload.get("wait"):
         _push_undo_step("ShapeGen Prepare")  # after the outcome, so the step holds it
+
+
+def _intake_changes(meshes) -> dict[str, str]:
+    """{object name: what intake changed} for the meshes it changed beyond triangulating
+    polygons (Mesh.report.summary without that part: `_triangulation_line` says it once)."""
+    notes = {m.name: replace(m.report, polygons_triangulated=0, triangles_from_polygons=0).summary()
+             for m in meshes}
+    return {name: note for name, note in notes.items() if note != "clean"}
+
+
+def _triangulation_line(meshes) -> str:
+    """One line for the whole Prepare: how many polygons of how many objects were
+    triangulated (quads and n-gons are normal input), or "" when none was."""
+    split = [m.report for m in meshes if m.report.polygons_triangulated]
+    if not split:
+        return ""
+    return (f"Triangulated {sum(r.polygons_triangulated for r in split)} polygon(s) of {len(split)} object(s) into "
+            f"{sum(r.triangles_from_polygons for r in split)} triangles")
 
 
 def _intake_notes(notes: dict[str, str], shown: int = 4) -> str:
@@ -203,15 +223,19 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         meshes = [r.mesh for r in readings]
-        notes = {m.name: m.report.summary() for m in meshes if m.report.summary() != "clean"}
+        notes = _intake_changes(meshes)
         for name, note in notes.items():
             self.report({"INFO"}, f"{name}: {note}")
+        triangulated = _triangulation_line(meshes)
+        if triangulated:
+            self.report({"INFO"}, triangulated)
         options = self.job_options(settings.prepare_options(), _check_prepare_options)
         if options is None:
             return {"CANCELLED"}
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
                    "vertex_counts": [r.n_vertices for r in readings], "evaluated": evaluated,
-                   "reversed_polygons": [r.reversed_polygons for r in readings], "notes": notes, "wait": self.wait}
+                   "reversed_polygons": [r.reversed_polygons for r in readings], "notes": notes,
+                   "triangulated": triangulated, "wait": self.wait}
 
         # 2. the worker; `_finish_prepare` builds the collection on the main thread
         def start(folder: Path) -> None:

@@ -4,7 +4,9 @@ the .blend), Load Model, Export Model.
 Flow of Fit:
 1. `SHAPEGEN_OT_fit` (main thread) reads the collection's mesh objects' triangles
    (convert.object_triangles, world coordinates) — or, when Prepare's result for them is
-   current (prepared.reusable_prepared), the prepared shapes; a helper thread writes them
+   current (prepared.reusable_prepared), the prepared shapes, or, when the scene's model
+   was corresponded on exactly those with the same settings
+   (fitting.reusable_correspondence), that model's correspondence; a helper thread writes them
    into a temporary folder, then the core's "fit" task starts in a worker process
    (core/worker.py, which never imports bpy) through `jobs.MANAGER`. Nothing in the scene
    changes yet.
@@ -61,10 +63,16 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
 
         def start(folder: Path) -> None:
             payload = {"scene": scene.name, "name": collection.name}
-            if reuse is not None:  # Prepare's result is current: the worker starts at correspondence
-                prepared = to_prepared_collection(reuse[1])
+            prepared = to_prepared_collection(reuse[1]) if reuse is not None else None
+            earlier = fitting.reusable_correspondence(scene, prepared, options) if prepared is not None else None
+            if earlier is not None:  # only the model part changed: the worker fits the shape model alone
+                data = store.model_bytes(settings.model_text)
+                inputs = {"correspondence_of": str(folder / "earlier.npz")}
+                payload["reused"] = f"'{reuse[0].name}' and the correspondence of model '{store.model_name(scene)}'"
+                setup = lambda: (folder / "earlier.npz").write_bytes(data)  # noqa: E731
+            elif prepared is not None:  # Prepare's result is current: the worker starts at correspondence
                 prepared.settings = PrepareSettings.from_dict(options["prepare"])
-                inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, reuse[0].name
+                inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, f"'{reuse[0].name}'"
                 setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
             else:
                 gathered = fitting.gather_meshes(objects, evaluated)

@@ -218,3 +218,20 @@ def test_operators_push_undo_steps():
     for name in ("import_collection", "prepare"):
         op = getattr(bpy.types, f"SHAPEGEN_OT_{name}")
         assert "UNDO" in op.bl_options
+
+
+def test_prepare_says_triangulated_once_for_the_whole_collection(jobs):
+    collection = bpy.data.collections.new("boxes")
+    bpy.context.scene.collection.children.link(collection)
+    for i, size in enumerate((1.0, 1.3, 0.8)):
+        bpy.ops.mesh.primitive_cube_add(size=size)
+        cube = bpy.context.active_object
+        cube.scale.z = 1.0 + 0.3 * i
+        for owner in list(cube.users_collection):
+            owner.objects.unlink(cube)
+        collection.objects.link(cube)
+    settings = bpy.context.scene.shapegen
+    settings.source_collection, settings.n_landmarks = collection, 60
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    assert settings.job_message.lower().count("triangulated") == 1
+    assert "Triangulated 18 polygon(s) of 3 object(s) into 36 triangles" in settings.job_message

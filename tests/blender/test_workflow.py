@@ -106,6 +106,35 @@ def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension,
     assert "reusing" not in settings.job_message
 
 
+
+def test_changing_only_the_model_type_reuses_the_correspondence(extension, jobs):
+    """After a fit on a current Prepare, a fit that changes only the model part (type,
+    latent dimension) starts from the scene's model's correspondence; other correspondence
+    settings, or an edited shape, correspond again."""
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    store = addon_module(extension, "shapegen_addon.store")
+    settings.fit_model = "ppca"
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    first = store.get_model(bpy.context.scene)
+    assert "correspondence of model" not in settings.job_message
+
+    settings.fit_model, settings.latent_dim = "gplvm", 1
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    assert "reusing 'vases Prepared' and the correspondence of model 'vases'" in settings.job_message
+    second = store.get_model(bpy.context.scene)
+    assert second.model_type == "gplvm" and second.latent_dim == 1
+    np.testing.assert_array_equal(second.correspondence.points, first.correspondence.points)
+    assert second.names == first.names
+
+    other = fast_fit_json(correspondence={**json.loads(fast_fit_json())["correspondence"], "max_iterations": 5})
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=other) == {"FINISHED"}
+    assert "correspondence of model" not in settings.job_message
+    sorted(collection.objects, key=lambda o: o.name)[1].data.vertices[0].co.z += 0.05  # Prepare is stale now
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=other) == {"FINISHED"}
+    assert "reusing" not in settings.job_message
+
 def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, jobs, model_files):
     load_model("ppca", model_files)
     add_vase_collection(extension)
@@ -258,3 +287,69 @@ def test_job_manager_setup_prepare_and_cancel_before_the_worker_starts(extension
     run(prepare=lambda status: (tmp_path / "out").read_text())
     wait()
     assert finished[-1][0].state == "done" and finished[-1][1] == "ok"
+
+
+def test_poll_fit_after_a_file_load_says_cancelled(extension, jobs, tmp_path):
+    """File › Open stops the running job; a script polling `poll_fit` sees it end."""
+    add_vase_collection(extension)
+    poll_fit = addon_module(extension, "shapegen_addon.fitting").poll_fit
+    blend = tmp_path / "other.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    slow = json.dumps({"jobs": 1, "correspondence": {"alpha_steps": 5, "max_iterations": 40, "groupwise_rounds": 2}})
+    assert bpy.ops.shapegen.fit(extra_settings=slow) == {"FINISHED"}
+    _pump(jobs, lambda s: s is not None and s.fraction > 0.0, poll=poll_fit)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    status = poll_fit()
+    assert status.finished and status.state == "cancelled"
+    assert status.stage == "cancelled: a new file was loaded"
+    assert not jobs.MANAGER.running and bpy.context.scene.shapegen.job_state == "IDLE"
+
+
+def test_a_fit_whose_collection_was_deleted_installs_nothing(extension, jobs):
+    collection = add_vase_collection(extension)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model = "ppca"
+    assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
+    bpy.data.collections.remove(collection)
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished)
+    assert statuses[-1].state == "done"  # the worker finished; its model is refused, as Prepare refuses
+    assert settings.job_state == "FAILED" and "'vases' was deleted" in settings.job_message
+    assert settings.model_text is None and len(bpy.data.texts) == 0
+
+
+def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words(extension, jobs):
+    add_vase_collection(extension, n=2)
+    settings = bpy.context.scene.shapegen
+    settings.fit_model, settings.latent_dim = "ppca", 0
+    with pytest.raises(RuntimeError, match=r"add training shapes or choose another Model \(gplvm or bgplvm\)"):
+        bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
+    assert "shrinkage" not in settings.job_message
+
+
+def test_installing_a_model_never_encodes_on_the_main_thread(extension, model_files, monkeypatch):
+    """The worker encodes the training shapes and the model file keeps them: a fit's
+    install, Load Model, Explore, Snap and Latent Map read them (no encode, which took
+    1.8-2.8 s on the main thread for a Bayesian GP-LVM of 20 shapes)."""
+    models = addon_module(extension, "core.models")
+    fitting = addon_module(extension, "shapegen_addon.fitting")
+    store = addon_module(extension, "shapegen_addon.store")
+    encoded = []
+
+    def refuse(model, *_args, **_kwargs):
+        encoded.append(type(model).__name__)
+        raise AssertionError("encoded on the main thread")
+
+    for kind in ("ppca", "gplvm", "bgplvm"):
+        monkeypatch.setattr(models.MODEL_TYPES[kind], "encode", refuse)
+    scene = bpy.context.scene
+    for kind, path in model_files.items():
+        loaded = store.read_model_file(path)  # Fit's helper thread
+        started = time.perf_counter()
+        model = fitting.install_model(scene, path, f"vases {kind}", loaded)
+        installed = time.perf_counter() - started
+        assert len(scene.shapegen.latents) == model.latent_dim and installed < 1.0
+        load_model(kind, model_files)
+        assert bpy.ops.shapegen.explore() == {"FINISHED"}
+        assert bpy.ops.shapegen.explore_snap() == {"FINISHED"}
+        assert bpy.ops.shapegen.latent_map(size=64) == {"FINISHED"}
+    assert encoded == []

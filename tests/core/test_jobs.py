@@ -99,3 +99,33 @@ def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
                                        "output": str(tmp_path / "bad_prepared.npz")}).start().wait(300)
     assert status.state == "failed" and meshes[1].name in status.error and "NaN" in status.error
     assert not (tmp_path / "bad_prepared.npz").exists()
+
+
+def _cancel_when_running(job: BackgroundJob, timeout: float = 120) -> float:
+    """Cancel `job` once it reports progress; the seconds from cancel to its end."""
+    deadline = time.monotonic() + timeout
+    while job.poll().fraction == 0.0 and not job.poll().finished and time.monotonic() < deadline:
+        time.sleep(0.01)
+    began = time.monotonic()
+    job.cancel()
+    status = job.wait(60, interval=0.01)
+    assert status.state == "cancelled", status
+    return time.monotonic() - began
+
+
+def test_cancel_interrupts_a_step_that_never_checks_it(tmp_path):
+    job = BackgroundJob("selftest", {"steps": 3, "busy_at": 1, "busy": 30.0, "output": str(tmp_path / "x")}).start()
+    assert _cancel_when_running(job) < 1.0  # the busy step ignores cancel; the worker interrupts it
+    assert not (tmp_path / "x").exists()
+
+
+def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
+    from shapegen_core.datasets import make_vases
+    from shapegen_core.meshset import save_mesh_set
+
+    meshes = [s.mesh for s in make_vases(12, seed=1)]
+    save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
+                  [m.faces for m in meshes])
+    job = BackgroundJob("prepare", {"meshes": str(tmp_path / "meshes.npz"), "output": str(tmp_path / "p.npz")})
+    assert _cancel_when_running(job.start()) < 1.0  # was 6-10 s: consensus did not check cancel
+    assert not (tmp_path / "p.npz").exists()

@@ -590,3 +590,15 @@ def test_kde_matches_the_gaussian_mixture_it_defines():
     assert kde.leave_one_out_bandwidth(Z) == pytest.approx(best, rel=1e-12)
     draws = kde.sample(Z, 1e-9, 50, np.random.default_rng(1))
     assert np.abs(draws[:, None] - Z[None]).max(-1).min(1).max() < 1e-7     # every draw at a centre
+
+
+def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words():
+    Y = np.random.default_rng(0).normal(size=(2, 30))
+    with pytest.raises(ModelInputError) as raised:
+        PPCA().fit(Y)
+    message = str(raised.value)
+    assert "add training shapes" in message and "Model (gplvm or bgplvm)" in message
+    assert "shrinkage" not in message
+    Y = np.random.default_rng(0).normal(size=(4, 30))
+    with pytest.raises(ModelInputError, match="Latent Dimension below 3"):
+        PPCA(n_components=3, shrinkage=0.0).fit(Y)

@@ -126,3 +126,33 @@ def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_th
         with pytest.raises(Cancelled):
             fit_meshes(meshes, settings, progress=progress, should_cancel=stop)
         assert seen[-1].startswith(stage)  # stopped at the next check, before another report
+
+
+def test_the_model_file_holds_the_training_latents_and_slider_units(fitted, tmp_path, monkeypatch):
+    """Encoded once where the model is fitted and saved: loading never encodes; a file
+    written before these arrays existed still loads, and computes them on load."""
+    from shapegen_core.npzfile import load_npz
+    from shapegen_core.pipeline import MODEL_FILE_FORMAT, MODEL_FILE_VERSION
+
+    model, path = fitted
+    expected = model.model.encode(model.training_matrix())
+    np.testing.assert_allclose(model.training_latents(), expected)
+    with monkeypatch.context() as patch:
+        patch.setattr(PPCA, "encode", lambda *_: pytest.fail("a model file's load encoded the training shapes"))
+        loaded = GenerativeShapeModel.load(path)
+        np.testing.assert_array_equal(loaded.training_latents(), model.training_latents())
+        np.testing.assert_array_equal(loaded.latent_units().scale, model.latent_units().scale)
+        np.testing.assert_array_equal(loaded.latent_units().centre, model.latent_units().centre)
+
+    arrays = load_npz(path, MODEL_FILE_FORMAT, MODEL_FILE_VERSION, {})
+    older = tmp_path / "older.npz"
+    save_npz(older, MODEL_FILE_FORMAT, MODEL_FILE_VERSION,
+             {k: v for k, v in arrays.items() if k not in ("training_latents", "latent_centre", "latent_scale")})
+    loaded = GenerativeShapeModel.load(older)
+    np.testing.assert_allclose(loaded.training_latents(), expected)
+    np.testing.assert_allclose(loaded.latent_units().scale, model.latent_units().scale)
+
+    wrong = tmp_path / "wrong.npz"
+    save_npz(wrong, MODEL_FILE_FORMAT, MODEL_FILE_VERSION, {**arrays, "training_latents": expected[:-1]})
+    with pytest.raises(ModelFileError, match="training_latents"):
+        GenerativeShapeModel.load(wrong)
