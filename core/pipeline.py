@@ -189,17 +189,27 @@ class GenerativeShapeModel:
         return done.reshape(partial.shape)
 
     def choose_template(self, landmarks: np.ndarray, template: str | None) -> int:
-        """Index of the training shape whose mesh is deformed (§6.2.5)."""
+        """Index of the training shape whose mesh is deformed (§6.2.5). nearest-data and
+        nearest-latent choose among the shapes the correspondence did not flag as outliers
+        (among all when it flagged every one); a name is used as given."""
         landmarks = self._check_landmarks(landmarks)
         if template is None:
             template = self.settings.mesh_template
+        if template not in TEMPLATE_CHOICES:
+            return self.shape_index(template)
+        candidates = self.template_candidates()
         if template == "nearest-data":
-            distances = ((self.correspondence.points - landmarks[None]) ** 2).sum(axis=(1, 2))
-            return int(np.argmin(distances))
-        if template == "nearest-latent":
+            distances = ((self.correspondence.points[candidates] - landmarks[None]) ** 2).sum(axis=(1, 2))
+        else:
             z = self.encode(landmarks[None])[0]
-            return int(np.argmin(((self.training_latents() - z) ** 2).sum(axis=1)))
-        return self.shape_index(template)
+            distances = ((self.training_latents()[candidates] - z) ** 2).sum(axis=1)
+        return int(candidates[np.argmin(distances)])
+
+    def template_candidates(self) -> np.ndarray:
+        """Indices of the training shapes that may serve as a mesh template: those not
+        flagged as correspondence outliers (all of them when every shape is flagged)."""
+        fits = np.flatnonzero(~np.asarray(self.correspondence.outliers, dtype=bool))
+        return fits if len(fits) else np.arange(len(self.names))
 
     def _check_landmarks(self, landmarks: np.ndarray) -> np.ndarray:
         landmarks = np.asarray(landmarks, dtype=np.float64)
@@ -225,8 +235,8 @@ class GenerativeShapeModel:
         return self._linear_maps[index]
 
     def mean_template(self) -> int:
-        """Index of the training shape nearest (in data space) to the model's mean shape:
-        the natural template for meshes that move through the latent space."""
+        """Index of the training shape nearest (in data space) to the model's mean shape,
+        outliers skipped: the natural template for meshes that move through the latent space."""
         mean = np.asarray(self.model.mean_, dtype=np.float64).reshape(self.n_landmarks, 3)
         return self.choose_template(mean, "nearest-data")
 

@@ -3,7 +3,8 @@
 This module owns the names (and says what each holds); the formats built from them are
 written and read in one module each: `prepared` (prepared collections and shape objects,
 their correspondence), `latent` (objects tagged with a latent vector, the live object),
-`store` (the Text datablock holding the model). Some keys sit on several datablocks
+`store` (the Text datablock holding the model), `exclusion` (objects left out of training).
+Some keys sit on several datablocks
 (`MODEL_ID_KEY`, `TEMPLATE_KEY`): the comment says where.
 """
 
@@ -22,6 +23,9 @@ TEMPLATE_KEY = "shapegen_template"  # Text: the correspondence template; tagged 
 RESIDUAL_MEDIAN_KEY = "shapegen_residual_median"  # median correspondence residual, fraction of the diagonal
 OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
 
+# ------------------------------------------------------------------ a user's training collection
+EXCLUDED_KEY = "shapegen_excluded"  # names of its objects Prepare, Find Correspondences and Fit leave out
+
 # ------------------------------------------------------------------ a prepared collection
 PREPARED_KEY = "shapegen_prepared"  # True: made by Prepare
 SOURCE_COLLECTION_KEY = "shapegen_source_collection"  # name of the user's collection it was prepared from
@@ -38,7 +42,7 @@ LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each la
 LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
 LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
 CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local
-CORRESPONDENCE_OUTLIER_KEY = "shapegen_correspondence_outlier"  # True: an outlier of the correspondence
+CORRESPONDENCE_OUTLIER_KEY = "shapegen_correspondence_outlier"  # why it is an outlier of the correspondence ("": fits)
 
 
 def mesh_source(evaluated: bool) -> str:

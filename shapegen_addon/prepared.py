@@ -76,17 +76,17 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
 
 def apply_correspondence(collection: bpy.types.Collection, result) -> None:
     """Tag every prepared object of `collection` with its corresponded landmarks (a core
-    `Correspondence`, object-local) and index-coloured markers; its Prepare landmark
-    markers are hidden."""
+    `Correspondence`, object-local), why it is an outlier ("" when it fits) and
+    index-coloured markers; its Prepare landmark markers are hidden."""
     objects = {o.get(SOURCE_KEY, o.name): o for o in prepared_objects(collection)}
     colours = landmark_index_colours(result.template_points)
     radius = 0.006 * float(np.linalg.norm(np.ptp(result.template_points, axis=0)))
-    for name, points, outlier in zip(result.names, result.points, result.outliers):
+    for name, points, outlier, reason in zip(result.names, result.points, result.outliers, result.outlier_reasons):
         obj = objects.get(name)
         if obj is None:
             continue
         obj[CORRESPONDENCE_KEY] = points.ravel().tolist()
-        obj[CORRESPONDENCE_OUTLIER_KEY] = bool(outlier)
+        obj[CORRESPONDENCE_OUTLIER_KEY] = (reason or "outlier") if outlier else ""
         add_correspondence_markers(obj, points, colours, radius)
         landmark_markers = bpy.data.objects.get(f"{obj.name} landmarks")
         if landmark_markers is not None:

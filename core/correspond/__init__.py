@@ -33,11 +33,14 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   registration.py  one template → target registration (Alg. 3): `register`, `Anchors`
   pool.py          registration tasks in this process or in spawned worker processes, their
                    ICP iterations turned into progress fractions
-  groupwise.py     `correspond`: template choice, groupwise rounds, outlier flags
+  groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
+  outliers.py      outlier flags and their reasons (residual, size, leave-one-out
+                   reconstruction in a PPCA model of the other shapes)
   result.py        `Correspondence` and its .npz file
 """
 
-from .groupwise import chamfer_medoid, correspond, flag_outliers
+from .groupwise import chamfer_medoid, correspond
+from .outliers import flag_outliers, leave_one_out_errors
 from .registration import Anchors, Registration, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
 from .settings import CorrespondenceSettings
@@ -51,6 +54,7 @@ __all__ = [
     "register",
     "chamfer_medoid",
     "flag_outliers",
+    "leave_one_out_errors",
     "CORRESPONDENCE_FORMAT",
     "CORRESPONDENCE_SPEC",
     "CORRESPONDENCE_VERSION",

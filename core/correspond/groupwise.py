@@ -1,11 +1,12 @@
 """Groupwise correspondence over a prepared collection (thesis §4.2.7): choose a template
-(the Chamfer medoid), register it to every shape, replace it by the mean landmark cloud
-of the shapes that fit, register again; flag shapes that fit badly."""
+(the Chamfer medoid), register it to every shape, flag shapes that fit badly
+(outliers.py), replace the template by the mean landmark cloud of the shapes that fit,
+register again. A medoid the first round flags gives way to the medoid of the rest."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -14,11 +15,12 @@ from ..errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_frame
 from ..progress import Progress, no_progress, sub_range
 from .pool import RegistrationRunner, RegistrationTask
+from .outliers import flag_outliers
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
 
-__all__ = ["chamfer_medoid", "correspond", "flag_outliers"]
+__all__ = ["chamfer_medoid", "correspond"]
 
 
 def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> int:
@@ -29,36 +31,33 @@ def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> i
     return int(np.argmin(chamfer_matrix(sets).sum(axis=1)))
 
 
-def flag_outliers(residuals: np.ndarray, scale_ratios: np.ndarray,
-                  settings: CorrespondenceSettings = CorrespondenceSettings()) -> list[str]:
-    """A reason string per shape ("" = fits). Rules (any one flags):
-    robust: residual > median + f · 1.4826 · MAD and > `outlier_min_ratio` × median
-    (needs 3+ shapes); absolute: residual > `max_residual`; scale: bounding-box diagonal
-    differs from the template's by more than `max_scale_ratio` (either way)."""
-    residuals = np.asarray(residuals, dtype=np.float64)
-    median = float(np.median(residuals))
-    mad = 1.4826 * float(np.median(np.abs(residuals - median)))
-    reasons = []
-    for residual, ratio in zip(residuals, scale_ratios):
-        why = []
-        if len(residuals) >= 3 and residual > median + settings.outlier_mad_factor * mad \
-                and residual > settings.outlier_min_ratio * median:
-            why.append(f"residual {residual:.4f} of the diagonal is far above the collection's median {median:.4f}")
-        elif residual > settings.max_residual:
-            why.append(f"residual {residual:.4f} of the diagonal exceeds {settings.max_residual}")
-        if ratio > settings.max_scale_ratio or ratio < 1.0 / settings.max_scale_ratio:
-            why.append(f"size is {ratio:.3g}× the template's (alignment or scaling failed or is off)")
-        reasons.append("; ".join(why))
-    return reasons
-
-
-def _template_index(names: list[str], template: str | None, landmark_sets) -> int:
+def _template_index(names: list[str], template: str | None, landmark_sets, candidates: Sequence[int]) -> int:
+    """The named template, else the Chamfer medoid of the `candidates` (shape indices)."""
     if template is None:
-        return chamfer_medoid(landmark_sets)
+        candidates = list(candidates)
+        return candidates[chamfer_medoid([landmark_sets[i] for i in candidates])]
     if template not in names:
         shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
         raise CollectionError(f"template {template!r} is not a shape of the collection ({shown})")
     return names.index(template)
+
+
+@dataclass
+class _Rounds:
+    """The outcome of the groupwise rounds from one template (`_run_rounds`)."""
+
+    start: int  # index of the shape the first template came from
+    edges: np.ndarray
+    template: np.ndarray  # the template of the last round
+    registrations: list  # of the last round, in the registration frame
+    results: list  # the same in the normalised frame
+    residuals: np.ndarray
+    reasons: list[str]
+    rounds_run: int
+
+    @property
+    def keep(self) -> np.ndarray:
+        return np.array([not r for r in self.reasons])
 
 
 def correspond(
@@ -71,10 +70,17 @@ def correspond(
 ) -> Correspondence:
     """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
 
-    template: a shape name, or None for the medoid by symmetric Chamfer distance.
+    template: a shape name, or None for the medoid by symmetric Chamfer distance. An
+    outlier is never the medoid template: when a round flags the medoid (outliers.py;
+    a shape turned upside down fits itself as the first template, the mean template
+    of the next round shows it), the medoid of the shapes that round did not flag
+    becomes the template and the rounds start again from it (a template given by name
+    is kept). Outliers cannot be left out of the first medoid choice: they are known
+    only after a round of registrations.
     jobs: worker processes (None: all cores; 1: in this process).
     progress: fractions over the R = groupwise_rounds + 1 rounds of registrations, each
     round an equal share filled as its shapes' ICP iterations run (core/progress.py);
+    after a change of template the new rounds share what is left;
     messages name the template, the shape being registered and the round.
     should_cancel: None, a callable or an Event, checked between ICP iterations; raises
     errors.Cancelled.
@@ -89,46 +95,30 @@ def correspond(
         if not shape.mesh.area() > 0:
             raise MeshError(f"{shape.name}: surface area is zero (degenerate mesh); cannot register to it")
     landmark_sets = [l.points for l in collection.landmarks]
-    start = _template_index(names, template, landmark_sets)
-    template_name = names[start]
-    report(0.0, f"template {template_name}")
-
-    template_points = np.asarray(landmark_sets[start], dtype=np.float64)
-    centre, scale = registration_frame(template_points, template_name)
-    to_frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    template_normals = collection.shapes[start].mesh.face_normals()[collection.landmarks[start].face_index]
-    edges = knn_graph(template_points, settings.k_neighbours)
+    start = _template_index(names, template, landmark_sets, range(len(names)))
+    report(0.0, f"template {names[start]}")
 
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
     rounds = settings.groupwise_rounds + 1
     runner = RegistrationRunner(jobs, should_cancel)
     try:
-        current_template, current_normals = template_points, template_normals
-        for round_index in range(rounds):
-            label = f"round {round_index + 1} of {rounds}"
-            if round_index > 0:
-                current_template, current_normals = _mean_template(results, keep)
-                report(round_index / rounds, f"mean template ({label})")
-            tasks = [
-                RegistrationTask(i, names[i], to_frame(shape.mesh.vertices), shape.mesh.faces,
-                      to_frame(landmarks.points), shape.mesh.face_normals()[landmarks.face_index],
-                      to_frame(current_template), current_normals, edges, settings)
-                for i, (shape, landmarks) in enumerate(zip(collection.shapes, collection.landmarks))
-            ]
-            registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds),
-                                       label)
-            results = [_to_normalised(r, centre, scale) for r in registrations]
-            residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
-                                  for r, s in zip(registrations, collection.shapes)])
-            template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
-            ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
-            reasons = flag_outliers(residuals, ratios, settings)
-            keep = np.array([not r for r in reasons])
+        outcome = _run_rounds(collection, start, settings, runner, report, stop_if_template_flagged=template is None)
+        if template is None and outcome.reasons[start]:
+            fits = np.flatnonzero(outcome.keep)
+            if len(fits):
+                start = _template_index(names, None, landmark_sets, fits)
+                done = outcome.rounds_run / rounds
+                report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
+                             f"{outcome.reasons[outcome.start]})")
+                outcome = _run_rounds(collection, start, settings, runner, sub_range(report, done, 1.0),
+                                      stop_if_template_flagged=False)
     finally:
         runner.close()
+    template_name = names[outcome.start]
     report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
 
+    results, registrations = outcome.results, outcome.registrations
     points = np.stack([r.placed.points for r in results])
     transforms = [shape.transform for shape in collection.shapes]
     return Correspondence(
@@ -137,17 +127,57 @@ def correspond(
         points_input=np.stack([t.to_input(p) for t, p in zip(transforms, points)]),
         face_index=np.stack([r.placed.face_index for r in results]),
         barycentric=np.stack([r.placed.barycentric for r in results]),
-        edges=edges,
-        template_points=np.asarray(current_template, dtype=np.float64),
+        edges=outcome.edges,
+        template_points=np.asarray(outcome.template, dtype=np.float64),
         template_name=template_name,
         transforms=np.stack([t.matrix for t in transforms]),
-        residuals=residuals,
+        residuals=outcome.residuals,
         iterations=np.array([r.iterations for r in registrations]),
-        outliers=~keep,
-        outlier_reasons=reasons,
+        outliers=~outcome.keep,
+        outlier_reasons=outcome.reasons,
         settings=settings,
         prepare=collection.settings,
     )
+
+
+def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,
+                report: Progress, stop_if_template_flagged: bool) -> _Rounds:
+    """The R = groupwise_rounds + 1 rounds from the landmarks of shape `start` (§4.2.7):
+    register the template to every shape, flag outliers, replace the template by the mean
+    landmark cloud of the shapes that fit, again. With `stop_if_template_flagged`, stops
+    after the first round that flags shape `start`."""
+    names = list(collection.names)
+    template_points = np.asarray(collection.landmarks[start].points, dtype=np.float64)
+    centre, scale = registration_frame(template_points, names[start])
+    to_frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
+    template_normals = collection.shapes[start].mesh.face_normals()[collection.landmarks[start].face_index]
+    edges = knn_graph(template_points, settings.k_neighbours)
+    template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
+    ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
+    rounds = settings.groupwise_rounds + 1
+    outcome = None
+    current_template, current_normals = template_points, template_normals
+    for round_index in range(rounds):
+        label = f"round {round_index + 1} of {rounds}"
+        if outcome is not None:
+            current_template, current_normals = _mean_template(outcome.results, outcome.keep)
+            report(round_index / rounds, f"mean template ({label})")
+        tasks = [
+            RegistrationTask(i, names[i], to_frame(shape.mesh.vertices), shape.mesh.faces,
+                             to_frame(landmarks.points), shape.mesh.face_normals()[landmarks.face_index],
+                             to_frame(current_template), current_normals, edges, settings)
+            for i, (shape, landmarks) in enumerate(zip(collection.shapes, collection.landmarks))
+        ]
+        registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)
+        results = [_to_normalised(r, centre, scale) for r in registrations]
+        residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
+                              for r, s in zip(registrations, collection.shapes)])
+        reasons = flag_outliers(residuals, ratios, settings, np.stack([r.placed.points for r in results]))
+        outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
+                          round_index + 1)
+        if stop_if_template_flagged and reasons[start]:
+            break
+    return outcome
 
 
 def _to_normalised(registration: Registration, centre: np.ndarray, scale: float) -> Registration:

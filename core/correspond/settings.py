@@ -63,12 +63,21 @@ class CorrespondenceSettings(Settings):
     Groupwise (§4.2.7):
       groupwise_rounds: times the template is replaced by the mean landmark cloud and all
         shapes registered again (thesis 1; 0 = pairwise registration only).
-    Outliers (per-shape fit residual, see `flag_outliers`):
+    Outliers (outliers.py `flag_outliers`; any rule flags):
       outlier_mad_factor: flag a residual above median + factor · 1.4826 · MAD ...
       outlier_min_ratio: ... and above this multiple of the median (both must hold), or
       max_residual: above this fraction of the shape's bounding-box diagonal, or
       max_scale_ratio: when the shape's and the template's bounding-box diagonals differ by
-        more than this factor (alignment/scaling failed or was switched off).
+        more than this factor (alignment/scaling failed or was switched off), or
+      loo_mad_factor, loo_min_ratio: when the shape's leave-one-out reconstruction error
+        (its landmarks against the PPCA model of the other shapes) is above median +
+        factor · 1.4826 · MAD and above this multiple of the median (upside down, turned,
+        mirrored, another class). Measured on 12 procedural vases (300 landmarks),
+        seeds 0-19: shapes of clean collections reach at most 2.0× the median (2.6×
+        beside an upside-down shape), a shape turned upside down after Prepare at
+        least 6.4×; 4× flags none of the clean and every upside-down one.
+      loo_variance: the leave-one-out model keeps the fewest principal directions that
+        explain this fraction of the other shapes' variance.
     """
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
@@ -90,9 +99,14 @@ class CorrespondenceSettings(Settings):
     outlier_min_ratio: float = option(1.5, "... and above this multiple of the median")
     max_residual: float = option(0.05, "outlier: residual above this fraction of the diagonal")
     max_scale_ratio: float = option(3.0, "outlier: size differs from the template's by more than this factor")
+    loo_mad_factor: float = option(3.0, "outlier: leave-one-out error above median + factor · MAD ...")
+    loo_min_ratio: float = option(4.0, "... and above this multiple of the median", above=1)
+    loo_variance: float = option(0.9, "fraction of variance the leave-one-out PPCA model keeps", above=0)
 
     def __post_init__(self):
         super().__post_init__()
+        if self.loo_variance > 1:
+            raise SettingsError("loo_variance", f"must be at most 1, got {self.loo_variance!r}")
         if self.alpha_start < self.alpha_end:
             raise SettingsError("alpha_start", f"must be at least alpha_end ({self.alpha_end!r}), got "
                                 f"{self.alpha_start!r}")

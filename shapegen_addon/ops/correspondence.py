@@ -15,6 +15,7 @@ from pathlib import Path
 import bpy
 
 from ...core.jobs import BackgroundJob, JobStatus
+from ..exclusion import without_excluded
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
 from ..prepared import (apply_correspondence, prepared_collection_for, prepared_objects, recorded_prepare_settings,
                         to_prepared_collection)
@@ -79,7 +80,7 @@ class SHAPEGEN_OT_find_correspondences(JobOperator, bpy.types.Operator):
         if collection is None:
             self.report({"ERROR"}, f"'{chosen.name}' has no prepared collection: Prepare it first (Data panel)")
             return {"CANCELLED"}
-        objects = prepared_objects(collection)
+        objects = without_excluded(collection, prepared_objects(collection))
         if len(objects) < 2:
             self.report({"ERROR"}, f"'{collection.name}' has {len(objects)} prepared shape(s); need at least 2")
             return {"CANCELLED"}

@@ -24,6 +24,7 @@ from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
 from ...core.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
+from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
 from ..prepared import PREPARE_SETTINGS, build_prepared_collection
 from ..preview import new_collection
@@ -200,7 +201,7 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
         source = self.chosen_collection(context)
         if source is None:
             return {"CANCELLED"}
-        objects = sorted(source.all_objects, key=lambda o: o.name)
+        objects = training_objects(source)
         mesh_objects = [o for o in objects if o.type == "MESH"]
         skipped = [o.name for o in objects if o.type != "MESH"]
         if skipped:

@@ -29,6 +29,7 @@ from ...core.collection import PrepareSettings
 from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob
 from .. import fitting, store
+from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, no_job_running
 from ..prepared import reusable_prepared, to_prepared_collection
 
@@ -50,7 +51,7 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
         collection = self.chosen_collection(context)
         if collection is None:
             return {"CANCELLED"}
-        objects = sorted((o for o in collection.all_objects if o.type == "MESH"), key=lambda o: o.name)
+        objects = [o for o in training_objects(collection) if o.type == "MESH"]
         if len(objects) < 2:
             self.report({"ERROR"}, f"Collection '{collection.name}' has {len(objects)} mesh object(s); "
                         "a shape model needs at least 2")

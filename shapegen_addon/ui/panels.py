@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import bpy
 
+from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
 from ..keys import (LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY, N_SHAPES_KEY,
                    OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
@@ -57,6 +58,28 @@ def _draw_outcome(layout, settings) -> None:
         layout.label(text=settings.job_message, icon=icon)
 
 
+def _draw_outliers(layout, context, shown: int = 8) -> bool:
+    """The training collection's outliers (the model's and the last Find Correspondences')
+    with their reasons and Exclude Outliers and Refit; the objects left out of training
+    with Include Excluded. True when it listed outliers."""
+    collection = training_collection(context.scene.shapegen.source_collection)
+    excluded = excluded_names(collection)
+    flagged = [(name, reason) for name, reason in outliers(context.scene, collection) if name not in excluded]
+    if flagged:
+        box = layout.box()
+        box.label(text=f"{len(flagged)} outlier(s):", icon="ERROR")
+        for name, reason in flagged[:shown]:
+            box.label(text=f"{name}: {reason}")
+        if len(flagged) > shown:
+            box.label(text=f"... and {len(flagged) - shown} more")
+        box.operator("shapegen.exclude_outliers", icon="X")
+    if excluded:
+        box = layout.box()
+        box.label(text=f"Left out of training: {', '.join(excluded)}", icon="HIDE_ON")
+        box.operator("shapegen.include_excluded", icon="ADD")
+    return bool(flagged)
+
+
 class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
     bl_label = "Data"
     bl_idname = "SHAPEGEN_PT_data"
@@ -96,6 +119,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
         if MANAGER.task == "correspond":
             _draw_progress(layout, settings)
         layout.label(text="Colours show the landmark index: same colour, same part", icon="INFO")
+        listed = _draw_outliers(layout, context)
         text = _model_text(context)
         if text is None:
             layout.label(text="No model yet: Fit corresponds the landmarks again", icon="INFO")
@@ -107,14 +131,12 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
         median = text.get(RESIDUAL_MEDIAN_KEY)
         if median is not None:
             box.label(text=f"Median residual: {100 * median:.2f} % of the diagonal")
-        outliers = list(text.get(OUTLIERS_KEY, []))
-        if outliers:
-            box.label(text=f"{len(outliers)} outlier(s):", icon="ERROR")
-            for line in outliers[:8]:
-                box.label(text=str(line))
-            if len(outliers) > 8:
-                box.label(text=f"... and {len(outliers) - 8} more")
-        else:
+        model_outliers = [str(line) for line in text.get(OUTLIERS_KEY, [])]
+        if model_outliers and not listed:  # outliers of a model fitted to another collection
+            box.label(text=f"{len(model_outliers)} outlier(s) in the model:", icon="ERROR")
+            for line in model_outliers[:8]:
+                box.label(text=line)
+        elif not model_outliers:
             box.label(text="No outliers", icon="CHECKMARK")
 
 
