@@ -95,7 +95,9 @@ def correspond(
         if not shape.mesh.area() > 0:
             raise MeshError(f"{shape.name}: surface area is zero (degenerate mesh); cannot register to it")
     landmark_sets = [l.points for l in collection.landmarks]
-    start = _template_index(names, template, landmark_sets, range(len(names)))
+    # shapes whose pose Prepare flagged (PreparedShape.pose_outlier) are no medoid candidates
+    posed_well = [i for i, shape in enumerate(collection.shapes) if not shape.pose_outlier]
+    start = _template_index(names, template, landmark_sets, posed_well or range(len(names)))
     report(0.0, f"template {names[start]}")
 
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
@@ -172,12 +174,20 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         results = [_to_normalised(r, centre, scale) for r in registrations]
         residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
                               for r, s in zip(registrations, collection.shapes)])
-        reasons = flag_outliers(residuals, ratios, settings, np.stack([r.placed.points for r in results]))
+        reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
+                                                 np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
                           round_index + 1)
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
+
+
+def _with_pose_flags(reasons: list[str], shapes) -> list[str]:
+    """Each shape's correspondence reasons, followed by the pose flag Prepare raised for it
+    (`PreparedShape.pose_outlier`), so a wrong pose is an outlier with its reason."""
+    return ["; ".join(part for part in (reason, shape.pose_outlier and f"Prepare: {shape.pose_outlier}") if part)
+            for reason, shape in zip(reasons, shapes)]
 
 
 def _to_normalised(registration: Registration, centre: np.ndarray, scale: float) -> Registration:

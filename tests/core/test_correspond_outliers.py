@@ -118,3 +118,19 @@ def test_mesh_templates_skip_outliers(upside_down):
     everyone = replace(corr, outliers=np.ones(len(corr), dtype=bool))
     unflagged = GenerativeShapeModel(model.meshes, everyone, model.model, settings=model.settings)
     assert unflagged.choose_template(own, "nearest-data") == FLIPPED  # all flagged: choose among all
+
+
+def test_a_pose_prepare_flagged_is_a_correspondence_outlier_and_never_the_medoid():
+    """A shape Prepare could not put right (Align "none", one vase upside down) carries
+    Prepare's pose flag into the correspondence's reasons and is no medoid candidate."""
+    shapes = make_vases(10, seed=4, resolution=(14, 18))
+    meshes = [s.mesh for s in shapes]
+    meshes[FLIPPED] = meshes[FLIPPED].with_vertices(meshes[FLIPPED].vertices @ UPSIDE_DOWN.T)
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=120, align="none", seed=4))
+    assert prepared.shapes[FLIPPED].pose_outlier
+    result = correspond(prepared, jobs=1)
+    for shape, outlier, reason in zip(prepared.shapes, result.outliers, result.outlier_reasons):
+        if shape.pose_outlier:
+            assert outlier and f"Prepare: {shape.pose_outlier}" in reason
+    template = result.names.index(result.template_name)
+    assert not prepared.shapes[template].pose_outlier
