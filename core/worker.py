@@ -103,14 +103,16 @@ def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
 
 def task_prepare(arguments: dict, progress, should_cancel) -> str:
     """Align, scale and landmark meshes from an .npz (core.meshset) into a prepared
-    collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data.
-    Cancel is checked at every progress step (after each shape's stage)."""
+    collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data,
+    `keep_pose` one bool per mesh (keep its pose) or absent. Cancel is checked at every
+    progress step (after each shape's stage)."""
     from .collection import PrepareSettings, prepare_meshes
     from .meshset import load_mesh_set
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     meshes = load_mesh_set(arguments["meshes"])
-    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel)
+    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel,
+                              keep_pose=arguments.get("keep_pose"))
     return _save_result(prepared, arguments, should_cancel, "prepare")
 
 
