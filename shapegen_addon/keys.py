@@ -23,7 +23,8 @@ RESIDUAL_MEDIAN_KEY = "shapegen_residual_median"  # median correspondence residu
 OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
 
 # ------------------------------------------------------------------ a user's training object
-KEEP_POSE_KEY = "shapegen_keep_pose"  # True: Prepare keeps its pose (never turned beyond the up axis; still flagged)
+KEEP_POSE_KEY = "shapegen_keep_pose"  # True: Prepare keeps its pose (never turned beyond the up axis; still flagged);
+# also on its prepared copy: the flag it was prepared with (Fit reuses the copy only while they agree)
 
 # ------------------------------------------------------------------ a prepared collection
 PREPARED_KEY = "shapegen_prepared"  # True: made by Prepare

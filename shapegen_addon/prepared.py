@@ -25,7 +25,7 @@ from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.settings import SettingsError
 from .convert import object_to_mesh, object_triangles
-from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
+from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, KEEP_POSE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
                    POSE_CHANGE_KEY, POSE_OUTLIER_KEY, POSE_ROTATION_KEY, PREPARE_SETTINGS_KEY, PREPARED_KEY,
                    SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source)
@@ -67,6 +67,7 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
         copy[SOURCE_KEY] = obj.name
         copy[MESH_SOURCE_KEY] = mesh_source(evaluated)
         copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
+        copy[KEEP_POSE_KEY] = bool(obj.get(KEEP_POSE_KEY, False))  # as Prepare was told
         copy[POSE_CHANGE_KEY] = shape.pose_change
         copy[POSE_ROTATION_KEY] = np.asarray(shape.pose_rotation).ravel().tolist()
         copy[POSE_OUTLIER_KEY] = shape.pose_outlier
@@ -187,10 +188,12 @@ def reusable_prepared(collection, objects, options: dict, evaluated: bool = True
 
 
 def _unchanged(source, copy, evaluated: bool, depsgraph) -> bool:
-    """True when the prepared `copy` was read like `evaluated` says and still equals `source`
-    (read the same way) mapped by its stored transform. Copies from before the mesh source
-    was recorded read the base mesh."""
+    """True when the prepared `copy` was read like `evaluated` says, with the Keep Pose flag
+    `source` has now, and still equals `source` (read the same way) mapped by its stored
+    transform. Copies from before the mesh source was recorded read the base mesh."""
     if copy.get(MESH_SOURCE_KEY, mesh_source(False)) != mesh_source(evaluated):
+        return False
+    if bool(copy.get(KEEP_POSE_KEY, False)) != bool(source.get(KEEP_POSE_KEY, False)):
         return False
     world = object_triangles(source, world=True, evaluated=evaluated, depsgraph=depsgraph)
     local = object_triangles(copy, world=False, evaluated=False)

@@ -9,7 +9,7 @@ import math
 
 import bpy
 import numpy as np
-from conftest import add_vase_collection, addon_module
+from conftest import FAST_FIT, add_vase_collection, addon_module
 from test_panels import _draw_all
 
 
@@ -58,5 +58,39 @@ def test_upside_down_object_is_turned_and_reported_or_kept_and_flagged(extension
     labels = [text for kind, text in _draw_all(["SHAPEGEN_PT_data"]) if kind == "label"]
     assert any(text.startswith("vase_002: pose looks wrong: upside down") for text in labels)
 
+    # Fit reuses a Prepare only when it was made with the objects' Keep Pose flags as they are now
+    prepared = addon_module(extension, "shapegen_addon.prepared")
+    collection = settings.source_collection
+    objects = sorted(collection.objects, key=lambda o: o.name)
+    assert prepared.reusable_prepared(collection, objects, settings.fit_options())[0].name == "vases Prepared.001"
     assert bpy.ops.shapegen.toggle_keep_pose() == {"FINISHED"}
     assert not flipped[keys.KEEP_POSE_KEY]
+    assert prepared.reusable_prepared(collection, objects, settings.fit_options())[0].name == "vases Prepared"
+    bpy.data.collections.remove(bpy.data.collections["vases Prepared"])
+    flipped[keys.KEEP_POSE_KEY] = True
+    bpy.data.objects["vase_002 prepared.001"][keys.KEEP_POSE_KEY] = False  # as if prepared without the flag
+    assert prepared.reusable_prepared(collection, objects, settings.fit_options()) is None
+
+
+def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
+    """task_fit on raw meshes prepares them with keep_pose, like task_prepare."""
+    datasets = addon_module(extension, "core.datasets")
+    meshset = addon_module(extension, "core.meshset")
+    worker = addon_module(extension, "core.worker")
+    pipeline = addon_module(extension, "core.pipeline")
+    meshes = [s.mesh for s in datasets.make_vases(8, seed=1, resolution=(14, 20), pose=False)]
+    meshes[2] = meshes[2].with_vertices(meshes[2].vertices * [1.0, -1.0, -1.0])
+    meshset.save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
+                          [m.faces for m in meshes])
+    options = {**FAST_FIT, "model": "ppca", "latent_dim": 1, "prepare": {"n_landmarks": 50}}
+    fitted = []
+    for keep in ([False] * 8, [i == 2 for i in range(8)]):
+        output = worker.task_fit({"meshes": str(tmp_path / "meshes.npz"), "keep_pose": keep, "settings": options,
+                                  "output": str(tmp_path / f"model{len(fitted)}.npz")}, lambda f, stage: None, None)
+        fitted.append(pipeline.GenerativeShapeModel.load(output).meshes)
+    turned, kept = fitted
+    np.testing.assert_allclose(turned[0].vertices, kept[0].vertices, rtol=0, atol=1e-12)
+    # turned back upright, or kept upside down: the same vase mirrored in y and z (up to the floor shift)
+    flipped = kept[2].vertices * [1.0, -1.0, -1.0]
+    np.testing.assert_allclose(turned[2].vertices, flipped - flipped.min(axis=0) + turned[2].vertices.min(axis=0),
+                               atol=1e-6 * np.ptp(turned[2].vertices))
