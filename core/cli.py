@@ -11,8 +11,8 @@ import sys
 import time
 from pathlib import Path
 
-from .cli_common import (add_settings_options, console_progress, correspond_on_console, flag_of, given_options,
-                         positive_int, prepare_source, read_source, settings_from_args)
+from .cli_common import (add_keep_pose_option, add_settings_options, console_progress, correspond_on_console,
+                         flag_of, given_options, positive_int, prepare_source, read_source, settings_from_args)
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
 from .errors import ShapeGenError
@@ -27,13 +27,10 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     source = read_source(args.directory, args, accepts=("folder",))
     prepared = prepare_source(source)
     prepared.save(args.output)
-    turned = [s.name for s in prepared.shapes if s.orientation_changed]
     counts = [len(l) for l in prepared.landmarks]
     print(
         f"prepared {len(prepared)} shapes -> {args.output}: landmarks {min(counts)}-{max(counts)} "
-        f"(requested {source.prepare.n_landmarks}); consensus re-oriented {len(turned)}"
-        + (f" ({', '.join(turned)})" if turned else "")
-        + f"; {time.perf_counter() - start:.1f} s"
+        f"(requested {source.prepare.n_landmarks}); {time.perf_counter() - start:.1f} s"
     )
     return 0
 
@@ -110,12 +107,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("directory", type=Path, help="folder of .obj/.ply/.stl/.off/.glb files")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
+    add_keep_pose_option(p)
     p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser("correspond", help="dense corresponding landmarks by non-rigid ICP (folder or prepared .npz)")
     p.add_argument("source", type=Path, help="folder of meshes, or a prepared collection .npz")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
+    add_keep_pose_option(p)
     add_settings_options(p, FitSettings, ("template", "jobs"))
     p.set_defaults(func=cmd_correspond)
 
@@ -125,6 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", default="ppca,gplvm,bgplvm", help="comma-separated models (default %(default)s)")
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold protocol (default %(default)s)")
     add_settings_options(p, PrepareSettings)  # --seed also seeds the evaluation
+    add_keep_pose_option(p)
     p.add_argument("--samples", type=positive_int, default=100,
                    help="samples per model for novelty / specificity (default %(default)s)")
     p.add_argument("--latent-dim", type=positive_int, default=None,

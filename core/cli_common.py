@@ -11,7 +11,7 @@ from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 from typing import Union, get_args, get_origin, get_type_hints
 
-from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, prepare_meshes
+from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
 from .errors import ShapeGenError
 from .io import read_folder
@@ -21,7 +21,8 @@ from .progress import Progress
 from .settings import SettingsError
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
-           "settings_from_args", "read_source", "prepare_source", "correspond_on_console", "console_progress"]
+           "settings_from_args", "add_keep_pose_option", "read_source", "prepare_source", "pose_lines",
+           "correspond_on_console", "console_progress"]
 
 
 class CommandError(ShapeGenError, ValueError):
@@ -83,6 +84,13 @@ def settings_from_args(cls, args: argparse.Namespace, flags: dict[str, str] | No
         raise SettingsError(names.get(exc.option, exc.option), exc.problem, exc.prefix) from None
 
 
+def add_keep_pose_option(parser: argparse.ArgumentParser) -> None:
+    """--keep-pose NAME [NAME ...]: shapes of a folder whose pose Prepare keeps (issue 12)."""
+    parser.add_argument("--keep-pose", nargs="+", metavar="NAME", default=None,
+                        help="shapes (file names without extension) whose pose Prepare keeps: never turned beyond "
+                             "the up axis, still flagged when their pose looks wrong")
+
+
 # ---------------------------------------------------------------------------- sources
 SOURCE_KINDS = ("folder", "prepared", "correspondence")
 
@@ -105,6 +113,7 @@ class Source:
     kind: str  # one of SOURCE_KINDS
     prepare: PrepareSettings
     meshes: list[Mesh] | None = None  # folder: the meshes read from it
+    keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
 
@@ -128,11 +137,16 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
             raise CommandError(f"{path}: is a {file_format!r} file; expected {expected}")
     if kind not in accepts:
         raise CommandError(f"{path}: is a folder; expected {expected}")
+    keep_pose = getattr(args, "keep_pose", None)
     if kind == "folder":
         for mesh in (meshes := read_folder(path)):
             if mesh.report.summary() != "clean":
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
-        return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes)
+        return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes,
+                      keep_pose=kept_poses([m.name for m in meshes], keep_pose))
+    if keep_pose:
+        raise CommandError(f"--keep-pose applies to a folder of meshes; {path} is already prepared (its poses were "
+                           "decided then: prepare its folder again with --keep-pose)")
     if kind == "correspondence":
         correspondence = Correspondence.load(path)
         return Source(path, kind, _recorded_prepare(path, correspondence.prepare, args, own), correspondence=correspondence)
@@ -156,11 +170,22 @@ def _recorded_prepare(path: Path, recorded: PrepareSettings | None, args: argpar
 
 
 def prepare_source(source: Source) -> PreparedCollection:
-    """The prepared collection of a folder (prepared now, with console progress) or of a
-    prepared file."""
+    """The prepared collection of a folder (prepared now, with console progress and its
+    pose report, `pose_lines`, on stderr) or of a prepared file."""
     if source.prepared is None:
-        source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"))
+        source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"),
+                                         keep_pose=source.keep_pose)
+        for line in pose_lines(source.prepared):
+            print(line, file=sys.stderr)
     return source.prepared
+
+
+def pose_lines(prepared: PreparedCollection) -> list[str]:
+    """What Prepare did to the poses: a line per turned or flagged shape
+    (`PreparedCollection.pose_notes`) and the summary "poses: N kept, M turned, K flagged"."""
+    turned = sum(bool(s.pose_change) for s in prepared.shapes)
+    flagged = sum(bool(s.pose_outlier) for s in prepared.shapes)
+    return prepared.pose_notes() + [f"poses: {len(prepared) - turned} kept, {turned} turned, {flagged} flagged"]
 
 
 def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None):

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_common import (CommandError, add_settings_options, console_progress, positive_int, read_source,
-                         settings_from_args)
+from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress, positive_int,
+                         prepare_source, read_source, settings_from_args)
 from .collection import PrepareSettings
 from .deform import DeformSettings
 from .io import ObjWriter, read_folder, write_mesh
@@ -87,7 +87,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if args.meshes is not None:
             raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
                                f"{source.kind}")
-        model = fit_meshes(source.meshes if source.prepared is None else source.prepared, settings, progress=report)
+        model = fit_meshes(prepare_source(source), settings, progress=report)
     else:
         if args.meshes is None:
             raise CommandError(
@@ -278,6 +278,7 @@ def add_generate_commands(sub) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output model .npz")
     add_settings_options(p, FitSettings)
     add_settings_options(p, PrepareSettings)
+    add_keep_pose_option(p)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
     add_settings_options(p, DeformSettings)
     p.set_defaults(func=cmd_fit)

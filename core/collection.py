@@ -3,7 +3,9 @@
 This is the hand-off from intake (§3.4 alignment, §4.2.1 landmarks) to correspondence.
 `prepare_meshes` runs both steps with one `PrepareSettings`; `PreparedCollection.save/load`
 persist the result (meshes in the normalised frame, the per-shape transforms back to input
-coordinates, the landmarks and the settings used, as one JSON string).
+coordinates, each shape's pose report — `pose_change`, `pose_rotation`, `pose_outlier` —,
+the landmarks and the settings used, as one JSON string). `keep_pose` names the shapes
+whose pose Prepare must not turn (issue 12).
 """
 
 from __future__ import annotations
@@ -19,12 +21,13 @@ from .errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
 from . import meshset
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz
+from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .progress import CancelCheck, Progress, sub_range
 from .settings import Settings, option, recorded_settings
 
-__all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "PREPARED_FORMAT", "PREPARED_VERSION"]
+__all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
+           "PREPARED_VERSION"]
 
 PREPARED_FORMAT = "shapegen.prepared"
 PREPARED_VERSION = 1
@@ -57,6 +60,14 @@ _SPEC = {
     "landmark_radius": ArraySpec("f", ("M",)),
 }
 
+#: The pose report of each shape; files written before it was saved have none (read as
+#: kept, identity, not flagged).
+_POSE_SPEC = {
+    "pose_change": ArraySpec("U", ("M",)),
+    "pose_rotation": ArraySpec("f", ("M", 3, 3)),
+    "pose_outlier": ArraySpec("U", ("M",)),
+}
+
 
 @dataclass
 class PreparedCollection:
@@ -74,6 +85,10 @@ class PreparedCollection:
     def __len__(self) -> int:
         return len(self.shapes)
 
+    def pose_notes(self) -> list[str]:
+        """What Prepare did to the poses, one line per turned or flagged shape (`pose_notes`)."""
+        return pose_notes(self.names, [s.pose_change for s in self.shapes], [s.pose_outlier for s in self.shapes])
+
     def landmarks_input(self, index: int) -> np.ndarray:
         """Landmarks of shape `index` in that input mesh's own coordinates."""
         return self.shapes[index].transform.to_input(self.landmarks[index].points)
@@ -86,6 +101,9 @@ class PreparedCollection:
             **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
             "transforms": np.stack([s.transform.matrix for s in self.shapes]),
             "orientation_changed": np.asarray([s.orientation_changed for s in self.shapes]),
+            "pose_change": np.asarray([s.pose_change for s in self.shapes], dtype=str),
+            "pose_rotation": np.stack([s.pose_rotation for s in self.shapes]),
+            "pose_outlier": np.asarray([s.pose_outlier for s in self.shapes], dtype=str),
             "landmarks": np.concatenate([l.points for l in self.landmarks]),
             "landmark_faces": np.concatenate([l.face_index for l in self.landmarks]),
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
@@ -101,6 +119,12 @@ class PreparedCollection:
     def load(cls, path: str | os.PathLike) -> "PreparedCollection":
         a = load_npz(path, PREPARED_FORMAT, PREPARED_VERSION, _SPEC)
         m = len(a["names"])
+        pose = {key: a[key] for key in _POSE_SPEC if key in a}
+        if pose:
+            validate_arrays(a, _SPEC | _POSE_SPEC, str(path))
+        else:
+            pose = {"pose_change": np.full(m, ""), "pose_rotation": np.tile(np.eye(3), (m, 1, 1)),
+                    "pose_outlier": np.full(m, "")}
         lo = a["landmark_offsets"]
         if len(lo) != m + 1 or lo[0] != 0 or lo[-1] != len(a["landmarks"]) or np.any(np.diff(lo) < 0):
             raise ModelFileError(f"{path}: array 'landmark_offsets' is inconsistent with the data it indexes")
@@ -112,7 +136,8 @@ class PreparedCollection:
                 transform = ShapeTransform.from_matrix(a["transforms"][i])
             except ValueError as exc:
                 raise ModelFileError(f"{path}: shape {name!r} is invalid: {exc}") from None
-            shapes.append(PreparedShape(mesh, transform, bool(a["orientation_changed"][i])))
+            shapes.append(PreparedShape(mesh, transform, bool(a["orientation_changed"][i]), pose["pose_rotation"][i],
+                                        str(pose["pose_change"][i]), str(pose["pose_outlier"][i])))
             sl = slice(lo[i], lo[i + 1])
             faces = a["landmark_faces"][sl]
             if faces.size and (faces.min() < 0 or faces.max() >= mesh.n_faces):
@@ -128,9 +153,12 @@ def prepare_meshes(
     min_shapes: int = 2,
     progress: Progress | None = None,
     should_cancel=None,
+    keep_pose: Sequence[str] | Sequence[bool] | None = None,
 ) -> PreparedCollection:
-    """Align, scale and landmark a collection (thesis §3.4 and §4.2.1). `progress` and
-    `should_cancel` as in core/progress.py; cancel is checked at every progress step."""
+    """Align, scale and landmark a collection (thesis §3.4 and §4.2.1). `keep_pose`: the
+    names of the shapes whose pose is kept (never turned beyond the up axis, still
+    checked and flagged), or one bool per mesh. `progress` and `should_cancel` as in
+    core/progress.py; cancel is checked at every progress step."""
     meshes = list(meshes)
     if len(meshes) < min_shapes:
         names = ", ".join(m.name or "?" for m in meshes) or "none"
@@ -141,13 +169,38 @@ def prepare_meshes(
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
         raise CollectionError(f"shape names must be unique; repeated: {duplicates}")
+    keep = kept_poses(names, keep_pose)
     report = CancelCheck(should_cancel, "prepare").before(progress)
     shapes = prepare_collection(
         meshes, up_axis=settings.up_axis, align=settings.align, centre=settings.centre, scale=settings.scale,
-        seed=settings.seed, progress=sub_range(report, 0.0, 0.6),
+        seed=settings.seed, progress=sub_range(report, 0.0, 0.6), keep_pose=keep,
     )
     landmarks = []
     for i, shape in enumerate(shapes):
         landmarks.append(select_landmarks(shape.mesh, settings.n_landmarks, seed=settings.seed + i))
         report(0.6 + 0.4 * (i + 1) / len(shapes), f"landmarks on {shape.name}")
     return PreparedCollection(shapes, landmarks, settings)
+
+
+def kept_poses(names: Sequence[str], keep_pose: Sequence[str] | Sequence[bool] | None) -> list[bool]:
+    """One bool per shape of `names` from `keep_pose`: shape names, or already one bool
+    per shape (None: keep none). An unknown name is a CollectionError naming it."""
+    keep_pose = [] if keep_pose is None else list(keep_pose)
+    if keep_pose and all(isinstance(k, (bool, np.bool_)) for k in keep_pose):
+        if len(keep_pose) != len(names):
+            raise CollectionError(f"keep_pose has {len(keep_pose)} entries for {len(names)} shapes")
+        return [bool(k) for k in keep_pose]
+    unknown = [str(k) for k in keep_pose if k not in names]
+    if unknown:
+        raise CollectionError(f"keep pose: no shape named {', '.join(map(repr, unknown))} in the collection "
+                              f"(shapes: {', '.join(names)})")
+    kept = set(keep_pose)
+    return [n in kept for n in names]
+
+
+def pose_notes(names: Sequence[str], changes: Sequence[str], outliers: Sequence[str]) -> list[str]:
+    """One line per turned shape ("vase_003: turned 180° about x: ..."), then one per shape
+    whose pose looks wrong ("vase_007: pose looks wrong: upside down relative to ...");
+    `changes` and `outliers` are the shapes' pose_change and pose_outlier."""
+    return ([f"{n}: {c}" for n, c in zip(names, changes) if c]
+            + [f"{n}: pose looks wrong: {o}" for n, o in zip(names, outliers) if o])

@@ -69,14 +69,16 @@ class _CancelOnStdin:
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
-    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz), from an
+    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz, prepared
+    here first with `keep_pose`, one bool per mesh, as in task_prepare), from an
     already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare) or
     from the meshes and correspondence of an earlier model (`correspondence_of`: a model
     file; only the shape model is fitted); `settings` are FitSettings as plain data
     (FitSettings.from_dict)."""
-    from .collection import PreparedCollection
+    from .collection import PreparedCollection, prepare_meshes
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+    from .progress import sub_range
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
     if "correspondence_of" in arguments:
@@ -84,8 +86,12 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
         model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
                                 should_cancel=should_cancel)
     else:
-        source = (PreparedCollection.load(arguments["prepared"]) if "prepared" in arguments
-                  else load_mesh_set(arguments["meshes"]))
+        if "prepared" in arguments:
+            source = PreparedCollection.load(arguments["prepared"])
+        else:  # prepared here, as fit_meshes would (progress 0-0.15), so the kept poses count
+            source = prepare_meshes(load_mesh_set(arguments["meshes"]), settings.prepare,
+                                    progress=sub_range(progress, 0.0, 0.15, "prepare: "), should_cancel=should_cancel,
+                                    keep_pose=arguments.get("keep_pose"))
         model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
     return _save_result(model, arguments, should_cancel, "fit")
 
@@ -103,14 +109,16 @@ def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
 
 def task_prepare(arguments: dict, progress, should_cancel) -> str:
     """Align, scale and landmark meshes from an .npz (core.meshset) into a prepared
-    collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data.
-    Cancel is checked at every progress step (after each shape's stage)."""
+    collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data,
+    `keep_pose` one bool per mesh (keep its pose) or absent. Cancel is checked at every
+    progress step (after each shape's stage)."""
     from .collection import PrepareSettings, prepare_meshes
     from .meshset import load_mesh_set
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     meshes = load_mesh_set(arguments["meshes"])
-    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel)
+    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel,
+                              keep_pose=arguments.get("keep_pose"))
     return _save_result(prepared, arguments, should_cancel, "prepare")
 
 

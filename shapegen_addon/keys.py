@@ -26,6 +26,10 @@ OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
 # ------------------------------------------------------------------ a user's training collection
 EXCLUDED_KEY = "shapegen_excluded"  # names of its objects Prepare, Find Correspondences and Fit leave out
 
+# ------------------------------------------------------------------ a user's training object
+KEEP_POSE_KEY = "shapegen_keep_pose"  # True: Prepare keeps its pose (never turned beyond the up axis; still flagged);
+# also on its prepared copy: the flag it was prepared with (Fit reuses the copy only while they agree)
+
 # ------------------------------------------------------------------ a prepared collection
 PREPARED_KEY = "shapegen_prepared"  # True: made by Prepare
 SOURCE_COLLECTION_KEY = "shapegen_source_collection"  # name of the user's collection it was prepared from
@@ -41,6 +45,9 @@ LANDMARKS_KEY = "shapegen_landmarks"  # flat float list (L*3), the object's loca
 LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each landmark
 LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
 LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
+POSE_CHANGE_KEY = "shapegen_pose_change"  # how and why Prepare turned it ("turned 180° about x: ..."); "": kept
+POSE_ROTATION_KEY = "shapegen_pose_rotation"  # 9 floats, row-major: the turn Prepare applied after the up axis
+POSE_OUTLIER_KEY = "shapegen_pose_outlier"  # why its pose looks wrong ("upside down relative to ..."); "": fine
 CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local
 CORRESPONDENCE_OUTLIER_KEY = "shapegen_correspondence_outlier"  # why it is an outlier of the correspondence ("": fits)
 

@@ -6,7 +6,8 @@ collection and the Prepare settings it was made with (one JSON string). Each pre
 copy of a user's object as Prepare read it (the evaluated mesh, or the base mesh when the
 panel asks; keys.MESH_SOURCE_KEY says which) in the normalised frame (object-local), wound
 outwards like the core's Mesh, tagged with its source's name, the transform input (world)
--> normalised, its landmarks and where they lie on the mesh (face and barycentrics, so
+-> normalised, its pose report (the turn Prepare applied and why, why its pose looks
+wrong), its landmarks and where they lie on the mesh (face and barycentrics, so
 correspondence starts from them), plus a child marker object. Find Correspondences adds the
 corresponded landmarks and index-coloured markers.
 """
@@ -19,19 +20,21 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.collection import PrepareSettings, PreparedCollection
+from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.settings import SettingsError
 from .convert import object_to_mesh, object_triangles
-from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY,
+from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, KEEP_POSE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
-                   PREPARE_SETTINGS_KEY, PREPARED_KEY, SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source)
+                   POSE_CHANGE_KEY, POSE_OUTLIER_KEY, POSE_ROTATION_KEY, PREPARE_SETTINGS_KEY, PREPARED_KEY,
+                   SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source)
 from .placement import grid_offsets, place, vertex_box
 from .preview import add_correspondence_markers, add_landmark_markers, landmark_index_colours, new_collection
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects", "prepared_collection_for",
-           "recorded_prepare_settings", "to_prepared_collection", "reusable_prepared", "apply_correspondence"]
+           "recorded_prepare_settings", "to_prepared_collection", "reusable_prepared", "apply_correspondence",
+           "prepared_pose_notes"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
 PREPARE_SETTINGS = tuple(f.name for f in fields(PrepareSettings))
@@ -43,7 +46,7 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
                               evaluated: bool) -> bpy.types.Collection:
     """A new "<source> Prepared" collection: copies of `objects` in the normalised frame
     (object-local), laid out on a grid beside the scene's objects (placement.place), each
-    tagged with its transform, landmarks and mesh source, plus landmark markers.
+    tagged with its transform, pose report, landmarks and mesh source, plus landmark markers.
     `world_meshes` are the objects' meshes as Prepare read them (convert.world_mesh_copy,
     world coordinates, evaluated or not); they become the copies' data. The user's objects
     are not modified."""
@@ -64,6 +67,10 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
         copy[SOURCE_KEY] = obj.name
         copy[MESH_SOURCE_KEY] = mesh_source(evaluated)
         copy[TRANSFORM_KEY] = shape.transform.matrix.ravel().tolist()
+        copy[KEEP_POSE_KEY] = bool(obj.get(KEEP_POSE_KEY, False))  # as Prepare was told
+        copy[POSE_CHANGE_KEY] = shape.pose_change
+        copy[POSE_ROTATION_KEY] = np.asarray(shape.pose_rotation).ravel().tolist()
+        copy[POSE_OUTLIER_KEY] = shape.pose_outlier
         copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
         # where each landmark lies on the (loop-triangulated) mesh, for correspondence
         copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
@@ -103,15 +110,15 @@ def prepared_objects(collection: bpy.types.Collection) -> list[bpy.types.Object]
 
 
 def prepared_collection_for(collection: bpy.types.Collection | None) -> bpy.types.Collection | None:
-    """`collection` if it is a prepared one, else its "<name> Prepared" sibling (or None)."""
+    """`collection` if it is a prepared one, else its newest "<name> Prepared" sibling
+    (the last by name, as in `reusable_prepared`; None when there is none)."""
     if collection is None:
         return None
     if collection.get(PREPARED_KEY):
         return collection
-    for candidate in bpy.data.collections:
-        if candidate.get(PREPARED_KEY) and candidate.get(SOURCE_COLLECTION_KEY) == collection.name:
-            return candidate
-    return None
+    siblings = [c for c in bpy.data.collections
+                if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name]
+    return max(siblings, key=lambda c: c.name, default=None)
 
 
 def recorded_prepare_settings(collection: bpy.types.Collection) -> PrepareSettings | None:
@@ -141,9 +148,19 @@ def to_prepared_collection(objects) -> PreparedCollection:
             placed = TargetSurface(mesh.vertices, mesh.faces).closest(points)
             faces, bary = placed.face_index, placed.barycentric
         transform = ShapeTransform.from_matrix(np.asarray(obj[TRANSFORM_KEY], dtype=np.float64).reshape(4, 4))
-        shapes.append(PreparedShape(mesh, transform))
+        change = str(obj.get(POSE_CHANGE_KEY, ""))
+        rotation = np.asarray(obj.get(POSE_ROTATION_KEY, np.eye(3).ravel().tolist()), dtype=np.float64).reshape(3, 3)
+        shapes.append(PreparedShape(mesh, transform, bool(change), rotation, change,
+                                    str(obj.get(POSE_OUTLIER_KEY, ""))))
         landmarks.append(Landmarks(points, faces, bary, float(obj.get(LANDMARK_RADIUS_KEY, 0.0))))
     return PreparedCollection(shapes, landmarks)
+
+
+def prepared_pose_notes(objects) -> list[str]:
+    """What Prepare did to the poses of prepared `objects` (core.collection.pose_notes,
+    named after their source objects): "name: turned ..." and "name: pose looks wrong: ..."."""
+    return pose_notes([o.get(SOURCE_KEY, o.name) for o in objects], [o.get(POSE_CHANGE_KEY, "") for o in objects],
+                      [o.get(POSE_OUTLIER_KEY, "") for o in objects])
 
 
 def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
@@ -171,10 +188,12 @@ def reusable_prepared(collection, objects, options: dict, evaluated: bool = True
 
 
 def _unchanged(source, copy, evaluated: bool, depsgraph) -> bool:
-    """True when the prepared `copy` was read like `evaluated` says and still equals `source`
-    (read the same way) mapped by its stored transform. Copies from before the mesh source
-    was recorded read the base mesh."""
+    """True when the prepared `copy` was read like `evaluated` says, with the Keep Pose flag
+    `source` has now, and still equals `source` (read the same way) mapped by its stored
+    transform. Copies from before the mesh source was recorded read the base mesh."""
     if copy.get(MESH_SOURCE_KEY, mesh_source(False)) != mesh_source(evaluated):
+        return False
+    if bool(copy.get(KEEP_POSE_KEY, False)) != bool(source.get(KEEP_POSE_KEY, False)):
         return False
     world = object_triangles(source, world=True, evaluated=evaluated, depsgraph=depsgraph)
     local = object_triangles(copy, world=False, evaluated=False)

@@ -8,7 +8,10 @@ into scene data; they hold no algorithm.
   never modified. Meshes are read here as the artist sees them (modifiers applied, unless
   the panel's Base Mesh is on; a mirrored object's winding reversed) and cleaned by the
   core's intake (welded, wound outwards); the slow part runs in a worker (core.worker
-  "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit.
+  "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit. Objects flagged
+  Keep Pose (keys.KEEP_POSE_KEY) are never turned; the message names the turned and the
+  flagged shapes.
+* `SHAPEGEN_OT_toggle_keep_pose` — flip the active object's Keep Pose flag.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from ...core.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
+from ..keys import KEEP_POSE_KEY
 from ..prepared import PREPARE_SETTINGS, build_prepared_collection
 from ..preview import new_collection
 
@@ -127,15 +131,30 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
     target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing,
                                        world_meshes, payload["evaluated"])
     counts = [len(l) for l in prepared.landmarks]
-    turned = sum(s.orientation_changed for s in prepared.shapes)
+    for line in prepared.pose_notes():
+        print(f"ShapeGen: {line}")
     read = "meshes as the viewport shows them (modifiers applied)" if payload["evaluated"] else \
         "base meshes (modifiers ignored)"
     report_outcome(settings, "DONE", f"Prepared {len(prepared)} shapes into '{target.name}' from their {read}: "
-                   f"{min(counts)}-{max(counts)} landmarks each, {turned} re-oriented by consensus"
+                   f"{min(counts)}-{max(counts)} landmarks each, " + _pose_summary(prepared)
                    + _intake_notes(payload["notes"])
                    + (f"; {payload['triangulated']}" if payload["triangulated"] else ""), "prepared")
     if not bpy.app.background and not payload.get("wait"):
         _push_undo_step("ShapeGen Prepare")  # after the outcome, so the step holds it
+
+
+def _pose_summary(prepared, shown: int = 4) -> str:
+    """'2 turned (A, B), 1 flagged (C)': the shapes whose pose Prepare changed and those
+    whose pose looks wrong, the first `shown` of each by name (reasons: the Data panel)."""
+    def named(names: list[str]) -> str:
+        if not names:
+            return ""
+        more = f" and {len(names) - shown} more" if len(names) > shown else ""
+        return f" ({', '.join(names[:shown])}{more})"
+
+    turned = [s.name for s in prepared.shapes if s.pose_change]
+    flagged = [s.name for s in prepared.shapes if s.pose_outlier]
+    return f"{len(turned)} turned{named(turned)}, {len(flagged)} flagged{named(flagged)}"
 
 
 def _intake_changes(meshes) -> dict[str, str]:
@@ -237,11 +256,12 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
                    "vertex_counts": [r.n_vertices for r in readings], "evaluated": evaluated,
                    "reversed_polygons": [r.reversed_polygons for r in readings], "notes": notes,
                    "triangulated": triangulated, "wait": self.wait}
+        keep_pose = [bool(o.get(KEEP_POSE_KEY, False)) for o in mesh_objects]
 
         # 2. the worker; `_finish_prepare` builds the collection on the main thread
         def start(folder: Path) -> None:
             mesh_file = folder / "meshes.npz"
-            job = BackgroundJob("prepare", {"meshes": str(mesh_file), "settings": options,
+            job = BackgroundJob("prepare", {"meshes": str(mesh_file), "settings": options, "keep_pose": keep_pose,
                                             "output": str(folder / "prepared.npz")})
             MANAGER.start(job, _finish_prepare, label=f"prepare '{source.name}'", folder=folder, payload=payload,
                           prepare=_load_prepared,
@@ -251,4 +271,24 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
         return self.run_job(context, start, started=f"Preparing {len(meshes)} shapes of '{source.name}' in the background")
 
 
-CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare)
+class SHAPEGEN_OT_toggle_keep_pose(bpy.types.Operator):
+    """Keep the active object's pose when preparing (never turned beyond the Up Axis; still
+    flagged when its pose looks wrong), or let consensus turn it again"""
+
+    bl_idname = "shapegen.toggle_keep_pose"
+    bl_label = "Keep Pose"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.type == "MESH"
+
+    def execute(self, context):
+        obj = context.active_object
+        obj[KEEP_POSE_KEY] = not obj.get(KEEP_POSE_KEY, False)
+        self.report({"INFO"}, f"'{obj.name}': pose {'kept' if obj[KEEP_POSE_KEY] else 'left to consensus'} "
+                              "when preparing")
+        return {"FINISHED"}
+
+
+CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare, SHAPEGEN_OT_toggle_keep_pose)

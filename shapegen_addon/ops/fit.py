@@ -31,6 +31,7 @@ from ...core.jobs import BackgroundJob
 from .. import fitting, store
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, no_job_running
+from ..keys import KEEP_POSE_KEY
 from ..prepared import reusable_prepared, to_prepared_collection
 
 __all__ = ["CLASSES"]
@@ -77,7 +78,8 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
                 setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
             else:
                 gathered = fitting.gather_meshes(objects, evaluated)
-                inputs = {"meshes": str(folder / "meshes.npz")}
+                inputs = {"meshes": str(folder / "meshes.npz"),
+                          "keep_pose": [bool(o.get(KEEP_POSE_KEY, False)) for o in objects]}
                 setup = lambda: fitting.save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
             job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})
             MANAGER.start(job, fitting.finish, label=f"fit '{collection.name}'", folder=folder,

@@ -13,8 +13,9 @@ import bpy
 
 from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
-from ..keys import (LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY, N_SHAPES_KEY,
-                   OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
+from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY,
+                   N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
+from ..prepared import prepared_collection_for, prepared_objects, prepared_pose_notes
 
 __all__ = ["CLASSES"]
 
@@ -97,11 +98,32 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         column.prop(settings, "centre")
         column.prop(settings, "seed")
         column.prop(settings, "preview_spacing")
+        active = context.active_object
+        if active is not None and active.type == "MESH":
+            layout.operator("shapegen.toggle_keep_pose", text=f"Keep Pose: {active.name}", icon="PINNED",
+                            depress=bool(active.get(KEEP_POSE_KEY, False)))
         row = layout.row(align=True)
         row.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
         row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
         if MANAGER.task == "prepare":
             _draw_progress(layout, settings)
+        _draw_pose_notes(layout, prepared_collection_for(settings.source_collection))
+
+
+def _draw_pose_notes(layout, collection, shown: int = 8) -> None:
+    """The prepared shapes Prepare turned or whose pose looks wrong, with the reasons
+    (the first `shown` lines, then how many more)."""
+    if collection is None:
+        return
+    notes = prepared_pose_notes(prepared_objects(collection))
+    if not notes:
+        return
+    box = layout.box()
+    box.label(text=f"Poses in '{collection.name}':", icon="ORIENTATION_GIMBAL")
+    for line in notes[:shown]:
+        box.label(text=line, icon="ERROR" if ": pose looks wrong: " in line else "LOOP_BACK")
+    if len(notes) > shown:
+        box.label(text=f"... and {len(notes) - shown} more")
 
 
 class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):

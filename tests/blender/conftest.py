@@ -95,14 +95,14 @@ def addon_module(extension: str, name: str):
     return importlib.import_module(f"{extension}.{name}")
 
 
-def add_vase_collection(extension: str, n: int = 6, name: str = "vases") -> bpy.types.Collection:
+def add_vase_collection(extension: str, n: int = 6, name: str = "vases", pose: bool = True) -> bpy.types.Collection:
     """n procedural vases as mesh objects (named like the core's shapes) in a new collection,
-    chosen as the panel's training collection."""
+    chosen as the panel's training collection; `pose` False: all upright, facing +x."""
     datasets = addon_module(extension, "core.datasets")
     convert = addon_module(extension, "shapegen_addon.convert")
     collection = bpy.data.collections.new(name)
     bpy.context.scene.collection.children.link(collection)
-    for shape in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION):
+    for shape in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION, pose=pose):
         obj = bpy.data.objects.new(shape.name, convert.mesh_data_from_arrays(shape.name, shape.mesh.vertices,
                                                                              shape.mesh.faces))
         collection.objects.link(obj)

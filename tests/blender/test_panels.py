@@ -60,6 +60,7 @@ class Context:
     def __init__(self):
         self.scene = bpy.context.scene
         self.space_data = None
+        self.active_object = bpy.context.view_layer.objects.active
 
 
 def _draw_all(panels=PANELS) -> list:

@@ -230,3 +230,81 @@ def test_cli_too_few_landmarks_is_one_line_naming_the_option(vase_folder, tmp_pa
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"shapegen prepare: error: --landmarks must be at least 4, got {count}"]
     assert not out.exists()
+
+
+# ---------------------------------------------------------------------------- pose report (issue 12)
+UPSIDE_DOWN = np.diag([1.0, -1.0, -1.0])
+
+
+@pytest.fixture(scope="module")
+def upright_vases():
+    """Eight upright vases, vase_003 turned upside down."""
+    meshes = [v.mesh for v in make_vases(8, seed=2, resolution=(12, 16), pose=False)]
+    meshes[3] = meshes[3].with_vertices(meshes[3].vertices @ UPSIDE_DOWN.T)
+    return meshes
+
+
+@pytest.fixture(scope="module")
+def upright_folder(upright_vases, tmp_path_factory):
+    from shapegen_core.io import write_mesh
+
+    folder = tmp_path_factory.mktemp("upright")
+    for mesh in upright_vases:
+        write_mesh(mesh, folder / f"{mesh.name}.obj")
+    return folder
+
+
+def test_pose_report_saved_and_loaded(upright_vases, tmp_path):
+    prepared = prepare_meshes(upright_vases, PrepareSettings(n_landmarks=30))
+    turned = prepared.shapes[3]
+    assert turned.pose_change.startswith("turned") and not np.allclose(turned.pose_rotation, np.eye(3))
+    back = PreparedCollection.load(prepared.save(tmp_path / "prepared.npz"))
+    for a, b in zip(prepared.shapes, back.shapes):
+        assert (a.pose_change, a.pose_outlier, a.orientation_changed) == (b.pose_change, b.pose_outlier,
+                                                                         b.orientation_changed)
+        np.testing.assert_array_equal(a.pose_rotation, b.pose_rotation)
+
+
+def test_file_without_pose_report_loads_as_kept(saved, tmp_path):
+    with np.load(saved) as data:
+        arrays = {k: data[k] for k in data.files if not k.startswith("pose_")}
+    old = tmp_path / "old.npz"
+    with open(old, "wb") as handle:
+        np.savez(handle, **arrays)
+    back = PreparedCollection.load(old)
+    assert all(s.pose_change == "" and s.pose_outlier == "" and np.array_equal(s.pose_rotation, np.eye(3))
+               for s in back.shapes)
+    with pytest.raises(ModelFileError, match="pose_rotation"):
+        PreparedCollection.load(_rewrite(saved, tmp_path / "bad.npz", pose_rotation=np.zeros((2, 3, 3))))
+
+
+def test_keep_pose_by_name_or_flags(upright_vases):
+    settings = PrepareSettings(n_landmarks=30)
+    by_name = prepare_meshes(upright_vases, settings, keep_pose=["vase_003"])
+    by_flags = prepare_meshes(upright_vases, settings, keep_pose=[i == 3 for i in range(8)])
+    for prepared in (by_name, by_flags):
+        kept = prepared.shapes[3]
+        assert kept.pose_change == "" and np.array_equal(kept.pose_rotation, np.eye(3))
+        assert "upside down" in kept.pose_outlier
+    with pytest.raises(CollectionError, match="no shape named 'vase_999'"):
+        prepare_meshes(upright_vases, settings, keep_pose=["vase_003", "vase_999"])
+
+
+def test_cli_prints_pose_lines_and_keeps_poses_by_name(upright_folder, tmp_path):
+    result = _run("prepare", upright_folder, "-o", tmp_path / "a.npz", "--landmarks", "30")
+    assert result.returncode == 0, result.stderr
+    assert "vase_003: turned 180° about" in result.stderr
+    assert "poses: 7 kept, 1 turned, 0 flagged" in result.stderr
+    result = _run("prepare", upright_folder, "-o", tmp_path / "b.npz", "--landmarks", "30", "--keep-pose", "vase_003")
+    assert result.returncode == 0, result.stderr
+    assert "vase_003: pose looks wrong: upside down" in result.stderr
+    assert "poses: 8 kept, 0 turned, 1 flagged" in result.stderr
+    assert PreparedCollection.load(tmp_path / "b.npz").shapes[3].pose_outlier.startswith("upside down")
+
+
+def test_cli_keep_pose_unknown_name_or_file_source_exits_2(upright_folder, saved, tmp_path):
+    result = _run("correspond", upright_folder, "-o", tmp_path / "c.npz", "--keep-pose", "jug_1")
+    assert result.returncode == 2
+    assert "no shape named 'jug_1'" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    result = _run("correspond", saved, "-o", tmp_path / "c.npz", "--keep-pose", "vase_000")
+    assert result.returncode == 2 and "--keep-pose applies to a folder of meshes" in result.stderr
