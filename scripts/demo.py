@@ -164,6 +164,7 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     import numpy as np
 
     pipeline = importlib.import_module(f"{module}.core.pipeline")
+    collection = importlib.import_module(f"{module}.core.collection")
     jobs = importlib.import_module(f"{module}.core.jobs")
     meshset = importlib.import_module(f"{module}.core.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")
@@ -175,7 +176,9 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
                           [m.vertices for m in meshes], [m.faces for m in meshes])
     job = jobs.BackgroundJob("fit", {
         "meshes": str(output / "training_meshes.npz"), "output": str(output / "model.npz"),
-        "settings": {"n_landmarks": args.landmarks, "model": "bgplvm", "seed": args.seed},
+        # built from the settings dataclasses, so the worker's format cannot drift from the demo's
+        "settings": pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=args.landmarks, seed=args.seed),
+                                         model="bgplvm").as_dict(),
     }).start()
     report = _print_progress("fit")
     while not (status := job.poll()).finished:
