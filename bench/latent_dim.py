@@ -29,7 +29,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import prepare_meshes  # noqa: E402
+from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
 from shapegen_core.landmarks import DEFAULT_LANDMARKS  # noqa: E402
@@ -55,7 +55,7 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
             meshes, up_axis = read_folder(PSB / data[4:]), "y"
         else:
             raise SystemExit(f"unknown --data {data!r} (vases, psb:<Class>)")
-        prepared = prepare_meshes(meshes, n_landmarks=n_landmarks, up_axis=up_axis, seed=0)
+        prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=n_landmarks, up_axis=up_axis, seed=0))
         BENCH_OUTPUT.mkdir(exist_ok=True)
         correspond(prepared, CorrespondenceSettings(), jobs=1).save(path)
         print(f"  {data}: corresponded in {time.perf_counter() - start:.0f} s -> {path.name}", flush=True)
