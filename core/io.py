@@ -24,6 +24,7 @@ from __future__ import annotations
 import io
 import os
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -31,7 +32,8 @@ from .errors import CollectionError, MeshError, MeshFileError
 from .intake import clean_mesh
 from .mesh import Mesh
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ObjWriter"]
+__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ObjWriter",
+           "MeshWriters"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
@@ -229,3 +231,21 @@ class ObjWriter:
             if tmp.exists():
                 tmp.unlink()
         return path
+
+
+class MeshWriters:
+    """Writes deformed copies of template meshes (same faces, new positions): OBJ through
+    one `ObjWriter` per template (its face block formatted once), other formats through
+    `write_mesh`."""
+
+    def __init__(self, templates: Sequence[Mesh]):
+        self.templates = list(templates)
+        self._obj: dict[int, ObjWriter] = {}
+
+    def write(self, mesh: Mesh, template_index: int, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        if path.suffix.lower() != ".obj":
+            return write_mesh(mesh, path)
+        if template_index not in self._obj:
+            self._obj[template_index] = ObjWriter(self.templates[template_index].faces)
+        return self._obj[template_index].write(mesh.vertices, path)

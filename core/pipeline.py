@@ -192,18 +192,25 @@ class GenerativeShapeModel:
         """Index of the training shape whose mesh is deformed (§6.2.5). nearest-data and
         nearest-latent choose among the shapes the correspondence did not flag as outliers
         (among all when it flagged every one); a name is used as given."""
+        return int(self.template_order(landmarks, template)[0])
+
+    def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
+        """The templates for a landmark set, best first: a named template alone, else the
+        candidates (`template_candidates`) nearest first, in data space (nearest-data) or
+        latent space (nearest-latent). The gated sampler (core/sampling.py) tries the next
+        ones when a mesh fails the quality gate."""
         landmarks = self._check_landmarks(landmarks)
         if template is None:
             template = self.settings.mesh_template
         if template not in TEMPLATE_CHOICES:
-            return self.shape_index(template)
+            return np.array([self.shape_index(template)])
         candidates = self.template_candidates()
         if template == "nearest-data":
             distances = ((self.correspondence.points[candidates] - landmarks[None]) ** 2).sum(axis=(1, 2))
         else:
             z = self.encode(landmarks[None])[0]
             distances = ((self.training_latents()[candidates] - z) ** 2).sum(axis=1)
-        return int(candidates[np.argmin(distances)])
+        return candidates[np.argsort(distances, kind="stable")]
 
     def template_candidates(self) -> np.ndarray:
         """Indices of the training shapes that may serve as a mesh template: those not
