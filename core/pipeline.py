@@ -4,7 +4,9 @@ This is the single artefact passed between the CLI, the tests and Blender, saved
 versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 
 * the training shapes' meshes in the normalised frame and their transforms to input
-  coordinates (so any result maps back, §3.4);
+  coordinates (so any result maps back, §3.4), and, for meshes read from files with
+  polygons or UVs, their files' layouts (`layout.FaceLayout`: polygons, UVs per corner;
+  arrays `mesh_layout_*`, version 2; version-1 files load without them);
 * the correspondence: landmarks (M, L, 3), the template's k-NN graph (kept for meshing,
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
@@ -37,17 +39,21 @@ from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curv
 from .errors import ModelFileError, ShapeGenError
 from .latent_units import LatentUnits
 from . import meshset
-from .mesh import Mesh
+from .layout import pack_layouts, unpack_layouts
+from .mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
+           "MODEL_FILE_VERSIONS",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
 
 MODEL_FILE_FORMAT = "shapegen.model"
-MODEL_FILE_VERSION = 1
+MODEL_FILE_VERSION = 2
+#: Versions `GenerativeShapeModel.load` reads (1: before the meshes' face layouts).
+MODEL_FILE_VERSIONS = (1, 2)
 TEMPLATE_CHOICES = ("nearest-data", "nearest-latent")
 
 
@@ -275,6 +281,7 @@ class GenerativeShapeModel:
         arrays = {f"corr__{k}": v for k, v in self.correspondence.to_arrays().items()}
         arrays.update({f"model__{k}": v for k, v in self.model.to_arrays().items()})
         arrays.update(meshset.pack([m.vertices for m in self.meshes], [m.faces for m in self.meshes], prefix="mesh_"))
+        arrays.update(pack_layouts([m.report.layout for m in self.meshes], prefix="mesh_"))
         arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
@@ -293,7 +300,7 @@ class GenerativeShapeModel:
             "metadata_keys": ArraySpec("U", ("T",)),
             "metadata_values": ArraySpec("U", ("T",)),
         }
-        arrays = load_npz(path, MODEL_FILE_FORMAT, MODEL_FILE_VERSION, spec)
+        arrays = load_npz(path, MODEL_FILE_FORMAT, MODEL_FILE_VERSIONS, spec)
         corr_arrays = {k[len("corr__"):]: v for k, v in arrays.items() if k.startswith("corr__")}
         model_arrays = {k[len("model__"):]: v for k, v in arrays.items() if k.startswith("model__")}
         try:
@@ -301,7 +308,8 @@ class GenerativeShapeModel:
             model = model_from_arrays(model_arrays)
         except ModelFileError as exc:
             raise ModelFileError(f"{path}: {exc}") from None
-        meshes = meshset.unpack(arrays, correspondence.names, str(path), prefix="mesh_")
+        meshes = _with_layouts(meshset.unpack(arrays, correspondence.names, str(path), prefix="mesh_"),
+                               unpack_layouts(arrays, len(correspondence.names), str(path), prefix="mesh_"), path)
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")
@@ -310,6 +318,18 @@ class GenerativeShapeModel:
                      **_load_latents(arrays, path, len(meshes), model.latent_dim))
         loaded.latent_units()  # a file from before the arrays existed: computed now, on load
         return loaded
+
+
+def _with_layouts(meshes: list[Mesh], layouts: list, path) -> list[Mesh]:
+    """The meshes carrying their files' layouts (report.layout), each checked against its mesh."""
+    found = []
+    for mesh, layout in zip(meshes, layouts):
+        if layout is not None:
+            if layout.vertex_map.max() >= mesh.n_vertices:
+                raise ModelFileError(f"{path}: the face layout of mesh {mesh.name!r} refers to a vertex it does not have")
+            mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=MeshReport(layout=layout))
+        found.append(mesh)
+    return found
 
 
 def _load_latents(arrays: dict, path, n_shapes: int, latent_dim: int) -> dict:

@@ -51,7 +51,7 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
 
 
 def test_explore_keeps_the_gate_warning_on_the_live_object_and_the_panel_shows_it(extension, model_files, store,
-                                                                                    monkeypatch):
+                                                                                    monkeypatch, capfd):
     load_model("ppca", model_files)
     assert bpy.ops.shapegen.explore() == {"FINISHED"}
     scene = bpy.context.scene
@@ -71,6 +71,9 @@ def test_explore_keeps_the_gate_warning_on_the_live_object_and_the_panel_shows_i
     assert ("label", "This shape fails the quality gate:") in calls
     assert ("label", live["shapegen_quality"]) in calls
     assert latent.live_quality(scene).reasons[0].startswith("extent: ")
+    capfd.readouterr()
+    assert bpy.ops.shapegen.explore_snap() == {"FINISHED"}
+    assert "This shape fails the quality gate: extent: " in capfd.readouterr().out
 
     monkeypatch.undo()
     assert bpy.ops.shapegen.explore_reset() == {"FINISHED"}
