@@ -259,6 +259,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
                   "rejected_seed": np.asarray([r.seed for _, r in rejected], dtype=np.int64),
                   "rejected_template": np.asarray([r.template for _, r in rejected], dtype=str),
                   "rejected_reasons": np.asarray(["; ".join(r.reasons) for _, r in rejected], dtype=str),
+                  "rejected_stiffness": np.asarray([r.stiffness for _, r in rejected], dtype=np.float64),
+                  "stiffness": np.asarray([s.stiffness for s in samples], dtype=np.float64),
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
     print(gate_summary(samples))

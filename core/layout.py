@@ -174,7 +174,8 @@ def unpack_layouts(arrays, n_meshes: int, label: str, prefix: str = "") -> list[
     k = int(present.sum())
     try:
         cuts = {}
-        for key, offsets_key in (("layout_vertex_map", "layout_vertex_offsets"), ("layout_sizes", "layout_polygon_offsets"),
+        for key, offsets_key in (("layout_vertex_map", "layout_vertex_offsets"),
+                                 ("layout_sizes", "layout_polygon_offsets"),
                                  ("layout_corners", "layout_corner_offsets"), ("layout_uv", "layout_corner_offsets")):
             offsets = get[offsets_key]
             if len(offsets) != k + 1 or offsets[0] != 0 or offsets[-1] != len(get[key]) or np.any(np.diff(offsets) < 0):

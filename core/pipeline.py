@@ -115,8 +115,8 @@ class GenerativeShapeModel:
         self.model = model
         self.settings = settings
         self.metadata = dict(metadata or {})
-        self._linear_maps: dict[int, LinearMeshMap] = {}
-        self._deformers: dict[int, EmbeddedDeformer] = {}
+        self._linear_maps: dict[tuple[int, float], LinearMeshMap] = {}
+        self._deformers: dict[tuple[int, float], EmbeddedDeformer] = {}
         self._training_latents = training_latents
         self._latent_units = latent_units
 
@@ -234,18 +234,25 @@ class GenerativeShapeModel:
             raise ShapeGenError(f"landmark {bad} is NaN or infinite")
         return landmarks
 
-    def deformer(self, index: int) -> EmbeddedDeformer:
-        if index not in self._deformers:
-            self._deformers[index] = EmbeddedDeformer(
+    def deformer(self, index: int, stiffness: float | None = None) -> EmbeddedDeformer:
+        """The embedded deformation of template `index` at final α `stiffness` (default:
+        the model's deform settings), cached."""
+        alpha = self.deform_settings.final_alpha if stiffness is None else float(stiffness)
+        key = (int(index), alpha)
+        if key not in self._deformers:
+            self._deformers[key] = EmbeddedDeformer(
                 self.meshes[index], self.correspondence.points[index], self.correspondence.edges,
-                self.deform_settings)
-        return self._deformers[index]
+                replace(self.deform_settings, final_alpha=alpha))
+        return self._deformers[key]
 
-    def linear_map(self, index: int) -> LinearMeshMap:
-        """The fast path for template `index` (factorised once, then cached)."""
-        if index not in self._linear_maps:
-            self._linear_maps[index] = LinearMeshMap(self.deformer(index))
-        return self._linear_maps[index]
+    def linear_map(self, index: int, stiffness: float | None = None) -> LinearMeshMap:
+        """The fast path for template `index` at final α `stiffness` (default: the model's),
+        factorised once, then cached."""
+        alpha = self.deform_settings.final_alpha if stiffness is None else float(stiffness)
+        key = (int(index), alpha)
+        if key not in self._linear_maps:
+            self._linear_maps[key] = LinearMeshMap(self.deformer(index, alpha))
+        return self._linear_maps[key]
 
     def mean_template(self) -> int:
         """Index of the training shape nearest (in data space) to the model's mean shape,
@@ -259,19 +266,21 @@ class GenerativeShapeModel:
         return LatentMesher(self, index, dtype)
 
     def mesh_from_landmarks(self, landmarks: np.ndarray, template: str | None = None,
-                            smooth: int = 0, exact: bool = False, name: str = "sample") -> Mesh:
+                            smooth: int = 0, exact: bool = False, name: str = "sample",
+                            stiffness: float | None = None) -> Mesh:
         """Mesh the landmark set (L, 3) by embedded deformation of a template mesh.
 
         exact=False uses the linear fast path (final α only); exact=True runs the full
-        stiffness relaxation (§6.2.3)."""
+        stiffness relaxation (§6.2.3). `stiffness` replaces the final α of the model's
+        deform settings (the gated sampler's stiffer re-mesh, core/sampling.py)."""
         landmarks = np.asarray(landmarks, dtype=np.float64)
         index = self.choose_template(landmarks, template)
-        deformer = self.deformer(index)
+        deformer = self.deformer(index, stiffness)
         deformer.check_targets(landmarks)
         if exact:
             mesh = deformer.deform(landmarks, "relax", name=name)
         else:
-            mesh = self.meshes[index].with_vertices(self.linear_map(index).vertices(landmarks), name=name)
+            mesh = self.meshes[index].with_vertices(self.linear_map(index, stiffness).vertices(landmarks), name=name)
         if smooth:
             mesh = smooth_curvature_flow(mesh, smooth)
         return mesh
@@ -326,7 +335,8 @@ def _with_layouts(meshes: list[Mesh], layouts: list, path) -> list[Mesh]:
     for mesh, layout in zip(meshes, layouts):
         if layout is not None:
             if layout.vertex_map.max() >= mesh.n_vertices:
-                raise ModelFileError(f"{path}: the face layout of mesh {mesh.name!r} refers to a vertex it does not have")
+                raise ModelFileError(f"{path}: the face layout of mesh {mesh.name!r} refers to a vertex "
+                                     "it does not have")
             mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=MeshReport(layout=layout))
         found.append(mesh)
     return found

@@ -10,7 +10,10 @@ fails:
    landmarks are meshed on the next-nearest templates, up to `TEMPLATES_TRIED` in all: a
    template whose correspondence landmarks cover it badly crumples where a neighbour
    does not (PSB Vase: 28 of 30 failing first meshes pass on the 2nd or 3rd template);
-2. otherwise the sample is redrawn with seed S + r·n + i for redraw r = 1, 2, ... (unique
+2. then on the same templates again at `QualitySettings.stiffer_remesh` times the model's
+   final α (a stiffer mesh follows the landmarks less closely but does not fold; the
+   sample records the α it was meshed with);
+3. otherwise the sample is redrawn with seed S + r·n + i for redraw r = 1, 2, ... (unique
    in the run, independent of the order samples are made), up to
    `QualitySettings.max_redraws` times; the last draw is kept when every one fails, and
    says so.
@@ -39,18 +42,27 @@ TEMPLATES_TRIED = 3
 
 @dataclass(frozen=True)
 class Rejection:
-    """One mesh the gate refused: its draw's seed, its template and the gate's reasons."""
+    """One mesh the gate refused: its draw's seed, its template, the final α it was meshed
+    with (`stiffer`: above the model's) and the gate's reasons."""
 
     seed: int
     template: str
     reasons: tuple[str, ...]
+    stiffness: float
+    stiffer: bool = False
+
+    def describe(self) -> str:
+        """"seed S on TEMPLATE[ (stiffness A)]: reasons"."""
+        where = f"seed {self.seed} on {self.template}" + (f" (stiffness {self.stiffness:g})" if self.stiffer else "")
+        return f"{where}: " + "; ".join(self.reasons)
 
 
 @dataclass
 class GatedSample:
     """One sample as it was kept: its seed (the draw kept), landmarks (L, 3), latent (Q,),
     template index, mesh (None once written, e.g. by a worker process), the gate's verdict,
-    and the meshes rejected on the way."""
+    the final α it was meshed with (`stiffer`: above the model's), and the meshes rejected
+    on the way."""
 
     index: int
     name: str
@@ -60,6 +72,8 @@ class GatedSample:
     template_index: int
     mesh: Mesh | None
     quality: MeshQuality
+    stiffness: float
+    stiffer: bool = False
     rejected: list[Rejection] = field(default_factory=list)
 
     @property
@@ -94,19 +108,24 @@ def gated_sample(model, index: int, first_seed: int, count: int, template: str |
                  name: str = "sample") -> GatedSample:
     """Sample `index` of a run of `count` from `first_seed`, gated (module docstring)."""
     gate = quality_gate(model, settings)
+    alpha = model.deform_settings.final_alpha
+    stiffnesses = [alpha] + ([alpha * settings.stiffer_remesh] if settings.stiffer_remesh > 1 else [])
     rejected: list[Rejection] = []
     for redraw in range(settings.max_redraws + 1):
         seed = redraw_seed(first_seed, count, index, redraw)
         landmarks, latent = _draw(model, seed)
-        order = model.template_order(landmarks, template)
-        for template_index in order[:TEMPLATES_TRIED]:
-            mesh = model.mesh_from_landmarks(landmarks, template=model.names[template_index], smooth=smooth,
-                                             exact=exact, name=name)
-            quality = gate.check(mesh, template_index)
-            kept = GatedSample(index, name, seed, landmarks, latent, int(template_index), mesh, quality, rejected)
-            if quality.ok:
-                return kept
-            rejected.append(Rejection(seed, model.names[template_index], quality.reasons))
+        order = model.template_order(landmarks, template)[:TEMPLATES_TRIED]
+        for stiffness in stiffnesses:
+            stiffer = stiffness != alpha
+            for template_index in order:
+                mesh = model.mesh_from_landmarks(landmarks, template=model.names[template_index], smooth=smooth,
+                                                 exact=exact, name=name, stiffness=stiffness)
+                quality = gate.check(mesh, template_index)
+                kept = GatedSample(index, name, seed, landmarks, latent, int(template_index), mesh, quality,
+                                   stiffness, stiffer, rejected)
+                if quality.ok:
+                    return kept
+                rejected.append(Rejection(seed, model.names[template_index], quality.reasons, stiffness, stiffer))
     return kept
 
 
@@ -132,11 +151,12 @@ def gate_summary(samples: Sequence[GatedSample]) -> str:
         return f"quality gate: all {len(samples)} passed at the first draw"
     reasons = Counter(_criterion(reason) for s in samples for r in s.rejected for reason in r.reasons)
     redrawn = [s for s in samples if s.redraws]
+    stiffer = [s for s in samples if s.stiffer and not s.redraws]
     failing = [s for s in samples if not s.quality.ok]
     why = ", ".join(f"{name} {n}" for name, n in reasons.most_common())
     text = (f"quality gate: {len(first_failed)} of {len(samples)} first meshes failed ({why}); "
-            f"{len(first_failed) - len(redrawn)} passed on another template, {len(redrawn)} redrawn "
-            f"({sum(s.redraws for s in samples)} redraws)")
+            f"{len(first_failed) - len(redrawn) - len(stiffer)} passed on another template, {len(stiffer)} meshed "
+            f"stiffer, {len(redrawn)} redrawn ({sum(s.redraws for s in samples)} redraws)")
     if failing:
         text += f"; {len(failing)} still fail after every redraw (kept: " + ", ".join(
             f"{s.name}: {s.quality.summary()}" for s in failing[:3]) + (", ..." if len(failing) > 3 else "") + ")"
@@ -145,4 +165,4 @@ def gate_summary(samples: Sequence[GatedSample]) -> str:
 
 def rejection_lines(samples: Sequence[GatedSample]) -> list[str]:
     """One line per refused mesh: sample, seed, template and the gate's reasons."""
-    return [f"{s.name}: seed {r.seed} on {r.template}: " + "; ".join(r.reasons) for s in samples for r in s.rejected]
+    return [f"{s.name}: {r.describe()}" for s in samples for r in s.rejected]

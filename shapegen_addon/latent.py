@@ -8,11 +8,12 @@ features(z) @ basis, the basis computed once per model and template) and one bul
 of the position attribute (through the copy's vertex map when the core welded vertices),
 so a drag costs a small matrix product and a `foreach_set`, for every model type.
 
-Every re-mesh of the live object is checked by the core's quality gate (core/quality.py):
-flipped faces, edge stretch and extent at once (a few milliseconds), self-intersections
-(tens of milliseconds) at once after an operator (Randomise, Snap, Reset) and, while a
-slider is dragged, once the drag pauses (a timer). The reasons the current shape fails are
-kept on the object (keys.QUALITY_KEY, "" when it passes) and shown in the Explore panel.
+The live shape is checked by the core's quality gate (core/quality.py; 10-200 ms for
+10-30k faces, most of it the self-intersection search): at once after an operator
+(Explore, Randomise, Snap, Reset) and, while a slider is dragged, once the drag pauses
+(FULL_CHECK_DELAY, a timer), so a drag stays a matrix product and a bulk write. The
+reasons the current shape fails are kept on the object (keys.QUALITY_KEY, "" when it
+passes) and shown in the Explore panel.
 
 Generated objects (samples, in-between shapes, modes, the live object) carry their latent
 vector, model and template (keys.LATENT_KEY, ...): written by `tag_object`, read by
@@ -48,9 +49,9 @@ _MESHERS: dict[tuple[str, int], object] = {}
 # live mesh datablock name -> its vertex map (keys.VERTEX_MAP_KEY as an array); rebuilt lazily
 _VERTEX_MAPS: dict[str, np.ndarray] = {}
 _SUSPENDED = [0]
-# updates of the live object so far; a pending full gate check runs only if none came after it
+# updates of the live object so far; a pending gate check runs only if none came after it
 _UPDATES = [0]
-#: Seconds a slider drag must pause before the full quality check (self-intersections) runs.
+#: Seconds a slider drag must pause before the quality gate checks the live shape.
 FULL_CHECK_DELAY = 0.3
 
 
@@ -139,7 +140,7 @@ def on_slider_changed(scene: bpy.types.Scene) -> None:
 
 
 def _schedule_full_check(scene: bpy.types.Scene) -> None:
-    """The full quality check of the live shape once the drag pauses (FULL_CHECK_DELAY)."""
+    """The quality gate's check of the live shape once the drag pauses (FULL_CHECK_DELAY)."""
     token = _UPDATES[0]
     scene_name = scene.name
 
@@ -178,8 +179,9 @@ def write_positions(mesh: bpy.types.Mesh, flat: np.ndarray) -> None:
 
 
 def update_live(scene: bpy.types.Scene, full_check: bool = True) -> bool:
-    """Re-mesh the live object from the sliders and check it with the quality gate (without
-    the self-intersection search unless `full_check`). False when there is nothing to update."""
+    """Re-mesh the live object from the sliders and, with `full_check`, check it with the
+    quality gate (a slider drag leaves that to `_schedule_full_check`). False when there is
+    nothing to update."""
     obj = live_object(scene)
     if obj is None or not len(scene.shapegen.latents):
         return False
@@ -197,19 +199,17 @@ def update_live(scene: bpy.types.Scene, full_check: bool = True) -> bool:
     write_positions(obj.data, flat if vertex_map is None else flat.reshape(-1, 3)[vertex_map].ravel())
     obj[LATENT_KEY] = z.tolist()
     _UPDATES[0] += 1
-    _gate_live(obj, model, mesher.template_index, flat, full_check)
+    if full_check:
+        _gate_live(obj, model, mesher.template_index, flat)
     return True
 
 
-def _gate_live(obj: bpy.types.Object, model, template_index: int, flat: np.ndarray, full: bool):
+def _gate_live(obj: bpy.types.Object, model, template_index: int, flat: np.ndarray):
     """The quality gate's verdict on the live shape (core vertices `flat`), its reasons kept
     on the object (keys.QUALITY_KEY)."""
-    settings = QualitySettings() if full else QualitySettings(check_self_intersections=False)
-    quality = quality_gate(model, settings).check(np.asarray(flat, dtype=np.float64).reshape(-1, 3), template_index)
-    reasons = list(quality.reasons)
-    if not full:  # a quick check cannot clear what only the full one sees; the pending full check will
-        reasons += [r for r in str(obj.get(QUALITY_KEY, "")).split("; ") if r.startswith("self-intersections")]
-    obj[QUALITY_KEY] = "; ".join(reasons)
+    quality = quality_gate(model, QualitySettings()).check(np.asarray(flat, dtype=np.float64).reshape(-1, 3),
+                                                           template_index)
+    obj[QUALITY_KEY] = "; ".join(quality.reasons)
     return quality
 
 
@@ -222,7 +222,7 @@ def live_quality(scene: bpy.types.Scene):
         return None
     model = store.require_model(scene)
     mesher = _mesher(scene, model, int(obj[TEMPLATE_INDEX_KEY]))
-    return _gate_live(obj, model, mesher.template_index, mesher.flat_vertices(current_latent(scene)), True)
+    return _gate_live(obj, model, mesher.template_index, mesher.flat_vertices(current_latent(scene)))
 
 
 def _vertex_map(obj: bpy.types.Object) -> np.ndarray | None:

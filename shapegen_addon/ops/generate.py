@@ -7,9 +7,11 @@ core (`GenerativeShapeModel.sample`, `mesh_from_landmarks`, `LatentMesher`), the
 around them is a copy of the template's own (template_mesh.TemplateMeshes; a plain
 triangle mesh, said in the report, when the template's object is gone); nothing here is
 an algorithm. Samples pass the core's quality gate (core/sampling.py: a failing mesh is
-re-meshed on the next-nearest template or redrawn with a new seed); the report says how
-many were redrawn and why, and each sample records the meshes refused on its way
-(keys.REJECTED_KEY) and, if every redraw failed, why it still fails (keys.QUALITY_KEY).
+re-meshed on the next-nearest template, then stiffer, or redrawn with a new seed); the
+report says how many were redrawn and why, and each sample records the meshes refused on
+its way (keys.REJECTED_KEY), the stiffness it was meshed with when stiffer than the
+model's (keys.STIFFNESS_KEY) and, if every redraw failed, why it still fails
+(keys.QUALITY_KEY).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 from ...core.errors import ShapeGenError
 from ...core.sampling import gate_summary, gated_samples
 from .. import store
-from ..keys import INTERPOLATION_KEY, QUALITY_KEY, REJECTED_KEY
+from ..keys import INTERPOLATION_KEY, QUALITY_KEY, REJECTED_KEY, STIFFNESS_KEY
 from ..latent import object_latent, tag_object
 from ..placement import grid_offsets, place, place_one, vertex_box
 from ..preview import ensure_collection
@@ -77,7 +79,9 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
             obj.location = location
             tag_object(obj, scene, sample.latent, model.names[sample.template_index], seed=sample.seed)
             if sample.rejected:
-                obj[REJECTED_KEY] = [f"seed {r.seed} on {r.template}: {'; '.join(r.reasons)}" for r in sample.rejected]
+                obj[REJECTED_KEY] = [r.describe() for r in sample.rejected]
+            if sample.stiffer:
+                obj[STIFFNESS_KEY] = float(sample.stiffness)
             if not sample.quality.ok:
                 obj[QUALITY_KEY] = sample.quality.summary()
             collection.objects.link(obj)

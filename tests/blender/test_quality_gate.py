@@ -37,7 +37,7 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
         del model.mesh_from_landmarks
     out = capfd.readouterr().out
     assert "quality gate: 1 of 3 first meshes failed (edge stretch 1, extent 1); 1 passed on another template, " \
-           "0 redrawn" in out
+           "0 meshed stiffer, 0 redrawn" in out
     samples = sorted(bpy.data.collections["ShapeGen Samples"].objects, key=lambda o: o["shapegen_seed"])
     assert [o["shapegen_seed"] for o in samples] == [4, 5, 6]
     refused = [o for o in samples if "shapegen_rejected" in o]
@@ -45,7 +45,7 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
     record = list(samples[0]["shapegen_rejected"])
     assert len(record) == 1 and record[0].startswith(f"seed 4 on {templates[0]}: ") and "extent: " in record[0]
     assert samples[0]["shapegen_template"] != templates[0]  # meshed on the next-nearest template
-    assert all("shapegen_quality" not in o for o in samples)
+    assert all("shapegen_quality" not in o and "shapegen_stiffness" not in o for o in samples)
     largest = max(np.ptp(m.vertices, axis=0).max() for m in model.meshes)
     assert all(np.ptp(vertices(o), axis=0).max() < 1.5 * largest for o in samples)
 
@@ -65,12 +65,13 @@ def test_explore_keeps_the_gate_warning_on_the_live_object_and_the_panel_shows_i
     # a gate that finds every shape of the class five times too large: the live shape "exploded"
     shrunk = quality.QualityGate(model.meshes, quality.training_extents(model.meshes) / 5.0)
     monkeypatch.setattr(latent, "quality_gate", lambda model, settings: shrunk)
-    scene.shapegen.latents[0].value = 1.0  # a slider drag: the quick check runs at once
+    scene.shapegen.latents[0].value = 1.0  # a slider drag: checked once the drag pauses (a timer)
+    assert live["shapegen_quality"] == ""
+    assert latent.live_quality(scene).reasons[0].startswith("extent: ")  # what the timer runs
     assert live["shapegen_quality"].startswith("extent: ")
     calls = _draw_all(["SHAPEGEN_PT_explore"])
     assert ("label", "This shape fails the quality gate:") in calls
     assert ("label", live["shapegen_quality"]) in calls
-    assert latent.live_quality(scene).reasons[0].startswith("extent: ")
     capfd.readouterr()
     assert bpy.ops.shapegen.explore_snap() == {"FINISHED"}
     assert "This shape fails the quality gate: extent: " in capfd.readouterr().out

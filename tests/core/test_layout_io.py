@@ -155,7 +155,8 @@ def test_a_model_file_keeps_the_layouts_and_older_files_load(collection, tmp_pat
     assert all(m.report.layout is not None and m.report.layout.uv is not None for m in model.meshes)
     # a version-1 file (before layouts): loads, meshes without layouts
     arrays = dict(np.load(model_path))
-    old = {k: v for k, v in arrays.items() if not k.startswith("mesh_layout_") and k not in ("format", "format_version")}
+    old = {k: v for k, v in arrays.items()
+           if not k.startswith("mesh_layout_") and k not in ("format", "format_version")}
     save_npz(tmp_path / "old.npz", MODEL_FILE_FORMAT, 1, old)
     loaded = GenerativeShapeModel.load(tmp_path / "old.npz")
     assert all(m.report.layout is None for m in loaded.meshes)

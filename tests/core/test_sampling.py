@@ -56,21 +56,39 @@ def test_a_failing_mesh_is_meshed_on_the_next_template_first(model, monkeypatch)
     assert sample.rejected[0].reasons[0].startswith("flipped:")
 
 
-def test_a_sample_failing_on_every_template_is_redrawn_with_a_recorded_seed(model, monkeypatch):
+def test_a_draw_failing_on_every_template_is_meshed_stiffer_then_redrawn(model, monkeypatch):
+    alpha = model.deform_settings.final_alpha
     gate = FailingGate(TEMPLATES_TRIED)
     monkeypatch.setattr(sampling, "quality_gate", lambda model, settings: gate)
     sample = gated_sample(model, 1, 20, 5)
+    order = model.template_order(sample.landmarks, None)[:TEMPLATES_TRIED]
+    assert gate.checked == [*order, order[0]]
+    assert sample.seed == 21 and sample.redraws == 0 and sample.stiffer and sample.stiffness == 2 * alpha
+    stiff = model.mesh_from_landmarks(sample.landmarks, template=model.names[order[0]], stiffness=2 * alpha)
+    np.testing.assert_allclose(sample.mesh.vertices, stiff.vertices)
+    assert "0 passed on another template, 1 meshed stiffer, 0 redrawn" in gate_summary([sample])
+
+    gate = FailingGate(2 * TEMPLATES_TRIED)
+    monkeypatch.setattr(sampling, "quality_gate", lambda model, settings: gate)
+    sample = gated_sample(model, 1, 20, 5)
     assert sample.seed == redraw_seed(20, 5, 1, 1) == 26
-    assert sample.redraws == 1 and sample.quality.ok
-    assert [r.seed for r in sample.rejected] == [21] * TEMPLATES_TRIED
-    assert "1 of 1 first meshes failed (flipped 3); 0 passed on another template, 1 redrawn" in gate_summary([sample])
+    assert sample.redraws == 1 and sample.quality.ok and not sample.stiffer
+    assert [r.seed for r in sample.rejected] == [21] * (2 * TEMPLATES_TRIED)
+    assert [r.stiffer for r in sample.rejected] == [False] * TEMPLATES_TRIED + [True] * TEMPLATES_TRIED
+    assert sample.rejected[-1].describe().startswith(f"seed 21 on {sample.rejected[-1].template} "
+                                                     f"(stiffness {2 * alpha:g}): flipped:")
+    assert "1 of 1 first meshes failed (flipped 6); 0 passed on another template, 0 meshed stiffer, 1 redrawn" \
+        in gate_summary([sample])
+    gate = FailingGate(TEMPLATES_TRIED)
+    monkeypatch.setattr(sampling, "quality_gate", lambda model, settings: gate)
+    assert gated_sample(model, 1, 20, 5, settings=QualitySettings(stiffer_remesh=1.0)).redraws == 1
 
 
 def test_a_named_template_is_kept_and_the_sample_redrawn(model, monkeypatch):
     gate = FailingGate(1)
     monkeypatch.setattr(sampling, "quality_gate", lambda model, settings: gate)
     name = model.names[2]
-    sample = gated_sample(model, 0, 3, 2, template=name)
+    sample = gated_sample(model, 0, 3, 2, template=name, settings=QualitySettings(stiffer_remesh=1.0))
     assert gate.checked == [2, 2]
     assert [(r.seed, r.template) for r in sample.rejected] == [(3, name)]
     assert sample.seed == 5 and sample.template_index == 2
@@ -80,6 +98,6 @@ def test_when_every_redraw_fails_the_last_is_kept_and_reported(model):
     strict = QualitySettings(max_edge_stretch_p99=1e-9, max_redraws=1)
     sample = gated_sample(model, 0, 0, 3, settings=strict)
     assert not sample.quality.ok and sample.quality.reasons[0].startswith("edge stretch:")
-    assert len(sample.rejected) == 2 * min(TEMPLATES_TRIED, len(model.template_candidates()))
+    assert len(sample.rejected) == 2 * 2 * min(TEMPLATES_TRIED, len(model.template_candidates()))
     assert {r.seed for r in sample.rejected} == {0, 3} and sample.seed == 3
     assert "1 still fail after every redraw (kept: sample: edge stretch:" in gate_summary([sample])
