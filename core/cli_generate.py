@@ -18,7 +18,7 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +27,12 @@ from .cli_common import (CommandError, add_keep_pose_option, add_settings_option
                          prepare_source, read_source, settings_from_args)
 from .collection import PrepareSettings
 from .deform import DeformSettings
-from .io import ObjWriter, read_folder, write_mesh
+from .io import MeshWriters, read_folder
 from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .preprocess import ShapeTransform
+from .quality import QualitySettings
+from .sampling import GatedSample, gate_summary, gated_sample, redraw_seed, rejection_lines
 
 __all__ = ["add_generate_commands"]
 
@@ -136,19 +138,41 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- sample
-def _mesh_and_write(model, items, folder: Path, file_format: str, smooth: int, exact: bool) -> None:
-    """Mesh (name, landmarks, template) items and write them; OBJ files of one template
-    share a pre-formatted face block (io.ObjWriter)."""
-    writers = {}
-    for name, landmarks, template in items:
-        mesh = model.mesh_from_landmarks(landmarks, template=template, smooth=smooth, exact=exact, name=name)
-        path = folder / f"{name}.{file_format}"
-        if file_format == "obj":
-            if template not in writers:
-                writers[template] = ObjWriter(mesh.faces)
-            writers[template].write(mesh.vertices, path)
-        else:
-            write_mesh(mesh, path)
+def _write_meshes(model, landmarks, template: str | None, smooth: int, folder: Path, names, file_format: str) -> None:
+    """Mesh landmark sets on their templates and write them (complete, morph)."""
+    writers = MeshWriters(model.meshes)
+    for name, lm in zip(names, landmarks):
+        index = model.choose_template(lm, template)
+        mesh = model.mesh_from_landmarks(lm, template=model.names[index], smooth=smooth, name=name)
+        writers.write(mesh, index, folder / f"{name}.{file_format}")
+
+
+@dataclass(frozen=True)
+class SampleRun:
+    """What every sample of one `shapegen sample` run shares (sent to worker processes)."""
+
+    count: int
+    first_seed: int
+    template: str | None
+    folder: str
+    file_format: str
+    smooth: int
+    exact: bool
+    quality: str  # QualitySettings as JSON
+
+
+def _gated_chunk(model, run: SampleRun, indices) -> list[GatedSample]:
+    """Samples `indices` of `run`, gated (core/sampling.py) and written; returned without
+    their meshes."""
+    settings = QualitySettings.from_json(run.quality)
+    writers = MeshWriters(model.meshes)
+    samples = []
+    for index in indices:
+        sample = gated_sample(model, index, run.first_seed, run.count, run.template, settings, run.smooth, run.exact,
+                              name=f"sample_{index:04d}")
+        writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
+        samples.append(replace(sample, mesh=None))
+    return samples
 
 
 _WORKER_MODEL = None
@@ -159,9 +183,8 @@ def _init_sample_worker(model_path: str) -> None:
     _WORKER_MODEL = GenerativeShapeModel.load(Path(model_path))
 
 
-def _sample_chunk(items, folder: str, file_format: str, smooth: int, exact: bool) -> int:
-    _mesh_and_write(_WORKER_MODEL, items, Path(folder), file_format, smooth, exact)
-    return len(items)
+def _sample_chunk(run: SampleRun, indices) -> list[GatedSample]:
+    return _gated_chunk(_WORKER_MODEL, run, indices)
 
 
 def contiguous_chunks(items: list, parts: int) -> list[list]:
@@ -186,41 +209,63 @@ def _single_threaded_blas():
             os.environ["OPENBLAS_NUM_THREADS"] = previous
 
 
-def _write_samples(args, model, names, landmarks, templates, folder: Path) -> None:
-    """Mesh and write every sample, in `args.jobs` processes when there are many."""
-    items = list(zip(names, landmarks, templates))
+def _first_templates(model, run: SampleRun) -> list[int]:
+    """The template of each sample's first draw (what most samples keep)."""
+    first = []
+    for index in range(run.count):
+        landmarks, _ = model.sample(1, np.random.default_rng(redraw_seed(run.first_seed, run.count, index, 0)))
+        first.append(int(model.template_order(landmarks[0], run.template)[0]))
+    return first
+
+
+def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSample]:
+    """Draw, gate, mesh and write every sample, in `args.jobs` processes when there are
+    many; the samples in order, without their meshes. Each worker gets a contiguous run of
+    the samples sorted by the template of their first draw (`templates`), so it builds the
+    mesh maps of few templates."""
     jobs = args.jobs or (os.cpu_count() or 1)
-    if jobs == 1 or len(items) < 64:
-        _mesh_and_write(model, items, folder, args.format, args.smooth, args.exact)
-        return
-    # each worker gets a contiguous run of the items sorted by template, so it builds the
-    # mesh maps of few templates
-    items.sort(key=lambda item: item[2])
+    if jobs == 1 or run.count < 64:
+        return _gated_chunk(model, run, range(run.count))
+    indices = sorted(range(run.count), key=lambda i: (templates[i], i))
     context = multiprocessing.get_context("spawn")
     with _single_threaded_blas(), ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_sample_worker,
                                                       initargs=(str(args.model),)) as pool:
-        done = [pool.submit(_sample_chunk, chunk, str(folder), args.format, args.smooth, args.exact)
-                for chunk in contiguous_chunks(items, jobs)]
-        for future in done:
-            future.result()
+        done = [pool.submit(_sample_chunk, run, chunk) for chunk in contiguous_chunks(indices, jobs)]
+        samples = [sample for future in done for sample in future.result()]
+    return sorted(samples, key=lambda sample: sample.index)
 
 
 def cmd_sample(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.n < 1:
         raise CommandError(f"-n must be at least 1, got {args.n}")
+    quality = settings_from_args(QualitySettings, args)
     model = GenerativeShapeModel.load(args.model)
-    rng = np.random.default_rng(args.seed)
-    landmarks, latents = model.sample(args.n, rng)
-    names = [f"sample_{i:04d}" for i in range(args.n)]
-    templates = [model.names[model.choose_template(lm, args.template)] for lm in landmarks]
+    if args.template is not None:
+        model.template_order(model.correspondence.points[0], args.template)  # an unknown name fails before any work
+    run = SampleRun(args.n, args.seed, args.template, "", args.format, args.smooth, args.exact, quality.to_json())
     with _StagedOutput(args.output) as staging:
-        _write_samples(args, model, names, landmarks, templates, staging)
-        arrays = {"names": np.asarray(names), "landmarks": landmarks, "templates": np.asarray(templates),
+        jobs = args.jobs or (os.cpu_count() or 1)
+        templates = _first_templates(model, run) if jobs > 1 and run.count >= 64 else []
+        samples = _write_samples(args, model, replace(run, folder=str(staging)), templates)
+        rejected = [(s.index, r) for s in samples for r in s.rejected]
+        arrays = {"names": np.asarray([s.name for s in samples]),
+                  "landmarks": np.stack([s.landmarks for s in samples]),
+                  "latents": np.stack([s.latent for s in samples]),
+                  "templates": np.asarray([model.names[s.template_index] for s in samples]),
+                  "seeds": np.asarray([s.seed for s in samples], dtype=np.int64),
+                  "quality": np.asarray(["; ".join(s.quality.reasons) for s in samples], dtype=str),
+                  "rejected_sample": np.asarray([i for i, _ in rejected], dtype=np.int64),
+                  "rejected_seed": np.asarray([r.seed for _, r in rejected], dtype=np.int64),
+                  "rejected_template": np.asarray([r.template for _, r in rejected], dtype=str),
+                  "rejected_reasons": np.asarray(["; ".join(r.reasons) for _, r in rejected], dtype=str),
+                  "rejected_stiffness": np.asarray([r.stiffness for _, r in rejected], dtype=np.float64),
+                  "stiffness": np.asarray([s.stiffness for s in samples], dtype=np.float64),
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
-        if latents is not None:
-            arrays["latents"] = latents
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
+    print(gate_summary(samples))
+    for line in rejection_lines(samples):
+        print(f"  {line}")
     seconds = time.perf_counter() - start
     print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz -> {args.output} "
           f"({seconds:.1f} s, {1000 * seconds / args.n:.1f} ms per sample)")
@@ -242,9 +287,8 @@ def cmd_complete(args: argparse.Namespace) -> int:
     with _StagedOutput(args.output) as staging:
         save_npz(staging / "completed.npz", "shapegen.samples", 1,
                  {"landmarks": completed, "observed": np.isfinite(partial).all(axis=2)})
-        for i, lm in enumerate(completed):
-            mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"completed_{i:04d}")
-            write_mesh(mesh, staging / f"completed_{i:04d}.{args.format}")
+        _write_meshes(model, completed, args.template, args.smooth, staging,
+                      [f"completed_{i:04d}" for i in range(len(completed))], args.format)
     missing = int((~np.isfinite(partial).all(axis=2)).sum())
     print(f"completed {len(completed)} shape(s) ({missing} missing landmarks filled) -> {args.output}")
     return 0
@@ -261,9 +305,8 @@ def cmd_morph(args: argparse.Namespace) -> int:
     line = (1 - weights) * latents[index_a] + weights * latents[index_b]
     landmarks = model.decode(line)
     with _StagedOutput(args.output) as staging:
-        for k, (lm, w) in enumerate(zip(landmarks, weights[:, 0])):
-            mesh = model.mesh_from_landmarks(lm, template=args.template, smooth=args.smooth, name=f"morph_{k:03d}")
-            write_mesh(mesh, staging / f"morph_{k:03d}.{args.format}")
+        _write_meshes(model, landmarks, args.template, args.smooth, staging,
+                      [f"morph_{k:03d}" for k in range(len(landmarks))], args.format)
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1,
                  {"landmarks": landmarks, "latents": line, "weights": weights[:, 0],
                   "ends": np.asarray([args.name_a, args.name_b])})
@@ -302,6 +345,7 @@ def add_generate_commands(sub) -> None:
     p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
     p.add_argument("--jobs", type=positive_int, default=None,
                    help="worker processes for 64+ samples (default: all cores)")
+    add_settings_options(p, QualitySettings)
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 

@@ -14,6 +14,14 @@ present). Only geometry is wanted here, so the text handed to trimesh keeps the 
 lines and the `f` lines with each corner reduced to its vertex index; trimesh still
 does the parsing and triangulation.
 
+Faces as the file had them: OBJ polygons and `vt` UVs (parsed from the same lines), PLY
+polygons (trimesh keeps the raw face lists) and per-vertex UVs, glTF per-vertex UVs are
+kept as a `layout.FaceLayout` on `Mesh.report.layout` (when the file has polygons beyond
+triangles or UVs), and `write_mesh` / `MeshWriters` write a mesh that carries one with the
+file's polygons and UVs: OBJ (`v`, `vt`, `f v/vt`) and ASCII PLY (polygons, per-vertex `s t`) by
+the small writers here (trimesh writes triangles only), glTF / GLB through trimesh
+(triangles, `TEXCOORD_0`), STL and OFF as triangles.
+
 STL stores each triangle with its own three corners (vertex 3k + j of the file is corner j
 of triangle k): welded, they become one connected surface, and `report.vertex_map[3k + j]`
 is the Mesh vertex of that corner.
@@ -23,15 +31,19 @@ from __future__ import annotations
 
 import io
 import os
+from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
-from .errors import CollectionError, MeshError, MeshFileError
+from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
 from .intake import clean_mesh
+from .layout import FaceLayout
 from .mesh import Mesh
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ObjWriter"]
+__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
+           "ObjWriter", "MeshWriters"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
@@ -52,9 +64,11 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         )
     if path.stat().st_size == 0:
         raise MeshFileError(f"{label}: file is empty")
+    file_faces = None
     try:
         if suffix == ".obj":
-            source = dict(file_obj=io.BytesIO(_obj_geometry_text(path)), file_type="obj")
+            text, file_faces = _obj_geometry_text(path, with_faces=True)
+            source = dict(file_obj=io.BytesIO(text), file_type="obj")
         else:
             source = dict(file_obj=str(path))
         loaded = trimesh.load(
@@ -73,30 +87,88 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     if faces.size == 0:
         raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
     try:
-        return clean_mesh(vertices, faces, name=name)
+        mesh = clean_mesh(vertices, faces, name=name)
     except MeshError as exc:
         # replace the mesh label by the file path so the user knows which file to fix
         message = str(exc)
         if message.startswith(f"{name}: "):
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
+    if file_faces is None:
+        file_faces = _loaded_faces(loaded, faces)
+    return _with_layout(mesh, file_faces, len(vertices))
 
 
-def _obj_geometry_text(path: Path) -> bytes:
+def _loaded_faces(loaded, faces: np.ndarray):
+    """(sizes, corners, uv per corner or None) of a mesh trimesh loaded: PLY polygons from
+    its raw face lists, UVs per vertex where trimesh found them (PLY, glTF)."""
+    raw = getattr(loaded, "metadata", {}).get("_ply_raw", {}).get("face", {}).get("data", {})
+    lists = raw.get("vertex_indices", raw.get("vertex_index")) if hasattr(raw, "get") else None
+    if lists is not None and len(lists):
+        polygons = [np.asarray(p, dtype=np.int64).ravel() for p in lists]
+    else:
+        polygons = list(np.asarray(faces, dtype=np.int64))
+    sizes = np.array([len(p) for p in polygons], dtype=np.int64)
+    corners = np.concatenate(polygons) if polygons else np.empty(0, dtype=np.int64)
+    uv = getattr(getattr(loaded, "visual", None), "uv", None)
+    per_corner = None
+    if uv is not None and len(uv) == len(loaded.vertices):
+        per_corner = np.asarray(uv, dtype=np.float64)[corners]
+    return sizes, corners, per_corner
+
+
+def _with_layout(mesh: Mesh, file_faces, n_file_vertices: int) -> Mesh:
+    """`mesh` carrying the file's polygons and UVs (layout.FaceLayout) when the file has
+    polygons beyond triangles or UVs; as it is otherwise, or when they do not fit."""
+    sizes, corners, uv = file_faces
+    if len(sizes) == 0 or (uv is None and np.all(sizes == 3)):
+        return mesh
+    vertex_map = mesh.report.vertex_map if mesh.report.vertex_map is not None else np.arange(mesh.n_vertices)
+    if len(vertex_map) != n_file_vertices:
+        return mesh
+    try:
+        layout = FaceLayout.wound_like(vertex_map, sizes, corners, uv, mesh.faces)
+    except ShapeGenError:
+        return mesh
+    return Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, layout=layout))
+
+
+def _obj_geometry_text(path: Path, with_faces: bool = False):
     """The `v` and `f` lines of an OBJ file, face corners reduced to their vertex index
-    (see module docstring: keeps vertex order and count, no material / group splitting)."""
+    (see module docstring: keeps vertex order and count, no material / group splitting).
+    With `with_faces` also the file's faces: (sizes, corners as 0-based vertex indices, UVs
+    per corner from `vt` or None when a corner has none)."""
     text = path.read_bytes().decode("utf-8", errors="replace")
     text = text.replace("\r\n", "\n").replace("\r", "\n").replace("\\\n", " ")
-    kept = []
+    kept, sizes, corners, corner_uv, uvs = [], [], [], [], []
+    n_vertices = 0
     for line in text.split("\n"):
         parts = line.split()
         if not parts:
             continue
         if parts[0] == "v":
             kept.append(line.strip())
+            n_vertices += 1
+        elif parts[0] == "vt" and with_faces:
+            uvs.append([float(value) for value in (parts[1:3] + ["0"])[:2]])
         elif parts[0] == "f":
-            kept.append("f " + " ".join(corner.split("/", 1)[0] for corner in parts[1:]))
-    return ("\n".join(kept) + "\n").encode()
+            indices = [corner.split("/") for corner in parts[1:]]
+            kept.append("f " + " ".join(fields[0] for fields in indices))
+            if with_faces:
+                sizes.append(len(indices))
+                for fields in indices:
+                    v = int(fields[0])
+                    corners.append(v - 1 if v > 0 else n_vertices + v)
+                    t = int(fields[1]) if len(fields) > 1 and fields[1] else 0
+                    corner_uv.append(t - 1 if t > 0 else (len(uvs) + t if t < 0 else -1))
+    data = ("\n".join(kept) + "\n").encode()
+    if not with_faces:
+        return data
+    corner_uv = np.asarray(corner_uv, dtype=np.int64)
+    uv = None
+    if len(corner_uv) and uvs and corner_uv.min() >= 0 and corner_uv.max() < len(uvs):
+        uv = np.asarray(uvs, dtype=np.float64)[corner_uv]
+    return data, (np.asarray(sizes, dtype=np.int64), np.asarray(corners, dtype=np.int64), uv)
 
 
 def _holds_points_only(trimesh, path: Path, suffix: str) -> bool:
@@ -164,19 +236,26 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2) -> list[Mesh]:
 
 def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     """Write `mesh` to `path` (format from the suffix), atomically: a temporary file is
-    written first and renamed, so a failure never leaves a half-written file."""
-    import trimesh
-
+    written first and renamed, so a failure never leaves a half-written file. A mesh that
+    carries its file's layout (`report.layout`) is written with those polygons and UVs
+    where the format holds them (module docstring)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise MeshFileError(f"{path}: unsupported file type '{suffix}'")
-    tmp = path.with_name(f".{path.name}.tmp{suffix}")
+    layout = mesh.report.layout
+    if suffix == ".obj":
+        return _write_atomically(path, lambda handle: ObjWriter.for_mesh(mesh).write_to(handle, mesh.vertices))
+    if suffix == ".ply" and layout is not None:
+        return _write_atomically(path, lambda handle: handle.write(ply_bytes(layout, mesh.vertices)))
+    return _write_atomically(path, lambda handle: handle.write(_trimesh_bytes(mesh, suffix[1:])))
+
+
+def _write_atomically(path: Path, write) -> Path:
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
     try:
-        if suffix == ".obj":
-            tmp.write_bytes(obj_bytes(mesh))
-        else:
-            trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(str(tmp), file_type=suffix[1:])
+        with open(tmp, "wb") as handle:
+            write(handle)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -184,10 +263,69 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     return path
 
 
+def _trimesh_bytes(mesh: Mesh, file_type: str) -> bytes:
+    """A file of triangles through trimesh: the layout's vertices, fan-triangulated
+    polygons and per-vertex UVs (glTF's TEXCOORD_0) when the mesh carries a layout."""
+    import trimesh
+
+    layout = mesh.report.layout
+    if layout is None:
+        shape = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    else:
+        shape = trimesh.Trimesh(layout.positions(mesh.vertices), layout.triangles(), process=False)
+        uv = layout.vertex_uv()
+        if uv is not None and file_type in ("glb", "gltf"):
+            shape.visual = trimesh.visual.TextureVisuals(uv=uv)
+    options = {"embed_buffers": True} if file_type == "gltf" else {}
+    data = shape.export(file_type=file_type, **options)
+    if isinstance(data, dict):  # gltf: {"model.gltf": the JSON, its buffers embedded}
+        data = data["model.gltf"]
+    return data.encode() if isinstance(data, str) else data
+
+
+def ply_bytes(layout, vertices: np.ndarray, precision: int = 8) -> bytes:
+    """An ASCII PLY of the layout's polygons at mesh vertices `vertices`, with per-vertex
+    UVs (`s t`) when the layout's UVs are per vertex. ASCII: trimesh's binary reader
+    (ours) assumes every face list has the first one's length, so quads beside n-gons
+    need the text form."""
+    positions = np.asarray(layout.positions(vertices), dtype=np.float64)
+    uv = layout.vertex_uv()
+    columns = positions if uv is None else np.hstack([positions, uv])
+    header = ["ply", "format ascii 1.0", f"element vertex {len(positions)}",
+              "property float x", "property float y", "property float z"]
+    if uv is not None:
+        header += ["property float s", "property float t"]
+    header += [f"element face {len(layout.sizes)}", "property list uchar int vertex_indices", "end_header"]
+    if layout.sizes.max() > 255:
+        raise MeshFileError(f"a polygon has {int(layout.sizes.max())} corners; PLY's face lists hold at most 255")
+    line = " ".join([f"%.{precision}g"] * columns.shape[1]) + "\n"
+    vertex_block = (line * len(columns)) % tuple(columns.ravel().tolist())
+    faces = "".join(f"{len(p)} " + " ".join(map(str, p.tolist())) + "\n" for p in layout.polygons())
+    return ("\n".join(header) + "\n" + vertex_block + faces).encode("ascii")
+
+
 def obj_face_block(faces: np.ndarray) -> bytes:
     """The 'f' lines of an OBJ file (1-based indices)."""
     faces = np.ascontiguousarray(faces, dtype=np.int64) + 1
     return (("f %d %d %d\n" * len(faces)) % tuple(faces.ravel().tolist())).encode("ascii")
+
+
+def obj_layout_block(layout) -> bytes:
+    """The 'vt' and 'f' lines of a layout: polygons as the file had them, `v/vt` corners
+    when it has UVs (each distinct UV written once)."""
+    vertex = layout.corners + 1
+    if layout.uv is None:
+        fields = [str(v) for v in vertex.tolist()]
+        texture = b""
+    else:
+        unique, which = np.unique(layout.uv, axis=0, return_inverse=True)
+        texture = (("vt %.8g %.8g\n" * len(unique)) % tuple(unique.ravel().tolist())).encode("ascii")
+        fields = [f"{v}/{t}" for v, t in zip(vertex.tolist(), (np.ravel(which) + 1).tolist())]
+    lines, start = [], 0
+    for size in layout.sizes.tolist():
+        lines.append("f " + " ".join(fields[start:start + size]))
+        start += size
+    return texture + ("\n".join(lines) + "\n").encode("ascii")
 
 
 def obj_vertex_block(vertices: np.ndarray, precision: int = 8) -> bytes:
@@ -198,34 +336,56 @@ def obj_vertex_block(vertices: np.ndarray, precision: int = 8) -> bytes:
 
 
 def obj_bytes(mesh: Mesh, precision: int = 8) -> bytes:
-    """Plain OBJ text (v and f lines only) of a mesh.
+    """OBJ text of a mesh: v and f lines, or, when it carries its file's layout, the file's
+    vertices, UVs and polygons.
 
     trimesh's OBJ exporter formats row by row (≈ 180 ms for 20k vertices), which alone
     would break the mass-generation target (1000 OBJ samples of a 20k-vertex mesh in 30 s);
     one C-level %-format over the whole array takes ≈ 35 ms for the vertices, and samples
     deformed from one template share their face block (`ObjWriter`). The output is read
     back by `read_mesh` (trimesh) with identical vertex order (tests/core/test_mesh_io.py)."""
-    return obj_vertex_block(mesh.vertices, precision) + obj_face_block(mesh.faces)
+    buffer = io.BytesIO()
+    ObjWriter.for_mesh(mesh, precision).write_to(buffer, mesh.vertices)
+    return buffer.getvalue()
 
 
 class ObjWriter:
     """Writes many meshes that share one face list (deformed copies of a template) as OBJ,
-    formatting the face block once."""
+    formatting the face block once: the template's triangles, or its file's layout
+    (polygons and UVs, vertices through the layout's vertex map)."""
 
-    def __init__(self, faces: np.ndarray, precision: int = 8):
+    def __init__(self, faces: np.ndarray, precision: int = 8, layout=None):
         self.faces = np.asarray(faces)
         self.precision = precision
-        self._face_block = obj_face_block(self.faces)
+        self.layout = layout
+        self._face_block = obj_face_block(self.faces) if layout is None else obj_layout_block(layout)
+
+    @classmethod
+    def for_mesh(cls, mesh: Mesh, precision: int = 8) -> "ObjWriter":
+        return cls(mesh.faces, precision, mesh.report.layout)
+
+    def write_to(self, handle, vertices: np.ndarray) -> None:
+        positions = vertices if self.layout is None else self.layout.positions(vertices)
+        handle.write(obj_vertex_block(positions, self.precision))
+        handle.write(self._face_block)
 
     def write(self, vertices: np.ndarray, path: str | os.PathLike) -> Path:
+        return _write_atomically(Path(path), lambda handle: self.write_to(handle, vertices))
+
+
+class MeshWriters:
+    """Writes deformed copies of template meshes (same faces, new positions): OBJ through
+    one `ObjWriter` per template (its face block formatted once), other formats through
+    `write_mesh`; both with the template's file layout when it has one."""
+
+    def __init__(self, templates: Sequence[Mesh]):
+        self.templates = list(templates)
+        self._obj: dict[int, ObjWriter] = {}
+
+    def write(self, mesh: Mesh, template_index: int, path: str | os.PathLike) -> Path:
         path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp.obj")
-        try:
-            with open(tmp, "wb") as handle:
-                handle.write(obj_vertex_block(vertices, self.precision))
-                handle.write(self._face_block)
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-        return path
+        if path.suffix.lower() != ".obj":
+            return write_mesh(mesh, path)
+        if template_index not in self._obj:
+            self._obj[template_index] = ObjWriter.for_mesh(self.templates[template_index])
+        return self._obj[template_index].write(mesh.vertices, path)

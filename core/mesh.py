@@ -16,11 +16,14 @@ vertices and winds the faces outward; its `MeshReport` keeps the maps back to th
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from .errors import MeshError
+
+if TYPE_CHECKING:
+    from .layout import FaceLayout
 
 __all__ = ["Mesh", "MeshReport", "SurfaceSamples"]
 
@@ -38,6 +41,8 @@ class MeshReport:
     `face_source[f]` the input triangle (after fan triangulation) that face f comes from;
     `face_reversed[f]` is True when face f's winding is the reverse of that triangle's
     (corners 1 and 2 swapped), not counting the reversal of a mirrored read (`mirrored`).
+    `layout` keeps the file's polygons and UVs (io.read_mesh) so deformed copies, which
+    keep the report (`Mesh.with_vertices`), are written with them.
     """
 
     polygons_triangulated: int = 0
@@ -51,6 +56,7 @@ class MeshReport:
     vertex_map: np.ndarray | None = field(default=None, repr=False)
     face_source: np.ndarray | None = field(default=None, repr=False)
     face_reversed: np.ndarray | None = field(default=None, repr=False)
+    layout: "FaceLayout | None" = field(default=None, repr=False)  # the file's polygons and UVs (core/layout.py)
 
     def summary(self) -> str:
         parts = []

@@ -104,11 +104,12 @@ def read_format(path: str | os.PathLike) -> str:
 def load_npz(
     path: str | os.PathLike,
     file_format: str,
-    version: int,
+    version: int | tuple[int, ...],
     spec: Mapping[str, ArraySpec],
 ) -> dict[str, np.ndarray]:
-    """Read and validate a file written by `save_npz`. Raises ModelFileError on anything
-    unexpected; the message starts with the path."""
+    """Read and validate a file written by `save_npz` (`version`: the one version read, or
+    every version read, newest last). Raises ModelFileError on anything unexpected; the
+    message starts with the path."""
     path = Path(path)
     label = str(path)
     arrays = _read_arrays(path)
@@ -121,9 +122,11 @@ def load_npz(
     if tag_version.shape != () or tag_version.dtype.kind not in "iu":
         raise ModelFileError(f"{label}: format_version {str(tag_version)!r} is not an integer version")
     found_version = int(tag_version)
-    if found_version != version:
+    versions = (version,) if isinstance(version, int) else tuple(version)
+    if found_version not in versions:
         raise ModelFileError(
-            f"{label}: {file_format} version {found_version} is not supported (this ShapeGen reads version {version})"
+            f"{label}: {file_format} version {found_version} is not supported (this ShapeGen reads version "
+            f"{' or '.join(map(str, versions))})"
         )
     validate_arrays(arrays, spec, label)
     return arrays

@@ -4,7 +4,9 @@ This is the single artefact passed between the CLI, the tests and Blender, saved
 versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 
 * the training shapes' meshes in the normalised frame and their transforms to input
-  coordinates (so any result maps back, §3.4);
+  coordinates (so any result maps back, §3.4), and, for meshes read from files with
+  polygons or UVs, their files' layouts (`layout.FaceLayout`: polygons, UVs per corner;
+  arrays `mesh_layout_*`, version 2; version-1 files load without them);
 * the correspondence: landmarks (M, L, 3), the template's k-NN graph (kept for meshing,
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
@@ -37,17 +39,21 @@ from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curv
 from .errors import ModelFileError, ShapeGenError
 from .latent_units import LatentUnits
 from . import meshset
-from .mesh import Mesh
+from .layout import pack_layouts, unpack_layouts
+from .mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
+           "MODEL_FILE_VERSIONS",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
 
 MODEL_FILE_FORMAT = "shapegen.model"
-MODEL_FILE_VERSION = 1
+MODEL_FILE_VERSION = 2
+#: Versions `GenerativeShapeModel.load` reads (1: before the meshes' face layouts).
+MODEL_FILE_VERSIONS = (1, 2)
 TEMPLATE_CHOICES = ("nearest-data", "nearest-latent")
 
 
@@ -109,8 +115,8 @@ class GenerativeShapeModel:
         self.model = model
         self.settings = settings
         self.metadata = dict(metadata or {})
-        self._linear_maps: dict[int, LinearMeshMap] = {}
-        self._deformers: dict[int, EmbeddedDeformer] = {}
+        self._linear_maps: dict[tuple[int, float], LinearMeshMap] = {}
+        self._deformers: dict[tuple[int, float], EmbeddedDeformer] = {}
         self._training_latents = training_latents
         self._latent_units = latent_units
 
@@ -192,18 +198,25 @@ class GenerativeShapeModel:
         """Index of the training shape whose mesh is deformed (§6.2.5). nearest-data and
         nearest-latent choose among the shapes the correspondence did not flag as outliers
         (among all when it flagged every one); a name is used as given."""
+        return int(self.template_order(landmarks, template)[0])
+
+    def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
+        """The templates for a landmark set, best first: a named template alone, else the
+        candidates (`template_candidates`) nearest first, in data space (nearest-data) or
+        latent space (nearest-latent). The gated sampler (core/sampling.py) tries the next
+        ones when a mesh fails the quality gate."""
         landmarks = self._check_landmarks(landmarks)
         if template is None:
             template = self.settings.mesh_template
         if template not in TEMPLATE_CHOICES:
-            return self.shape_index(template)
+            return np.array([self.shape_index(template)])
         candidates = self.template_candidates()
         if template == "nearest-data":
             distances = ((self.correspondence.points[candidates] - landmarks[None]) ** 2).sum(axis=(1, 2))
         else:
             z = self.encode(landmarks[None])[0]
             distances = ((self.training_latents()[candidates] - z) ** 2).sum(axis=1)
-        return int(candidates[np.argmin(distances)])
+        return candidates[np.argsort(distances, kind="stable")]
 
     def template_candidates(self) -> np.ndarray:
         """Indices of the training shapes that may serve as a mesh template: those not
@@ -221,18 +234,25 @@ class GenerativeShapeModel:
             raise ShapeGenError(f"landmark {bad} is NaN or infinite")
         return landmarks
 
-    def deformer(self, index: int) -> EmbeddedDeformer:
-        if index not in self._deformers:
-            self._deformers[index] = EmbeddedDeformer(
+    def deformer(self, index: int, stiffness: float | None = None) -> EmbeddedDeformer:
+        """The embedded deformation of template `index` at final α `stiffness` (default:
+        the model's deform settings), cached."""
+        alpha = self.deform_settings.final_alpha if stiffness is None else float(stiffness)
+        key = (int(index), alpha)
+        if key not in self._deformers:
+            self._deformers[key] = EmbeddedDeformer(
                 self.meshes[index], self.correspondence.points[index], self.correspondence.edges,
-                self.deform_settings)
-        return self._deformers[index]
+                replace(self.deform_settings, final_alpha=alpha))
+        return self._deformers[key]
 
-    def linear_map(self, index: int) -> LinearMeshMap:
-        """The fast path for template `index` (factorised once, then cached)."""
-        if index not in self._linear_maps:
-            self._linear_maps[index] = LinearMeshMap(self.deformer(index))
-        return self._linear_maps[index]
+    def linear_map(self, index: int, stiffness: float | None = None) -> LinearMeshMap:
+        """The fast path for template `index` at final α `stiffness` (default: the model's),
+        factorised once, then cached."""
+        alpha = self.deform_settings.final_alpha if stiffness is None else float(stiffness)
+        key = (int(index), alpha)
+        if key not in self._linear_maps:
+            self._linear_maps[key] = LinearMeshMap(self.deformer(index, alpha))
+        return self._linear_maps[key]
 
     def mean_template(self) -> int:
         """Index of the training shape nearest (in data space) to the model's mean shape,
@@ -246,19 +266,21 @@ class GenerativeShapeModel:
         return LatentMesher(self, index, dtype)
 
     def mesh_from_landmarks(self, landmarks: np.ndarray, template: str | None = None,
-                            smooth: int = 0, exact: bool = False, name: str = "sample") -> Mesh:
+                            smooth: int = 0, exact: bool = False, name: str = "sample",
+                            stiffness: float | None = None) -> Mesh:
         """Mesh the landmark set (L, 3) by embedded deformation of a template mesh.
 
         exact=False uses the linear fast path (final α only); exact=True runs the full
-        stiffness relaxation (§6.2.3)."""
+        stiffness relaxation (§6.2.3). `stiffness` replaces the final α of the model's
+        deform settings (the gated sampler's stiffer re-mesh, core/sampling.py)."""
         landmarks = np.asarray(landmarks, dtype=np.float64)
         index = self.choose_template(landmarks, template)
-        deformer = self.deformer(index)
+        deformer = self.deformer(index, stiffness)
         deformer.check_targets(landmarks)
         if exact:
             mesh = deformer.deform(landmarks, "relax", name=name)
         else:
-            mesh = self.meshes[index].with_vertices(self.linear_map(index).vertices(landmarks), name=name)
+            mesh = self.meshes[index].with_vertices(self.linear_map(index, stiffness).vertices(landmarks), name=name)
         if smooth:
             mesh = smooth_curvature_flow(mesh, smooth)
         return mesh
@@ -268,6 +290,7 @@ class GenerativeShapeModel:
         arrays = {f"corr__{k}": v for k, v in self.correspondence.to_arrays().items()}
         arrays.update({f"model__{k}": v for k, v in self.model.to_arrays().items()})
         arrays.update(meshset.pack([m.vertices for m in self.meshes], [m.faces for m in self.meshes], prefix="mesh_"))
+        arrays.update(pack_layouts([m.report.layout for m in self.meshes], prefix="mesh_"))
         arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
@@ -286,7 +309,7 @@ class GenerativeShapeModel:
             "metadata_keys": ArraySpec("U", ("T",)),
             "metadata_values": ArraySpec("U", ("T",)),
         }
-        arrays = load_npz(path, MODEL_FILE_FORMAT, MODEL_FILE_VERSION, spec)
+        arrays = load_npz(path, MODEL_FILE_FORMAT, MODEL_FILE_VERSIONS, spec)
         corr_arrays = {k[len("corr__"):]: v for k, v in arrays.items() if k.startswith("corr__")}
         model_arrays = {k[len("model__"):]: v for k, v in arrays.items() if k.startswith("model__")}
         try:
@@ -294,7 +317,8 @@ class GenerativeShapeModel:
             model = model_from_arrays(model_arrays)
         except ModelFileError as exc:
             raise ModelFileError(f"{path}: {exc}") from None
-        meshes = meshset.unpack(arrays, correspondence.names, str(path), prefix="mesh_")
+        meshes = _with_layouts(meshset.unpack(arrays, correspondence.names, str(path), prefix="mesh_"),
+                               unpack_layouts(arrays, len(correspondence.names), str(path), prefix="mesh_"), path)
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")
@@ -303,6 +327,19 @@ class GenerativeShapeModel:
                      **_load_latents(arrays, path, len(meshes), model.latent_dim))
         loaded.latent_units()  # a file from before the arrays existed: computed now, on load
         return loaded
+
+
+def _with_layouts(meshes: list[Mesh], layouts: list, path) -> list[Mesh]:
+    """The meshes carrying their files' layouts (report.layout), each checked against its mesh."""
+    found = []
+    for mesh, layout in zip(meshes, layouts):
+        if layout is not None:
+            if layout.vertex_map.max() >= mesh.n_vertices:
+                raise ModelFileError(f"{path}: the face layout of mesh {mesh.name!r} refers to a vertex "
+                                     "it does not have")
+            mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=MeshReport(layout=layout))
+        found.append(mesh)
+    return found
 
 
 def _load_latents(arrays: dict, path, n_shapes: int, latent_dim: int) -> dict:

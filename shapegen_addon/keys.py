@@ -60,7 +60,10 @@ def mesh_source(evaluated: bool) -> str:
 # ------------------------------------------------------------------ an object tagged with a latent vector
 LATENT_KEY = "shapegen_latent"  # the latent vector (list of floats); with MODEL_ID_KEY and TEMPLATE_KEY
 MODEL_KEY = "shapegen_model"  # the model's name
-SEED_KEY = "shapegen_seed"  # a sample's seed
+SEED_KEY = "shapegen_seed"  # a sample's seed (of the draw kept when the quality gate redrew it)
+REJECTED_KEY = "shapegen_rejected"  # a sample: "seed S on TEMPLATE: reasons" of each mesh the quality gate refused
+STIFFNESS_KEY = "shapegen_stiffness"  # a sample meshed stiffer than its model (quality gate): that final α
+QUALITY_KEY = "shapegen_quality"  # a sample or the live object: why its mesh fails the quality gate ("": passes)
 INTERPOLATION_KEY = "shapegen_interpolation"  # an in-between shape's position t in [0, 1]
 LIVE_KEY = "shapegen_live"  # the live object: id of the model whose sliders drive it
 TEMPLATE_INDEX_KEY = "shapegen_template_index"  # the live object: index of its template shape

@@ -8,6 +8,13 @@ features(z) @ basis, the basis computed once per model and template) and one bul
 of the position attribute (through the copy's vertex map when the core welded vertices),
 so a drag costs a small matrix product and a `foreach_set`, for every model type.
 
+The live shape is checked by the core's quality gate (core/quality.py; 10-200 ms for
+10-30k faces, most of it the self-intersection search): at once after an operator
+(Explore, Randomise, Snap, Reset) and, while a slider is dragged, once the drag pauses
+(FULL_CHECK_DELAY, a timer), so a drag stays a matrix product and a bulk write. The
+reasons the current shape fails are kept on the object (keys.QUALITY_KEY, "" when it
+passes) and shown in the Explore panel.
+
 Generated objects (samples, in-between shapes, modes, the live object) carry their latent
 vector, model and template (keys.LATENT_KEY, ...): written by `tag_object`, read by
 `object_latent` and `tagged_latents`.
@@ -22,16 +29,18 @@ import numpy as np
 
 from ..core.errors import ShapeGenError
 from ..core.latent_units import LatentUnits
+from ..core.quality import QualitySettings
+from ..core.sampling import quality_gate
 from . import store
-from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, SEED_KEY, SOURCE_KEY, TEMPLATE_INDEX_KEY,
-                   TEMPLATE_KEY, VERTEX_MAP_KEY)
+from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, QUALITY_KEY, SEED_KEY, SOURCE_KEY,
+                   TEMPLATE_INDEX_KEY, TEMPLATE_KEY, VERTEX_MAP_KEY)
 from .placement import place_one, union_box, vertex_box
 from .template_mesh import TemplateMeshes
 
 __all__ = ["on_slider_changed", "sliders_batch", "update_live", "current_latent", "set_latent", "set_values",
            "slider_units", "reset_sliders",
            "live_object", "create_live", "model_changed", "write_positions", "tag_object", "object_latent",
-           "tagged_latents", "forget_cache", "LIVE_NAME"]
+           "tagged_latents", "forget_cache", "live_quality", "LIVE_NAME"]
 
 LIVE_NAME = "ShapeGen Live"
 
@@ -40,6 +49,10 @@ _MESHERS: dict[tuple[str, int], object] = {}
 # live mesh datablock name -> its vertex map (keys.VERTEX_MAP_KEY as an array); rebuilt lazily
 _VERTEX_MAPS: dict[str, np.ndarray] = {}
 _SUSPENDED = [0]
+# updates of the live object so far; a pending gate check runs only if none came after it
+_UPDATES = [0]
+#: Seconds a slider drag must pause before the quality gate checks the live shape.
+FULL_CHECK_DELAY = 0.3
 
 
 def forget_cache() -> None:
@@ -120,9 +133,27 @@ def on_slider_changed(scene: bpy.types.Scene) -> None:
     if _SUSPENDED[0] or not isinstance(scene, bpy.types.Scene):
         return
     try:
-        update_live(scene)
+        if update_live(scene, full_check=False):
+            _schedule_full_check(scene)
     except ShapeGenError as exc:  # an update callback cannot report: keep the reason visible
         scene.shapegen.job_message = str(exc)
+
+
+def _schedule_full_check(scene: bpy.types.Scene) -> None:
+    """The quality gate's check of the live shape once the drag pauses (FULL_CHECK_DELAY)."""
+    token = _UPDATES[0]
+    scene_name = scene.name
+
+    def check():
+        found = bpy.data.scenes.get(scene_name)
+        if found is not None and _UPDATES[0] == token:
+            try:
+                live_quality(found)
+            except ShapeGenError:
+                pass
+        return None
+
+    bpy.app.timers.register(check, first_interval=FULL_CHECK_DELAY)
 
 
 # ------------------------------------------------------------------------------ live object
@@ -147,8 +178,10 @@ def write_positions(mesh: bpy.types.Mesh, flat: np.ndarray) -> None:
     mesh.update()
 
 
-def update_live(scene: bpy.types.Scene) -> bool:
-    """Re-mesh the live object from the sliders. False when there is nothing to update."""
+def update_live(scene: bpy.types.Scene, full_check: bool = True) -> bool:
+    """Re-mesh the live object from the sliders and, with `full_check`, check it with the
+    quality gate (a slider drag leaves that to `_schedule_full_check`). False when there is
+    nothing to update."""
     obj = live_object(scene)
     if obj is None or not len(scene.shapegen.latents):
         return False
@@ -165,7 +198,31 @@ def update_live(scene: bpy.types.Scene) -> bool:
     flat = mesher.flat_vertices(z)
     write_positions(obj.data, flat if vertex_map is None else flat.reshape(-1, 3)[vertex_map].ravel())
     obj[LATENT_KEY] = z.tolist()
+    _UPDATES[0] += 1
+    if full_check:
+        _gate_live(obj, model, mesher.template_index, flat)
     return True
+
+
+def _gate_live(obj: bpy.types.Object, model, template_index: int, flat: np.ndarray):
+    """The quality gate's verdict on the live shape (core vertices `flat`), its reasons kept
+    on the object (keys.QUALITY_KEY)."""
+    quality = quality_gate(model, QualitySettings()).check(np.asarray(flat, dtype=np.float64).reshape(-1, 3),
+                                                           template_index)
+    obj[QUALITY_KEY] = "; ".join(quality.reasons)
+    return quality
+
+
+def live_quality(scene: bpy.types.Scene):
+    """The full quality gate (core/quality.py `MeshQuality`) of the live object's current
+    shape, its reasons kept on the object (keys.QUALITY_KEY, "" when it passes); None when
+    there is no live object."""
+    obj = live_object(scene)
+    if obj is None or not len(scene.shapegen.latents):
+        return None
+    model = store.require_model(scene)
+    mesher = _mesher(scene, model, int(obj[TEMPLATE_INDEX_KEY]))
+    return _gate_live(obj, model, mesher.template_index, mesher.flat_vertices(current_latent(scene)))
 
 
 def _vertex_map(obj: bpy.types.Object) -> np.ndarray | None:
@@ -222,6 +279,8 @@ def bake_live(scene: bpy.types.Scene) -> bpy.types.Object:
     obj = live_object(scene)
     del obj[LIVE_KEY]
     del obj[TEMPLATE_INDEX_KEY]
+    if QUALITY_KEY in obj and not obj[QUALITY_KEY]:
+        del obj[QUALITY_KEY]
     if VERTEX_MAP_KEY in obj:
         del obj[VERTEX_MAP_KEY]
     obj.name = f"{store.model_name(scene)} baked"

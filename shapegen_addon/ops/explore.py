@@ -13,7 +13,7 @@ from bpy.props import IntProperty, StringProperty
 
 from ...core.errors import ShapeGenError
 from .. import store
-from ..keys import MAP_BOUNDS_KEY, MAP_DIMS_KEY, MODEL_ID_KEY, TEMPLATE_KEY
+from ..keys import MAP_BOUNDS_KEY, MAP_DIMS_KEY, MODEL_ID_KEY, QUALITY_KEY, TEMPLATE_KEY
 from ..latent import (bake_live, create_live, current_latent, live_object, reset_sliders, set_latent, set_values,
                      slider_units, tagged_latents)
 from ..picture import latent_map_pixels
@@ -38,12 +38,18 @@ class _NeedsLive(store.NeedsModel):
 
 
 def _run(operator, function) -> set[str]:
+    """Run `function` (returns a message); a live shape that now fails the quality gate
+    (latent.py keeps its reasons in keys.QUALITY_KEY) turns the report into a warning."""
     try:
         message = function()
     except ShapeGenError as exc:
         operator.report({"ERROR"}, str(exc))
         return {"CANCELLED"}
-    if message:
+    live = live_object(bpy.context.scene)
+    warning = str(live.get(QUALITY_KEY, "")) if live is not None else ""
+    if warning:
+        operator.report({"WARNING"}, f"{message + '. ' if message else ''}This shape fails the quality gate: {warning}")
+    elif message:
         operator.report({"INFO"}, message)
     return {"FINISHED"}
 
@@ -136,7 +142,8 @@ class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
     def execute(self, context):
         def work():
             obj = bake_live(context.scene)
-            return f"Baked '{obj.name}'"
+            warning = obj.get(QUALITY_KEY, "")
+            return f"Baked '{obj.name}'" + (f" (it fails the quality gate: {warning})" if warning else "")
 
         return _run(self, work)
 

@@ -6,7 +6,12 @@ and template (latent.tag_object; a sample also with its seed), so later operator
 core (`GenerativeShapeModel.sample`, `mesh_from_landmarks`, `LatentMesher`), the mesh
 around them is a copy of the template's own (template_mesh.TemplateMeshes; a plain
 triangle mesh, said in the report, when the template's object is gone); nothing here is
-an algorithm.
+an algorithm. Samples pass the core's quality gate (core/sampling.py: a failing mesh is
+re-meshed on the next-nearest template, then stiffer, or redrawn with a new seed); the
+report says how many were redrawn and why, and each sample records the meshes refused on
+its way (keys.REJECTED_KEY), the stiffness it was meshed with when stiffer than the
+model's (keys.STIFFNESS_KEY) and, if every redraw failed, why it still fails
+(keys.QUALITY_KEY).
 """
 
 from __future__ import annotations
@@ -16,8 +21,9 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from ...core.errors import ShapeGenError
+from ...core.sampling import gate_summary, gated_samples
 from .. import store
-from ..keys import INTERPOLATION_KEY
+from ..keys import INTERPOLATION_KEY, QUALITY_KEY, REJECTED_KEY, STIFFNESS_KEY
 from ..latent import object_latent, tag_object
 from ..placement import grid_offsets, place, place_one, vertex_box
 from ..preview import ensure_collection
@@ -56,29 +62,32 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
             model = store.require_model(scene)
             count = self.count or settings.sample_count
             first_seed = settings.seed if self.seed < 0 else self.seed
-            # everything that can fail runs before the scene is touched
-            results = []
-            for i in range(count):
-                landmarks, latents = model.sample(1, np.random.default_rng(first_seed + i))
-                index = model.choose_template(landmarks[0], settings.sample_template)
-                mesh = model.mesh_from_landmarks(landmarks[0], template=model.names[index])
-                z = latents[0] if latents is not None else model.encode(landmarks)[0]
-                results.append((first_seed + i, z, index, mesh))
+            # everything that can fail runs before the scene is touched; sample i is drawn
+            # with seed first_seed + i (redraws: core.sampling.redraw_seed)
+            results = gated_samples(model, count, first_seed, template=settings.sample_template)
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         spacing = settings.preview_spacing * shape_size(model)
-        locations = place(scene, [vertex_box(mesh.vertices) for *_, mesh in results], grid_offsets(count, spacing))
+        locations = place(scene, [vertex_box(s.mesh.vertices) for s in results], grid_offsets(count, spacing))
         collection = ensure_collection(scene, SAMPLES_COLLECTION)
         name = store.model_name(scene)
         meshes = TemplateMeshes(scene, model)
-        for (seed, z, index, mesh), location in zip(results, locations):
-            obj = meshes.new_object(f"{name} sample {seed}", index, mesh.vertices)
+        for sample, location in zip(results, locations):
+            obj = meshes.new_object(f"{name} sample {first_seed + sample.index}", sample.template_index,
+                                    sample.mesh.vertices)
             obj.location = location
-            tag_object(obj, scene, z, model.names[index], seed=seed)
+            tag_object(obj, scene, sample.latent, model.names[sample.template_index], seed=sample.seed)
+            if sample.rejected:
+                obj[REJECTED_KEY] = [r.describe() for r in sample.rejected]
+            if sample.stiffer:
+                obj[STIFFNESS_KEY] = float(sample.stiffness)
+            if not sample.quality.ok:
+                obj[QUALITY_KEY] = sample.quality.summary()
             collection.objects.link(obj)
-        self.report({"INFO"}, f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
-                    f"(seeds {first_seed}-{first_seed + count - 1}).{meshes.note}")
+        self.report({"WARNING"} if any(not s.quality.ok for s in results) else {"INFO"},
+                    f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
+                    f"(seeds {first_seed}-{first_seed + count - 1}); {gate_summary(results)}.{meshes.note}")
         return {"FINISHED"}
 
 

@@ -14,7 +14,7 @@ import bpy
 from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
 from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY,
-                   N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
+                   N_SHAPES_KEY, OUTLIERS_KEY, QUALITY_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 from ..prepared import prepared_collection_for, prepared_objects, prepared_pose_notes
 
 __all__ = ["CLASSES"]
@@ -232,6 +232,12 @@ class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
             column = layout.column(align=True)
             for item in settings.latents:
                 column.prop(item, "value", text=item.name, slider=True)
+            warning = str(live.get(QUALITY_KEY, ""))
+            if warning:  # latent.py keeps the quality gate's reasons on the live object
+                box = layout.box()
+                box.label(text="This shape fails the quality gate:", icon="ERROR")
+                for reason in warning.split("; "):
+                    box.label(text=reason)
             row = layout.row(align=True)
             row.operator("shapegen.explore_randomise", icon="FILE_REFRESH")
             row.prop(settings, "explore_seed", text="")

@@ -54,6 +54,19 @@ def test_sample_writes_meshes_and_landmarks_that_load_back(model_file, tmp_path)
     np.testing.assert_array_equal(np.load(again / "landmarks.npz")["landmarks"], arrays["landmarks"])
 
 
+def test_sample_reports_the_quality_gate_and_records_seeds(model_file, tmp_path):
+    out = tmp_path / "gated"
+    result = run("sample", model_file, "-n", 3, "-o", out, "--seed", 3, "--max-redraws", 0)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("quality gate: ")
+    saved = np.load(out / "landmarks.npz")
+    assert saved["seeds"].tolist() == [3, 4, 5]  # no redraws: sample i keeps seed 3 + i
+    assert len(saved["rejected_seed"]) == len(saved["rejected_reasons"]) == len(saved["rejected_sample"])
+    assert saved["quality"].shape == (3,)
+    result = run("sample", model_file, "-n", 2, "-o", tmp_path / "bad", "--max-redraws", -1)
+    assert result.returncode == 2 and "--max-redraws must be at least 0" in result.stderr
+
+
 def test_sample_refuses_a_non_empty_folder_and_unknown_template_writes_nothing(model_file, tmp_path):
     busy = tmp_path / "busy"
     busy.mkdir()
@@ -188,18 +201,18 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
         def __exit__(self, *exc):
             return False
 
-        def submit(self, fn, chunk, *rest):
+        def submit(self, fn, run, chunk):
             submitted.append(chunk)
             future = Future()
-            future.set_result(len(chunk))
+            future.set_result([])
             return future
 
     monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
     templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
-    names = [f"sample_{i:04d}" for i in range(90)]
-    args = argparse.Namespace(jobs=3, format="obj", smooth=0, exact=False, model=tmp_path / "model.npz")
-    cli_generate._write_samples(args, None, names, np.zeros((90, 4, 3)), templates, tmp_path)
+    args = argparse.Namespace(jobs=3, model=tmp_path / "model.npz")
+    run = cli_generate.SampleRun(90, 0, None, str(tmp_path), "obj", 0, False, "{}")
+    cli_generate._write_samples(args, None, run, templates)
     assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
-    assert [sorted({item[2] for item in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
-    assert sorted(item[0] for chunk in submitted for item in chunk) == names
+    assert [sorted({templates[i] for i in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
+    assert sorted(i for chunk in submitted for i in chunk) == list(range(90))
