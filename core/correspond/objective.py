@@ -43,7 +43,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
-__all__ = ["ObjectiveValue", "PopulationObjective", "compactness", "spread", "spread_sigma", "regulariser_variance",
+__all__ = ["ObjectiveValue", "LandmarkState", "PopulationObjective", "compactness", "spread", "spread_sigma", "regulariser_variance",
            "similarity_to_mean", "density", "CUTOFF", "DENSITY_FLOOR"]
 
 #: the spread kernel reaches 0 at this many σ
@@ -150,25 +150,45 @@ def similarity_to_mean(points: np.ndarray, rounds: int = 3) -> tuple[np.ndarray,
     return scales, rotations
 
 
-class PopulationObjective:
-    """E(X) = w_c C(z(X)) + w_s (1/N) Σ_m S_m(X_m) with z_m = s_m (X_m − x̄_m) R_mᵀ (see
-    the module docstring), S_m anchored at the landmarks `start` (with their surface
-    normals). `evaluate` returns the value and ∂E/∂X (N, L, 3)."""
+@dataclass(frozen=True)
+class LandmarkState:
+    """Landmarks on their surfaces as the objective sees them (N shapes, L landmarks)."""
 
-    def __init__(self, start: np.ndarray, start_normals: np.ndarray, areas, compactness_weight: float, spread_weight: float,
-                 regulariser: float, sigma: float, alignment: str):
-        start = np.asarray(start, dtype=np.float64)
-        n, n_landmarks = start.shape[:2]
-        if alignment == "similarity":
-            self.scales, self.rotations = similarity_to_mean(start)
-        else:
-            self.scales, self.rotations = np.ones(n), np.tile(np.eye(3), (n, 1, 1))
+    points: np.ndarray  # (N, L, 3)
+    face_normals: np.ndarray  # (N, L, 3) normal of the face each landmark lies on
+    normals: np.ndarray  # (N, L, 3) smooth (interpolated vertex) normals
+    normal_jacobians: np.ndarray  # (N, L, 3, 3) ∂normal/∂point along the face
+
+
+class PopulationObjective:
+    """E(X) = w_c C(z(X)) + w_s (1/N) Σ_m S_m(X_m) (see the module docstring); S_m is
+    anchored at the landmarks `start`. The compactness sees every shape's landmark vector
+    z_m = [s_m (X_m − x̄_m) R_mᵀ, κ r n_m R_mᵀ]: positions with the shape's similarity
+    removed and, with `normal_weight` κ > 0, the smooth surface normals at the landmarks
+    scaled by κ × the population's RMS landmark radius r (ShapeWorks' "use normals": a
+    feature such as a belly, where the wall turns vertical, then costs variance when it
+    is not lined up, even where sliding along the wall barely moves the positions).
+    `evaluate` returns the value and ∂E/∂X (N, L, 3)."""
+
+    def __init__(self, start: LandmarkState, areas, compactness_weight: float, spread_weight: float,
+                 regulariser: float, sigma: float, alignment: str, normal_weight: float = 0.0):
+        points = np.asarray(start.points, dtype=np.float64)
+        n, n_landmarks = points.shape[:2]
         self.centre = alignment == "similarity"
+        self.scales, self.rotations = np.ones(n), np.tile(np.eye(3), (n, 1, 1))
+        if self.centre:
+            self.realign(points)
         self.weights = (float(compactness_weight), float(spread_weight))
-        self.delta = regulariser_variance(self.aligned(start), regulariser)
+        aligned = self.aligned(points)
+        self.delta = regulariser_variance(aligned, regulariser)
+        self.normal_scale = float(normal_weight) * float(np.sqrt(np.mean(np.sum(aligned**2, axis=2))))
         self.sigmas = np.array([spread_sigma(a, n_landmarks, sigma) for a in areas])
-        self.start_log_density = [np.log(density(x, nm, s).values) for x, nm, s in zip(start, start_normals,
-                                                                                        self.sigmas)]
+        self.start_log_density = [np.log(density(x, nm, s).values)
+                                  for x, nm, s in zip(points, start.face_normals, self.sigmas)]
+
+    def realign(self, points: np.ndarray) -> None:
+        """Every shape's scale and rotation from generalised Procrustes of `points`."""
+        self.scales, self.rotations = similarity_to_mean(points)
 
     def aligned(self, points: np.ndarray) -> np.ndarray:
         """z: every shape's landmarks with its similarity removed."""
@@ -176,21 +196,30 @@ class PopulationObjective:
             points = points - points.mean(axis=1, keepdims=True)
         return self.scales[:, None, None] * points @ self.rotations.transpose(0, 2, 1)
 
-    def evaluate(self, points: np.ndarray, normals: np.ndarray) -> tuple[ObjectiveValue, np.ndarray]:
-        """E and ∂E/∂X at landmarks `points` (N, L, 3) with surface normals `normals`."""
+    def evaluate(self, state: LandmarkState) -> tuple[ObjectiveValue, np.ndarray]:
+        """E and ∂E/∂X at the landmarks of `state`."""
         w_c, w_s = self.weights
+        points = state.points
         gradient = np.zeros_like(points)
         value_c = value_s = 0.0
         if w_c:
-            value_c, grad_z = compactness(self.aligned(points), self.delta)
-            grad_x = self.scales[:, None, None] * grad_z @ self.rotations
+            features = self.aligned(points)
+            if self.normal_scale:
+                rotated = self.normal_scale * state.normals @ self.rotations.transpose(0, 2, 1)
+                features = np.concatenate([features, rotated], axis=1)
+            value_c, grad_z = compactness(features, self.delta)
+            n_landmarks = points.shape[1]
+            grad_x = self.scales[:, None, None] * grad_z[:, :n_landmarks] @ self.rotations
             if self.centre:
                 grad_x -= grad_x.mean(axis=1, keepdims=True)
+            if self.normal_scale:  # through n(x): Jᵀ ∂C/∂n
+                grad_n = self.normal_scale * grad_z[:, n_landmarks:] @ self.rotations
+                grad_x += np.einsum("mlij,mli->mlj", state.normal_jacobians, grad_n)
             gradient += w_c * grad_x
         if w_s:
             n = len(points)
             for m in range(n):
-                value, grad = spread(points[m], normals[m], self.sigmas[m], self.start_log_density[m])
+                value, grad = spread(points[m], state.face_normals[m], self.sigmas[m], self.start_log_density[m])
                 value_s += value / n
                 gradient[m] += w_s * grad / n
         return ObjectiveValue(w_c * value_c + w_s * value_s, value_c, value_s), gradient

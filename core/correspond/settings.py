@@ -99,6 +99,14 @@ class CorrespondenceSettings(Settings):
         the landmarks by less than ρ count as squared size, larger ones by their log
         (see objective.py). Small values reward few dimensions; large ones make the
         term a plain sum of squares.
+      refine_normals: κ: the compactness term sees every landmark's smooth surface normal
+        beside its position, scaled by κ × the population's RMS landmark radius
+        (ShapeWorks' "use normals"): features where the surface turns (belly, neck, rim)
+        then cost variance when they are not lined up. 0: positions only.
+      refine_smooth_fields: K > 0: every step is a combination of the K smoothest fields
+        on the landmark graph (Laplacian eigenvectors) per coordinate, so whole regions
+        slide together instead of the gradient's noisy, landmark-by-landmark pattern;
+        0: the plain (projected) gradient.
       refine_sigma: width of the spread kernel in landmark spacings √(area / L).
       refine_step: the first step moves the landmarks by this many spacings (RMS); it
         then grows by 1.5 after an accepted step and halves after a rejected one.
@@ -140,6 +148,10 @@ class CorrespondenceSettings(Settings):
     refine_spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
     refine_regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to "
                                        "the RMS landmark radius", above=0)
+    refine_normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
+                                   "compactness term (× the RMS landmark radius)", minimum=0)
+    refine_smooth_fields: int = option(0, "refinement: steps restricted to this many smoothest displacement fields "
+                                       "of the landmark graph (0: plain gradient)", minimum=0)
     refine_sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
     refine_step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
     refine_max_move: float = option(0.5, "refinement: largest move of a landmark in one step, in spacings", above=0)

@@ -80,7 +80,8 @@ def test_refine_choice_reaches_the_job(prepared, extension, monkeypatch):
     ops = importlib.import_module(f"{extension}.shapegen_addon.ops.correspondence")
     sent = []
     original = ops.BackgroundJob
-    monkeypatch.setattr(ops, "BackgroundJob", lambda task, arguments: sent.append(arguments) or original(task, arguments))
+    monkeypatch.setattr(ops, "BackgroundJob",
+                        lambda task, arguments: sent.append(arguments) or original(task, arguments))
     settings = bpy.context.scene.shapegen
     assert settings.refine == "none"
     extra = '{"groupwise_rounds": 0, "refine_iterations": 3}'

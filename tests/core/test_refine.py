@@ -7,8 +7,8 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
-from shapegen_core.correspond.objective import PopulationObjective, compactness, density, spread
-from shapegen_core.correspond.refine import refine_population
+from shapegen_core.correspond.objective import LandmarkState, PopulationObjective, compactness, density, spread
+from shapegen_core.correspond.refine import interpolated_normals, landmark_state, refine_population
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface
 
@@ -70,20 +70,72 @@ def test_spread_gradient_matches_finite_differences():
     assert spread(points, normals, 0.5, start) == (0.0, pytest.approx(np.zeros((40, 3))))
 
 
+def test_interpolated_normal_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(3)
+    triangles = rng.normal(size=(6, 3, 3))
+    corners = rng.normal(size=(6, 3, 3))
+    corners /= np.linalg.norm(corners, axis=2, keepdims=True)
+    corners += 2 * np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])[:, None]
+    barys = rng.dirichlet([3, 3, 3], size=6)
+    points = np.einsum("nk,nkd->nd", barys, triangles)
+    normals, jacobians = interpolated_normals(triangles, corners, barys)
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    for row in range(6):
+        numeric = numeric_gradient_vector(lambda x: interpolated_normals(
+            triangles[row:row + 1], corners[row:row + 1], _barycentric(x, triangles[row]))[0][0], points[row])
+        assert np.allclose(jacobians[row], numeric, atol=1e-6)
+
+
+def _barycentric(point, triangle):
+    """Barycentrics of the orthogonal projection of `point` onto the triangle's plane."""
+    e1, e2 = triangle[1] - triangle[0], triangle[2] - triangle[0]
+    gram = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
+    v, w = np.linalg.solve(gram, [e1 @ (point - triangle[0]), e2 @ (point - triangle[0])])
+    return np.array([[1 - v - w, v, w]])
+
+
+def numeric_gradient_vector(function, x, step=1e-6):
+    """Central-difference Jacobian (out, in) of a vector function of a vector."""
+    columns = []
+    for index in range(len(x)):
+        up, down = x.copy(), x.copy()
+        up[index] += step
+        down[index] -= step
+        columns.append((function(up) - function(down)) / (2 * step))
+    return np.stack(columns, axis=1)
+
+
 def test_population_gradient_matches_finite_differences():
-    """The whole objective, with every shape's similarity removed (fixed scale and
-    rotation from the start, centroid at every evaluation)."""
+    """The whole objective on landmarks lying on triangles, with every shape's similarity
+    removed (fixed scale and rotation, centroid at every evaluation) and the smooth
+    normals in the compactness term: the gradient along each landmark's face matches."""
     rng = np.random.default_rng(2)
-    base = rng.normal(size=(12, 3))
-    start = np.stack([1.5 * base @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + rng.normal(size=3)
-                      + 0.05 * rng.normal(size=(12, 3)) for _ in range(4)])
-    normals = np.tile([0.0, 0.0, 1.0], (4, 12, 1))
-    objective = PopulationObjective(start, normals, [20.0] * 4, 1.0, 2.0, 0.05, 1.0, "similarity")
-    moved = start + 0.05 * rng.normal(size=start.shape)
-    value, gradient = objective.evaluate(moved, normals)
+    n_shapes, n_landmarks = 4, 10
+    base = rng.normal(size=(n_landmarks, 3, 3))
+    triangles = np.stack([1.5 * base @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + rng.normal(size=3)
+                          + 0.05 * rng.normal(size=base.shape) for _ in range(n_shapes)])
+    corners = rng.normal(size=triangles.shape)
+    corners /= np.linalg.norm(corners, axis=3, keepdims=True)
+    face_normals = np.cross(triangles[..., 1, :] - triangles[..., 0, :], triangles[..., 2, :] - triangles[..., 0, :])
+    face_normals /= np.linalg.norm(face_normals, axis=2, keepdims=True)
+    corners += 2 * face_normals[:, :, None]
+
+    def state(points):
+        barys = np.stack([np.concatenate([_barycentric(p, t) for p, t in zip(x, tri)])
+                          for x, tri in zip(points, triangles)])
+        smooth = [interpolated_normals(tri, c, b) for tri, c, b in zip(triangles, corners, barys)]
+        return LandmarkState(points, face_normals, np.stack([n for n, _ in smooth]), np.stack([j for _, j in smooth]))
+
+    start = np.einsum("mlk,mlkd->mld", rng.dirichlet([4, 4, 4], size=(n_shapes, n_landmarks)), triangles)
+    objective = PopulationObjective(state(start), [20.0] * n_shapes, 1.0, 2.0, 0.05, 1.0, "similarity", 0.7)
+    moved = np.einsum("mlk,mlkd->mld", rng.dirichlet([4, 4, 4], size=(n_shapes, n_landmarks)), triangles)
+    value, gradient = objective.evaluate(state(moved))
     assert value.total == pytest.approx(value.compactness + 2.0 * value.spread)
-    numeric = numeric_gradient(lambda x: objective.evaluate(x, normals)[0].total, moved)
-    assert np.allclose(gradient, numeric, atol=1e-6)
+    numeric = numeric_gradient(lambda x: objective.evaluate(state(x))[0].total, moved)
+    # the objective only sees moves along each face: compare the tangential parts
+    tangential = lambda g: g - np.einsum("mld,mld->ml", g, face_normals)[..., None] * face_normals  # noqa: E731
+    assert np.allclose(tangential(gradient), tangential(numeric), atol=1e-6)
+    assert np.abs(tangential(gradient)).max() > 1e-3
 
 
 def test_refinement_stays_on_surfaces_and_descends(vases):
@@ -147,13 +199,14 @@ def test_spread_term_alone_keeps_a_uniform_sampling_uniform(vases):
 
     # a landmark moved next to its nearest neighbour: the spread term (anchored at the
     # uniform start) is positive and its descent direction moves it away from the neighbour
-    objective = PopulationObjective(points, _normals(meshes, faces), [m.area() for m in meshes], 0.0, 1.0, 0.001,
-                                    1.0, "similarity")
+    objective = PopulationObjective(landmark_state(meshes, points, faces, barys), [m.area() for m in meshes], 0.0,
+                                    1.0, 0.001, 1.0, "similarity")
     crowded = points.copy()
     for m in range(3):
         j = int(np.argsort(np.linalg.norm(points[m] - points[m, 0], axis=1))[1])
         crowded[m, 0] = 0.8 * points[m, j] + 0.2 * points[m, 0]
-    value, gradient = objective.evaluate(crowded, _normals(meshes, faces))
+    crowded_state = lambda p: replace(landmark_state(meshes, points, faces, barys), points=p)  # noqa: E731
+    value, gradient = objective.evaluate(crowded_state(crowded))
     assert value.spread > 0
     for m in range(3):
         j = int(np.argsort(np.linalg.norm(points[m] - points[m, 0], axis=1))[1])
@@ -162,11 +215,8 @@ def test_spread_term_alone_keeps_a_uniform_sampling_uniform(vases):
         relieved = crowded.copy()
         relieved[m, 0] += step
         assert np.linalg.norm(relieved[m, 0] - crowded[m, j]) > np.linalg.norm(apart)
-        assert objective.evaluate(relieved, _normals(meshes, faces))[0].spread < value.spread
+        assert objective.evaluate(crowded_state(relieved))[0].spread < value.spread
 
-
-def _normals(meshes, faces):
-    return np.stack([mesh.face_normals()[f] for mesh, f in zip(meshes, faces)])
 
 
 def test_correspondence_file_records_the_refinement(vases, tmp_path):
