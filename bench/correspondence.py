@@ -19,7 +19,7 @@ Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three part
 
 Issue 13 (groupwise refinement, `refine="population"`, core/correspond/refine.py) adds to
 part 1 a refinement row and ablations (no spread term, no compactness term, fewer
-iterations, no similarity removal), the error decomposition of the refined result, the
+iterations, no similarity removal, no normals, plain gradient steps), the error decomposition of the refined result, the
 objective at NICP / refined / ground truth and a refinement started at the ground truth,
 and model quality on NICP vs refined landmarks (PPCA held-out log-likelihood, Table 5.1
 completion error, 5 folds); to part 2 the refinement's time on the same collection; to
@@ -309,7 +309,8 @@ def refined_diagnosis(shapes, prepared, nicp, refined, template_index, log) -> d
               for name, where in (("nicp", (nicp.points, nicp.face_index, nicp.barycentric)),
                                   ("refined", (refined.points, refined.face_index, refined.barycentric)),
                                   ("ground truth", (truth_points, truth_faces, truth_barys)))}
-    walked = refine_population([s.mesh for s in prepared.shapes], truth_points, truth_faces, truth_barys, REFINED)
+    walked = refine_population([s.mesh for s in prepared.shapes], truth_points, truth_faces, truth_barys, REFINED,
+                               edges=nicp.edges)
     to_input = lambda pts: np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, pts)])  # noqa: E731
     walk_error = 100 * float(error_vs_template(shapes, template_index, lm, to_input(walked.points)).mean())
     out = {"objective": {k: {"total": v.total, "compactness": v.compactness, "spread": v.spread}
@@ -354,14 +355,17 @@ def procedural(quick: bool, log) -> dict:
         "ours + refinement (population)": REFINED,
         "refinement - spread term": CorrespondenceSettings(refine="population", refine_spread=0.0),
         "refinement - compactness term": CorrespondenceSettings(refine="population", refine_compactness=0.0),
-        "refinement, 20 iterations": CorrespondenceSettings(refine="population", refine_iterations=20),
+        "refinement, 10 iterations": CorrespondenceSettings(refine="population", refine_iterations=10),
         "refinement - similarity removal": CorrespondenceSettings(refine="population", refine_alignment="none"),
+        "refinement - normals": CorrespondenceSettings(refine="population", refine_normals=0.0),
+        "refinement - smooth fields": CorrespondenceSettings(refine="population", refine_smooth_fields=0),
     }
     refined_results = {}
     for name, settings in refinements.items():
         start = time.perf_counter()
         refined = replace_points(group, refine_population([s.mesh for s in prepared.shapes], group.points,
-                                                          group.face_index, group.barycentric, settings))
+                                                          group.face_index, group.barycentric, settings,
+                                                          edges=group.edges))
         seconds = time.perf_counter() - start
         refined_results[name] = refined
         record(name, refined.points, refined.face_index, refined.barycentric, group_seconds + seconds / n)
@@ -465,12 +469,13 @@ def collection_timing(quick: bool, log) -> dict:
     keep = ~result.outliers
     start = time.perf_counter()
     refined = refine_population([s.mesh for s, k in zip(prepared.shapes, keep) if k], result.points[keep],
-                                result.face_index[keep], result.barycentric[keep], REFINED)
+                                result.face_index[keep], result.barycentric[keep], REFINED, edges=result.edges,
+                                jobs=2)
     refine_seconds = time.perf_counter() - start
     load = os.getloadavg()[0]
     log(f"\n== {n} vases, {LANDMARKS} landmarks, groupwise, 2 processes: correspond {seconds:.1f} s "
         f"(target ≤ 120 s for 131), prepare {prepare_seconds:.1f} s, outliers {int(result.outliers.sum())}; "
-        f"refinement (one process) {refine_seconds:.1f} s, {len(refined.trace) - 1} steps; NICP + refinement "
+        f"refinement (2 processes) {refine_seconds:.1f} s, {len(refined.trace) - 1} steps; NICP + refinement "
         f"{seconds + refine_seconds:.1f} s (target ≤ 180 s); load average {load:.1f}")
     return {"shapes": n, "correspond_seconds": seconds, "prepare_seconds": prepare_seconds,
             "outliers": int(result.outliers.sum()), "refine_seconds": refine_seconds,
@@ -525,7 +530,8 @@ def psb(quick: bool, log) -> dict:
         keep = ~result.outliers
         start = time.perf_counter()
         refinement = refine_population([s.mesh for s, k in zip(prepared.shapes, keep) if k], result.points[keep],
-                                       result.face_index[keep], result.barycentric[keep], REFINED)
+                                       result.face_index[keep], result.barycentric[keep], REFINED,
+                                       edges=result.edges)
         refine_seconds = time.perf_counter() - start
         faces = result.face_index.copy()
         faces[keep] = refinement.face_index

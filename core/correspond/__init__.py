@@ -41,6 +41,7 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
                    reconstruction in a PPCA model of the other shapes)
   objective.py     the population objective of refinement: compactness + spread, gradients
   refine.py        `refine_population`: projected, backtracking descent on the surfaces
+  shards.py        refinement's per-shape state (surfaces, moves, spread) in worker processes
   result.py        `Correspondence` and its .npz file
 """
 

@@ -130,8 +130,8 @@ def correspond(
     trace = np.zeros((0, 3))
     if refining:
         points, face_index, barycentric, trace = _refined(collection, outcome.keep, points, face_index, barycentric,
-                                                          settings, sub_range(report, REFINE_START, 1.0),
-                                                          should_cancel)
+                                                          outcome.edges, settings,
+                                                          sub_range(report, REFINE_START, 1.0), should_cancel, jobs)
     report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
     transforms = [shape.transform for shape in collection.shapes]
     return Correspondence(
@@ -159,7 +159,7 @@ def correspond(
 REFINE_START = 0.8
 
 
-def _refined(collection, keep, points, face_index, barycentric, settings, report, should_cancel):
+def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
     """The landmarks of the shapes that fit (`keep`) refined together (refine.py); outliers
     keep theirs. Returns points, face_index, barycentric and the objective trace."""
     active = np.flatnonzero(keep)
@@ -167,7 +167,7 @@ def _refined(collection, keep, points, face_index, barycentric, settings, report
         report(1.0, f"refinement skipped: {len(active)} shapes fit")
         return points, face_index, barycentric, np.zeros((0, 3))
     result = refine_population([collection.shapes[i].mesh for i in active], points[active], face_index[active],
-                               barycentric[active], settings, report, should_cancel)
+                               barycentric[active], settings, report, should_cancel, edges, jobs)
     points, face_index, barycentric = points.copy(), face_index.copy(), barycentric.copy()
     points[active], face_index[active], barycentric[active] = result.points, result.face_index, result.barycentric
     return points, face_index, barycentric, result.trace

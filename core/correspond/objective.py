@@ -43,8 +43,8 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
-__all__ = ["ObjectiveValue", "LandmarkState", "PopulationObjective", "compactness", "spread", "spread_sigma", "regulariser_variance",
-           "similarity_to_mean", "density", "CUTOFF", "DENSITY_FLOOR"]
+__all__ = ["ObjectiveValue", "LandmarkState", "PopulationObjective", "CompactnessTerm", "SpreadTerm", "combined", "compactness", "spread", "spread_sigma", "regulariser_variance",
+           "similarity_to_mean", "density", "PairCache", "CUTOFF", "DENSITY_FLOOR"]
 
 #: the spread kernel reaches 0 at this many σ
 CUTOFF = 3.0
@@ -92,13 +92,20 @@ def spread_sigma(area: float, n_landmarks: int, sigma: float) -> float:
     return float(sigma * np.sqrt(area / max(n_landmarks, 1)))
 
 
-def density(points: np.ndarray, normals: np.ndarray, sigma: float) -> "_Density":
-    """The Parzen density D_i of every landmark of one shape (see the module docstring)."""
+def density(points: np.ndarray, normals: np.ndarray, sigma: float, candidates: np.ndarray | None = None
+            ) -> "_Density":
+    """The Parzen density D_i of every landmark of one shape (see the module docstring).
+    candidates: pairs (i < j) that include every pair closer than 3σ (a `PairCache`'s);
+    None: found afresh."""
     points = np.asarray(points, dtype=np.float64)
-    pairs = cKDTree(points).query_pairs(CUTOFF * sigma, output_type="ndarray").reshape(-1, 2)
-    pairs = pairs[np.einsum("nd,nd->n", normals[pairs[:, 0]], normals[pairs[:, 1]]) > 0]
-    offset = points[pairs[:, 1]] - points[pairs[:, 0]]
-    gauss = np.exp(-np.einsum("nd,nd->n", offset, offset) / (2 * sigma**2))
+    if candidates is None:
+        candidates = cKDTree(points).query_pairs(CUTOFF * sigma, output_type="ndarray").reshape(-1, 2)
+    offset = points[candidates[:, 1]] - points[candidates[:, 0]]
+    squared = np.einsum("nd,nd->n", offset, offset)
+    keep = (squared < (CUTOFF * sigma) ** 2) & (
+        np.einsum("nd,nd->n", normals[candidates[:, 0]], normals[candidates[:, 1]]) > 0)
+    pairs, offset = candidates[keep], offset[keep]
+    gauss = np.exp(-squared[keep] / (2 * sigma**2))
     kernel = np.maximum(gauss - np.exp(-CUTOFF**2 / 2), 0.0)
     n = len(points)
     values = DENSITY_FLOOR + np.bincount(pairs[:, 0], kernel, n) + np.bincount(pairs[:, 1], kernel, n)
@@ -123,10 +130,31 @@ class _Density:
         return np.stack([np.bincount(i, pull[:, a], n) - np.bincount(j, pull[:, a], n) for a in range(3)], axis=1)
 
 
-def spread(points: np.ndarray, normals: np.ndarray, sigma: float, start_log_density: np.ndarray
-           ) -> tuple[float, np.ndarray]:
-    """S = (1/L) Σ_i ½ max(0, log D_i − log D_i⁰)² and ∂S/∂x (L, 3) of one shape's landmarks."""
-    found = density(points, normals, sigma)
+class PairCache:
+    """Neighbour pairs of one shape's moving landmarks (a Verlet list): every pair within
+    3σ + `skin`, found again only once some landmark has moved by more than skin / 2 since
+    (until then every pair closer than 3σ is among them)."""
+
+    def __init__(self, sigma: float, skin: float | None = None):
+        self.sigma = sigma
+        self.skin = sigma if skin is None else skin
+        self.anchor: np.ndarray | None = None
+        self.pairs = np.zeros((0, 2), dtype=np.int64)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        if self.anchor is None or len(self.anchor) != len(points) or \
+                np.max(np.sum((points - self.anchor) ** 2, axis=1)) > (self.skin / 2) ** 2:
+            self.anchor = np.array(points, dtype=np.float64)
+            self.pairs = cKDTree(self.anchor).query_pairs(CUTOFF * self.sigma + self.skin,
+                                                          output_type="ndarray").reshape(-1, 2)
+        return self.pairs
+
+
+def spread(points: np.ndarray, normals: np.ndarray, sigma: float, start_log_density: np.ndarray,
+           candidates: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """S = (1/L) Σ_i ½ max(0, log D_i − log D_i⁰)² and ∂S/∂x (L, 3) of one shape's landmarks
+    (`candidates`: as for `density`)."""
+    found = density(points, normals, sigma, candidates)
     excess = np.maximum(np.log(found.values) - start_log_density, 0.0)
     n = len(points)
     return float(0.5 * np.sum(excess**2) / n), found.gradient(excess / n)
@@ -160,66 +188,106 @@ class LandmarkState:
     normal_jacobians: np.ndarray  # (N, L, 3, 3) ∂normal/∂point along the face
 
 
-class PopulationObjective:
-    """E(X) = w_c C(z(X)) + w_s (1/N) Σ_m S_m(X_m) (see the module docstring); S_m is
-    anchored at the landmarks `start`. The compactness sees every shape's landmark vector
-    z_m = [s_m (X_m − x̄_m) R_mᵀ, κ r n_m R_mᵀ]: positions with the shape's similarity
-    removed and, with `normal_weight` κ > 0, the smooth surface normals at the landmarks
-    scaled by κ × the population's RMS landmark radius r (ShapeWorks' "use normals": a
-    feature such as a belly, where the wall turns vertical, then costs variance when it
-    is not lined up, even where sliding along the wall barely moves the positions).
-    `evaluate` returns the value and ∂E/∂X (N, L, 3)."""
+class CompactnessTerm:
+    """C(z(X)) with every shape's landmark vector z_m = [s_m (X_m − x̄_m) R_mᵀ, κ r n_m R_mᵀ]:
+    positions with the shape's similarity removed and, with `normal_weight` κ > 0, the
+    smooth surface normals at the landmarks scaled by κ × the population's RMS landmark
+    radius r (ShapeWorks' "use normals": a feature such as a belly, where the wall turns
+    vertical, then costs variance when it is not lined up, even where sliding along the
+    wall barely moves the positions). δ and r are fixed at the `start`."""
 
-    def __init__(self, start: LandmarkState, areas, compactness_weight: float, spread_weight: float,
-                 regulariser: float, sigma: float, alignment: str, normal_weight: float = 0.0):
+    def __init__(self, start: LandmarkState, regulariser: float, alignment: str, normal_weight: float = 0.0):
         points = np.asarray(start.points, dtype=np.float64)
-        n, n_landmarks = points.shape[:2]
-        self.centre = alignment == "similarity"
+        n = len(points)
+        self.alignment = alignment
+        self.centre = alignment != "none"
         self.scales, self.rotations = np.ones(n), np.tile(np.eye(3), (n, 1, 1))
         if self.centre:
             self.realign(points)
-        self.weights = (float(compactness_weight), float(spread_weight))
         aligned = self.aligned(points)
         self.delta = regulariser_variance(aligned, regulariser)
         self.normal_scale = float(normal_weight) * float(np.sqrt(np.mean(np.sum(aligned**2, axis=2))))
-        self.sigmas = np.array([spread_sigma(a, n_landmarks, sigma) for a in areas])
-        self.start_log_density = [np.log(density(x, nm, s).values)
-                                  for x, nm, s in zip(points, start.face_normals, self.sigmas)]
 
     def realign(self, points: np.ndarray) -> None:
-        """Every shape's scale and rotation from generalised Procrustes of `points`."""
-        self.scales, self.rotations = similarity_to_mean(points)
+        """Every shape's scale and rotation from generalised Procrustes of `points`
+        ("similarity"), or its scale alone (the RMS radius of its centred landmarks
+        brought to the population's mean: "scale")."""
+        if self.alignment == "similarity":
+            self.scales, self.rotations = similarity_to_mean(points)
+        else:
+            centred = points - points.mean(axis=1, keepdims=True)
+            radius = np.sqrt(np.sum(centred**2, axis=(1, 2)))
+            self.scales = radius.mean() / np.maximum(radius, np.finfo(float).tiny)
 
     def aligned(self, points: np.ndarray) -> np.ndarray:
-        """z: every shape's landmarks with its similarity removed."""
+        """Every shape's landmarks with its similarity (or scale and centroid) removed."""
         if self.centre:
             points = points - points.mean(axis=1, keepdims=True)
         return self.scales[:, None, None] * points @ self.rotations.transpose(0, 2, 1)
 
+    def evaluate(self, state: LandmarkState) -> tuple[float, np.ndarray]:
+        """C and ∂C/∂X (N, L, 3)."""
+        points = state.points
+        features = self.aligned(points)
+        if self.normal_scale:
+            rotated = self.normal_scale * state.normals @ self.rotations.transpose(0, 2, 1)
+            features = np.concatenate([features, rotated], axis=1)
+        value, grad_z = compactness(features, self.delta)
+        n_landmarks = points.shape[1]
+        grad_x = self.scales[:, None, None] * grad_z[:, :n_landmarks] @ self.rotations
+        if self.centre:
+            grad_x -= grad_x.mean(axis=1, keepdims=True)
+        if self.normal_scale:  # through n(x): Jᵀ ∂C/∂n
+            grad_n = self.normal_scale * grad_z[:, n_landmarks:] @ self.rotations
+            grad_x += np.einsum("mlij,mli->mlj", state.normal_jacobians, grad_n)
+        return value, grad_x
+
+
+class SpreadTerm:
+    """S_m of some shapes (their landmarks at the start: `start_points`, `start_face_normals`;
+    kernel widths `sigmas`), each with its own `PairCache`."""
+
+    def __init__(self, start_points, start_face_normals, sigmas):
+        self.sigmas = np.asarray(sigmas, dtype=np.float64)
+        self.start_log_density = [np.log(density(x, nm, s).values)
+                                  for x, nm, s in zip(start_points, start_face_normals, self.sigmas)]
+        self.pair_caches = [PairCache(s) for s in self.sigmas]
+
+    def evaluate(self, points: np.ndarray, face_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """S_m of every shape (n,) and ∂S_m/∂X_m (n, L, 3)."""
+        values, gradients = np.zeros(len(points)), np.zeros_like(points)
+        for m, (x, normals) in enumerate(zip(points, face_normals)):
+            values[m], gradients[m] = spread(x, normals, self.sigmas[m], self.start_log_density[m],
+                                             self.pair_caches[m](x))
+        return values, gradients
+
+
+def combined(weights: tuple[float, float], compactness_value: float, compactness_gradient, spread_values,
+             spread_gradients) -> tuple[ObjectiveValue, np.ndarray]:
+    """E = w_c C + w_s (1/N) Σ_m S_m and its gradient, from the two terms' parts."""
+    w_c, w_s = weights
+    n = len(spread_values)
+    value = ObjectiveValue(w_c * compactness_value + w_s * float(np.sum(spread_values)) / n, compactness_value,
+                           float(np.sum(spread_values)) / n)
+    return value, w_c * compactness_gradient + (w_s / n) * spread_gradients
+
+
+class PopulationObjective:
+    """E(X) = w_c C + w_s (1/N) Σ_m S_m (module docstring; `CompactnessTerm`, `SpreadTerm`
+    anchored at the landmarks `start`) in one process: `evaluate` returns the value and
+    ∂E/∂X (N, L, 3). refine.py evaluates the spread term per shape where the shapes live."""
+
+    def __init__(self, start: LandmarkState, areas, compactness_weight: float, spread_weight: float,
+                 regulariser: float, sigma: float, alignment: str, normal_weight: float = 0.0):
+        n_landmarks = start.points.shape[1]
+        self.weights = (float(compactness_weight), float(spread_weight))
+        self.compactness = CompactnessTerm(start, regulariser, alignment, normal_weight)
+        self.spread = SpreadTerm(start.points, start.face_normals,
+                                 [spread_sigma(a, n_landmarks, sigma) for a in areas])
+
     def evaluate(self, state: LandmarkState) -> tuple[ObjectiveValue, np.ndarray]:
         """E and ∂E/∂X at the landmarks of `state`."""
-        w_c, w_s = self.weights
-        points = state.points
-        gradient = np.zeros_like(points)
-        value_c = value_s = 0.0
-        if w_c:
-            features = self.aligned(points)
-            if self.normal_scale:
-                rotated = self.normal_scale * state.normals @ self.rotations.transpose(0, 2, 1)
-                features = np.concatenate([features, rotated], axis=1)
-            value_c, grad_z = compactness(features, self.delta)
-            n_landmarks = points.shape[1]
-            grad_x = self.scales[:, None, None] * grad_z[:, :n_landmarks] @ self.rotations
-            if self.centre:
-                grad_x -= grad_x.mean(axis=1, keepdims=True)
-            if self.normal_scale:  # through n(x): Jᵀ ∂C/∂n
-                grad_n = self.normal_scale * grad_z[:, n_landmarks:] @ self.rotations
-                grad_x += np.einsum("mlij,mli->mlj", state.normal_jacobians, grad_n)
-            gradient += w_c * grad_x
-        if w_s:
-            n = len(points)
-            for m in range(n):
-                value, grad = spread(points[m], state.face_normals[m], self.sigmas[m], self.start_log_density[m])
-                value_s += value / n
-                gradient[m] += w_s * grad / n
-        return ObjectiveValue(w_c * value_c + w_s * value_s, value_c, value_s), gradient
+        value_c, grad_c = self.compactness.evaluate(state) if self.weights[0] else (0.0, 0.0)
+        values_s, grads_s = self.spread.evaluate(state.points, state.face_normals) if self.weights[1] else (
+            np.zeros(len(state.points)), 0.0)
+        return combined(self.weights, value_c, grad_c, values_s, grads_s)

@@ -14,7 +14,7 @@ __all__ = ["CorrespondenceSettings", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
 #: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
 #: `refine_alignment`: what is removed from every shape before the compactness term
-REFINE_ALIGNMENTS = ("similarity", "none")
+REFINE_ALIGNMENTS = ("similarity", "scale", "none")
 
 
 @dataclass(frozen=True)
@@ -113,8 +113,9 @@ class CorrespondenceSettings(Settings):
       refine_max_move: no landmark moves by more than this many spacings in one step
         (the step must stay local for the closest point to follow the surface).
       refine_alignment: "similarity": compactness after removing every shape's scale and
-        rotation (generalised Procrustes of the starting landmarks, fixed) and centroid;
-        "none": on the prepared shapes as they are.
+        rotation (generalised Procrustes, estimated again every 10 steps when that lowers
+        the objective) and centroid; "scale": its centroid and size only (the rotation
+        Prepare gave it stays); "none": on the prepared shapes as they are.
       refine_tolerance: stop when an accepted step lowers E by less than this (relative).
     """
 
@@ -143,14 +144,14 @@ class CorrespondenceSettings(Settings):
     refine: str = option("none", "groupwise refinement after non-rigid ICP (population: landmarks slide on their "
                          "surfaces to make the population compact; none: the thesis)", flag="--refine",
                          choices=REFINE_METHODS)
-    refine_iterations: int = option(100, "refinement: accepted descent steps at most", minimum=0)
+    refine_iterations: int = option(30, "refinement: accepted descent steps at most", minimum=0)
     refine_compactness: float = option(1.0, "refinement: weight of the compactness term", minimum=0)
     refine_spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
     refine_regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to "
                                        "the RMS landmark radius", above=0)
     refine_normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
                                    "compactness term (× the RMS landmark radius)", minimum=0)
-    refine_smooth_fields: int = option(0, "refinement: steps restricted to this many smoothest displacement fields "
+    refine_smooth_fields: int = option(30, "refinement: steps restricted to this many smoothest displacement fields "
                                        "of the landmark graph (0: plain gradient)", minimum=0)
     refine_sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
     refine_step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
