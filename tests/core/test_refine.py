@@ -251,3 +251,23 @@ def test_command_line_refine_option():
         assert settings_from_args(CorrespondenceSettings, args) == CorrespondenceSettings()
     with pytest.raises(SystemExit):
         build_parser().parse_args(["correspond", "x", "-o", "y", "--refine", "sideways"])
+
+
+def test_progress_cancel_and_worker_processes(vases):
+    """Refinement reports progress after NICP's share and can be cancelled; its per-shape
+    work in two worker processes gives the same landmarks as in this process."""
+    from shapegen_core.errors import Cancelled
+
+    shapes, prepared, nicp = vases
+    seen = []
+    settings = CorrespondenceSettings(refine="population", refine_iterations=4)
+    result = correspond(prepared, settings, jobs=1, progress=lambda f, m: seen.append((f, m)))
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert any(m.startswith("refining") and f > 0.8 for f, m in seen)
+    meshes = [s.mesh for s in prepared.shapes]
+    with pytest.raises(Cancelled):
+        refine_population(meshes, nicp.points, nicp.face_index, nicp.barycentric, settings, should_cancel=lambda: True)
+    apart = refine_population(meshes, nicp.points, nicp.face_index, nicp.barycentric, settings, edges=nicp.edges,
+                              jobs=2)
+    assert np.array_equal(apart.points, result.points) and np.array_equal(apart.trace, result.refinement_trace)
