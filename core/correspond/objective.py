@@ -5,8 +5,9 @@ systems of Cates et al. 2007 (ShapeWorks) let the population decide where landma
 
 E(X) = w_c · C(X) + w_s · (1/N) Σ_m S_m(X_m)
 
-* Compactness (Cates et al. 2007, eq. 4 with the dual of §3): C = ½ log det(I + K/δ),
-  K = Y Yᵀ / (N − 1) the N × N Gram matrix of the centred landmark vectors Y (N × 3L).
+* Compactness (the ensemble entropy of Cates et al. 2007, in its dual form):
+  C = ½ log det(I + K/δ), K = Y Yᵀ / (N − 1) the N × N Gram matrix of the centred
+  landmark vectors Y (N × 3L).
   K's nonzero eigenvalues are those of the 3L × 3L covariance Σ = YᵀY / (N − 1), so C is
   ½ log det(Σ + δ I) − ½ 3L log δ: the Gaussian entropy of the population, computed at
   N × N cost. ∂C/∂Y = (K + δ I)⁻¹ Y / (N − 1) (already centred: 1 is an eigenvector of
@@ -30,9 +31,11 @@ E(X) = w_c · C(X) + w_s · (1/N) Σ_m S_m(X_m)
   σ_m = `sigma` × the mean spacing √(area_m / L) of L uniform points on shape m.
 
 Shapes are compared after removing each one's similarity (`alignment` "similarity"): a
-scale and rotation per shape from generalised Procrustes of the starting landmarks onto
-their mean (fixed during refinement, so the gradient stays exact) and the centroid, removed
-at every evaluation (a linear map: ∂/∂x = its transpose applied to ∂/∂z).
+scale and rotation per shape from generalised Procrustes of the landmarks onto their mean
+(held fixed between re-estimations, so the gradient stays exact; refine.py estimates
+them again every few steps when that lowers E) and the centroid, removed at every
+evaluation (a linear map: ∂/∂x = its transpose applied to ∂/∂z). With `normal_weight`
+the compactness also sees every landmark's smooth surface normal (`CompactnessTerm`).
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
-__all__ = ["ObjectiveValue", "LandmarkState", "PopulationObjective", "CompactnessTerm", "SpreadTerm", "combined", "compactness", "spread", "spread_sigma", "regulariser_variance",
+__all__ = ["ObjectiveValue", "LandmarkState", "PopulationObjective", "CompactnessTerm", "SpreadTerm", "combined",
+           "compactness", "spread", "spread_sigma", "regulariser_variance",
            "similarity_to_mean", "density", "PairCache", "CUTOFF", "DENSITY_FLOOR"]
 
 #: the spread kernel reaches 0 at this many σ

@@ -7,14 +7,17 @@ One iteration (projected gradient descent with backtracking):
 
 1. E and ∂E/∂x of every landmark (objective.py; N × N dual for the compactness);
 2. the gradient projected onto the landmark's tangent plane (its face normal n:
-   g − (g · n) n), a step −τ g with every landmark's move capped at `max_move` × the
-   shape's landmark spacing √(area / L);
+   g − (g · n) n), then onto the `refine_smooth_fields` smoothest fields of the landmark
+   graph (Laplacian eigenvectors, per coordinate; whole regions slide together rather
+   than landmark by landmark) and onto the tangent plane again; a step −τ g with every
+   landmark's move capped at `max_move` × the shape's landmark spacing √(area / L);
 3. each moved landmark mapped back onto its surface by the closest point whose face
    normal is compatible (n_new · n_old >= 0: never through a thin wall), giving its new
    face index and barycentric coordinates (a landmark with no compatible face nearby
    stays put); every shape's closest-point structure is built once and tracks its
    landmarks between iterations (geometry.TargetSurface.tracker), so the cost per
-   iteration is O(N L log L) plus the closest-point queries, whatever the mesh size;
+   iteration is O(N L log L) plus the closest-point queries, whatever the mesh size
+   (this per-shape work runs in `jobs` processes, shards.py);
 4. the step is kept only if E went down (then τ grows by `GROW`), otherwise τ is halved
    and the step tried again (up to `MAX_BACKTRACKS` times): E decreases monotonically;
 5. every `REALIGN_EVERY` steps the shapes' similarities (generalised Procrustes) are
@@ -38,7 +41,8 @@ from .objective import CompactnessTerm, LandmarkState, combined
 from .shards import ShapeShard, Shards, interpolated_normals
 from .settings import REFINE_METHODS, CorrespondenceSettings
 
-__all__ = ["Refinement", "refine_population", "landmark_state", "interpolated_normals", "REFINE_METHODS", "GROW", "MAX_BACKTRACKS"]
+__all__ = ["Refinement", "refine_population", "landmark_state", "smooth_basis", "interpolated_normals",
+           "REFINE_METHODS", "GROW", "MAX_BACKTRACKS", "REALIGN_EVERY"]
 
 #: τ grows by this factor after an accepted step
 GROW = 1.5
