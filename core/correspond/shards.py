@@ -111,7 +111,11 @@ class ShapeShard:
 
 def _serve(connection, meshes, points, face_index, barycentric, sigma) -> None:
     """A worker process: one `ShapeShard`, answering (command, argument) messages."""
-    shard = ShapeShard(meshes, points, face_index, barycentric, sigma)
+    try:
+        shard = ShapeShard(meshes, points, face_index, barycentric, sigma)
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        connection.send(("error", exc))
+        return
     connection.send(("ready", shard.spacing))
     while True:
         command, argument = connection.recv()
@@ -158,7 +162,11 @@ class Shards:
         finally:
             if unset:
                 os.environ.pop("OPENBLAS_NUM_THREADS", None)
-        self.spacing = np.concatenate([self._receive(parent) for _, parent in self.workers])
+        try:
+            self.spacing = np.concatenate([self._receive(parent) for _, parent in self.workers])
+        except BaseException:
+            self.close()
+            raise
 
     @staticmethod
     def _receive(connection):
