@@ -15,6 +15,7 @@ from .cli_common import (add_keep_pose_option, add_settings_options, console_pro
                          flag_of, given_options, positive_int, prepare_source, read_source, settings_from_args)
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
+from .correspond import CorrespondenceSettings
 from .errors import ShapeGenError
 from .pipeline import FitSettings
 
@@ -42,7 +43,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     source = read_source(args.source, args, accepts=("folder", "prepared"))
     options = settings_from_args(FitSettings, args)
-    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs)
+    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
+                                   settings=settings_from_args(CorrespondenceSettings, args))
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -74,7 +76,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         if args.folds > len(source.meshes):
             raise EvaluationError(f"--folds {args.folds} is more than the {len(source.meshes)} shapes in {source.path}")
-        corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs)
+        corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs,
+                                     settings=settings_from_args(CorrespondenceSettings, args))
         if args.save_correspondence is not None:
             corr.save(args.save_correspondence)
     prepared_seconds = time.perf_counter() - start
@@ -116,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
     add_settings_options(p, FitSettings, ("template", "jobs"))
+    add_settings_options(p, CorrespondenceSettings)
     p.set_defaults(func=cmd_correspond)
 
     p = sub.add_parser("evaluate", help="evaluate shape models: completion, novelty, MMD/coverage/1-NNA, NLL curve, latent map")
@@ -132,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--regions", default="top,middle,rear",
                    help="completion regions: top, middle (thirds along up), rear (lowest third along x) (default %(default)s)")
     add_settings_options(p, FitSettings, ("jobs",))
+    add_settings_options(p, CorrespondenceSettings)
     p.add_argument("--no-figures", action="store_true", help="write report.json and summary.md only")
     p.add_argument("--save-correspondence", type=Path, default=None, metavar="NPZ",
                    help="when given a folder, also save its correspondence here (to re-evaluate without redoing it)")

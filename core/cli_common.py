@@ -188,10 +188,10 @@ def pose_lines(prepared: PreparedCollection) -> list[str]:
     return prepared.pose_notes() + [f"poses: {len(prepared) - turned} kept, {turned} turned, {flagged} flagged"]
 
 
-def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None):
-    """`correspond.correspond` with the default settings and console progress."""
-    return correspond(prepared, CorrespondenceSettings(), template=template, jobs=jobs,
-                      progress=console_progress("correspond"))
+def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None,
+                          settings: CorrespondenceSettings = CorrespondenceSettings()):
+    """`correspond.correspond` with console progress (default settings unless given)."""
+    return correspond(prepared, settings, template=template, jobs=jobs, progress=console_progress("correspond"))
 
 
 # ---------------------------------------------------------------------------- progress

@@ -26,6 +26,7 @@ import numpy as np
 from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress, positive_int,
                          prepare_source, read_source, settings_from_args)
 from .collection import PrepareSettings
+from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
 from .io import MeshWriters, read_folder
 from .npzfile import ArraySpec, load_npz, save_npz
@@ -81,6 +82,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # every setting is checked before the source is read
     settings = settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
+                                  correspondence=settings_from_args(CorrespondenceSettings, args),
                                   deform=settings_from_args(DeformSettings, args))
     source = read_source(args.source, args)
     settings = replace(settings, prepare=source.prepare)
@@ -323,6 +325,7 @@ def add_generate_commands(sub) -> None:
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
+    add_settings_options(p, CorrespondenceSettings)
     add_settings_options(p, DeformSettings)
     p.set_defaults(func=cmd_fit)
 

@@ -19,7 +19,10 @@ collection by one affine transform per landmark (Amberg et al. 2007):
 * final placement: every template point goes to its closest point on the target surface
   (**beyond**: the thesis snapped to the nearest vertex, kept as `snap_to_vertices`);
 * groupwise (§4.2.7): register the template to every shape, replace it by the mean
-  landmark cloud, register again.
+  landmark cloud, register again;
+* **beyond** (issue 13, `refine = "population"`): afterwards every landmark slides on its
+  own surface to make the population compact (log-det of the regularised covariance in
+  the N × N dual) while staying spread (Cates et al. 2007; Davies et al. 2002).
 
 Note on α: the thesis writes E = E_D + α E_s (4.18) but stacks α (M⊗G) into B (4.29),
 as Amberg et al. do; we follow the stacked system, i.e. the stiffness energy is weighted
@@ -36,6 +39,9 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
   outliers.py      outlier flags and their reasons (residual, size, leave-one-out
                    reconstruction in a PPCA model of the other shapes)
+  objective.py     the population objective of refinement: compactness + spread, gradients
+  refine.py        `refine_population`: projected, backtracking descent on the surfaces
+  shards.py        refinement's per-shape state (surfaces, moves, spread) in worker processes
   result.py        `Correspondence` and its .npz file
 """
 
@@ -43,7 +49,8 @@ from .groupwise import chamfer_medoid, correspond
 from .outliers import flag_outliers, leave_one_out_errors
 from .registration import Anchors, Registration, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
-from .settings import CorrespondenceSettings
+from .refine import Refinement, refine_population
+from .settings import REFINE_METHODS, CorrespondenceSettings
 
 __all__ = [
     "CorrespondenceSettings",
@@ -55,6 +62,9 @@ __all__ = [
     "chamfer_medoid",
     "flag_outliers",
     "leave_one_out_errors",
+    "refine_population",
+    "Refinement",
+    "REFINE_METHODS",
     "CORRESPONDENCE_FORMAT",
     "CORRESPONDENCE_SPEC",
     "CORRESPONDENCE_VERSION",

@@ -16,6 +16,7 @@ from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_fr
 from ..progress import Progress, no_progress, sub_range
 from .pool import RegistrationRunner, RegistrationTask
 from .outliers import flag_outliers
+from .refine import refine_population
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
@@ -103,32 +104,42 @@ def correspond(
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
     rounds = settings.groupwise_rounds + 1
+    refining = settings.refine == "population"
+    nicp_report = sub_range(report, 0.0, REFINE_START) if refining else report
     runner = RegistrationRunner(jobs, should_cancel)
     try:
-        outcome = _run_rounds(collection, start, settings, runner, report, stop_if_template_flagged=template is None)
+        outcome = _run_rounds(collection, start, settings, runner, nicp_report,
+                              stop_if_template_flagged=template is None)
         if template is None and outcome.reasons[start]:
             fits = np.flatnonzero(outcome.keep)
             if len(fits):
                 start = _template_index(names, None, landmark_sets, fits)
                 done = outcome.rounds_run / rounds
-                report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
-                             f"{outcome.reasons[outcome.start]})")
-                outcome = _run_rounds(collection, start, settings, runner, sub_range(report, done, 1.0),
+                nicp_report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
+                                  f"{outcome.reasons[outcome.start]})")
+                outcome = _run_rounds(collection, start, settings, runner, sub_range(nicp_report, done, 1.0),
                                       stop_if_template_flagged=False)
     finally:
         runner.close()
     template_name = names[outcome.start]
-    report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
 
     results, registrations = outcome.results, outcome.registrations
     points = np.stack([r.placed.points for r in results])
+    face_index = np.stack([r.placed.face_index for r in results])
+    barycentric = np.stack([r.placed.barycentric for r in results])
+    trace = np.zeros((0, 3))
+    if refining:
+        points, face_index, barycentric, trace = _refined(collection, outcome.keep, points, face_index, barycentric,
+                                                          outcome.edges, settings,
+                                                          sub_range(report, REFINE_START, 1.0), should_cancel, jobs)
+    report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
     transforms = [shape.transform for shape in collection.shapes]
     return Correspondence(
         names=names,
         points=points,
         points_input=np.stack([t.to_input(p) for t, p in zip(transforms, points)]),
-        face_index=np.stack([r.placed.face_index for r in results]),
-        barycentric=np.stack([r.placed.barycentric for r in results]),
+        face_index=face_index,
+        barycentric=barycentric,
         edges=outcome.edges,
         template_points=np.asarray(outcome.template, dtype=np.float64),
         template_name=template_name,
@@ -139,7 +150,27 @@ def correspond(
         outlier_reasons=outcome.reasons,
         settings=settings,
         prepare=collection.settings,
+        refinement=settings.refine if len(trace) else "none",
+        refinement_trace=trace,
     )
+
+
+#: with refinement, NICP's progress fills [0, REFINE_START] and the refinement the rest
+REFINE_START = 0.8
+
+
+def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
+    """The landmarks of the shapes that fit (`keep`) refined together (refine.py); outliers
+    keep theirs. Returns points, face_index, barycentric and the objective trace."""
+    active = np.flatnonzero(keep)
+    if len(active) < 3:  # no population to speak of: the objective's covariance is degenerate
+        report(1.0, f"refinement skipped: {len(active)} shapes fit")
+        return points, face_index, barycentric, np.zeros((0, 3))
+    result = refine_population([collection.shapes[i].mesh for i in active], points[active], face_index[active],
+                               barycentric[active], settings, report, should_cancel, edges, jobs)
+    points, face_index, barycentric = points.copy(), face_index.copy(), barycentric.copy()
+    points[active], face_index[active], barycentric[active] = result.points, result.face_index, result.barycentric
+    return points, face_index, barycentric, result.trace
 
 
 def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,

@@ -3,12 +3,15 @@
 The file records how the correspondence was computed (`CorrespondenceSettings`) and how
 its collection was prepared (`PrepareSettings`), each as one JSON string ("null": not
 recorded); files written before held the correspondence settings as repr strings by key
-and no Prepare settings, and still load."""
+and no Prepare settings, and still load. Since issue 13 it also records which refinement
+ran after NICP ("population" or "none") and its objective trace (one row E, compactness,
+spread per accepted step, the start first); files without them load as "none" with an
+empty trace (optional arrays, so the format version stays 1)."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +20,7 @@ from ..collection import PrepareSettings
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..settings import recorded_settings
-from .settings import CorrespondenceSettings
+from .settings import REFINE_METHODS, CorrespondenceSettings
 
 __all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
 
@@ -44,6 +47,8 @@ class Correspondence:
     outlier_reasons: list[str]  # "" for shapes that fit
     settings: CorrespondenceSettings | None = None  # how it was computed (None: not recorded)
     prepare: PrepareSettings | None = None  # how its collection was prepared (None: not recorded)
+    refinement: str = "none"  # the refinement that ran after NICP (refine.py): "population" or "none"
+    refinement_trace: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) E, compactness, spread
 
     def __len__(self) -> int:
         return len(self.names)
@@ -73,6 +78,8 @@ class Correspondence:
             "outlier_reasons": np.asarray(self.outlier_reasons, dtype=str),
             "settings": np.asarray(_json(self.settings)),
             "prepare_settings": np.asarray(_json(self.prepare)),
+            "refinement": np.asarray(self.refinement, dtype=str),
+            "refinement_trace": np.asarray(self.refinement_trace, dtype=np.float64).reshape(-1, 3),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -101,6 +108,11 @@ class Correspondence:
             raise ModelFileError(f"{label}: landmark graph refers to landmarks outside [0, {n_landmarks})")
         if len(set(a["names"].tolist())) != len(a["names"]):
             raise ModelFileError(f"{label}: shape names are not unique")
+        refinement = str(a["refinement"]) if "refinement" in a else "none"
+        trace = np.asarray(a["refinement_trace"]) if "refinement_trace" in a else np.zeros((0, 3))
+        validate_arrays({"refinement": np.asarray(refinement), "refinement_trace": trace}, _REFINEMENT_SPEC, label)
+        if refinement not in REFINE_METHODS:
+            raise ModelFileError(f"{label}: unknown refinement {refinement!r} (expected {' or '.join(REFINE_METHODS)})")
         return cls(
             names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
             face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
@@ -109,6 +121,7 @@ class Correspondence:
             outliers=a["outliers"], outlier_reasons=a["outlier_reasons"].tolist(),
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
+            refinement=refinement, refinement_trace=trace,
         )
 
 
@@ -133,3 +146,6 @@ CORRESPONDENCE_SPEC = {
     "outliers": ArraySpec("b", ("M",)),
     "outlier_reasons": ArraySpec("U", ("M",)),
 }
+
+#: the optional refinement record (files before issue 13 lack it)
+_REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}

@@ -9,7 +9,12 @@ import numpy as np
 
 from ..settings import Settings, SettingsError, option
 
-__all__ = ["CorrespondenceSettings"]
+__all__ = ["CorrespondenceSettings", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
+
+#: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
+REFINE_METHODS = ("population", "none")
+#: `refine_alignment`: what is removed from every shape before the compactness term
+REFINE_ALIGNMENTS = ("similarity", "scale", "none")
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,40 @@ class CorrespondenceSettings(Settings):
         least 6.4×; 4× flags none of the clean and every upside-down one.
       loo_variance: the leave-one-out model keeps the fewest principal directions that
         explain this fraction of the other shapes' variance.
+    Groupwise refinement (**beyond** the thesis; refine.py, objective.py):
+      refine: "population": after NICP every landmark slides on its own surface to lower
+        E = w_c · compactness + w_s · spread (Cates et al. 2007; Davies et al. 2002);
+        "none" (default): NICP's landmarks as they are (the thesis). The default stays
+        "none" because the benchmark (bench/correspondence.py) measured the refinement
+        lowering the objective but not the true error on the procedural vases.
+      refine_iterations: accepted descent steps at most.
+      refine_compactness: w_c, weight of ½ log det(I + K/δ) (K: the N × N dual Gram matrix
+        of the aligned, centred landmark vectors). 0: spread term only.
+      refine_spread: w_s, weight of the mean over shapes of the spread term (a Parzen
+        estimate of each shape's landmark density, lowest when they are spread out).
+        0: compactness only (landmarks may bunch up).
+      refine_regulariser: ρ / RMS landmark radius, δ = L ρ²: modes of variation that move
+        the landmarks by less than ρ count as squared size, larger ones by their log
+        (see objective.py). Small values reward few dimensions; large ones make the
+        term a plain sum of squares.
+      refine_normals: κ: the compactness term sees every landmark's smooth surface normal
+        beside its position, scaled by κ × the population's RMS landmark radius
+        (ShapeWorks' "use normals"): features where the surface turns (belly, neck, rim)
+        then cost variance when they are not lined up. 0: positions only.
+      refine_smooth_fields: K > 0: every step is a combination of the K smoothest fields
+        on the landmark graph (Laplacian eigenvectors) per coordinate, so whole regions
+        slide together instead of the gradient's noisy, landmark-by-landmark pattern;
+        0: the plain (projected) gradient.
+      refine_sigma: width of the spread kernel in landmark spacings √(area / L).
+      refine_step: the first step moves the landmarks by this many spacings (RMS); it
+        then grows by 1.5 after an accepted step and halves after a rejected one.
+      refine_max_move: no landmark moves by more than this many spacings in one step
+        (the step must stay local for the closest point to follow the surface).
+      refine_alignment: "similarity": compactness after removing every shape's scale and
+        rotation (generalised Procrustes, estimated again every 10 steps when that lowers
+        the objective) and centroid; "scale": its centroid and size only (the rotation
+        Prepare gave it stays); "none": on the prepared shapes as they are.
+      refine_tolerance: stop when an accepted step lowers E by less than this (relative).
     """
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
@@ -102,6 +141,25 @@ class CorrespondenceSettings(Settings):
     loo_mad_factor: float = option(3.0, "outlier: leave-one-out error above median + factor · MAD ...")
     loo_min_ratio: float = option(4.0, "... and above this multiple of the median", above=1)
     loo_variance: float = option(0.9, "fraction of variance the leave-one-out PPCA model keeps", above=0)
+    refine: str = option("none", "groupwise refinement after non-rigid ICP (population: landmarks slide on their "
+                         "surfaces to make the population compact; none: the thesis)", flag="--refine",
+                         choices=REFINE_METHODS)
+    refine_iterations: int = option(30, "refinement: accepted descent steps at most", minimum=0)
+    refine_compactness: float = option(1.0, "refinement: weight of the compactness term", minimum=0)
+    refine_spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
+    refine_regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to "
+                                       "the RMS landmark radius", above=0)
+    refine_normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
+                                   "compactness term (× the RMS landmark radius)", minimum=0)
+    refine_smooth_fields: int = option(30, "refinement: steps restricted to this many smoothest displacement fields "
+                                       "of the landmark graph (0: plain gradient)", minimum=0)
+    refine_sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
+    refine_step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
+    refine_max_move: float = option(0.5, "refinement: largest move of a landmark in one step, in spacings", above=0)
+    refine_alignment: str = option("similarity", "refinement: similarity removed before the compactness term",
+                                   choices=REFINE_ALIGNMENTS)
+    refine_tolerance: float = option(1e-6, "refinement: stop below this relative decrease of the objective",
+                                     minimum=0)
 
     def __post_init__(self):
         super().__post_init__()

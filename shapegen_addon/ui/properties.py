@@ -40,6 +40,11 @@ CENTRE_ITEMS = [
     ("highest", "Highest Point", "Highest vertex above the origin (teapots)"),
     ("none", "None", "Keep the horizontal position"),
 ]
+REFINE_ITEMS = [
+    ("none", "None", "Non-rigid ICP's landmarks as they are (the thesis)"),
+    ("population", "Population", "Beyond the thesis: landmarks then slide on their surfaces to make the "
+                                 "collection's landmark model compact while staying spread"),
+]
 
 
 MODEL_ITEMS = [
@@ -111,6 +116,8 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         description="Final stiffness of the correspondence (thesis: 5 vases and teapots, 10 cars); "
                     "higher keeps the template's shape, lower follows each shape closely",
     )
+    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default="none",
+                         description="Groupwise refinement after non-rigid ICP (CorrespondenceSettings.refine)")
     mesh_stiffness: FloatProperty(
         name="Meshing Stiffness", default=2.0, min=0.01, soft_max=100.0,
         description="Stiffness of the embedded deformation that meshes generated landmarks: low follows "
@@ -158,8 +165,8 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         return {name: getattr(self, name) for name in PREPARE_SETTINGS}
 
     def correspondence_options(self) -> dict:
-        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`."""
-        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness)}
+        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `refine`."""
+        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "refine": self.refine}
 
     def fit_options(self) -> dict:
         """FitSettings as plain data (`FitSettings.as_dict()`-shaped): Prepare's options

@@ -72,3 +72,23 @@ def test_find_correspondences_on_a_named_collection_needs_it_prepared(prepared):
     with pytest.raises(RuntimeError, match="'raw' has no prepared collection"):
         bpy.ops.shapegen.find_correspondences(collection_name="raw")
     assert bpy.context.scene.shapegen.job_state == "DONE"  # Prepare's; no job started
+
+
+def test_refine_choice_reaches_the_job(prepared, extension, monkeypatch):
+    """The panel's Refine choice (Correspondence panel) is passed to the worker's
+    CorrespondenceSettings; "none" is the default."""
+    ops = importlib.import_module(f"{extension}.shapegen_addon.ops.correspondence")
+    sent = []
+    original = ops.BackgroundJob
+    monkeypatch.setattr(ops, "BackgroundJob",
+                        lambda task, arguments: sent.append(arguments) or original(task, arguments))
+    settings = bpy.context.scene.shapegen
+    assert settings.refine == "none"
+    extra = '{"groupwise_rounds": 0, "refine_iterations": 3}'
+    assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
+    settings.refine = "population"
+    assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
+    assert settings.job_state == "DONE"
+    assert [arguments["settings"]["refine"] for arguments in sent] == ["none", "population"]
+    assert sent[1]["settings"]["refine_iterations"] == 3
+    assert settings.fit_options()["correspondence"]["refine"] == "population"  # Fit passes it too
