@@ -25,6 +25,7 @@ import numpy as np
 
 from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress, positive_int,
                          prepare_source, read_source, settings_from_args)
+from .child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
@@ -182,6 +183,7 @@ _WORKER_MODEL = None
 
 def _init_sample_worker(model_path: str) -> None:
     global _WORKER_MODEL
+    exit_with_parent()
     _WORKER_MODEL = GenerativeShapeModel.load(Path(model_path))
 
 

@@ -12,6 +12,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..child_process import exit_with_parent
 from ..geometry import TargetSurface
 from ..progress import CancelCheck, Progress
 from .registration import Registration, register
@@ -41,6 +42,7 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(progress_queue, cancel_event) -> None:
+    exit_with_parent()
     _WORKER["queue"] = progress_queue
     _WORKER["cancel"] = cancel_event
 

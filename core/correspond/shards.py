@@ -19,6 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..child_process import exit_with_parent
 from ..geometry import TargetSurface
 from ..mesh import Mesh
 from .objective import LandmarkState, SpreadTerm, spread_sigma
@@ -111,6 +112,7 @@ class ShapeShard:
 
 def _serve(connection, meshes, points, face_index, barycentric, sigma) -> None:
     """A worker process: one `ShapeShard`, answering (command, argument) messages."""
+    exit_with_parent()
     try:
         shard = ShapeShard(meshes, points, face_index, barycentric, sigma)
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 import numpy as np
@@ -115,9 +117,10 @@ def _cancel_when_running(job: BackgroundJob, timeout: float = 120) -> float:
 
 def test_cancel_interrupts_a_step_that_never_checks_it(tmp_path):
     job = BackgroundJob("selftest", {"steps": 3, "busy_at": 1, "busy": 30.0, "output": str(tmp_path / "x")}).start()
-    # the busy step (30 s) ignores cancel; the worker interrupts it. The bound is loose on
-    # purpose (a loaded CI machine): the latency itself is measured, not asserted, in the note
-    assert _cancel_when_running(job) < 5.0
+    # the busy step (30 s) ignores cancel; the worker interrupts it. Ending well before the
+    # step would have (15 s) proves the interruption; latency is measured in bench, not here
+    # (0.04-0.5 s idle, up to 10 s seen at load 10 on 2 cores)
+    assert _cancel_when_running(job) < 15.0
     assert not (tmp_path / "x").exists()
 
 
@@ -132,3 +135,48 @@ def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
     # was 6-10 s (consensus did not check cancel); about 0.5 s now; loose bound for a loaded machine
     assert _cancel_when_running(job.start()) < 5.0
     assert not (tmp_path / "p.npz").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """Direct child processes of `pid` (Linux /proc)."""
+    children = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as stat:
+                    fields = stat.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                children.append(int(entry))
+    return children
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads the process tree from /proc")
+def test_registration_workers_exit_when_their_job_is_killed(tmp_path):
+    """A worker terminated mid-correspondence (Blender's Cancel after its grace period)
+    leaves no registration process behind: they used to run on, then wait forever."""
+    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.datasets import make_vases
+
+    prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=2)], PrepareSettings(n_landmarks=400))
+    prepared.save(tmp_path / "prepared.npz")
+    job = BackgroundJob("correspond", {"prepared": str(tmp_path / "prepared.npz"), "jobs": 2,
+                                       "output": str(tmp_path / "corr.npz")}).start()
+    deadline = time.monotonic() + 120
+    while "registering" not in (job.poll().stage or "") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert "registering" in job.poll().stage
+    # the pool's own helper (multiprocessing's resource tracker) is not a registration worker
+    workers = [pid for pid in _children(job._process.pid)
+               if "resource_tracker" not in open(f"/proc/{pid}/cmdline").read()]
+    assert len(workers) >= 2
+    job.kill()
+    deadline = time.monotonic() + 10
+    while any(os.path.exists(f"/proc/{pid}") for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    survivors = [pid for pid in workers if os.path.exists(f"/proc/{pid}")]
+    for pid in survivors:
+        os.kill(pid, signal.SIGKILL)
+    assert survivors == []
+    assert not (tmp_path / "corr.npz").exists()
