@@ -42,6 +42,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -203,7 +204,7 @@ def blender(seeds: int, n: int, count: int, methods: dict) -> None:
             c.report()
 
 
-def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool) -> None:
+def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool, oblique: bool) -> None:
     for cls in classes:
         folder = data / cls
         if not folder.is_dir():
@@ -226,6 +227,9 @@ def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool
             if can_render:
                 render(prepared, turned, flags, out / f"orientation_{cls}_{name}.png",
                        f"{cls}: {name} (red = turned, ! = flagged)")
+                if oblique:
+                    render(prepared, turned, flags, out / f"orientation_{cls}_{name}_oblique.png",
+                           f"{cls}: {name}, seen from front-left, above", OBLIQUE)
 
 
 def table() -> None:
@@ -238,9 +242,20 @@ def table() -> None:
               f"{r['moved']} | {r['flagged']} | {r['wrong']} | {r['seconds']:.1f} |")
 
 
-def render(prepared, turned, flagged, path: Path, title: str) -> None:
-    """Grid picture of prepared shapes (normalised frame), front view, Workbench."""
+#: the oblique view: shapes turned 35° about up, then tilted 25° towards the camera
+OBLIQUE = np.array([[np.cos(np.radians(-35)), -np.sin(np.radians(-35)), 0.0],
+                    [np.sin(np.radians(-35)), np.cos(np.radians(-35)), 0.0], [0.0, 0.0, 1.0]])
+OBLIQUE = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(np.radians(25)), -np.sin(np.radians(25))],
+                    [0.0, np.sin(np.radians(25)), np.cos(np.radians(25))]]) @ OBLIQUE
+
+
+def render(prepared, turned, flagged, path: Path, title: str, view: np.ndarray | None = None) -> None:
+    """Grid picture of prepared shapes (normalised frame), front view (or the shapes first
+    turned by `view`), Workbench."""
     import bpy
+
+    if view is not None:
+        prepared = [SimpleNamespace(mesh=s.mesh.with_vertices(s.mesh.vertices @ view.T), name=s.name) for s in prepared]
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -306,6 +321,7 @@ def main(argv=None) -> int:
                         help="NAME=REV: versions of the core to compare with the working tree ('after')")
     parser.add_argument("--methods", nargs="+", default=None, help="versions to run (default: all)")
     parser.add_argument("--no-render", action="store_true")
+    parser.add_argument("--oblique", action="store_true", help="also draw each PSB class from front-left, above")
     args = parser.parse_args(argv)
     revisions = dict(item.split("=", 1) for item in args.revisions)
     names = args.methods or [*revisions, "after"]
@@ -323,9 +339,12 @@ def main(argv=None) -> int:
         for kind in ("vases", "barrels"):
             procedural(kind, args.seeds, args.shapes, args.perturbed, methods)
     if "d" in args.sets:
-        blender(args.mug_seeds, args.mugs, args.mugs_perturbed, methods)
+        if importlib.util.find_spec("bpy") is None:
+            print("(d) bpy not importable: the Blender-made set is skipped", file=sys.stderr)
+        else:
+            blender(args.mug_seeds, args.mugs, args.mugs_perturbed, methods)
     if "c" in args.sets:
-        psb(args.data, args.classes, args.up, methods, args.out, can_render)
+        psb(args.data, args.classes, args.up, methods, args.out, can_render, args.oblique)
     table()
     return 0
 

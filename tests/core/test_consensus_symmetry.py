@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from shapegen_core.datasets import make_barrels, make_vases
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
-from shapegen_core.preprocess.consensus import PoseDecision, _combined
+from shapegen_core.preprocess.consensus import PoseDecision, _combined, _faces_away
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, yaw_rotation
 from shapegen_core.preprocess.symmetry import AxisSymmetry, tilt_to_z
@@ -117,3 +117,12 @@ def test_turned_there_and_back_is_no_change():
     assert not combined.changed and np.array_equal(combined.rotation, np.eye(3))
     combined = _combined(PoseDecision(np.eye(3)), PoseDecision(half, "a"), PoseDecision(half))
     assert combined.reason == "a" and np.array_equal(combined.rotation, half)
+
+
+def test_a_weakly_shared_facing_flags_only_with_the_cost_behind_it():
+    settings = ConsensusSettings()
+    assert _faces_away(0.05, 0.05, 0.9, settings)  # shared facing, the turn costs nothing more
+    assert not _faces_away(0.06, 0.05, 0.9, settings)  # ... but 20 % more
+    assert _faces_away(0.042, 0.0552, 0.32, settings)  # PSB cup 31: weak facing, the turn fits 1.3× better
+    assert not _faces_away(0.05, 0.0552, 0.32, settings)  # weak facing, the cost hardly cares
+    assert not _faces_away(0.01, 0.0552, 0.2, settings)  # no shared facing
