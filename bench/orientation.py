@@ -1,6 +1,8 @@
-"""Orientation benchmark (issue 12): how many shapes Prepare turns, and how many it leaves
-in a wrong pose, old default (consensus from each shape's PCA pose, commit 5a0b44e) vs
-new default (consensus from the input pose), in one run.
+"""Orientation benchmark (issue 12): how many shapes Prepare turns, how many it restores,
+flags and leaves in a wrong pose, for several versions of the core in one run: the
+working tree ("after") and git revisions given by --revisions NAME=REV (default: "old",
+consensus from each shape's PCA pose, commit 5a0b44e, and "main", the default before
+the symmetry stage, commit 5dbb1d5), each imported as its own package.
 
 Sets:
   (a) procedural classes generated upright and facing +x (vases; barrels, nearly
@@ -8,19 +10,26 @@ Sets:
   (b) the same with a known subset (--perturbed shapes) turned by a random one of the 23
       non-identity axis rotations (axis permutations, half turns), or by a random turn
       about up of 45°-315° (every third perturbed shape);
-  (c) the shared PSB classes (files y-up: --up y).
+  (c) the shared PSB classes (files y-up: --up y);
+  (d) mugs modelled in Blender through bpy (bench/blender_mugs.py: quads, n-gon caps, a
+      handle as a second part; plain, mirrored, parented, rotated and subdivided
+      objects, all +Z up facing +x in world coordinates), read as the add-on reads them,
+      at --mug-seeds seeds; and the same with a known subset turned (upside down, on its
+      side, a quarter or three-eighths turn about up) or mirrored.
 
-Counts per set: "changed" = shapes whose rotation is not the up rotation alone (for the
-new default: pose_change given); "wrong" = shapes whose pose (canonical frame → prepared
-frame) is more than 20° from the collection's pose, defined as the pose most shapes share
-to within 20° (the procedural sets know every shape's canonical frame); "flagged" = new
-pose_outlier flags; for (b) also perturbed shapes restored and unperturbed shapes
+Counts per set: "changed" = shapes whose rotation is not the up rotation alone; "wrong" =
+shapes whose pose (canonical frame → prepared frame) is more than 20° from the
+collection's pose, defined as the pose most shapes share to within 20° (sets a, b, d
+know every shape's canonical frame); "flagged" = pose_outlier flags (versions without
+them: 0); for perturbed sets also perturbed shapes restored and unperturbed shapes
 moved. PSB has no canonical frame: the counts are changed and flagged; wrong ones are
-counted on the rendered pictures (render mode: both defaults drawn, turned shapes red).
+counted on the rendered pictures (render mode: every version drawn, turned shapes red,
+flagged ones marked "!"). A table of all rows is printed at the end.
 
-    python bench/orientation.py [--seeds 20] [--shapes 12] [--no-render] [--sets a b c]
+    python bench/orientation.py [--seeds 20] [--mug-seeds 10] [--shapes 12] [--no-render] [--sets a c d]
+        [--classes Cup Vase] [--revisions old=5a0b44e main=5dbb1d5] [--methods main after]
 
-Writes bench_output/orientation_<Class>_{before,after}.png in render mode (needs bpy).
+Writes <out>/orientation_<Class>_<version>.png in render mode (needs bpy).
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -51,24 +61,26 @@ from shapegen_core.io import read_folder  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform, prepare_collection  # noqa: E402
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, up_rotation, yaw_rotation  # noqa: E402
 
-BEFORE = "5a0b44e"  # the last commit with the old default
+REVISIONS = {"old": "5a0b44e", "main": "5dbb1d5"}  # old default; the default before the symmetry stage
 CLASSES = ("Fish", "Vase", "Airplane", "Cup")
 COLUMNS = 8
 WRONG_DEGREES = 20.0
+ROWS: list[dict] = []  # every measured row, printed as one table at the end
 
 
-def load_before(revision: str):
-    """The old core (git archive of `revision`) imported as its own package."""
-    folder = Path(tempfile.mkdtemp(prefix="shapegen_before_"))
+def load_revision(name: str, revision: str):
+    """prepare_collection of the core at `revision` (git archive) imported as its own package."""
+    folder = Path(tempfile.mkdtemp(prefix=f"shapegen_{name}_"))
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision, "core"], check=True,
                              capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
-    spec = importlib.util.spec_from_file_location("shapegen_before", folder / "core" / "__init__.py",
+    package = f"shapegen_{name}"
+    spec = importlib.util.spec_from_file_location(package, folder / "core" / "__init__.py",
                                                   submodule_search_locations=[str(folder / "core")])
     module = importlib.util.module_from_spec(spec)
-    sys.modules["shapegen_before"] = module
+    sys.modules[package] = module
     spec.loader.exec_module(module)
-    return importlib.import_module("shapegen_before.preprocess").prepare_collection
+    return importlib.import_module(f"{package}.preprocess").prepare_collection
 
 
 def angle(rotation: np.ndarray) -> float:
@@ -100,34 +112,99 @@ def perturbations(n: int, count: int, seed: int) -> dict[int, np.ndarray]:
             for k, i in enumerate(chosen)}
 
 
+MIRROR_X = np.diag([-1.0, 1.0, 1.0])
+
+
+def mug_perturbations(n: int, count: int, seed: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """(world maps applied to a known subset of mugs, the proper turn each amounts to): upside
+    down, on its side, a quarter or three-eighths turn about up, a mirror across the yz
+    plane (a mug is symmetric across its handle's plane xz, so the mirror amounts to a
+    half turn about up)."""
+    rng = np.random.default_rng(3000 + seed)
+    chosen = rng.choice(n, count, replace=False)
+    kinds = [AXIS_ROTATIONS[4], AXIS_ROTATIONS[int(rng.integers(8, 24))], yaw_rotation(90.0), MIRROR_X,
+             yaw_rotation(135.0)]
+    maps = {int(i): kinds[k % len(kinds)] for k, i in enumerate(chosen)}
+    return maps, {i: (yaw_rotation(180.0) if m is MIRROR_X else m) for i, m in maps.items()}
+
+
+class Counts:
+    """Counts of one set and version over seeds (module docstring)."""
+
+    def __init__(self, label: str, version: str, perturbed: bool):
+        self.label, self.version, self.perturbed = label, version, perturbed
+        self.shapes = self.changed = self.wrong = self.flagged = self.restored = self.turned = self.moved = 0
+        self.seconds, self.runs = 0.0, 0
+
+    def add(self, prepared, turns: dict[int, np.ndarray], seconds: float) -> None:
+        poses = [s.transform.rotation @ turns.get(i, np.eye(3)) for i, s in enumerate(prepared)]
+        moved = [not np.allclose(s.transform.rotation, np.eye(3), atol=1e-12) for s in prepared]
+        off = wrong_shapes(poses)
+        self.shapes += len(prepared)
+        self.changed += sum(moved)
+        self.wrong += sum(off)
+        self.flagged += sum(bool(getattr(s, "pose_outlier", "")) for s in prepared)
+        self.restored += sum(not off[i] for i in turns)
+        self.turned += len(turns)
+        self.moved += sum(t for i, t in enumerate(moved) if i not in turns)
+        self.seconds += seconds
+        self.runs += 1
+
+    def report(self) -> None:
+        extra = f", restored {self.restored}/{self.turned}, unperturbed moved {self.moved}" if self.perturbed else ""
+        print(f"{self.label:26s} {self.version:6s}: {self.shapes} shapes ({self.runs} seeds), changed {self.changed}, "
+              f"wrong {self.wrong}, flagged {self.flagged}{extra}; {self.seconds / max(self.runs, 1):.1f} s per "
+              "collection", flush=True)
+        ROWS.append({"set": self.label, "version": self.version, "shapes": self.shapes, "seeds": self.runs,
+                     "changed": self.changed, "restored": f"{self.restored}/{self.turned}" if self.perturbed else "",
+                     "moved": self.moved if self.perturbed else "", "flagged": self.flagged, "wrong": self.wrong,
+                     "seconds": self.seconds / max(self.runs, 1)})
+
+
+def run(prepare, meshes, up: str):
+    start = time.perf_counter()
+    prepared = prepare(meshes, up_axis=up)
+    return prepared, time.perf_counter() - start
+
+
 def procedural(kind: str, seeds: int, n: int, count: int, methods: dict) -> None:
     for perturbed in (False, True):
         label = f"({'b' if perturbed else 'a'}) {kind}{' perturbed' if perturbed else ''}"
-        for name, prepare in methods.items():
-            changed = wrong = flagged = restored = moved = total = 0
-            seconds = 0.0
-            for seed in range(seeds):
-                meshes = upright(kind, n, seed)
-                turns = perturbations(n, count, seed) if perturbed else {}
-                meshes = [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
-                start = time.perf_counter()
-                prepared = prepare(meshes, up_axis="z")
-                seconds += time.perf_counter() - start
-                poses = [s.transform.rotation @ turns.get(i, np.eye(3)) for i, s in enumerate(prepared)]
-                turned = [not np.array_equal(s.transform.rotation, np.eye(3)) for s in prepared]
-                changed += sum(turned)
-                off = wrong_shapes(poses)
-                wrong += sum(off)
-                flagged += sum(bool(getattr(s, "pose_outlier", "")) for s in prepared)
-                restored += sum(not off[i] for i in turns)
-                moved += sum(t for i, t in enumerate(turned) if i not in turns)
-                total += len(prepared)
-            extra = f", restored {restored}/{seeds * count}, unperturbed moved {moved}" if perturbed else ""
-            print(f"{label:22s} {name:6s}: {total} shapes, changed {changed}, wrong {wrong}, flagged {flagged}"
-                  f"{extra}; {seconds / seeds:.1f} s per collection", flush=True)
+        counts = {name: Counts(label, name, perturbed) for name in methods}
+        for seed in range(seeds):
+            meshes = upright(kind, n, seed)
+            turns = perturbations(n, count, seed) if perturbed else {}
+            meshes = [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
+            for name, prepare in methods.items():
+                prepared, seconds = run(prepare, meshes, "z")
+                counts[name].add(prepared, turns, seconds)
+        for c in counts.values():
+            c.report()
 
 
-def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool) -> None:
+def blender(seeds: int, n: int, count: int, methods: dict) -> None:
+    """Set (d): mugs modelled in Blender (consistent, then a perturbed subset)."""
+    from blender_mugs import model_mugs
+
+    for perturbed in (False, True):
+        label = f"(d) Blender mugs{' perturbed' if perturbed else ''}"
+        counts = {name: Counts(label, name, perturbed) for name in methods}
+        for seed in range(seeds):
+            maps, turns = mug_perturbations(n, count, seed) if perturbed else ({}, {})
+            meshes, _ = model_mugs(n, seed, maps)
+            for name, prepare in methods.items():
+                prepared, seconds = run(prepare, meshes, "z")
+                counts[name].add(prepared, turns, seconds)
+                if name == "after":
+                    for i, s in enumerate(prepared):
+                        if s.pose_change or s.pose_outlier:
+                            print(f"      seed {seed} {s.name}{' (perturbed)' if i in turns else ''}: "
+                                  f"{s.pose_change or '-'} | {s.pose_outlier or '-'}")
+        for c in counts.values():
+            c.report()
+
+
+def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool, oblique: bool) -> None:
     for cls in classes:
         folder = data / cls
         if not folder.is_dir():
@@ -135,25 +212,50 @@ def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool
             continue
         meshes = read_folder(folder)
         for name, prepare in methods.items():
-            start = time.perf_counter()
-            prepared = prepare(meshes, up_axis=up)
-            seconds = time.perf_counter() - start
+            prepared, seconds = run(prepare, meshes, up)
             base = up_rotation(up)
             turned = [not np.allclose(s.transform.rotation, base, atol=1e-12) for s in prepared]
             flags = [s.name for s in prepared if getattr(s, "pose_outlier", "")]
             print(f"(c) {cls:16s} {name:6s}: {len(prepared)} shapes, changed {sum(turned)}, flagged {len(flags)}"
                   f" ({' '.join(flags) or '-'}); {seconds:.1f} s", flush=True)
-            if name == "after":
-                for s in prepared:
-                    if s.pose_change or s.pose_outlier:
-                        print(f"      {s.name}: {s.pose_change or '-'} | {s.pose_outlier or '-'}")
+            ROWS.append({"set": f"(c) PSB {cls}", "version": name, "shapes": len(prepared), "seeds": 1,
+                         "changed": sum(turned), "restored": "", "moved": "", "flagged": len(flags),
+                         "wrong": "(pictures)", "seconds": seconds})
+            for s in prepared:
+                if getattr(s, "pose_change", "") or getattr(s, "pose_outlier", ""):
+                    print(f"      {s.name}: {s.pose_change or '-'} | {s.pose_outlier or '-'}")
             if can_render:
-                render(prepared, turned, flags, out / f"orientation_{cls}_{name}.png", f"{cls}: {name} (red = turned)")
+                render(prepared, turned, flags, out / f"orientation_{cls}_{name}.png",
+                       f"{cls}: {name} (red = turned, ! = flagged)")
+                if oblique:
+                    render(prepared, turned, flags, out / f"orientation_{cls}_{name}_oblique.png",
+                           f"{cls}: {name}, seen from front-left, above", OBLIQUE)
 
 
-def render(prepared, turned, flagged, path: Path, title: str) -> None:
-    """Grid picture of prepared shapes (normalised frame), front view, Workbench."""
+def table() -> None:
+    """Every row measured, as one markdown table."""
+    print("\n| set | version | shapes (seeds) | changed | restored | unperturbed moved | flagged | wrong "
+          "| s / collection |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in ROWS:
+        print(f"| {r['set']} | {r['version']} | {r['shapes']} ({r['seeds']}) | {r['changed']} | {r['restored']} | "
+              f"{r['moved']} | {r['flagged']} | {r['wrong']} | {r['seconds']:.1f} |")
+
+
+#: the oblique view: shapes turned 35° about up, then tilted 25° towards the camera
+OBLIQUE = np.array([[np.cos(np.radians(-35)), -np.sin(np.radians(-35)), 0.0],
+                    [np.sin(np.radians(-35)), np.cos(np.radians(-35)), 0.0], [0.0, 0.0, 1.0]])
+OBLIQUE = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(np.radians(25)), -np.sin(np.radians(25))],
+                    [0.0, np.sin(np.radians(25)), np.cos(np.radians(25))]]) @ OBLIQUE
+
+
+def render(prepared, turned, flagged, path: Path, title: str, view: np.ndarray | None = None) -> None:
+    """Grid picture of prepared shapes (normalised frame), front view (or the shapes first
+    turned by `view`), Workbench."""
     import bpy
+
+    if view is not None:
+        prepared = [SimpleNamespace(mesh=s.mesh.with_vertices(s.mesh.vertices @ view.T), name=s.name) for s in prepared]
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -211,15 +313,21 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--shapes", type=int, default=12)
     parser.add_argument("--perturbed", type=int, default=3)
-    parser.add_argument("--sets", nargs="+", default=["a", "c"], help="a (with b), c")
-    parser.add_argument("--before", default=BEFORE, help="git revision of the old default")
-    parser.add_argument("--methods", nargs="+", default=["before", "after"])
+    parser.add_argument("--mugs", type=int, default=14, help="mugs per Blender collection (set d)")
+    parser.add_argument("--mugs-perturbed", type=int, default=4)
+    parser.add_argument("--mug-seeds", type=int, default=10, help="Blender collections per variant (set d)")
+    parser.add_argument("--sets", nargs="+", default=["a", "c", "d"], help="a (with b), c, d")
+    parser.add_argument("--revisions", nargs="+", default=[f"{k}={v}" for k, v in REVISIONS.items()],
+                        help="NAME=REV: versions of the core to compare with the working tree ('after')")
+    parser.add_argument("--methods", nargs="+", default=None, help="versions to run (default: all)")
     parser.add_argument("--no-render", action="store_true")
+    parser.add_argument("--oblique", action="store_true", help="also draw each PSB class from front-left, above")
     args = parser.parse_args(argv)
-    methods = {"before": lambda: load_before(args.before), "after": lambda: prepare_collection}
-    methods = {name: methods[name]() for name in args.methods}
+    revisions = dict(item.split("=", 1) for item in args.revisions)
+    names = args.methods or [*revisions, "after"]
+    methods = {name: prepare_collection if name == "after" else load_revision(name, revisions[name]) for name in names}
     can_render = False
-    if not args.no_render:
+    if not args.no_render and "c" in args.sets:
         try:
             import bpy  # noqa: F401
 
@@ -230,8 +338,14 @@ def main(argv=None) -> int:
     if "a" in args.sets:
         for kind in ("vases", "barrels"):
             procedural(kind, args.seeds, args.shapes, args.perturbed, methods)
+    if "d" in args.sets:
+        if importlib.util.find_spec("bpy") is None:
+            print("(d) bpy not importable: the Blender-made set is skipped", file=sys.stderr)
+        else:
+            blender(args.mug_seeds, args.mugs, args.mugs_perturbed, methods)
     if "c" in args.sets:
-        psb(args.data, args.classes, args.up, methods, args.out, can_render)
+        psb(args.data, args.classes, args.up, methods, args.out, can_render, args.oblique)
+    table()
     return 0
 
 

@@ -15,13 +15,16 @@ Steps, in order (`prepare_collection`):
 3. Consensus (`align="consensus"`, default): a shape's pose changes only when the
    collection visibly disagrees with it. Every shape starts in its input pose with the
    given up axis (no yaw), and is turned only on evidence much stronger than sampling
-   noise: against its nearest shapes, a rotation (24 axis rotations, then any turn about
-   up) fits `margin` times better (Chamfer cost), or its top and bottom or its facing
-   disagree with theirs (exact odd-moment signatures, any angle). The majority's poses
-   are the collection's and are never changed; shapes with `keep_pose` are never turned.
-   Each change is reported (`PreparedShape.pose_change`, `pose_rotation`), and a pose
-   that still looks wrong is flagged with its reason (`PreparedShape.pose_outlier`, in
-   every align mode). Details and the calibration in `consensus`.
+   noise: first its up, by the symmetries the collection's shapes share about their up
+   axes (an axis of it, or one tilted 20-60°, looking clearly more like their up than
+   its own up does), then against its nearest shapes, a rotation (24 axis rotations,
+   then any turn about up) fits `margin` times better (Chamfer cost), or its top and
+   bottom or its facing disagree with theirs (exact odd-moment signatures, any angle).
+   The majority's poses are the collection's and are never changed; shapes with
+   `keep_pose` are never turned. Each change is reported (`PreparedShape.pose_change`,
+   `pose_rotation`), and a pose that still looks wrong is flagged with its reason
+   (`PreparedShape.pose_outlier`, in every align mode). Details and the calibration in
+   `consensus`.
 4. Floor at z = 0 and centring (`centre`: "centroid" of the x–y surface spread,
    "highest" vertex, or "none").
 5. Scale (`scale`): "variance" — every shape gets the same total surface variance
@@ -35,7 +38,8 @@ resolution nor interior vertices bias them (method.md §1 **beyond**).
 Modules: `transform` (ShapeTransform, PreparedShape), `moments` (exact surface moments,
 scale measures), `rotations` (up axis, horizontal PCA, axis rotations, turns about z and
 their description), `posesearch` (Chamfer costs between posed shapes, rotation search),
-`signature` (odd-moment signatures: top/bottom and facing), `consensus` (step 3 and the
+`signature` (odd-moment signatures: top/bottom and facing), `symmetry` (which axis is
+up by the symmetries the collection's up axes share), `consensus` (step 3 and the
 pose flags, its constants in `ConsensusSettings`) and `prepare` (`prepare_collection`).
 """
 

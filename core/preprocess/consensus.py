@@ -4,47 +4,61 @@ collection disagrees with it.
 
 Every shape starts in its base pose, its input pose with the given up axis turned to +z
 (no yaw: when the inputs already agree, nobody is turned, rotation exactly identity).
-Two stages decide, each by the same three steps (`_settle`):
+Three stages decide:
 
+0. Up by symmetry (`up_by_symmetry`, `symmetry.AxisSymmetry`): the symmetries the
+   collection's shapes share about their up axes (rotational about up, mirror across
+   planes through or across it) are its up profile; a shape stands on its x or y axis,
+   or on a direction tilted 20-60° from its up, when that axis scores clearly more like
+   the profile than its up does (by `symmetry_gap` and the factor `symmetry_ratio`),
+   and its nearest shapes whose up already scores best fit it no worse that way. This
+   needs no nearest shape in the right pose: PSB cups lying on their side together (26,
+   27, 29) and teapots written z-up (367, 379) are stood up, a cup tilted in its file
+   (36) straightened. Calibration (bench/orientation.py): consistent procedural vases
+   and barrels and Blender mugs score their up at most 1.6 and other axes at least 2;
+   PSB cups on their side their up 1.8-2.3 and their own axis 0.5-1.5.
 A. Chamfer cost (`posesearch.PoseSearch`): a shape is turned when the best rotation (24
    axis rotations, any turn about z) fits its nearest shapes more than `margin` times
    better than its pose, f(I) / f(R) > margin, on average and for most of them one by
    one; a change of the up direction must also beat the best upright pose by
-   `tilt_margin` (PSB Vase: bowls among jugs fit them 2-4× better on their side). Calibration (bench/orientation.py, 600
-   samples, 3 neighbours): over upright procedural vases and barrels at many seeds the
-   ratio of a consistent shape stays below 1.07 (1.14 for a single pair); a vase upside
-   down or any shape on its side scores 1.6 to 10. The Chamfer cost hardly sees a spout
-   or a knob (a vase turned 180° about z: ratio 1.00-1.05), hence stage B.
+   `tilt_margin` and score no worse by symmetry (`AxisSymmetry.allows_tilt`: PSB bowls
+   among jugs fit them 2-4× better on their side, but their up is their axis of
+   symmetry). Calibration (600 samples, 3 neighbours): over upright procedural vases and
+   barrels at many seeds the ratio of a consistent shape stays below 1.07 (1.14 for a
+   single pair); a vase upside down or any shape on its side scores 1.6 to 10. The
+   Chamfer cost hardly sees a spout or a knob (a vase turned 180° about z: ratio
+   1.00-1.05), hence stage B.
 B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is flipped
    when its top-bottom signature anti-correlates with its nearest shapes' (correlation
    < −`up_agreement`), and turned about z by the angle its facing signature differs by,
    when the facing is shared (coherence > `coherence`) and the angle exceeds
    `facing_angle` (`refine_angle` for a shape turned anyway). Calibration: consistent
    vases and barrels differ in facing from their nearest shapes by up to 16° (coarse
-   vases, 20 seeds; coherence ≥ 0.95, top-bottom correlation ≥ 0.95); flipped ones score ≤ −0.95, and a 37° turn is measured as
-   35-39°. The signatures decide only what the cost cannot see: a turn they ask for is
-   made only if it raises the cost by at most `tolerance` (on PSB fish the top-bottom
-   signature alone flipped upright fish).
+   vases, 20 seeds; coherence ≥ 0.95, top-bottom correlation ≥ 0.95); flipped ones
+   score ≤ −0.95, and a 37° turn is measured as 35-39°. The signatures decide only what
+   the cost cannot see: a turn they ask for is made only if it raises the cost by at
+   most `tolerance` (on PSB fish the top-bottom signature alone flipped upright fish).
 
-The three steps of a stage:
+Stages A and B each take the same three steps (`_settle`):
 
-1. Votes: every shape against each of its `neighbours` nearest shapes (smallest cost over
-   the 24 axis rotations). The pair agrees when the stage would not turn one to match
-   the other.
+1. Votes: every shape not turned by an earlier stage against each of its `neighbours`
+   nearest such shapes (smallest cost over the 24 axis rotations). The pair agrees when
+   the stage would not turn one to match the other.
 2. The collection's pose: shapes agreeing with more than half of their neighbours form
    groups (connected by agreeing pairs); the largest group is the majority, whose poses
    are the collection's (nobody in it is ever turned). Without any agreeing shape the
-   medoid is the majority of one. In stage B only shapes stage A left
-   alone can be in the majority (a turned shape has no input facing to keep).
+   medoid is the majority of one. A turned shape has no vote and is in no majority (it
+   has no input pose to keep).
 3. Everyone else, closest to the majority first, is decided against its nearest shapes
-   already settled and not turned (a turned shape's pose is a guess), then settled. `keep` shapes are never turned
-   and are no reference unless they are in the majority.
+   already settled and not turned (a turned shape's pose is a guess), then settled.
+   `keep` shapes are never turned and are no reference unless they are in the majority.
 
 Each pose change comes with its reason ("turned 180° about x: its 3 nearest shapes
-(a, b, c) fit 2.4× better"). Known limit: a group of shapes sharing one wrong pose that
-is as large as the majority, or that only has itself as nearest shapes, keeps that pose;
+(a, b, c) fit 2.4× better"); a shape turned and turned back (to within 1°) keeps its
+input pose. Known limit: a group of shapes sharing one wrong facing that is as large as
+the majority, or that only has itself as nearest shapes, keeps that facing;
 `pose_outliers` flags shapes whose final pose still disagrees with their nearest shapes
-or fits them much worse than the collection's median.
+or the collection's up by symmetry, or fits them much worse than the collection's median.
 """
 
 from __future__ import annotations
@@ -56,9 +70,10 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .posesearch import PoseSearch
+from .posesearch import Fit, PoseSearch
 from .rotations import describe_rotation, yaw_rotation
 from .signature import Signatures
+from .symmetry import AxisSymmetry
 
 __all__ = ["ConsensusSettings", "PoseDecision", "consensus_rotations", "pose_outliers"]
 
@@ -91,10 +106,26 @@ class ConsensusSettings:
     facing_angle: float = 30.0
     #: the same for a shape turned anyway (the signature's facing refines the cost's turn)
     refine_angle: float = 5.0
+    #: Chamfer improvement with which a weakly shared facing still flags a shape
+    facing_support: float = 1.2
     #: Legendre polynomials in height in the facing signature
     facing_order: int = 5
     #: a shape fitting its nearest shapes this many times worse than the median is flagged
     outlier_factor: float = 3.0
+    #: shapes needed for the symmetry stage (the collection's up profile is a median)
+    symmetry_shapes: int = 5
+    #: lowest spread (log units) of a symmetry feature in the up profile
+    symmetry_floor: float = 0.3
+    #: score difference (its up − another axis) above which a shape stands on that axis
+    symmetry_gap: float = 0.4
+    #: ... and the factor by which the other axis must score better
+    symmetry_ratio: float = 1.3
+    #: an up scoring above this is searched for a tilt (and flagged when tilted)
+    symmetry_flag: float = 2.0
+    #: a tilt (degrees) of the best-scoring up direction above which it is stood on or flagged
+    symmetry_tilt: float = 20.0
+    #: directions of the tilt search's grid (upper half sphere)
+    symmetry_directions: int = 40
 
 
 @dataclass(frozen=True)
@@ -110,34 +141,42 @@ class PoseDecision:
 
 
 def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
-                        settings: ConsensusSettings, report: Callable[[float, str], None]) -> list[PoseDecision]:
-    """The pose decision of every shape (the steps of the module docstring): first by the
-    Chamfer cost (up direction, large turns), then by the signatures (top and bottom,
-    facing at any angle)."""
+                        settings: ConsensusSettings, report: Callable[[float, str], None],
+                        symmetry: AxisSymmetry | None = None) -> list[PoseDecision]:
+    """The pose decision of every shape (the steps of the module docstring): first the up
+    axis by the collection's symmetries (`symmetry`, none: skipped), then by the Chamfer
+    cost (up direction, large turns), then by the signatures (top and bottom, facing at
+    any angle)."""
     n = len(search)
     k = min(settings.neighbours, n - 1)
     identity = np.eye(3)
+    stood = up_by_symmetry(search, symmetry, names, keep, settings) if symmetry is not None else \
+        [PoseDecision(identity)] * n
+    start = [d.rotation for d in stood]
+    report(0.2, "up axes by symmetry")
 
     def by_cost_agree(j: int, i: int) -> bool:
-        reference = [(i, identity)]
-        _, fit = search.best_rotation(j, reference, settings.yaw_step, settings.tilts, False, 0.0)
-        return search.cost(j, identity, reference) <= settings.margin * fit.cost
+        reference = [(i, start[i])]
+        _, fit = search.best_rotation(j, reference, settings.yaw_step, settings.tilts, False, 0.0, _or_none(start[j]))
+        return search.cost(j, start[j], reference) <= settings.margin * fit.cost
 
     def by_cost(j: int, references: list[tuple[int, np.ndarray]]) -> PoseDecision:
-        upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, True, settings.snap)
-        if upright.cost <= settings.tilt_margin * fit.cost:  # a change of up needs its own evidence
+        upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, True, settings.snap,
+                                            _or_none(start[j]))
+        # a change of up needs its own evidence, and no worse symmetry about the new up
+        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start[j]):
             fit = upright
-        ratio = search.cost(j, identity, references) / max(fit.cost, 1e-300)
+        ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
         # most references must ask for the turn one by one (a bowl among jugs: the jugs
         # prefer it on its side, the other bowls upright)
-        each = sum(search.cost(j, identity, [r]) > settings.margin * search.cost(j, fit.rotation, [r])
+        each = sum(search.cost(j, start[j], [r]) > settings.margin * search.cost(j, fit.rotation, [r])
                    for r in references)
         if ratio <= settings.margin or 2 * each <= len(references):
-            return PoseDecision(identity)
-        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation)}: its {len(references)} nearest "
-                                          f"shapes ({_names(names, references)}) fit {ratio:.1f}× better")
+            return PoseDecision(start[j])
+        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
+                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better")
 
-    first = _settle(search, k, keep, [identity] * n, by_cost_agree, by_cost, report, 0.2, [True] * n)
+    first = _settle(search, k, keep, start, by_cost_agree, by_cost, report, 0.2, [not d.changed for d in stood])
     turned = [d.rotation for d in first]
 
     def by_signature_agree(j: int, i: int) -> bool:
@@ -156,7 +195,7 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
                 and cost_allows(_HALF_TURN_X @ rotation)):
             rotation = _HALF_TURN_X @ rotation
             why.append("its top and bottom")
-        turning = bool(why) or first[j].changed
+        turning = bool(why) or first[j].changed or stood[j].changed
         angle, coherence = signatures.facing_turn(j, rotation, references)
         if (coherence > settings.coherence and abs(angle) > (settings.refine_angle if turning else settings.facing_angle)
                 and cost_allows(yaw_rotation(angle) @ rotation)):
@@ -169,23 +208,114 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
 
     # a shape the cost turned has no input facing to keep: it never joins the majority
     second = _settle(search, k, keep, turned, by_signature_agree, by_signature, report, 0.5,
-                     [not d.changed for d in first])
-    return [_combined(a, b) for a, b in zip(first, second)]
+                     [not (a.changed or b.changed) for a, b in zip(stood, first)])
+    return [_combined(*stages) for stages in zip(stood, first, second)]
 
 
 _HALF_TURN_X = np.diag([1.0, -1.0, -1.0])
+
+
+def _faces_away(turned_cost: float, cost: float, coherence: float, settings: ConsensusSettings) -> bool:
+    """Whether a shape whose facing signature differs from its nearest shapes' (by more
+    than facing_angle) is flagged: a shared facing (coherence above `coherence`) the turn
+    costs at most `tolerance` more, or a weaker one (above half of it) the turn fits
+    `facing_support` times better (PSB cup 31, handle 180° off: coherence 0.32, the turn
+    fits 1.3× better)."""
+    return ((coherence > settings.coherence and turned_cost <= (1.0 + settings.tolerance) * cost)
+            or (coherence > settings.coherence / 2 and settings.facing_support * turned_cost < cost))
+
+
+def _symmetry_allows(symmetry: AxisSymmetry | None, j: int, fit: Fit, start: np.ndarray) -> bool:
+    """Whether the symmetry stage lets shape j turn from `start` to `fit` (no stage: yes)."""
+    return symmetry is None or symmetry.allows_tilt(j, fit.rotation, start)
+
+
+def _or_none(rotation: np.ndarray) -> np.ndarray | None:
+    """None for the base pose (the search's candidates unchanged), else the rotation."""
+    return None if np.array_equal(rotation, np.eye(3)) else rotation
+
+
+def up_by_symmetry(search: PoseSearch, symmetry: AxisSymmetry, names: Sequence[str], keep: Sequence[bool],
+                   settings: ConsensusSettings) -> list[PoseDecision]:
+    """Stage 0: the up axis of each shape by the symmetries its collection's shapes share
+    about their up axes (`symmetry`, `standing_pose`), against its nearest shapes whose
+    up already scores best of their axes. Fewer than `symmetry_shapes` shapes, or kept
+    ones: no change."""
+    n = len(search)
+    identity = np.eye(3)
+    if n < settings.symmetry_shapes:
+        return [PoseDecision(identity)] * n
+    symmetry.fit_profile([identity] * n, range(n))
+    scores = np.array([symmetry.axis_scores(j, identity) for j in range(n)])
+    trusted = [j for j in range(n) if np.argmin(scores[j]) == 0]
+    decisions = []
+    for j in range(n):
+        pool = [i for i in trusted if i != j]
+        references = [(i, identity) for i in search.nearest(j, pool or range(n), settings.neighbours)]
+        standing = None if keep[j] else standing_pose(search, symmetry, j, identity, references, settings)
+        if standing is None:
+            decisions.append(PoseDecision(identity))
+            continue
+        fit, where, _ = standing
+        decisions.append(PoseDecision(fit.rotation, (
+            f"{describe_rotation(fit.rotation)}: stood on {where}; end and turn as its {len(references)} nearest "
+            f"upright shapes ({_names(names, references)})")))
+    return decisions
+
+
+def standing_pose(search: PoseSearch, symmetry: AxisSymmetry, j: int, rotation: np.ndarray,
+                  references: list[tuple[int, np.ndarray]],
+                  settings: ConsensusSettings) -> tuple[Fit, str, bool] | None:
+    """(pose, words, tilted) standing shape j, now turned by `rotation`, on another axis, when that
+    axis scores more like the collection's up than its up does, by `symmetry_gap` and
+    the factor `symmetry_ratio` (`AxisSymmetry.axis_scores`): its x or y axis, or, when
+    its up scores above `symmetry_flag` and is not clearly (`symmetry_ratio`) its best
+    axis, the best direction within 60° of its up
+    (`AxisSymmetry.best_up`) if more than `symmetry_tilt` degrees away (a shape tilted in
+    its file). Which end is up and the turn about it fit the references best (Chamfer
+    cost), and they must fit it no worse than its pose does. None: no such axis."""
+    scores = symmetry.axis_scores(j, rotation)
+    other = 1 + int(np.argmin(scores[1:]))
+
+    def clearly_better(score: float) -> bool:
+        return scores[0] - score > settings.symmetry_gap and scores[0] > settings.symmetry_ratio * score
+
+    if clearly_better(scores[other]):
+        axis, score, tilted = "xy"[other - 1], scores[other], False
+        where = f"its {axis} axis"
+        fits = [search.best_turn(j, references, d, settings.yaw_step, True, settings.snap, rotation)
+                for d in ((2, 3) if axis == "x" else (4, 5))]  # TILTS: ±x / ±y up
+    elif scores[0] > settings.symmetry_flag and scores[0] * settings.symmetry_ratio > scores[other]:
+        tilt, score = symmetry.best_up(j, rotation, settings.symmetry_directions)
+        degrees = float(np.degrees(np.arccos(np.clip(tilt[2, 2], -1.0, 1.0))))
+        if degrees <= settings.symmetry_tilt or not clearly_better(score):
+            return None
+        where, tilted = f"an axis {degrees:.0f}° from its up", True
+        fits = [search.best_yaw(j, references, end @ rotation, settings.yaw_step, True)
+                for end in (tilt, _HALF_TURN_X @ tilt)]
+    else:
+        return None
+    fit = min(fits, key=lambda f: f.cost)
+    if fit.cost > search.cost(j, rotation, references):
+        return None
+    return fit, (f"{where}, whose symmetries are those the collection's shapes have about their up axes "
+                 f"(score {score:.1f} against {scores[0]:.1f} for its up; 0 = the collection's typical up)"), tilted
 
 
 def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:
     return ", ".join(names[i] for i, _ in references)
 
 
-def _combined(first: PoseDecision, second: PoseDecision) -> PoseDecision:
-    """One decision for both stages: the second's rotation (it starts from the first's)."""
-    reasons = "; then ".join(r for r in (first.reason, second.reason) if r)
-    if first.reason and second.reason:
-        reasons = f"{describe_rotation(second.rotation)} in all ({reasons})"
-    return PoseDecision(second.rotation if second.reason else first.rotation, reasons)
+def _combined(*stages: PoseDecision) -> PoseDecision:
+    """One decision for the stages: the last one's rotation (each starts from the one
+    before), the reasons of those that turned the shape."""
+    reasons = [d.reason for d in stages if d.reason]
+    if reasons and np.trace(stages[-1].rotation) > 1.0 + 2.0 * np.cos(np.radians(1.0)):
+        return PoseDecision(np.eye(3))  # turned there and back (to within 1°): its input pose
+    reason = "; then ".join(reasons)
+    if len(reasons) > 1:
+        reason = f"{describe_rotation(stages[-1].rotation)} in all ({reason})"
+    return PoseDecision(stages[-1].rotation, reason)
 
 
 def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np.ndarray],
@@ -196,14 +326,15 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     (`decide`) against its k nearest settled shapes, closest to the settled ones first;
     `keep` shapes never move."""
     n = len(search)
+    voters = [j for j in range(n) if eligible[j]]
     votes: dict[tuple[int, int], bool] = {}
-    for j in range(n):
-        for i in search.nearest(j, range(n), k):
+    for j in voters:  # a shape turned before has no vote, nor is it counted as a neighbour
+        for i in search.nearest(j, voters, k):
             pair = (min(i, j), max(i, j))
             if pair not in votes:
-                votes[pair] = eligible[pair[0]] and eligible[pair[1]] and agree(*pair)
+                votes[pair] = agree(*pair)
         report(progress + 0.15 * (j + 1) / n, f"comparing {j + 1} of {n}")
-    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, k, eligible)}
+    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, k, voters)}
     references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
     decisions.update({j: PoseDecision(start[j]) for j in range(n) if keep[j] and j not in decisions})
     while len(decisions) < n:
@@ -217,17 +348,17 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     return [decisions[j] for j in range(n)]
 
 
-def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int,
-              eligible: Sequence[bool]) -> list[int]:
-    """Step 2: the largest group of shapes that agree with most of their nearest shapes,
-    connected by agreeing pairs (when no shape agrees, the medoid of the
-    eligible shapes, or of all when none is, alone)."""
+def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int, voters: Sequence[int]) -> list[int]:
+    """Step 2: the largest group of `voters` that agree with most of their nearest voters,
+    connected by agreeing pairs (when no shape agrees, the medoid of the voters, or of
+    all shapes when there are none, alone)."""
     n = len(search)
-    votes = np.array([np.mean([agree[(min(i, j), max(i, j))] for i in search.nearest(j, range(n), k)])
-                      for j in range(n)])
+    votes = np.zeros(n)
+    for j in voters:
+        votes[j] = np.mean([agree[(min(i, j), max(i, j))] for i in search.nearest(j, voters, k)] or [0.0])
     members = np.flatnonzero(votes > 0.5)
     if len(members) == 0:
-        pool = np.flatnonzero(eligible) if any(eligible) else np.arange(n)
+        pool = np.asarray(voters if len(voters) else range(n), dtype=int)
         return [int(pool[np.argmin(search.distance[pool].sum(axis=1))])]
     edges = np.array([pair for pair, ok in agree.items() if ok and votes[pair[0]] > 0.5 and votes[pair[1]] > 0.5],
                      dtype=int).reshape(-1, 2)
@@ -238,11 +369,16 @@ def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int,
 
 
 def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
-                  keep: Sequence[bool], settings: ConsensusSettings) -> list[str]:
+                  keep: Sequence[bool], settings: ConsensusSettings,
+                  symmetry: AxisSymmetry | None = None) -> list[str]:
     """Why each shape's final pose looks wrong ('' when it does not), against its nearest
     shapes in their final poses (rotations relative to the base pose): a rotation would
-    fit them more than `margin` times better, its top and bottom or its facing disagree
-    with theirs (signatures, the thresholds of the consensus), or it fits them over
+    fit them more than `margin` times better (a change of up: also `tilt_margin` times
+    better than keeping its up), its top and bottom or its facing disagree with theirs
+    (signatures, the thresholds of the consensus; a weakly shared facing counts when the
+    turn also fits them `facing_support` times better, `_faces_away`), its up lacks the symmetry the
+    collection's up axes share (`symmetry`: scores above `symmetry_flag` and not clearly
+    best of its axes: tilted, or on its side with nobody to fit), or it fits them over
     `outlier_factor` times worse than the collection's median shape does."""
     n = len(search)
     k = min(settings.neighbours, n - 1)
@@ -251,11 +387,14 @@ def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequenc
     costs = np.array([search.cost(j, rotations[j], references[j]) for j in range(n)])
     median = float(np.median(costs))
     kept = [" (its pose is kept by request)" if k_ else "" for k_ in keep]
+    symmetry_ready = symmetry is not None and n >= settings.symmetry_shapes
+    if symmetry_ready:
+        symmetry.fit_profile(rotations, range(n))
     reasons = []
     for j in range(n):
         upright, fit = search.best_rotation(j, references[j], settings.yaw_step, settings.tilts, False,
-                                            settings.snap)
-        if upright.cost <= settings.tilt_margin * fit.cost:
+                                            settings.snap, _or_none(rotations[j]))
+        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, rotations[j]):
             fit = upright
         ratio = costs[j] / max(fit.cost, 1e-300)
         angle, coherence = signatures.facing_turn(j, rotations[j], references[j])
@@ -268,10 +407,14 @@ def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequenc
               and search.cost(j, _HALF_TURN_X @ rotations[j], references[j]) <= (1.0 + settings.tolerance) * costs[j]):
             reasons.append(f"upside down relative to its {k} nearest shapes (its top and bottom "
                            f"match their bottom and top){kept[j]}")
-        elif (coherence > settings.coherence and abs(angle) > settings.facing_angle
-              and search.cost(j, yaw_rotation(angle) @ rotations[j], references[j])
-              <= (1.0 + settings.tolerance) * costs[j]):
+        elif abs(angle) > settings.facing_angle and _faces_away(
+                search.cost(j, yaw_rotation(angle) @ rotations[j], references[j]), costs[j], coherence, settings):
             reasons.append(f"faces {abs(angle):.0f}° away from its {k} nearest shapes{kept[j]}")
+        elif symmetry_ready and (standing := standing_pose(search, symmetry, j, rotations[j], references[j],
+                                                            settings)) is not None:
+            fit, where, tilted = standing
+            reasons.append(f"{'tilted' if tilted else 'on its side'} relative to the collection's up axes: "
+                           f"{describe_rotation(fit.rotation @ rotations[j].T)} it would stand on {where}{kept[j]}")
         elif costs[j] > settings.outlier_factor * median:
             reasons.append(f"fits its {k} nearest shapes {costs[j] / median:.1f}× worse than the collection's "
                            "median shape does (an unusual shape, or a pose no turn fixes)")

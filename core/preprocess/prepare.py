@@ -14,6 +14,7 @@ from .moments import SCALE_MODES, scale_measure, surface_moments
 from .posesearch import PoseSearch
 from .rotations import describe_rotation, horizontal_pca_rotation, up_rotation
 from .signature import Signatures
+from .symmetry import AxisSymmetry
 from .transform import PreparedShape, ShapeTransform
 
 __all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection"]
@@ -52,18 +53,20 @@ def prepare_collection(
     report = progress or (lambda fraction, message: None)
 
     up = up_rotation(up_axis)
-    search = signatures = None
+    search = signatures = symmetry = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         search = PoseSearch.of(meshes, [up] * len(meshes), consensus.points, seed)
         signatures = Signatures(meshes, [up] * len(meshes), consensus.facing_order)
+        symmetry = AxisSymmetry.of(search, meshes, [up] * len(meshes), seed, consensus.symmetry_floor)
     report(0.2, "surface samples")
     if align == "consensus" and search is not None:
-        decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report)
+        decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report,
+                                        symmetry)
     else:
         decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
     outliers = [""] * len(meshes)
     if len(meshes) > 2:
-        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus)
+        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus, symmetry)
     report(0.9, "floor, centre and scale")
 
     transforms = [_floor_and_centre(mesh, d.rotation @ up, centre) for mesh, d in zip(meshes, decisions)]

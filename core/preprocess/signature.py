@@ -47,7 +47,7 @@ class Signatures:
 
     def __init__(self, meshes: Sequence[Mesh], base: Sequence[np.ndarray], order: int):
         self.order = order
-        self.points, self.weights, self.vertices = [], [], []
+        self.points, self.weights, self.vertices, self.third, self.radial = [], [], [], [], []
         for mesh, rotation in zip(meshes, base):
             area, mean, cov = surface_moments(mesh)
             tri = (mesh.triangles - mean) @ rotation.T / np.sqrt(np.trace(cov))
@@ -57,9 +57,20 @@ class Signatures:
             self.points.append(pts.reshape(-1, 3))
             self.weights.append((mesh.face_areas()[:, None] * _QUAD_WEIGHTS[None, :]).ravel() / area)
             self.vertices.append(tri.reshape(-1, 3))
+            weighted = self.points[-1] * self.weights[-1][:, None]
+            self.third.append(np.einsum("na,nb,nc->abc", weighted, self.points[-1], self.points[-1]))
+            self.radial.append(weighted.T @ np.einsum("na,na->n", self.points[-1], self.points[-1]))
+        self._facing: dict[tuple[int, bytes], np.ndarray] = {}
 
     def facing(self, j: int, rotation: np.ndarray) -> np.ndarray:
-        """a_b of shape j turned by `rotation` (module docstring), complex (order,)."""
+        """a_b of shape j turned by `rotation` (module docstring), complex (order,);
+        remembered by (j, rotation): the same shape in the same pose recurs as a reference."""
+        key = (j, rotation.tobytes())
+        if key not in self._facing:
+            self._facing[key] = self._facing_of(j, rotation)
+        return self._facing[key]
+
+    def _facing_of(self, j: int, rotation: np.ndarray) -> np.ndarray:
         pts = self.points[j] @ rotation.T
         heights = self.vertices[j] @ rotation[2]
         lo, hi = heights.min(), heights.max()
@@ -68,10 +79,12 @@ class Signatures:
         return (self.weights[j] * (pts[:, 0] + 1j * pts[:, 1])) @ basis
 
     def up(self, j: int, rotation: np.ndarray) -> np.ndarray:
-        """u of shape j turned by `rotation` (module docstring), (2,)."""
-        pts = self.points[j] @ rotation.T
-        z = pts[:, 2]
-        return np.array([self.weights[j] @ z**3, self.weights[j] @ (z * (pts[:, 0] ** 2 + pts[:, 1] ** 2))])
+        """u of shape j turned by `rotation` (module docstring), (2,): with r the direction
+        turned to z and the exact moments T = ∫ p⊗p⊗p dA / A, v = ∫ p |p|² dA / A of the
+        base pose, ∫ z³ = T(r, r, r) and ∫ z (x² + y²) = r·v − T(r, r, r)."""
+        r = rotation[2]
+        cubic = float(np.einsum("abc,a,b,c->", self.third[j], r, r, r))
+        return np.array([cubic, float(r @ self.radial[j]) - cubic])
 
     def facing_turn(self, j: int, rotation: np.ndarray,
                     references: Sequence[tuple[int, np.ndarray]]) -> tuple[float, float]:
