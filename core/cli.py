@@ -42,7 +42,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     source = read_source(args.source, args, accepts=("folder", "prepared"))
     options = settings_from_args(FitSettings, args)
-    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs)
+    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
+                                   scheduler=options.scheduler)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -115,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
-    add_settings_options(p, FitSettings, ("template", "jobs"))
+    add_settings_options(p, FitSettings, ("template", "jobs", "scheduler"))
     p.set_defaults(func=cmd_correspond)
 
     p = sub.add_parser("evaluate", help="evaluate shape models: completion, novelty, MMD/coverage/1-NNA, NLL curve, latent map")

@@ -188,10 +188,12 @@ def pose_lines(prepared: PreparedCollection) -> list[str]:
     return prepared.pose_notes() + [f"poses: {len(prepared) - turned} kept, {turned} turned, {flagged} flagged"]
 
 
-def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None):
-    """`correspond.correspond` with the default settings and console progress."""
+def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None,
+                          scheduler: str | None = None):
+    """`correspond.correspond` with the default settings and console progress (on a Dask
+    cluster when `scheduler` is given)."""
     return correspond(prepared, CorrespondenceSettings(), template=template, jobs=jobs,
-                      progress=console_progress("correspond"))
+                      progress=console_progress("correspond"), scheduler=scheduler)
 
 
 # ---------------------------------------------------------------------------- progress

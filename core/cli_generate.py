@@ -137,18 +137,23 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- sample
 def _mesh_and_write(model, items, folder: Path, file_format: str, smooth: int, exact: bool) -> None:
-    """Mesh (name, landmarks, template) items and write them; OBJ files of one template
-    share a pre-formatted face block (io.ObjWriter)."""
+    """Mesh (name, landmarks, template) items and write them."""
     writers = {}
     for name, landmarks, template in items:
         mesh = model.mesh_from_landmarks(landmarks, template=template, smooth=smooth, exact=exact, name=name)
-        path = folder / f"{name}.{file_format}"
-        if file_format == "obj":
-            if template not in writers:
-                writers[template] = ObjWriter(mesh.faces)
-            writers[template].write(mesh.vertices, path)
-        else:
-            write_mesh(mesh, path)
+        _write(mesh, template, folder, file_format, writers)
+
+
+def _write(mesh, template: str, folder: Path, file_format: str, writers: dict) -> None:
+    """Write one generated mesh; OBJ files of one template share a pre-formatted face block
+    (io.ObjWriter, kept in `writers`)."""
+    path = folder / f"{mesh.name}.{file_format}"
+    if file_format == "obj":
+        if template not in writers:
+            writers[template] = ObjWriter(mesh.faces)
+        writers[template].write(mesh.vertices, path)
+    else:
+        write_mesh(mesh, path)
 
 
 _WORKER_MODEL = None
@@ -187,8 +192,19 @@ def _single_threaded_blas():
 
 
 def _write_samples(args, model, names, landmarks, templates, folder: Path) -> None:
-    """Mesh and write every sample, in `args.jobs` processes when there are many."""
+    """Mesh and write every sample, in `args.jobs` processes when there are many, or on the
+    Dask cluster `args.scheduler` (core/sample_batch.py)."""
     items = list(zip(names, landmarks, templates))
+    if args.scheduler is not None:
+        from .sample_batch import mesh_on_cluster
+
+        items.sort(key=lambda item: item[2])
+        writers = {}
+        meshed = mesh_on_cluster(args.scheduler, args.model, items, args.smooth, args.exact)
+        for (name, _, template), (_, vertices) in zip(items, meshed):
+            mesh = model.meshes[model.shape_index(template)].with_vertices(vertices, name=name)
+            _write(mesh, template, folder, args.format, writers)
+        return
     jobs = args.jobs or (os.cpu_count() or 1)
     if jobs == 1 or len(items) < 64:
         _mesh_and_write(model, items, folder, args.format, args.smooth, args.exact)
@@ -302,6 +318,8 @@ def add_generate_commands(sub) -> None:
     p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
     p.add_argument("--jobs", type=positive_int, default=None,
                    help="worker processes for 64+ samples (default: all cores)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs shapegen[dask])")
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 
