@@ -112,7 +112,7 @@ class Source:
     path: Path
     kind: str  # one of SOURCE_KINDS
     prepare: PrepareSettings
-    meshes: list[Mesh] | None = None  # folder: the meshes read from it
+    meshes: list[Mesh] | None = None  # folder: the meshes read from it (None once prepared)
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
@@ -175,6 +175,7 @@ def prepare_source(source: Source) -> PreparedCollection:
     if source.prepared is None:
         source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"),
                                          keep_pose=source.keep_pose)
+        source.meshes = None  # the input meshes are not needed again: free them (dense meshes, issue 15)
         for line in pose_lines(source.prepared):
             print(line, file=sys.stderr)
     return source.prepared

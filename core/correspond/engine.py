@@ -10,7 +10,7 @@ from contextlib import ExitStack
 from typing import Callable, Sequence
 
 from ..progress import CancelCheck, Progress
-from .pool import RegistrationRunner, RegistrationTask, _RunProgress, register_task
+from .pool import RegistrationRunner, RegistrationTask, _RunProgress, collector, register_task, submit_bounded
 from .registration import Registration
 
 __all__ = ["DaskRunner", "make_runner"]
@@ -71,14 +71,7 @@ class DaskRunner:
         return results
 
     def map(self, function: Callable, items: Sequence, progress: Progress, message: Callable[[int], str]) -> list:
-        results: list = [None] * len(items)
-        done = [0]
-
-        def finished(index: int, result) -> None:
-            results[index] = result
-            done[0] += 1
-            progress(done[0] / len(items), message(index))
-
+        results, finished = collector(len(items), progress, message)
         self._submit_bounded([(_call_on_worker, function, item, index, self.cancel_name)
                               for index, item in enumerate(items)], finished)
         return results
@@ -86,25 +79,18 @@ class DaskRunner:
     def _submit_bounded(self, calls: list[tuple], finished: Callable) -> None:
         from distributed import wait
 
-        waiting = list(reversed(calls))
-        pending: set = set()
-        try:
-            while waiting or pending:
-                while waiting and len(pending) < 2 * self.jobs:
-                    function, *arguments = waiting.pop()
-                    pending.add(self.client.submit(function, *arguments, pure=False))
-                try:
-                    done, _ = wait(list(pending), timeout=0.1, return_when="FIRST_COMPLETED")
-                except TimeoutError:
-                    done = ()
-                self.cancel()
-                for future in done:
-                    pending.discard(future)
-                    finished(*future.result())
-        except BaseException:
+        def wait_some(pending):
+            try:
+                return wait(list(pending), timeout=0.1, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                return ()
+
+        def stop(pending):
             self.cancel_event.set()
             self.client.cancel(list(pending))
-            raise
+
+        submit_bounded(calls, lambda call: self.client.submit(*call, pure=False), wait_some, 2 * self.jobs,
+                       self.cancel, finished, stop)
 
     def close(self) -> None:
         self._stack.close()

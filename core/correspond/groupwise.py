@@ -188,8 +188,8 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             report(round_index / rounds, f"mean template ({label})")
         template_in_frame = to_frame(current_template)
         tasks = [
-            RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points, landmark_normals[i],
-                             template_in_frame, current_normals, edges, settings, centre, scale)
+            RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
+                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale)
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)

@@ -77,6 +77,41 @@ def _call_in_worker(function: Callable, item, index: int):
     return index, function(item)
 
 
+def submit_bounded(calls: list[tuple], submit: Callable, wait_some: Callable, limit: int, check: Callable,
+                   finished: Callable, stop: Callable) -> None:
+    """Submit `calls` with at most `limit` pending; `wait_some(pending)` returns finished
+    futures (after a short wait), `check()` raises to cancel, each future's result is
+    (index, value) for `finished`; on any exception `stop(pending)` before re-raising."""
+    waiting = list(reversed(calls))
+    pending: set = set()
+    try:
+        while waiting or pending:
+            while waiting and len(pending) < limit:
+                pending.add(submit(waiting.pop()))
+            done = wait_some(pending)
+            check()
+            for future in done:
+                pending.discard(future)
+                finished(*future.result())
+    except BaseException:
+        stop(pending)
+        raise
+
+
+def collector(count: int, progress: Progress, message: Callable[[int], str]) -> tuple[list, Callable]:
+    """(results, finished): `finished(index, result)` stores a result of a map over `count`
+    items and reports the share done with `message(index)`."""
+    results: list = [None] * count
+    done = [0]
+
+    def finished(index: int, result) -> None:
+        results[index] = result
+        done[0] += 1
+        progress(done[0] / count, message(index))
+
+    return results, finished
+
+
 class _RunProgress:
     """Progress of one run of registration tasks, its own 0..1: every task has an equal
     share, filled by its ICP iterations up to its cap (settings.max_iterations) and
@@ -152,14 +187,7 @@ class RegistrationRunner:
         """[function(item) for item in items], in the workers when there are any (`function`
         must then be a module-level function and the items picklable), in order; progress
         after each item with `message(index)`, cancel checked between items."""
-        results: list = [None] * len(items)
-        done = [0]
-
-        def finished(index: int, result) -> None:
-            results[index] = result
-            done[0] += 1
-            progress(done[0] / len(items), message(index))
-
+        results, finished = collector(len(items), progress, message)
         if self.pool is None:
             for index, item in enumerate(items):
                 self.cancel()
@@ -174,24 +202,18 @@ class RegistrationRunner:
         with at most 2 · jobs submitted at a time (a submitted call holds its pickled shape
         in the pool's queue), passing progress events to `tracker` and results to
         `finished(index, result)`; cancel stops the workers at their next check."""
-        waiting = list(reversed(calls))
-        pending: set = set()
-        try:
-            while waiting or pending:
-                while waiting and len(pending) < 2 * self.jobs:
-                    call = waiting.pop()
-                    pending.add(self.pool.submit(*call))
-                done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
-                self._drain(tracker)
-                self.cancel()
-                for future in done:
-                    pending.discard(future)
-                    finished(*future.result())
-        except BaseException:
+        def wait_some(pending):
+            done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
+            self._drain(tracker)
+            return done
+
+        def stop(pending):
             self.cancel_event.set()
             for future in pending:
                 future.cancel()
-            raise
+
+        submit_bounded(calls, lambda call: self.pool.submit(*call), wait_some, 2 * self.jobs, self.cancel, finished,
+                       stop)
 
     def _drain(self, tracker: _RunProgress | None) -> None:
         """Pass the queued iteration events of the current run to `tracker` (None: drop them)."""

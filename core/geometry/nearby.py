@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .surface import SurfacePoints, TargetSurface, _empty_surface_points, closest_points_on_triangles
+from .surface import SurfacePoints, TargetSurface, _empty_surface_points, closest_points_on_triangles, keep_closest
 
 __all__ = ["closest_within"]
 
@@ -158,13 +158,4 @@ def _test(grid: _FaceGrid, query: np.ndarray, rows: np.ndarray, faces: np.ndarra
     if len(rows) == 0:
         return
     closest, bary = closest_points_on_triangles(query[rows], triangles)
-    distance = np.linalg.norm(closest - query[rows], axis=1)
-    order = np.lexsort((distance, rows))
-    first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
-    target = rows[first]
-    better = distance[first] < best.distance[target]
-    target, first = target[better], first[better]
-    best.points[target] = closest[first]
-    best.face_index[target] = faces[first]
-    best.barycentric[target] = bary[first]
-    best.distance[target] = distance[first]
+    keep_closest(best, rows, faces, closest, bary, np.linalg.norm(closest - query[rows], axis=1))
