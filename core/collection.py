@@ -24,7 +24,6 @@ from .mesh import Mesh
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .progress import CancelCheck, Progress, sub_range
-from .simplify import DEFAULT_PROXY_FACES
 from .settings import Settings, option, recorded_settings
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
@@ -45,8 +44,6 @@ class PrepareSettings(Settings):
     scale: str = option("variance", "scaling rule", flag="--scale", choices=SCALE_MODES)
     centre: str = option("centroid", "horizontal centring", flag="--centre", choices=CENTRE_MODES)
     seed: int = option(0, "random seed", flag="--seed", minimum=0)
-    proxy_faces: int = option(DEFAULT_PROXY_FACES, "the pose search sees meshes with more faces through a proxy of "
-                              "about this many", flag="--proxy-faces", minimum=1000)
 
 
 #: Arrays of a prepared-collection file besides its settings (one JSON string, "null": not
@@ -176,7 +173,7 @@ def prepare_meshes(
     report = CancelCheck(should_cancel, "prepare").before(progress)
     shapes = prepare_collection(
         meshes, up_axis=settings.up_axis, align=settings.align, centre=settings.centre, scale=settings.scale,
-        seed=settings.seed, progress=sub_range(report, 0.0, 0.6), keep_pose=keep, proxy_faces=settings.proxy_faces,
+        seed=settings.seed, progress=sub_range(report, 0.0, 0.6), keep_pose=keep,
     )
     landmarks = []
     for i, shape in enumerate(shapes):

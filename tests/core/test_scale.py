@@ -74,8 +74,9 @@ def test_closest_within_is_exact(vases, rng):
     np.testing.assert_allclose(compatible.distance, surface.closest(points, normals, 0.5).distance, atol=1e-12)
 
 
-def _collection(meshes, proxy_faces: int) -> PreparedCollection:
-    return prepare_meshes(meshes, PrepareSettings(n_landmarks=200, align="none", proxy_faces=proxy_faces))
+def _collection(meshes) -> PreparedCollection:
+    """Prepared without turning (align none), 200 landmarks."""
+    return prepare_meshes(meshes, PrepareSettings(n_landmarks=200, align="none"))
 
 
 def test_dense_and_sparse_copies_correspond_alike(vases):
@@ -86,8 +87,8 @@ def test_dense_and_sparse_copies_correspond_alike(vases):
     dense = _subdivided(vases[0], 2)
     settings = CorrespondenceSettings(proxy_faces=4000)
     assert dense.n_faces > settings.proxy_faces > vases[0].n_faces
-    sparse_run = correspond(_collection(vases, 4000), settings, template=vases[1].name, jobs=1)
-    dense_collection = _collection([dense] + vases[1:], 4000)
+    sparse_run = correspond(_collection(vases), settings, template=vases[1].name, jobs=1)
+    dense_collection = _collection([dense] + vases[1:])
     dense_run = correspond(dense_collection, settings, template=vases[1].name, jobs=1)
     full_run = correspond(dense_collection, replace(settings, proxy_faces=10**6), template=vases[1].name, jobs=1)
     diagonal = vases[0].bbox_diagonal()
@@ -139,7 +140,7 @@ def test_what_a_worker_receives_does_not_grow_with_the_collection(vases, monkeyp
     original = groupwise.RegistrationRunner.run
     monkeypatch.setattr(groupwise.RegistrationRunner, "run", recording_run)
     settings = CorrespondenceSettings(groupwise_rounds=0, max_iterations=2)
-    base = _collection(vases[:3], 10**6)
+    base = _collection(vases[:3])
     for copies in (1, 3):
         shapes = [s for _ in range(copies) for s in base.shapes]
         shapes = [type(s)(s.mesh.with_vertices(s.mesh.vertices, name=f"{s.name}_{k}"), s.transform,
@@ -160,7 +161,7 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
     assert scaling.size_note("gplvm", scaling.CUBIC_NOTE_SHAPES) is None
     assert "N³" in scaling.size_note("gplvm", 1000) and "bgplvm" in scaling.size_note("gplvm", 1000)
     assert scaling.size_note("bgplvm", 10**5) is None and scaling.size_note("ppca", 10**5) is None
-    collection = _collection(vases, 10**6)
+    collection = _collection(vases)
     corr = correspond(collection, CorrespondenceSettings(groupwise_rounds=0, max_iterations=3), jobs=1)
     monkeypatch.setattr(scaling, "CUBIC_NOTE_SHAPES", 3)
     messages = []
