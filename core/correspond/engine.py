@@ -5,6 +5,7 @@ is given (core/cluster.py), so the core runs without it."""
 
 from __future__ import annotations
 
+import time
 import uuid
 from contextlib import ExitStack
 from typing import Callable, Sequence
@@ -24,15 +25,29 @@ def make_runner(jobs: int, scheduler: str | None = None, should_cancel=None):
     return DaskRunner(scheduler, should_cancel)
 
 
-def _cancel_event(name: str):
-    from distributed import Event
+class _PolledEvent:
+    """The cluster-wide cancel Event `name`, asked at most every `interval` seconds (each
+    ask is a round trip to the scheduler; ICP iterations come every few milliseconds)."""
 
-    return Event(name)
+    def __init__(self, name: str, interval: float = 0.5):
+        from distributed import Event
+
+        self.event, self.interval, self.asked, self.answer = Event(name), interval, float("-inf"), False
+
+    def is_set(self) -> bool:
+        now = time.monotonic()
+        if now - self.asked >= self.interval:
+            self.asked, self.answer = now, bool(self.event.is_set())
+        return self.answer
+
+
+def _cancel_event(name: str) -> _PolledEvent:
+    return _PolledEvent(name)
 
 
 def _register_on_worker(task: RegistrationTask, cancel_name: str) -> tuple[int, Registration]:
     """A Dask worker's registration; cancel is the cluster-wide Event `cancel_name`,
-    checked between ICP iterations."""
+    checked between ICP iterations (at most twice a second)."""
     return task.index, register_task(task, None, _cancel_event(cancel_name))
 
 

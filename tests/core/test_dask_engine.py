@@ -43,6 +43,20 @@ def test_dask_registrations_equal_the_process_pool(cluster):
     assert any("registered" in m for _, m in messages)
 
 
+def test_cancel_on_dask_stops_the_registrations(cluster):
+    """Cancel asked once the first shape is registered raises Cancelled; nothing is returned."""
+    import threading
+
+    from shapegen_core.errors import Cancelled
+
+    prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=7, resolution=(14, 20))],
+                              PrepareSettings(n_landmarks=120))
+    stop = threading.Event()
+    with pytest.raises(Cancelled):
+        correspond(prepared, CorrespondenceSettings(max_iterations=8), scheduler=cluster.scheduler_address,
+                   should_cancel=stop, progress=lambda fraction, message: "registered" in message and stop.set())
+
+
 def test_dense_shapes_on_dask_equal_the_pool(cluster):
     """The proxy and placement steps (one dense mesh per task) run on Dask alike."""
     meshes = [s.mesh for s in make_vases(3, seed=5, resolution=(30, 34))]
