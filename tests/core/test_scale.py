@@ -89,7 +89,12 @@ def test_dense_and_sparse_copies_correspond_alike(vases):
     assert dense.n_faces > settings.proxy_faces > vases[0].n_faces
     sparse_run = correspond(_collection(vases), settings, template=vases[1].name, jobs=1)
     dense_collection = _collection([dense] + vases[1:])
-    dense_run = correspond(dense_collection, settings, template=vases[1].name, jobs=1)
+    messages = []
+    dense_run = correspond(dense_collection, settings, template=vases[1].name, jobs=1,
+                           progress=lambda fraction, message: messages.append((fraction, message)))
+    fractions = [f for f, _ in messages]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert any("proxy of" in m for _, m in messages) and any("full surface" in m for _, m in messages)
     full_run = correspond(dense_collection, replace(settings, proxy_faces=10**6), template=vases[1].name, jobs=1)
     diagonal = vases[0].bbox_diagonal()
     spacing = dense_collection.landmarks[0].radius / diagonal  # landmarks are at least this far apart
