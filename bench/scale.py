@@ -264,6 +264,8 @@ def main() -> int:
     if unknown:
         parser.error(f"unknown rows {unknown}; choose from {', '.join(ALL_ROWS)}")
     load = [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]
+    output = Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
     results = []
     for row in rows:
         command = [sys.executable, __file__, "--child", row, "--dense-shapes", str(args.dense_shapes),
@@ -276,13 +278,11 @@ def main() -> int:
             print(f"{row}: failed (exit {done.returncode})", file=sys.stderr)
             continue
         results.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    load.append(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
-    text = table(results) + "\n\n" + targets(results) + "\nload: " + " / ".join(load) + "\n"
-    print(text)
-    output = Path(args.output)
-    output.mkdir(parents=True, exist_ok=True)
-    (output / "scale.txt").write_text(text)
-    (output / "scale.json").write_text(json.dumps({"label": args.label, "load": load, "rows": results}, indent=1))
+        now = load + [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]
+        text = table(results) + "\n\n" + targets(results) + "\nload: " + " / ".join(now) + "\n"
+        (output / "scale.txt").write_text(text)  # after every row: a long run keeps what it measured
+        (output / "scale.json").write_text(json.dumps({"label": args.label, "load": now, "rows": results}, indent=1))
+    print((output / "scale.txt").read_text() if results else "no row finished")
     return 0
 
 

@@ -3,8 +3,8 @@
 
 Dense meshes (sculpts of a million vertices) cost the pose search, the signatures and
 the registration time and memory in proportion to their faces, while what those steps
-need is the shape at the scale of the landmarks. `proxy_mesh` gives every mesh above
-`max_faces` faces a stand-in of at most about that many: vertices are grouped by the
+need is the shape at the scale of the landmarks. `proxy_mesh` gives a mesh above a size
+a stand-in of at most about `max_faces` faces: vertices are grouped by the
 cell of a uniform grid they fall in *and* by the main direction of their normal (one of
 ±x, ±y, ±z), so the two sides of a thin wall never merge; each group becomes one vertex at
 its members' mean, every face whose corners land in three different groups is kept with
@@ -26,11 +26,16 @@ import numpy as np
 
 from .mesh import Mesh
 
-__all__ = ["DEFAULT_PROXY_FACES", "Proxy", "proxy_mesh"]
+__all__ = ["DENSE_FACES", "POSE_PROXY_FACES", "REGISTRATION_PROXY_FACES", "Proxy", "proxy_mesh"]
 
-#: Meshes with more faces than this get a proxy (about 50k vertices: every mesh of the
-#: shared test and benchmark collections is below, so their results are unchanged).
-DEFAULT_PROXY_FACES = 100_000
+#: Meshes with more faces than this are dense and get a proxy (about 50k vertices: every
+#: mesh of the shared test and benchmark collections is below, so their results are
+#: unchanged).
+DENSE_FACES = 100_000
+#: Faces of the proxy a registration round registers against (the size of a 20k-vertex mesh).
+REGISTRATION_PROXY_FACES = 40_000
+#: Faces of the proxy Prepare's pose search and signatures see (they compare coarse shape).
+POSE_PROXY_FACES = 20_000
 #: Grid refinements tried when the first cell size leaves too many faces.
 _MAX_TRIES = 6
 
@@ -50,12 +55,12 @@ class Proxy:
         return self.representatives is None
 
 
-def proxy_mesh(mesh: Mesh, max_faces: int = DEFAULT_PROXY_FACES) -> Proxy:
-    """The vertex-clustering proxy of `mesh` with at most about `max_faces` faces (the mesh
-    itself when it has no more). The cell size starts from the area per wanted vertex
-    (a closed surface has about twice as many faces as vertices) and grows until the
-    face count fits."""
-    if mesh.n_faces <= max_faces:
+def proxy_mesh(mesh: Mesh, max_faces: int = REGISTRATION_PROXY_FACES, above: int | None = None) -> Proxy:
+    """The vertex-clustering proxy of `mesh` with at most about `max_faces` faces; the mesh
+    itself when it has at most `above` faces (default `max_faces`). The cell size starts
+    from the area per wanted vertex (a closed surface has about twice as many faces as
+    vertices) and grows until the face count fits."""
+    if mesh.n_faces <= (max_faces if above is None else max(above, max_faces)):
         return Proxy(mesh)
     used = np.unique(mesh.faces)
     points = mesh.vertices[used]

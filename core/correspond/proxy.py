@@ -2,8 +2,8 @@
 on the full surfaces (issue 15).
 
 Every round of the groupwise registration (§4.2.7) needs closest points on each target,
-at the scale of the landmarks. A shape above `CorrespondenceSettings.proxy_faces` faces
-is registered against its vertex-clustering proxy (core/simplify.py), built once per
+at the scale of the landmarks. A shape with more than 2.5 × `CorrespondenceSettings.proxy_faces` faces (100k)
+is registered against its vertex-clustering proxy of about proxy_faces faces (core/simplify.py), built once per
 shape in a worker, so a round costs the same for a sculpt of a million vertices as for a
 mesh of the proxy's size. After the last round every template point is placed on the
 *full* surface, exactly as `registration._place` does on a surface it registered
@@ -35,11 +35,12 @@ class ProxyTask:
 
     mesh: Mesh
     max_faces: int
+    above: int
 
 
 def build_proxy(task: ProxyTask) -> Proxy:
     """The proxy a worker builds for one mesh (core/simplify.py)."""
-    return proxy_mesh(task.mesh, task.max_faces)
+    return proxy_mesh(task.mesh, task.max_faces, task.above)
 
 
 @dataclass(frozen=True)
@@ -74,18 +75,28 @@ def place_on_full_surface(task: PlacementTask) -> Registration:
 
 
 
+#: a shape with more than this many times `CorrespondenceSettings.proxy_faces` faces is dense
+DENSE_RATIO = 2.5
+
+
+def dense_limit(settings) -> int:
+    """Shapes with more faces than this are registered against a proxy."""
+    return int(DENSE_RATIO * settings.proxy_faces)
+
+
 def dense_shapes(shapes, settings) -> list[int]:
-    """Indices of the shapes registered against a proxy: more faces than
-    `settings.proxy_faces` (none when registration snaps to vertices)."""
+    """Indices of the shapes registered against a proxy: more than `dense_limit` faces
+    (none when registration snaps to vertices)."""
     if settings.snap_to_vertices:
         return []
-    return [i for i, shape in enumerate(shapes) if shape.mesh.n_faces > settings.proxy_faces]
+    return [i for i, shape in enumerate(shapes) if shape.mesh.n_faces > dense_limit(settings)]
 
 
 def proxies_of(shapes, dense: list[int], settings, runner, progress) -> list[Proxy]:
     """Per shape what its rounds register against: the proxy of a dense shape (built by
     `runner`, one mesh per call), else the shape's own mesh (`Proxy.is_full`)."""
-    built = runner.map(build_proxy, [ProxyTask(shapes[i].mesh, settings.proxy_faces) for i in dense], progress,
+    built = runner.map(build_proxy, [ProxyTask(shapes[i].mesh, settings.proxy_faces, dense_limit(settings))
+                                     for i in dense], progress,
                        lambda k: f"proxy of {shapes[dense[k]].name}")
     surfaces = [Proxy(shape.mesh) for shape in shapes]
     for i, proxy in zip(dense, built):

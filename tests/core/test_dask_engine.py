@@ -61,7 +61,8 @@ def test_dense_shapes_on_dask_equal_the_pool(cluster):
     """The proxy and placement steps (one dense mesh per task) run on Dask alike."""
     meshes = [s.mesh for s in make_vases(3, seed=5, resolution=(30, 34))]
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=100, align="none"))
-    settings = CorrespondenceSettings(max_iterations=6, proxy_faces=1500)
+    settings = CorrespondenceSettings(max_iterations=6, proxy_faces=500)
+    assert all(s.mesh.n_faces > 2.5 * settings.proxy_faces for s in prepared.shapes)
     pool = correspond(prepared, settings, jobs=2)
     on_dask = correspond(prepared, settings, scheduler=cluster.scheduler_address)
     np.testing.assert_allclose(on_dask.points, pool.points, rtol=0, atol=1e-12)

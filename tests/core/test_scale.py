@@ -86,7 +86,7 @@ def test_dense_and_sparse_copies_correspond_alike(vases):
     surface moves them far less than that from registering against the full surface."""
     dense = _subdivided(vases[0], 2)
     settings = CorrespondenceSettings(proxy_faces=4000)
-    assert dense.n_faces > settings.proxy_faces > vases[0].n_faces
+    assert dense.n_faces > 2.5 * settings.proxy_faces > settings.proxy_faces > vases[0].n_faces
     sparse_run = correspond(_collection(vases), settings, template=vases[1].name, jobs=1)
     dense_collection = _collection([dense] + vases[1:])
     messages = []
