@@ -51,9 +51,18 @@ QUICK_ROWS = ("dense-100k", "vases-20")
 #: ~20k vertices per vase: rings along the profile (about 1.3x as many around)
 VASE_RESOLUTION = (115, 135)
 
-#: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (s, GB)}}
-#: (filled in from the "before" run; see docs/results.md for the load at the time).
-BEFORE: dict[str, dict] = {}
+#: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (seconds, bytes)}},
+#: measured with this script on main 5dbb1d5 (2 jobs) while other jobs kept the load of
+#: the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
+#: shapes to stay within the machine's memory (the 1M row's Prepare of 2 shapes peaked at
+#: 15.4 GB); its ppca fit cannot run on 2 shapes.
+BEFORE: dict[str, dict] = {
+    "dense-100k": {"shapes": 20, "read": (12.7, 0.50e9), "prepare": (453.9, 3.66e9), "correspond": (144.8, 2.78e9),
+                   "fit ppca": (0.0, 1.25e9), "save": (10.9, 1.25e9)},
+    "dense-300k": {"shapes": 6, "read": (11.6, 1.10e9), "prepare": (452.1, 5.89e9), "correspond": (463.0, 7.82e9),
+                   "fit ppca": (0.0, 0.99e9), "save": (7.4, 0.99e9)},
+    "dense-1M": {"shapes": 2, "read": (72.7, 2.78e9), "prepare": (376.9, 15.38e9), "correspond": (1111.0, 6.89e9)},
+}
 
 
 # ---------------------------------------------------------------------------- memory
@@ -134,7 +143,10 @@ def run_row(row: str, args) -> dict:
     from shapegen_core.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
     from shapegen_core.io import read_folder
-    from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
+    try:
+        from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
+    except ImportError:  # the core before issue 15 (the "before" figures)
+        CUBIC_NOTE_SHAPES = 200
     from shapegen_core.pipeline import FitSettings, fit_shape_model
 
     memory = TreeMemory()
