@@ -195,12 +195,13 @@ def _write_samples(args, model, names, landmarks, templates, folder: Path) -> No
     """Mesh and write every sample, in `args.jobs` processes when there are many, or on the
     Dask cluster `args.scheduler` (core/sample_batch.py)."""
     items = list(zip(names, landmarks, templates))
-    if args.scheduler is not None:
+    scheduler = getattr(args, "scheduler", None)  # callers building their own Namespace may leave it out
+    if scheduler is not None:
         from .sample_batch import mesh_on_cluster
 
         items.sort(key=lambda item: item[2])
         writers = {}
-        meshed = mesh_on_cluster(args.scheduler, args.model, items, args.smooth, args.exact)
+        meshed = mesh_on_cluster(scheduler, args.model, items, args.smooth, args.exact)
         for (name, _, template), (_, vertices) in zip(items, meshed):
             mesh = model.meshes[model.shape_index(template)].with_vertices(vertices, name=name)
             _write(mesh, template, folder, args.format, writers)
