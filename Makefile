@@ -2,6 +2,7 @@
 #   make demo   builds .venv (pinned) + the extension, runs the main job headless -> demo_output/
 #   make test   builds what is missing and runs every test tier
 # Requires python3.11 (Blender 4.2-5.0's Python) on PATH.
+# requirements/dask.txt: the optional Dask engine (pyproject extra "dask"), installed for its tests.
 
 PYTHON      ?= python3.11
 VENV        := .venv
@@ -21,15 +22,17 @@ EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapege
 
 all: test
 
-$(VENV)/.installed: requirements/blender.txt pyproject.toml
+$(VENV)/.installed: requirements/blender.txt requirements/dask.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements/blender.txt
+	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements/dask.txt
 	$(VENV)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	touch $@
 
-$(VENV_NP2)/.installed: requirements/numpy2.txt pyproject.toml
+$(VENV_NP2)/.installed: requirements/numpy2.txt requirements/dask.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV_NP2)
 	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q -r requirements/numpy2.txt
+	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q -r requirements/dask.txt
 	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	touch $@
 

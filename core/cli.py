@@ -44,7 +44,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     source = read_source(args.source, args, accepts=("folder", "prepared"))
     options = settings_from_args(FitSettings, args)
     result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
-                                   settings=settings_from_args(CorrespondenceSettings, args))
+                                   settings=settings_from_args(CorrespondenceSettings, args),
+                                   scheduler=options.scheduler)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -118,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
-    add_settings_options(p, FitSettings, ("template", "jobs"))
+    add_settings_options(p, FitSettings, ("template", "jobs", "scheduler"))
     add_settings_options(p, CorrespondenceSettings)
     p.set_defaults(func=cmd_correspond)
 

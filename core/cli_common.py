@@ -112,7 +112,7 @@ class Source:
     path: Path
     kind: str  # one of SOURCE_KINDS
     prepare: PrepareSettings
-    meshes: list[Mesh] | None = None  # folder: the meshes read from it
+    meshes: list[Mesh] | None = None  # folder: the meshes read from it (None once prepared)
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
@@ -175,6 +175,7 @@ def prepare_source(source: Source) -> PreparedCollection:
     if source.prepared is None:
         source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"),
                                          keep_pose=source.keep_pose)
+        source.meshes = None  # the input meshes are not needed again: free them (dense meshes, issue 15)
         for line in pose_lines(source.prepared):
             print(line, file=sys.stderr)
     return source.prepared
@@ -189,9 +190,11 @@ def pose_lines(prepared: PreparedCollection) -> list[str]:
 
 
 def correspond_on_console(prepared: PreparedCollection, template: str | None = None, jobs: int | None = None,
-                          settings: CorrespondenceSettings = CorrespondenceSettings()):
-    """`correspond.correspond` with console progress (default settings unless given)."""
-    return correspond(prepared, settings, template=template, jobs=jobs, progress=console_progress("correspond"))
+                          settings: CorrespondenceSettings = CorrespondenceSettings(), scheduler: str | None = None):
+    """`correspond.correspond` with console progress (default settings unless given; on a
+    Dask cluster when `scheduler` is given)."""
+    return correspond(prepared, settings, template=template, jobs=jobs, progress=console_progress("correspond"),
+                      scheduler=scheduler)
 
 
 # ---------------------------------------------------------------------------- progress

@@ -34,6 +34,7 @@ from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .preprocess import ShapeTransform
 from .quality import QualitySettings
+from .sample_batch import contiguous_chunks, gated_samples_on_cluster, sample_name
 from .sampling import GatedSample, gate_summary, gated_sample, redraw_seed, rejection_lines
 
 __all__ = ["add_generate_commands"]
@@ -172,7 +173,7 @@ def _gated_chunk(model, run: SampleRun, indices) -> list[GatedSample]:
     samples = []
     for index in indices:
         sample = gated_sample(model, index, run.first_seed, run.count, run.template, settings, run.smooth, run.exact,
-                              name=f"sample_{index:04d}")
+                              name=sample_name(index))
         writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
         samples.append(replace(sample, mesh=None))
     return samples
@@ -189,12 +190,6 @@ def _init_sample_worker(model_path: str) -> None:
 
 def _sample_chunk(run: SampleRun, indices) -> list[GatedSample]:
     return _gated_chunk(_WORKER_MODEL, run, indices)
-
-
-def contiguous_chunks(items: list, parts: int) -> list[list]:
-    """`items` cut into at most `parts` contiguous runs of (nearly) equal length."""
-    size = -(-len(items) // parts)
-    return [items[i:i + size] for i in range(0, len(items), size)]
 
 
 @contextmanager
@@ -224,9 +219,19 @@ def _first_templates(model, run: SampleRun) -> list[int]:
 
 def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSample]:
     """Draw, gate, mesh and write every sample, in `args.jobs` processes when there are
-    many; the samples in order, without their meshes. Each worker gets a contiguous run of
+    many or on the Dask cluster `args.scheduler` (core/sample_batch.py, meshes written
+    here, so workers need no shared file system); the samples in order, without their meshes. Each worker gets a contiguous run of
     the samples sorted by the template of their first draw (`templates`), so it builds the
     mesh maps of few templates."""
+    scheduler = getattr(args, "scheduler", None)  # callers building their own Namespace may leave it out
+    if scheduler is not None:
+        order = sorted(range(run.count), key=lambda i: (templates[i], i)) if templates else list(range(run.count))
+        writers = MeshWriters(model.meshes)
+        samples = []
+        for sample in gated_samples_on_cluster(scheduler, args.model, run, order):
+            writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
+            samples.append(replace(sample, mesh=None))
+        return sorted(samples, key=lambda sample: sample.index)
     jobs = args.jobs or (os.cpu_count() or 1)
     if jobs == 1 or run.count < 64:
         return _gated_chunk(model, run, range(run.count))
@@ -351,6 +356,8 @@ def add_generate_commands(sub) -> None:
     p.add_argument("--jobs", type=positive_int, default=None,
                    help="worker processes for 64+ samples (default: all cores)")
     add_settings_options(p, QualitySettings)
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs shapegen[dask])")
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -42,6 +43,7 @@ from . import meshset
 from .layout import pack_layouts, unpack_layouts
 from .mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
+from .models.scaling import ScaleWarning, size_note
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
@@ -73,6 +75,8 @@ class FitSettings(Settings):
     template: str | None = option(None, "correspondence template shape (default: the Chamfer medoid)",
                                   flag="--template")
     jobs: int | None = option(None, "correspondence worker processes (default: all cores)", flag="--jobs", minimum=1)
+    scheduler: str | None = option(None, "run the per-shape registrations on Dask: tcp://host:8786 or local:N "
+                                   "(needs shapegen[dask])", flag="--scheduler")
     mesh_template: str = option("nearest-data", "template mesh of generated shapes when none is asked for: "
                                 "nearest-data, nearest-latent or a training shape's name", flag="--mesh-template")
     correspondence: CorrespondenceSettings = option(default_factory=CorrespondenceSettings,
@@ -446,7 +450,8 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
                                   should_cancel=cancel)
     cancel()
     corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=settings.jobs,
-                      progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel)
+                      progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel,
+                      scheduler=settings.scheduler)
     cancel()
     return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings,
                            progress=sub_range(progress, 0.75, 1.0), should_cancel=cancel, started=start)
@@ -465,6 +470,10 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     start = time.perf_counter() if started is None else started
 
     _check_mesh_template(settings, list(corr.names))
+    note = size_note(settings.model, len(corr.names))
+    if note is not None:  # an N³ fit of many shapes: say so (issue 15)
+        warnings.warn(note, ScaleWarning, stacklevel=2)
+        report(0.0, note)
     model = make_model(settings.model, settings.latent_dim, settings.prepare.seed)
     model.fit(corr.landmark_matrix(), progress=cancel.before(sub_range(report, 0.0, 0.95, f"{settings.model}: ")))
     cancel()

@@ -14,7 +14,10 @@ import numpy as np
 from ..errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_frame
 from ..progress import Progress, no_progress, sub_range
+from ..simplify import Proxy
+from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
+from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .refine import refine_population
 from .registration import Registration
@@ -55,6 +58,8 @@ class _Rounds:
     residuals: np.ndarray
     reasons: list[str]
     rounds_run: int
+    centre: np.ndarray | None = None  # the registration frame of these rounds
+    scale: float = 1.0
 
     @property
     def keep(self) -> np.ndarray:
@@ -68,6 +73,7 @@ def correspond(
     jobs: int | None = None,
     progress: Progress | None = None,
     should_cancel=None,
+    scheduler: str | None = None,
 ) -> Correspondence:
     """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
 
@@ -85,6 +91,8 @@ def correspond(
     messages name the template, the shape being registered and the round.
     should_cancel: None, a callable or an Event, checked between ICP iterations; raises
     errors.Cancelled.
+    scheduler: run the registrations on a Dask cluster instead of local processes
+    (tcp://host:port or local:N; engine.py, core/cluster.py); same results.
     """
     report = progress or no_progress
     names = list(collection.names)
@@ -106,19 +114,29 @@ def correspond(
     rounds = settings.groupwise_rounds + 1
     refining = settings.refine == "population"
     nicp_report = sub_range(report, 0.0, REFINE_START) if refining else report
-    runner = RegistrationRunner(jobs, should_cancel)
+    runner = make_runner(jobs, scheduler, should_cancel)
+    dense = dense_shapes(collection.shapes, settings)
     try:
-        outcome = _run_rounds(collection, start, settings, runner, nicp_report,
-                              stop_if_template_flagged=template is None)
+        # dense shapes: proxies first (0-5 % of NICP), exact placement on their full surfaces last (95-100 %)
+        surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(nicp_report, 0.0, 0.05))
+        rounds_report = sub_range(nicp_report, 0.05, 0.95) if dense else nicp_report
+        outcome = _run_rounds(collection, start, settings, runner, rounds_report,
+                              stop_if_template_flagged=template is None, surfaces=surfaces)
         if template is None and outcome.reasons[start]:
             fits = np.flatnonzero(outcome.keep)
             if len(fits):
                 start = _template_index(names, None, landmark_sets, fits)
                 done = outcome.rounds_run / rounds
-                nicp_report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
-                                  f"{outcome.reasons[outcome.start]})")
-                outcome = _run_rounds(collection, start, settings, runner, sub_range(nicp_report, done, 1.0),
-                                      stop_if_template_flagged=False)
+                rounds_report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
+                                    f"{outcome.reasons[outcome.start]})")
+                outcome = _run_rounds(collection, start, settings, runner, sub_range(rounds_report, done, 1.0),
+                                      stop_if_template_flagged=False, surfaces=surfaces)
+        if dense:
+            registrations = place_dense(outcome.registrations, collection, surfaces, dense, settings, outcome.centre,
+                                       outcome.scale, runner, sub_range(nicp_report, 0.95, 1.0))
+            outcome = replace(outcome, registrations=registrations,
+                              results=[_to_normalised(r, outcome.centre, outcome.scale) for r in registrations],
+                              residuals=_relative_residuals(registrations, outcome.scale, collection.shapes))
     finally:
         runner.close()
     template_name = names[outcome.start]
@@ -174,16 +192,19 @@ def _refined(collection, keep, points, face_index, barycentric, edges, settings,
 
 
 def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,
-                report: Progress, stop_if_template_flagged: bool) -> _Rounds:
+                report: Progress, stop_if_template_flagged: bool, surfaces: Sequence | None = None) -> _Rounds:
     """The R = groupwise_rounds + 1 rounds from the landmarks of shape `start` (§4.2.7):
     register the template to every shape, flag outliers, replace the template by the mean
     landmark cloud of the shapes that fit, again. With `stop_if_template_flagged`, stops
-    after the first round that flags shape `start`."""
+    after the first round that flags shape `start`. `surfaces`: per shape, the mesh to
+    register against (a dense shape's proxy; default each shape's own mesh)."""
+    surfaces = [Proxy(s.mesh) for s in collection.shapes] if surfaces is None else surfaces
     names = list(collection.names)
     template_points = np.asarray(collection.landmarks[start].points, dtype=np.float64)
     centre, scale = registration_frame(template_points, names[start])
     to_frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    template_normals = collection.shapes[start].mesh.face_normals()[collection.landmarks[start].face_index]
+    template_normals = face_normals_at(collection.shapes[start].mesh, collection.landmarks[start].face_index)
+    landmark_normals = [face_normals_at(s.mesh, l.face_index) for s, l in zip(collection.shapes, collection.landmarks)]
     edges = knn_graph(template_points, settings.k_neighbours)
     template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
     ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
@@ -195,23 +216,28 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         if outcome is not None:
             current_template, current_normals = _mean_template(outcome.results, outcome.keep)
             report(round_index / rounds, f"mean template ({label})")
+        template_in_frame = to_frame(current_template)
         tasks = [
-            RegistrationTask(i, names[i], to_frame(shape.mesh.vertices), shape.mesh.faces,
-                             to_frame(landmarks.points), shape.mesh.face_normals()[landmarks.face_index],
-                             to_frame(current_template), current_normals, edges, settings)
-            for i, (shape, landmarks) in enumerate(zip(collection.shapes, collection.landmarks))
+            RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
+                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale)
+            for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)
         results = [_to_normalised(r, centre, scale) for r in registrations]
-        residuals = np.array([r.residual * scale / s.mesh.bbox_diagonal()
-                              for r, s in zip(registrations, collection.shapes)])
+        residuals = _relative_residuals(registrations, scale, collection.shapes)
         reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
-                          round_index + 1)
+                          round_index + 1, centre, scale)
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
+
+
+def _relative_residuals(registrations: Sequence[Registration], scale: float, shapes) -> np.ndarray:
+    """Each registration's residual (registration frame) as a fraction of its shape's
+    bounding-box diagonal."""
+    return np.array([r.residual * scale / s.mesh.bbox_diagonal() for r, s in zip(registrations, shapes)])
 
 
 def _with_pose_flags(reasons: list[str], shapes) -> list[str]:

@@ -1,7 +1,7 @@
 """Outlier flags of a correspondence, each with a reason a user can act on.
 
 A shape is flagged when any one rule holds (thresholds in `CorrespondenceSettings`):
-* residual: its data-term residual (registration.py `_fit_residual`) is far above the
+* residual: its data-term residual (registration.py `fit_residual`) is far above the
   collection's median;
 * size: its bounding-box diagonal differs from the template's by a large factor;
 * leave-one-out reconstruction: its corresponded landmarks are far from their

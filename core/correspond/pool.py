@@ -1,5 +1,10 @@
 """Registration tasks run in this process or in a pool of spawned worker processes, with
-cooperative cancel and the one conversion of their ICP iterations into progress fractions."""
+cooperative cancel and the one conversion of their ICP iterations into progress fractions.
+
+A task carries ONE shape (its surface, or the proxy of a dense one, in the normalised
+frame, as references to the collection's arrays: the frame change happens in the
+worker), so neither this process nor a worker holds more per task as the collection
+grows; at most `2 · jobs` tasks are handed to the pool at a time."""
 
 from __future__ import annotations
 
@@ -8,7 +13,7 @@ import multiprocessing
 import os
 import queue as queue_module
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -23,18 +28,23 @@ __all__ = ["RegistrationRunner", "RegistrationTask"]
 
 @dataclass(frozen=True)
 class RegistrationTask:
-    """Everything one worker needs to register the template to one shape (picklable)."""
+    """Everything one worker needs to register the template to one shape (picklable).
+    The shape's surface and landmarks are in the normalised frame; p -> (p − centre) /
+    scale takes them to the registration frame the template, its normals' frame and the
+    result are in."""
 
     index: int  # position in the run's task list
     name: str
-    vertices: np.ndarray  # registration frame
+    vertices: np.ndarray  # normalised frame: the shape's surface (or its proxy, core/simplify.py)
     faces: np.ndarray
-    landmarks: np.ndarray  # registration frame
+    landmarks: np.ndarray  # normalised frame
     landmark_normals: np.ndarray
     template: np.ndarray  # registration frame
     template_normals: np.ndarray
     edges: np.ndarray
     settings: CorrespondenceSettings
+    centre: np.ndarray  # the registration frame
+    scale: float
 
 
 # worker-process state set by _init_worker (spawned processes only)
@@ -47,18 +57,61 @@ def _init_worker(progress_queue, cancel_event) -> None:
     _WORKER["cancel"] = cancel_event
 
 
-def _register(task: RegistrationTask, on_iteration, should_cancel) -> Registration:
-    """Register the template to one shape (in this process or a worker)."""
-    surface = TargetSurface(task.vertices, task.faces)
-    return register(task.template, task.edges, surface, task.landmarks, task.settings, task.template_normals,
-                    task.landmark_normals, on_iteration, should_cancel)
+def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None) -> Registration:
+    """Register the template to one shape (in this process or any worker)."""
+    surface = TargetSurface((task.vertices - task.centre) / task.scale, task.faces)
+    return register(task.template, task.edges, surface, (task.landmarks - task.centre) / task.scale, task.settings,
+                    task.template_normals, task.landmark_normals, on_iteration, should_cancel)
 
 
 def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:
     """A pool worker's task: iterations go to the parent's queue as (run, index, iteration)."""
     progress_queue = _WORKER["queue"]
-    result = _register(task, lambda iteration: progress_queue.put((run, task.index, iteration)), _WORKER["cancel"])
+    result = register_task(task, lambda iteration: progress_queue.put((run, task.index, iteration)),
+                           _WORKER["cancel"])
     return task.index, result
+
+
+def _call_in_worker(function: Callable, item, index: int):
+    """A pool worker's call of `function(item)` (`RegistrationRunner.map`); skipped once
+    cancel was asked."""
+    CancelCheck(_WORKER["cancel"], "correspondence")()
+    return index, function(item)
+
+
+def submit_bounded(calls: list[tuple], submit: Callable, wait_some: Callable, limit: int, check: Callable,
+                   finished: Callable, stop: Callable) -> None:
+    """Submit `calls` with at most `limit` pending; `wait_some(pending)` returns finished
+    futures (after a short wait), `check()` raises to cancel, each future's result is
+    (index, value) for `finished`; on any exception `stop(pending)` before re-raising."""
+    waiting = list(reversed(calls))
+    pending: set = set()
+    try:
+        while waiting or pending:
+            while waiting and len(pending) < limit:
+                pending.add(submit(waiting.pop()))
+            done = wait_some(pending)
+            check()
+            for future in done:
+                pending.discard(future)
+                finished(*future.result())
+    except BaseException:
+        stop(pending)
+        raise
+
+
+def collector(count: int, progress: Progress, message: Callable[[int], str]) -> tuple[list, Callable]:
+    """(results, finished): `finished(index, result)` stores a result of a map over `count`
+    items and reports the share done with `message(index)`."""
+    results: list = [None] * count
+    done = [0]
+
+    def finished(index: int, result) -> None:
+        results[index] = result
+        done[0] += 1
+        progress(done[0] / count, message(index))
+
+    return results, finished
 
 
 class _RunProgress:
@@ -120,27 +173,49 @@ class RegistrationRunner:
         results: list[Registration | None] = [None] * len(tasks)
         if self.pool is None:
             for task in tasks:
-                result = _register(task, lambda iteration: tracker.iteration(task.index, iteration), self.cancel)
+                result = register_task(task, lambda iteration: tracker.iteration(task.index, iteration), self.cancel)
                 results[task.index] = result
                 tracker.finished(task.index, result.iterations)
             return results
-        pending = {self.pool.submit(_run_in_worker, task, self._runs): task for task in tasks}
-        try:
-            while pending:
-                done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
-                self._drain(tracker)
+
+        def finished(index: int, result: Registration) -> None:
+            results[index] = result
+            tracker.finished(index, result.iterations)
+
+        self._submit_bounded([(_run_in_worker, task, self._runs) for task in tasks], finished, tracker)
+        return results
+
+    def map(self, function: Callable, items: Sequence, progress: Progress, message: Callable[[int], str]) -> list:
+        """[function(item) for item in items], in the workers when there are any (`function`
+        must then be a module-level function and the items picklable), in order; progress
+        after each item with `message(index)`, cancel checked between items."""
+        results, finished = collector(len(items), progress, message)
+        if self.pool is None:
+            for index, item in enumerate(items):
                 self.cancel()
-                for future in done:
-                    pending.pop(future)
-                    index, result = future.result()
-                    results[index] = result
-                    tracker.finished(index, result.iterations)
-        except BaseException:
+                finished(index, function(item))
+            return results
+        self._submit_bounded([(_call_in_worker, function, item, index) for index, item in enumerate(items)],
+                             finished, None)
+        return results
+
+    def _submit_bounded(self, calls: list[tuple], finished: Callable, tracker: "_RunProgress | None") -> None:
+        """Run the calls (function, *arguments; each returns (index, result)) in the pool
+        with at most 2 · jobs submitted at a time (a submitted call holds its pickled shape
+        in the pool's queue), passing progress events to `tracker` and results to
+        `finished(index, result)`; cancel stops the workers at their next check."""
+        def wait_some(pending):
+            done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
+            self._drain(tracker)
+            return done
+
+        def stop(pending):
             self.cancel_event.set()
             for future in pending:
                 future.cancel()
-            raise
-        return results
+
+        submit_bounded(calls, lambda call: self.pool.submit(*call), wait_some, 2 * self.jobs, self.cancel, finished,
+                       stop)
 
     def _drain(self, tracker: _RunProgress | None) -> None:
         """Pass the queued iteration events of the current run to `tracker` (None: drop them)."""

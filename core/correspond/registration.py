@@ -21,7 +21,7 @@ from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affine
 from ..progress import CancelCheck
 from .settings import CorrespondenceSettings
 
-__all__ = ["Anchors", "Registration", "register"]
+__all__ = ["Anchors", "Registration", "fit_residual", "register"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,7 @@ class Registration:
     residual: float  # √(E_D / Σ weights) of the final matches, in the frame's units
     iterations: int
     energies: np.ndarray  # objective after every iteration
+    deformed_normals: np.ndarray | None = None  # (L, 3) template normals after the last step (None: no normals)
 
 
 def _distance_weights(distance: np.ndarray) -> np.ndarray:
@@ -190,9 +191,9 @@ def register(
         if iteration >= settings.max_iterations:
             break
     placed = _place(target, points, normals, settings, finder)
-    residual = _fit_residual(placed, target_landmarks)
+    residual = fit_residual(placed, target_landmarks)
     return Registration(placed, target.face_normals[placed.face_index], points, residual, iteration,
-                        np.asarray(energies))
+                        np.asarray(energies), normals)
 
 
 def _place(target: TargetSurface, points: np.ndarray, normals: np.ndarray | None,
@@ -209,7 +210,7 @@ def _place(target: TargetSurface, points: np.ndarray, normals: np.ndarray | None
     return matches
 
 
-def _fit_residual(placed: SurfacePoints, target_landmarks: np.ndarray) -> float:
+def fit_residual(placed: SurfacePoints, target_landmarks: np.ndarray) -> float:
     """RMS of the bidirectional data term at the end (unit weights): template points to the
     surface before placement, and target landmarks to the nearest placed point (coverage;
     counted even when λ = 0 so a template covering half the target is never hidden)."""

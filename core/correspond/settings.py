@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..settings import Settings, SettingsError, option
+from ..simplify import REGISTRATION_PROXY_FACES
 
 __all__ = ["CorrespondenceSettings", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
 
@@ -65,6 +66,11 @@ class CorrespondenceSettings(Settings):
       ridge: tiny Tikhonov weight pulling each affine towards "no change" (relative to the
         mean diagonal of the data term's blocks); keeps BᵀB invertible when weights switch
         matches off.
+    Dense shapes (issue 15):
+      proxy_faces: a shape with more than 2.5 times this many faces (100k at the default)
+        is registered against its vertex-clustering proxy of about this many faces
+        (core/simplify.py, built once per shape) and its final landmarks are placed
+        exactly on the full surface (proxy.py); unused with snap_to_vertices.
     Groupwise (§4.2.7):
       groupwise_rounds: times the template is replaced by the mean landmark cloud and all
         shapes registered again (thesis 1; 0 = pairwise registration only).
@@ -133,6 +139,8 @@ class CorrespondenceSettings(Settings):
     max_iterations_per_alpha: int = option(4, "ICP iterations at one α at most", minimum=1)
     max_iterations: int = option(20, "ICP iterations over the whole schedule at most", minimum=1)
     ridge: float = option(1e-9, "Tikhonov weight pulling each affine towards no change", minimum=0)
+    proxy_faces: int = option(REGISTRATION_PROXY_FACES, "faces of the proxy a shape with more than 2.5 times as many "
+                              "is registered against", minimum=100)
     groupwise_rounds: int = option(1, "rounds with the mean landmark cloud as template", minimum=0)
     outlier_mad_factor: float = option(3.0, "outlier: residual above median + factor · MAD ...")
     outlier_min_ratio: float = option(1.5, "... and above this multiple of the median")

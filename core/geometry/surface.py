@@ -233,16 +233,22 @@ class TargetSurface:
             return
         query = points[rows]
         closest, bary = closest_points_on_triangles(query, self.triangles[faces])
-        distance = np.linalg.norm(closest - query, axis=1)
-        order = np.lexsort((distance, rows))  # by row, then distance
-        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
-        target = rows[first]
-        better = distance[first] < best.distance[target]
-        target, first = target[better], first[better]
-        best.points[target] = closest[first]
-        best.face_index[target] = faces[first]
-        best.barycentric[target] = bary[first]
-        best.distance[target] = distance[first]
+        keep_closest(best, rows, faces, closest, bary, np.linalg.norm(closest - query, axis=1))
+
+
+def keep_closest(best: SurfacePoints, rows: np.ndarray, faces: np.ndarray, closest: np.ndarray, bary: np.ndarray,
+                 distance: np.ndarray) -> None:
+    """Tested (row, face) pairs with their closest points: each row's closest pair replaces
+    `best`'s entry of that row where it is closer."""
+    order = np.lexsort((distance, rows))  # by row, then distance
+    first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+    target = rows[first]
+    better = distance[first] < best.distance[target]
+    target, first = target[better], first[better]
+    best.points[target] = closest[first]
+    best.face_index[target] = faces[first]
+    best.barycentric[target] = bary[first]
+    best.distance[target] = distance[first]
 
 
 def _size_classes(radii: np.ndarray, centroids: np.ndarray, small: int, ratio: float

@@ -11,7 +11,8 @@ and row search (latent_variable.LatentVariableModel). `make_model` builds any of
 
 Modules: base (input checks, PCA helpers, the common API and model arrays), latent_variable
 (the GP-LVMs' shared fit, row search and numerics), kernels (RBF kernel, psi-statistics), kde
-(latent Gaussian KDE), ppca, gplvm, bgplvm.
+(latent Gaussian KDE), ppca, gplvm, bgplvm, scaling (how their cost grows with the number of
+shapes; the note an N³ fit of many shapes gives).
 """
 
 from ..errors import ModelFileError

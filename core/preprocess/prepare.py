@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..mesh import Mesh
+from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .moments import SCALE_MODES, scale_measure, surface_moments
 from .posesearch import PoseSearch
@@ -33,11 +34,15 @@ def prepare_collection(
     progress: Callable[[float, str], None] | None = None,
     keep_pose: Sequence[bool] | None = None,
     consensus: ConsensusSettings = ConsensusSettings(),
+    dense_faces: int = DENSE_FACES,
 ) -> list[PreparedShape]:
     """Align and scale a collection of meshes (see the package docstring for the steps).
 
     keep_pose: per shape, True to never turn it beyond the up axis (any align mode); its
-    pose is still checked and flagged (`PreparedShape.pose_outlier`)."""
+    pose is still checked and flagged (`PreparedShape.pose_outlier`).
+    dense_faces: the pose search and signatures see a mesh with more faces through its
+    proxy of about POSE_PROXY_FACES faces (core/simplify.py; issue 15), so their cost does
+    not grow with the density of the mesh."""
     if align not in ALIGN_MODES:
         raise ValueError(f"unknown align mode {align!r}; choose from {ALIGN_MODES}")
     if centre not in CENTRE_MODES:
@@ -55,9 +60,11 @@ def prepare_collection(
     up = up_rotation(up_axis)
     search = signatures = symmetry = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
-        search = PoseSearch.of(meshes, [up] * len(meshes), consensus.points, seed)
-        signatures = Signatures(meshes, [up] * len(meshes), consensus.facing_order)
-        symmetry = AxisSymmetry.of(search, meshes, [up] * len(meshes), seed, consensus.symmetry_floor)
+        posed = [proxy_mesh(mesh, POSE_PROXY_FACES, above=dense_faces).mesh for mesh in meshes]
+        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed)
+        signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
+        symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor)
+        del posed
     report(0.2, "surface samples")
     if align == "consensus" and search is not None:
         decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report,

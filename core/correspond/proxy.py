@@ -1,0 +1,133 @@
+"""Registration of dense shapes against their proxies, the final landmarks placed exactly
+on the full surfaces (issue 15).
+
+Every round of the groupwise registration (§4.2.7) needs closest points on each target,
+at the scale of the landmarks. A shape with more than 2.5 × `CorrespondenceSettings.proxy_faces` faces (100k)
+is registered against its vertex-clustering proxy of about proxy_faces faces (core/simplify.py), built once per
+shape in a worker, so a round costs the same for a sculpt of a million vertices as for a
+mesh of the proxy's size. After the last round every template point is placed on the
+*full* surface, exactly as `registration._place` does on a surface it registered
+against: the closest compatible point (the closest of any normal where none is near),
+found by core/geometry/nearby.py from an upper bound, the distance to the nearest
+representative vertex of the proxy (a point of the full surface). Shapes below the size
+are registered against their own surface as before, and nothing here touches them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry.nearby import closest_within
+from ..mesh import Mesh
+from ..simplify import Proxy, proxy_mesh
+from .registration import Registration, fit_residual
+
+__all__ = ["PlacementTask", "ProxyTask", "build_proxy", "dense_shapes", "face_normals_at", "place_dense",
+           "place_on_full_surface", "proxies_of"]
+
+
+@dataclass(frozen=True)
+class ProxyTask:
+    """One dense mesh to simplify (picklable; one mesh per worker call)."""
+
+    mesh: Mesh
+    max_faces: int
+    above: int
+
+
+def build_proxy(task: ProxyTask) -> Proxy:
+    """The proxy a worker builds for one mesh (core/simplify.py)."""
+    return proxy_mesh(task.mesh, task.max_faces, task.above)
+
+
+@dataclass(frozen=True)
+class PlacementTask:
+    """Everything one worker needs to place one registration's points on a full surface
+    (picklable): the full mesh and landmarks in the normalised frame, the registration in
+    the registration frame (p -> (p − centre) / scale)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    representatives: np.ndarray  # vertex indices on the full surface (the proxy's)
+    landmarks: np.ndarray
+    registration: Registration
+    min_cos: float | None  # normal compatibility (None: off)
+    centre: np.ndarray
+    scale: float
+
+
+def place_on_full_surface(task: PlacementTask) -> Registration:
+    """The registration with its points placed exactly on the full surface (closest
+    compatible point, else the closest point; see module docstring), the target normals
+    there and the residual recomputed, all in the registration frame."""
+    vertices = (task.vertices - task.centre) / task.scale
+    points = task.registration.deformed
+    reach, _ = cKDTree(vertices[task.representatives]).query(points)
+    normals = task.registration.deformed_normals if task.min_cos is not None else None
+    placed = closest_within(vertices, task.faces, points, reach, normals,
+                            -1.0 if task.min_cos is None else task.min_cos)
+    landmarks = (task.landmarks - task.centre) / task.scale
+    return replace(task.registration, placed=placed, normals=_unit_normals(vertices, task.faces[placed.face_index]),
+                   residual=fit_residual(placed, landmarks))
+
+
+
+#: a shape with more than this many times `CorrespondenceSettings.proxy_faces` faces is dense
+DENSE_RATIO = 2.5
+
+
+def dense_limit(settings) -> int:
+    """Shapes with more faces than this are registered against a proxy."""
+    return int(DENSE_RATIO * settings.proxy_faces)
+
+
+def dense_shapes(shapes, settings) -> list[int]:
+    """Indices of the shapes registered against a proxy: more than `dense_limit` faces
+    (none when registration snaps to vertices)."""
+    if settings.snap_to_vertices:
+        return []
+    return [i for i, shape in enumerate(shapes) if shape.mesh.n_faces > dense_limit(settings)]
+
+
+def proxies_of(shapes, dense: list[int], settings, runner, progress) -> list[Proxy]:
+    """Per shape what its rounds register against: the proxy of a dense shape (built by
+    `runner`, one mesh per call), else the shape's own mesh (`Proxy.is_full`)."""
+    built = runner.map(build_proxy, [ProxyTask(shapes[i].mesh, settings.proxy_faces, dense_limit(settings))
+                                     for i in dense], progress,
+                       lambda k: f"proxy of {shapes[dense[k]].name}")
+    surfaces = [Proxy(shape.mesh) for shape in shapes]
+    for i, proxy in zip(dense, built):
+        surfaces[i] = proxy
+    return surfaces
+
+
+def place_dense(registrations: list[Registration], collection, surfaces: list[Proxy], dense: list[int], settings,
+                centre: np.ndarray, scale: float, runner, progress) -> list[Registration]:
+    """The registrations with those of the `dense` shapes placed on their full surfaces
+    (`place_on_full_surface`, one shape per worker call), in the registration frame."""
+    min_cos = None if settings.normal_max_angle is None else float(np.cos(np.radians(settings.normal_max_angle)))
+    tasks = [PlacementTask(collection.shapes[i].mesh.vertices, collection.shapes[i].mesh.faces,
+                           surfaces[i].representatives, collection.landmarks[i].points, registrations[i], min_cos,
+                           centre, scale) for i in dense]
+    placed = runner.map(place_on_full_surface, tasks, progress,
+                        lambda k: f"landmarks placed on the full surface of {collection.shapes[dense[k]].name}")
+    registrations = list(registrations)
+    for i, registration in zip(dense, placed):
+        registrations[i] = registration
+    return registrations
+
+
+def face_normals_at(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
+    """Unit normals of the given faces only (not of the whole mesh)."""
+    return _unit_normals(mesh.vertices, mesh.faces[faces])
+
+
+def _unit_normals(vertices: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Unit normals of the triangles with the given corners (0 for a degenerate one)."""
+    triangles = vertices[corners]
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    length = np.linalg.norm(cross, axis=1, keepdims=True)
+    return np.divide(cross, length, out=np.zeros_like(cross), where=length > 0)

@@ -1,0 +1,31 @@
+"""How the shape models' cost grows with the number of training shapes N, and the note a
+fit gives when it will be slow (issue 15).
+
+PPCA: one SVD of the N × D landmark matrix, O(N D min(N, D)). Bayesian GP-LVM: M
+inducing points (default 20), O(N M² Q + N² M) per iteration (bgplvm.py): it stays usable
+for thousands of shapes. GP-LVM: the exact N × N kernel is factorised at every iteration,
+O(N³) (gplvm.py), and encoding searches a latent per shape; above `CUBIC_NOTE_SHAPES`
+shapes a fit says so and points to the Bayesian GP-LVM (the default model), which is the
+sparse approximation this package offers instead of limiting N.
+"""
+
+from __future__ import annotations
+
+__all__ = ["CUBIC_NOTE_SHAPES", "ScaleWarning", "size_note"]
+
+#: GP-LVM fits of more shapes than this get a note (at 200 shapes a fit takes about a minute).
+CUBIC_NOTE_SHAPES = 200
+
+
+class ScaleWarning(UserWarning):
+    """A fit whose cost grows steeply with the number of shapes was asked for many."""
+
+
+def size_note(model_type: str, n_shapes: int) -> str | None:
+    """A one-line note when fitting `model_type` to `n_shapes` shapes will be slow because its
+    cost grows as N³, else None."""
+    if model_type == "gplvm" and n_shapes > CUBIC_NOTE_SHAPES:
+        return (f"gplvm on {n_shapes} shapes: the exact GP-LVM's cost grows as N³ (an N × N kernel factorised "
+                f"at every iteration), so this fit may take long; the Bayesian GP-LVM (model bgplvm, the default, "
+                f"with inducing points) grows linearly with N")
+    return None
