@@ -11,11 +11,11 @@ Sets:
       non-identity axis rotations (axis permutations, half turns), or by a random turn
       about up of 45°-315° (every third perturbed shape);
   (c) the shared PSB classes (files y-up: --up y);
-  (d) mugs modelled in Blender through bpy (bench/blender_mugs.py: quads, n-gon caps, a
-      handle as a second part; plain, mirrored, parented, rotated and subdivided
-      objects, all +Z up facing +x in world coordinates), read as the add-on reads them,
-      at --mug-seeds seeds; and the same with a known subset turned (upside down, on its
-      side, a quarter or three-eighths turn about up) or mirrored.
+  (d) mugs modelled in Blender through bpy (bench/blender_mugs.py `model_mugs`: quads,
+      32-gon caps, UVs, a material, a handle as a second part; plain, mirrored, parented,
+      rotated and subdivided objects, all +Z up facing +x in world coordinates), read as
+      the add-on reads them, at --mug-seeds seeds; and the same with a known subset turned
+      (upside down, on its side, a quarter or three-eighths turn about up) or mirrored.
 
 Counts per set: "changed" = shapes whose rotation is not the up rotation alone; "wrong" =
 shapes whose pose (canonical frame → prepared frame) is more than 20° from the

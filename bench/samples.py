@@ -18,8 +18,9 @@ sample i from seed i, meshed on the nearest template by the linear fast path) an
 
 Data (--data, comma-separated):
   vases        `make_vases(20, seed=0)` (procedural, z up)
-  mugs         bench/mugs.py: 14 Blender-made mugs (quads, n-gon caps, a handle as a
-               second part, UVs, a material, one mirrored), read as Blender's Prepare reads them
+  mugs         bench/blender_mugs.py `mug_meshes()`: 14 Blender-made mugs (quads, n-gon caps,
+               a handle as a second part, UVs, a material, one mirrored), read as Blender's
+               Prepare reads them
   psb:<Class>  every mesh of /work/shared/data/psb/<Class> (20 shapes, y up)
 Writes bench_output/samples.json.
 """
@@ -60,7 +61,7 @@ def class_meshes(data: str) -> tuple[list[Mesh], str]:
         return [s.mesh for s in make_vases(20, seed=0)], "z"
     if data == "mugs":
         sys.path.insert(0, str(ROOT / "bench"))
-        from mugs import mug_meshes
+        from blender_mugs import mug_meshes
 
         return [Mesh(vertices, faces, name=name) for name, vertices, faces in mug_meshes()], "z"
     if data.startswith("psb:"):
