@@ -34,8 +34,8 @@ from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .preprocess import ShapeTransform
 from .quality import QualitySettings
-from .sample_batch import contiguous_chunks, gated_samples_on_cluster, sample_name
-from .sampling import GatedSample, gate_summary, gated_sample, redraw_seed, rejection_lines
+from .sample_batch import contiguous_chunks, gated_samples_on_cluster
+from .sampling import GatedSample, gate_summary, gated_sample, redraw_seed, rejection_lines, sample_name
 
 __all__ = ["add_generate_commands"]
 
@@ -170,13 +170,15 @@ def _gated_chunk(model, run: SampleRun, indices) -> list[GatedSample]:
     their meshes."""
     settings = QualitySettings.from_json(run.quality)
     writers = MeshWriters(model.meshes)
-    samples = []
-    for index in indices:
-        sample = gated_sample(model, index, run.first_seed, run.count, run.template, settings, run.smooth, run.exact,
-                              name=sample_name(index))
-        writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
-        samples.append(replace(sample, mesh=None))
-    return samples
+    return [_written(writers, run, gated_sample(model, index, run.first_seed, run.count, run.template, settings,
+                                                run.smooth, run.exact, name=sample_name(index)))
+            for index in indices]
+
+
+def _written(writers: MeshWriters, run: SampleRun, sample: GatedSample) -> GatedSample:
+    """Write `sample`'s mesh into the run's folder; the sample without its mesh."""
+    writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
+    return replace(sample, mesh=None)
 
 
 _WORKER_MODEL = None
@@ -219,18 +221,16 @@ def _first_templates(model, run: SampleRun) -> list[int]:
 
 def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSample]:
     """Draw, gate, mesh and write every sample, in `args.jobs` processes when there are
-    many or on the Dask cluster `args.scheduler` (core/sample_batch.py, meshes written
-    here, so workers need no shared file system); the samples in order, without their meshes. Each worker gets a contiguous run of
-    the samples sorted by the template of their first draw (`templates`), so it builds the
-    mesh maps of few templates."""
-    scheduler = getattr(args, "scheduler", None)  # callers building their own Namespace may leave it out
-    if scheduler is not None:
+    many, or on the Dask cluster `args.scheduler` (core/sample_batch.py; the meshes come
+    back and are written here, so workers need no shared file system); the samples in
+    order, without their meshes. Each worker gets a contiguous run of the samples sorted
+    by the template of their first draw (`templates`), so it builds the mesh maps of few
+    templates."""
+    if args.scheduler is not None:
         order = sorted(range(run.count), key=lambda i: (templates[i], i)) if templates else list(range(run.count))
         writers = MeshWriters(model.meshes)
-        samples = []
-        for sample in gated_samples_on_cluster(scheduler, args.model, run, order):
-            writers.write(sample.mesh, sample.template_index, Path(run.folder) / f"{sample.name}.{run.file_format}")
-            samples.append(replace(sample, mesh=None))
+        samples = [_written(writers, run, sample)
+                   for sample in gated_samples_on_cluster(args.scheduler, args.model, run, order)]
         return sorted(samples, key=lambda sample: sample.index)
     jobs = args.jobs or (os.cpu_count() or 1)
     if jobs == 1 or run.count < 64:

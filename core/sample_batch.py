@@ -13,20 +13,15 @@ from typing import Sequence
 
 from .cluster import connect
 from .quality import QualitySettings
-from .sampling import GatedSample, gated_sample
+from .sampling import GatedSample, gated_samples
 
-__all__ = ["contiguous_chunks", "gated_samples_on_cluster", "sample_name"]
+__all__ = ["contiguous_chunks", "gated_samples_on_cluster"]
 
 
 def contiguous_chunks(items: list, parts: int) -> list[list]:
     """`items` cut into at most `parts` contiguous runs of (nearly) equal length."""
     size = -(-len(items) // parts)
     return [items[i:i + size] for i in range(0, len(items), size)]
-
-
-def sample_name(index: int) -> str:
-    """The name (and file stem) of sample `index` of a run."""
-    return f"sample_{index:04d}"
 
 
 def _gated_run(model_bytes: bytes, run, indices: Sequence[int]) -> list[GatedSample]:
@@ -37,10 +32,8 @@ def _gated_run(model_bytes: bytes, run, indices: Sequence[int]) -> list[GatedSam
         path = Path(folder) / "model.npz"
         path.write_bytes(model_bytes)
         model = GenerativeShapeModel.load(path)
-    settings = QualitySettings.from_json(run.quality)
-    return [gated_sample(model, index, run.first_seed, run.count, run.template, settings, run.smooth, run.exact,
-                         name=sample_name(index))
-            for index in indices]
+    return gated_samples(model, run.count, run.first_seed, run.template, QualitySettings.from_json(run.quality),
+                         run.smooth, run.exact, indices=indices)
 
 
 def gated_samples_on_cluster(scheduler: str, model_path: str | Path, run, indices: list[int],

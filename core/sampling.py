@@ -34,7 +34,7 @@ from .mesh import Mesh
 from .quality import CRITERIA, MeshQuality, QualityGate, QualitySettings, training_extents
 
 __all__ = ["Rejection", "GatedSample", "TEMPLATES_TRIED", "quality_gate", "redraw_seed", "gated_sample",
-           "gated_samples", "gate_summary", "rejection_lines"]
+           "gated_samples", "gate_summary", "rejection_lines", "sample_name"]
 
 #: Templates a sample's landmarks are meshed on (nearest first) before the sample is redrawn.
 TEMPLATES_TRIED = 3
@@ -92,6 +92,11 @@ def quality_gate(model, settings: QualitySettings = QualitySettings()) -> Qualit
     return cache[settings]
 
 
+def sample_name(index: int) -> str:
+    """The name (and file stem) of sample `index` of a run."""
+    return f"sample_{index:04d}"
+
+
 def redraw_seed(first_seed: int, count: int, index: int, redraw: int) -> int:
     """The seed of redraw `redraw` (0: the first draw) of sample `index` of `count`."""
     return int(first_seed) + int(redraw) * int(count) + int(index)
@@ -135,7 +140,7 @@ def gated_samples(model, count: int, first_seed: int, template: str | None = Non
     """Samples `indices` (default: all `count`) of a run from `first_seed`, gated."""
     indices = range(count) if indices is None else indices
     return [gated_sample(model, i, first_seed, count, template, settings, smooth, exact,
-                         name=names[i] if names is not None else f"sample_{i:04d}") for i in indices]
+                         name=names[i] if names is not None else sample_name(i)) for i in indices]
 
 
 def _criterion(reason: str) -> str:

@@ -210,7 +210,7 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
     monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
     templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
-    args = argparse.Namespace(jobs=3, model=tmp_path / "model.npz")
+    args = argparse.Namespace(jobs=3, model=tmp_path / "model.npz", scheduler=None)
     run = cli_generate.SampleRun(90, 0, None, str(tmp_path), "obj", 0, False, "{}")
     cli_generate._write_samples(args, None, run, templates)
     assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
