@@ -100,28 +100,36 @@ def smooth_basis(edges: np.ndarray, n_landmarks: int, size: int) -> np.ndarray |
 
 def refine_population(meshes: Sequence[Mesh], points: np.ndarray, face_index: np.ndarray, barycentric: np.ndarray,
                       settings: CorrespondenceSettings, progress: Progress | None = None,
-                      should_cancel=None, edges: np.ndarray | None = None, jobs: int = 1) -> Refinement:
+                      should_cancel=None, edges: np.ndarray | None = None, jobs: int = 1,
+                      compactness=None) -> Refinement:
     """Refine the landmarks (N, L, ...) of shapes `meshes` (normalised frame) by descending
     the population objective (module docstring; settings `refine_*`). edges: the landmark
     graph of the smooth displacement fields (None: plain gradient steps). jobs: processes
     sharing the per-shape work (shards.py). progress: fractions by accepted iterations;
-    should_cancel: checked every iteration (errors.Cancelled)."""
+    should_cancel: checked every iteration (errors.Cancelled). compactness: a callable
+    (start `LandmarkState` → a term with `CompactnessTerm`'s evaluate / realign / scales /
+    rotations) in place of the settings' compactness term (bench/refine_objectives.py
+    measures candidate objectives this way); None: `CompactnessTerm` from the settings."""
     report = progress or no_progress
     cancel = CancelCheck(should_cancel, "correspondence")
     shards = Shards(meshes, np.asarray(points), np.asarray(face_index), np.asarray(barycentric), settings.refine_sigma,
                     jobs)
     try:
-        return _descend(shards, settings, edges, report, cancel)
+        return _descend(shards, settings, edges, report, cancel, compactness)
     finally:
         shards.close()
 
 
-def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Progress, cancel) -> Refinement:
+def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Progress, cancel,
+             make_compactness=None) -> Refinement:
     """The iterations of `refine_population` (module docstring)."""
     weights = (settings.refine_compactness, settings.refine_spread)
     answer = shards.propose(None)
-    compactness = CompactnessTerm(answer.state, settings.refine_regulariser, settings.refine_alignment,
-                                  settings.refine_normals)
+    if make_compactness is None:
+        compactness = CompactnessTerm(answer.state, settings.refine_regulariser, settings.refine_alignment,
+                                      settings.refine_normals)
+    else:
+        compactness = make_compactness(answer.state)
 
     def evaluate(answer):
         value_c, grad_c = compactness.evaluate(answer.state) if weights[0] else (0.0, 0.0)

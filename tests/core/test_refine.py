@@ -7,7 +7,8 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
-from shapegen_core.correspond.objective import LandmarkState, PopulationObjective, compactness, density, spread
+from shapegen_core.correspond.objective import (CompactnessTerm, LandmarkState, PopulationObjective, compactness,
+                                                density, spread)
 from shapegen_core.correspond.refine import interpolated_normals, landmark_state, refine_population
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface
@@ -168,6 +169,29 @@ def test_refine_none_is_nicp_exactly(vases):
     for name in ("points", "points_input", "face_index", "barycentric", "template_points", "residuals"):
         assert np.array_equal(getattr(still, name), getattr(nicp, name)), name
     assert still.refinement == "population" and len(still.refinement_trace) == 1
+
+
+def test_a_given_compactness_term_replaces_the_settings_one(vases):
+    """refine_population(compactness=...) (how bench/refine_objectives.py measures candidate
+    objectives): the settings' own term given this way changes nothing; a term without
+    gradient leaves the spread term alone, which is 0 at the start, so nothing moves."""
+    shapes, prepared, nicp = vases
+    settings = CorrespondenceSettings(refine="population", **SMALL)
+    meshes = [s.mesh for s in prepared.shapes]
+    start = (nicp.points, nicp.face_index, nicp.barycentric)
+    default = refine_population(meshes, *start, settings, edges=nicp.edges)
+    same = refine_population(meshes, *start, settings, edges=nicp.edges, compactness=lambda state: CompactnessTerm(
+        state, settings.refine_regulariser, settings.refine_alignment, settings.refine_normals))
+    assert len(default.trace) > 2
+    assert np.array_equal(same.points, default.points) and np.array_equal(same.trace, default.trace)
+
+    class Flat(CompactnessTerm):
+        def evaluate(self, state):
+            return 1.0, np.zeros_like(state.points)
+
+    flat = refine_population(meshes, *start, settings, edges=nicp.edges,
+                             compactness=lambda state: Flat(state, 0.001, "similarity"))
+    assert np.array_equal(flat.points, nicp.points) and flat.trace.tolist() == [[1.0, 1.0, 0.0]]
 
 
 def test_identical_shapes_are_left_alone(vases):
