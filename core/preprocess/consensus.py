@@ -38,6 +38,11 @@ B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is fl
    score ≤ −0.95, and a 37° turn is measured as 35-39°. The signatures decide only what
    the cost cannot see: a turn they ask for is made only if it raises the cost by at
    most `tolerance` (on PSB fish the top-bottom signature alone flipped upright fish).
+   Hollows (`hollow.Hollows`, inside/outside aware): a shape whose hollow opens the other
+   way up from every nearest shape's (each by more than `hollow_floor`) is flipped, unless
+   the flip costs more than `hollow_cost` times its pose (then `pose_outliers` flags it):
+   upside down, a mug tapering the other way looks like its upright neighbours to the
+   cost and the odd moments; only its open top and closed bottom tell.
 
 Stages A and B each take the same three steps (`_settle`):
 
@@ -70,6 +75,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .hollow import Hollows
 from .posesearch import Fit, PoseSearch
 from .rotations import describe_rotation, yaw_rotation
 from .signature import Signatures
@@ -126,6 +132,13 @@ class ConsensusSettings:
     symmetry_tilt: float = 20.0
     #: directions of the tilt search's grid (upper half sphere)
     symmetry_directions: int = 40
+    #: voxel grid cells along a shape's longest side for its hollows (`hollow.Hollows`)
+    hollow_grid: int = 40
+    #: up component of a hollow's opening vector above which it tells top from bottom
+    hollow_floor: float = 0.1
+    #: cost ratio (flipped / its pose) up to which a shape whose hollow opens the other
+    #: way up from its nearest shapes' is flipped (above it: flagged only)
+    hollow_cost: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -142,11 +155,11 @@ class PoseDecision:
 
 def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
                         settings: ConsensusSettings, report: Callable[[float, str], None],
-                        symmetry: AxisSymmetry | None = None) -> list[PoseDecision]:
+                        symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseDecision]:
     """The pose decision of every shape (the steps of the module docstring): first the up
     axis by the collection's symmetries (`symmetry`, none: skipped), then by the Chamfer
-    cost (up direction, large turns), then by the signatures (top and bottom, facing at
-    any angle)."""
+    cost (up direction, large turns), then by the signatures and the hollows (top and
+    bottom, facing at any angle; `hollows`, none: skipped)."""
     n = len(search)
     k = min(settings.neighbours, n - 1)
     identity = np.eye(3)
@@ -192,9 +205,17 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
             return search.cost(j, turned_rotation, references) <= (1.0 + settings.tolerance) * cost
 
         if (signatures.up_agreement(j, rotation, references) < -settings.up_agreement
-                and cost_allows(_HALF_TURN_X @ rotation)):
+                and cost_allows(_HALF_TURN_X @ rotation)
+                and not _opens_upside_down(hollows, j, _HALF_TURN_X @ rotation, references, settings)):
             rotation = _HALF_TURN_X @ rotation
             why.append("its top and bottom")
+        elif _opens_upside_down(hollows, j, rotation, references, settings):
+            # the hollow sees what the cost cannot (which end is open): it flips unless
+            # the cost objects as strongly as it would need to turn a shape itself
+            flipped = min((half @ rotation for half in _HALF_TURNS), key=lambda r: search.cost(j, r, references))
+            if search.cost(j, flipped, references) <= settings.hollow_cost * cost:
+                rotation = flipped
+                why.append("which way its hollow opens")
         turning = bool(why) or first[j].changed or stood[j].changed
         angle, coherence = signatures.facing_turn(j, rotation, references)
         if (coherence > settings.coherence and abs(angle) > (settings.refine_angle if turning else settings.facing_angle)
@@ -213,6 +234,13 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
 
 
 _HALF_TURN_X = np.diag([1.0, -1.0, -1.0])
+_HALF_TURNS = (_HALF_TURN_X, np.diag([-1.0, 1.0, -1.0]))
+
+
+def _opens_upside_down(hollows: Hollows | None, j: int, rotation: np.ndarray,
+                       references: list[tuple[int, np.ndarray]], settings: ConsensusSettings) -> bool:
+    """Whether shape j's hollow opens the other way up from every reference's (no hollows: no)."""
+    return hollows is not None and hollows.upside_down(j, rotation, references, settings.hollow_floor) is not None
 
 
 def _faces_away(turned_cost: float, cost: float, coherence: float, settings: ConsensusSettings) -> bool:
@@ -302,6 +330,10 @@ def standing_pose(search: PoseSearch, symmetry: AxisSymmetry, j: int, rotation: 
                  f"(score {score:.1f} against {scores[0]:.1f} for its up; 0 = the collection's typical up)"), tilted
 
 
+def _way(vertical: float) -> str:
+    return "upwards" if vertical > 0 else "downwards"
+
+
 def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:
     return ", ".join(names[i] for i, _ in references)
 
@@ -370,7 +402,7 @@ def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int, vo
 
 def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
                   keep: Sequence[bool], settings: ConsensusSettings,
-                  symmetry: AxisSymmetry | None = None) -> list[str]:
+                  symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[str]:
     """Why each shape's final pose looks wrong ('' when it does not), against its nearest
     shapes in their final poses (rotations relative to the base pose): a rotation would
     fit them more than `margin` times better (a change of up: also `tilt_margin` times
@@ -407,6 +439,12 @@ def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequenc
               and search.cost(j, _HALF_TURN_X @ rotations[j], references[j]) <= (1.0 + settings.tolerance) * costs[j]):
             reasons.append(f"upside down relative to its {k} nearest shapes (its top and bottom "
                            f"match their bottom and top){kept[j]}")
+        elif hollows is not None and (opening := hollows.upside_down(j, rotations[j], references[j],
+                                                                     settings.hollow_floor)) is not None:
+            own, theirs = opening
+            reasons.append(f"upside down relative to its {k} nearest shapes: its hollow opens "
+                           f"{_way(own)} ({own:+.2f}), theirs {_way(theirs)} ({theirs:+.2f}; the up "
+                           f"component of the hollow's opening, 1 = a hull all hollow open upwards){kept[j]}")
         elif abs(angle) > settings.facing_angle and _faces_away(
                 search.cost(j, yaw_rotation(angle) @ rotations[j], references[j]), costs[j], coherence, settings):
             reasons.append(f"faces {abs(angle):.0f}° away from its {k} nearest shapes{kept[j]}")
