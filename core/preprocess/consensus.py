@@ -38,6 +38,11 @@ B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is fl
    score ≤ −0.95, and a 37° turn is measured as 35-39°. The signatures decide only what
    the cost cannot see: a turn they ask for is made only if it raises the cost by at
    most `tolerance` (on PSB fish the top-bottom signature alone flipped upright fish).
+   Hollows (`hollow.Hollows`, inside/outside aware): a shape whose hollow opens the other
+   way up from every nearest shape's (each by more than `hollow_floor`) is flipped, unless
+   the flip costs more than `hollow_cost` times its pose (then `pose_outliers` flags it):
+   upside down, a mug tapering the other way looks like its upright neighbours to the
+   cost and the odd moments; only its open top and closed bottom tell.
 
 Stages A and B each take the same three steps (`_settle`):
 
@@ -52,6 +57,15 @@ Stages A and B each take the same three steps (`_settle`):
 3. Everyone else, closest to the majority first, is decided against its nearest shapes
    already settled and not turned (a turned shape's pose is a guess), then settled.
    `keep` shapes are never turned and are no reference unless they are in the majority.
+
+Last, the pose check (`pose_checks`, the one `pose_outliers` flags with) of the settled
+poses against every shape's nearest shapes in their final poses: a shape not kept that a
+rotation fits them `margin` times better, or whose facing they share, is turned
+(`restore_flagged`). The stages decide a shape against references settled before it,
+and a shape in a wrong pose can be one: PSB cup 31 faces away from the cups (a weakly
+shared facing) but agreed with two neighbours one by one, so it kept its pose, and cup
+26, stood up by symmetry, took its facing from it; in their final poses both fit their
+nearest shapes 1.3× and 2.1× better turned 180°.
 
 Each pose change comes with its reason ("turned 180° about x: its 3 nearest shapes
 (a, b, c) fit 2.4× better"); a shape turned and turned back (to within 1°) keeps its
@@ -70,12 +84,14 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .hollow import Hollows
 from .posesearch import Fit, PoseSearch
 from .rotations import describe_rotation, yaw_rotation
 from .signature import Signatures
 from .symmetry import AxisSymmetry
 
-__all__ = ["ConsensusSettings", "PoseDecision", "consensus_rotations", "pose_outliers"]
+__all__ = ["ConsensusSettings", "PoseCheck", "PoseDecision", "consensus_rotations", "pose_checks", "pose_outliers",
+           "restore_flagged"]
 
 
 @dataclass(frozen=True)
@@ -126,6 +142,13 @@ class ConsensusSettings:
     symmetry_tilt: float = 20.0
     #: directions of the tilt search's grid (upper half sphere)
     symmetry_directions: int = 40
+    #: voxel grid cells along a shape's longest side for its hollows (`hollow.Hollows`)
+    hollow_grid: int = 40
+    #: up component of a hollow's opening vector above which it tells top from bottom
+    hollow_floor: float = 0.1
+    #: cost ratio (flipped / its pose) up to which a shape whose hollow opens the other
+    #: way up from its nearest shapes' is flipped (above it: flagged only)
+    hollow_cost: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -142,11 +165,11 @@ class PoseDecision:
 
 def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
                         settings: ConsensusSettings, report: Callable[[float, str], None],
-                        symmetry: AxisSymmetry | None = None) -> list[PoseDecision]:
+                        symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseDecision]:
     """The pose decision of every shape (the steps of the module docstring): first the up
     axis by the collection's symmetries (`symmetry`, none: skipped), then by the Chamfer
-    cost (up direction, large turns), then by the signatures (top and bottom, facing at
-    any angle)."""
+    cost (up direction, large turns), then by the signatures and the hollows (top and
+    bottom, facing at any angle; `hollows`, none: skipped)."""
     n = len(search)
     k = min(settings.neighbours, n - 1)
     identity = np.eye(3)
@@ -192,9 +215,17 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
             return search.cost(j, turned_rotation, references) <= (1.0 + settings.tolerance) * cost
 
         if (signatures.up_agreement(j, rotation, references) < -settings.up_agreement
-                and cost_allows(_HALF_TURN_X @ rotation)):
+                and cost_allows(_HALF_TURN_X @ rotation)
+                and not _opens_upside_down(hollows, j, _HALF_TURN_X @ rotation, references, settings)):
             rotation = _HALF_TURN_X @ rotation
             why.append("its top and bottom")
+        elif _opens_upside_down(hollows, j, rotation, references, settings):
+            # the hollow sees what the cost cannot (which end is open): it flips unless
+            # the cost objects as strongly as it would need to turn a shape itself
+            flipped = min((half @ rotation for half in _HALF_TURNS), key=lambda r: search.cost(j, r, references))
+            if search.cost(j, flipped, references) <= settings.hollow_cost * cost:
+                rotation = flipped
+                why.append("which way its hollow opens")
         turning = bool(why) or first[j].changed or stood[j].changed
         angle, coherence = signatures.facing_turn(j, rotation, references)
         if (coherence > settings.coherence and abs(angle) > (settings.refine_angle if turning else settings.facing_angle)
@@ -209,10 +240,19 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
     # a shape the cost turned has no input facing to keep: it never joins the majority
     second = _settle(search, k, keep, turned, by_signature_agree, by_signature, report, 0.5,
                      [not (a.changed or b.changed) for a, b in zip(stood, first)])
-    return [_combined(*stages) for stages in zip(stood, first, second)]
+    decisions = [_combined(*stages) for stages in zip(stood, first, second)]
+    report(0.85, "checking the poses")
+    return restore_flagged(search, signatures, names, keep, settings, decisions, symmetry, hollows)
 
 
 _HALF_TURN_X = np.diag([1.0, -1.0, -1.0])
+_HALF_TURNS = (_HALF_TURN_X, np.diag([-1.0, 1.0, -1.0]))
+
+
+def _opens_upside_down(hollows: Hollows | None, j: int, rotation: np.ndarray,
+                       references: list[tuple[int, np.ndarray]], settings: ConsensusSettings) -> bool:
+    """Whether shape j's hollow opens the other way up from every reference's (no hollows: no)."""
+    return hollows is not None and hollows.upside_down(j, rotation, references, settings.hollow_floor) is not None
 
 
 def _faces_away(turned_cost: float, cost: float, coherence: float, settings: ConsensusSettings) -> bool:
@@ -302,6 +342,10 @@ def standing_pose(search: PoseSearch, symmetry: AxisSymmetry, j: int, rotation: 
                  f"(score {score:.1f} against {scores[0]:.1f} for its up; 0 = the collection's typical up)"), tilted
 
 
+def _way(vertical: float) -> str:
+    return "upwards" if vertical > 0 else "downwards"
+
+
 def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:
     return ", ".join(names[i] for i, _ in references)
 
@@ -368,18 +412,39 @@ def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int, vo
     return [int(j) for j in members if label[j] == biggest]
 
 
+@dataclass(frozen=True)
+class PoseCheck:
+    """What the pose check says of one shape: why its pose looks wrong ('' when it does
+    not) and, when the evidence is as strong as the stages ask for a turn (a rotation
+    fitting its nearest shapes `margin` times better, or its facing), the rotation that
+    puts it right, its evidence and those shapes."""
+
+    reason: str
+    rotation: np.ndarray | None = None
+    evidence: str = ""
+    references: tuple[int, ...] = ()
+
+
 def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
                   keep: Sequence[bool], settings: ConsensusSettings,
-                  symmetry: AxisSymmetry | None = None) -> list[str]:
-    """Why each shape's final pose looks wrong ('' when it does not), against its nearest
-    shapes in their final poses (rotations relative to the base pose): a rotation would
+                  symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[str]:
+    """Why each shape's final pose looks wrong ('' when it does not): `pose_checks`."""
+    return [check.reason for check in pose_checks(search, signatures, rotations, keep, settings, symmetry, hollows)]
+
+
+def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
+                keep: Sequence[bool], settings: ConsensusSettings,
+                symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseCheck]:
+    """Each shape's final pose checked against its nearest shapes in their final poses
+    (rotations relative to the base pose): it looks wrong when a rotation would
     fit them more than `margin` times better (a change of up: also `tilt_margin` times
-    better than keeping its up), its top and bottom or its facing disagree with theirs
-    (signatures, the thresholds of the consensus; a weakly shared facing counts when the
+    better than keeping its up), its top and bottom, its hollow or its facing disagree with theirs
+    (signatures and hollows, the thresholds of the consensus; a weakly shared facing counts when the
     turn also fits them `facing_support` times better, `_faces_away`), its up lacks the symmetry the
     collection's up axes share (`symmetry`: scores above `symmetry_flag` and not clearly
     best of its axes: tilted, or on its side with nobody to fit), or it fits them over
-    `outlier_factor` times worse than the collection's median shape does."""
+    `outlier_factor` times worse than the collection's median shape does. The first and
+    the facing come with the rotation that puts the shape right (`restore_flagged`)."""
     n = len(search)
     k = min(settings.neighbours, n - 1)
     trusted = [i for i in range(n) if not keep[i]] if sum(not x for x in keep) > k else list(range(n))
@@ -390,8 +455,9 @@ def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequenc
     symmetry_ready = symmetry is not None and n >= settings.symmetry_shapes
     if symmetry_ready:
         symmetry.fit_profile(rotations, range(n))
-    reasons = []
+    checks = []
     for j in range(n):
+        nearest = tuple(i for i, _ in references[j])
         upright, fit = search.best_rotation(j, references[j], settings.yaw_step, settings.tilts, False,
                                             settings.snap, _or_none(rotations[j]))
         if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, rotations[j]):
@@ -401,23 +467,53 @@ def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequenc
         if ratio > settings.margin:
             relative = fit.rotation @ rotations[j].T
             pose = "upside down" if relative[2, 2] < -0.5 else "on its side" if relative[2, 2] < 0.5 else "turned"
-            reasons.append(f"{pose} relative to its {k} nearest shapes: {describe_rotation(relative)} it would "
-                           f"fit them {ratio:.1f}× better{kept[j]}")
+            checks.append(PoseCheck(f"{pose} relative to its {k} nearest shapes: {describe_rotation(relative)} it "
+                                    f"would fit them {ratio:.1f}× better{kept[j]}", fit.rotation,
+                                    f"fit {ratio:.1f}× better", nearest))
         elif (signatures.up_agreement(j, rotations[j], references[j]) < -settings.up_agreement
               and search.cost(j, _HALF_TURN_X @ rotations[j], references[j]) <= (1.0 + settings.tolerance) * costs[j]):
-            reasons.append(f"upside down relative to its {k} nearest shapes (its top and bottom "
-                           f"match their bottom and top){kept[j]}")
+            checks.append(PoseCheck(f"upside down relative to its {k} nearest shapes (its top and bottom "
+                                    f"match their bottom and top){kept[j]}"))
+        elif hollows is not None and (opening := hollows.upside_down(j, rotations[j], references[j],
+                                                                     settings.hollow_floor)) is not None:
+            own, theirs = opening
+            checks.append(PoseCheck(f"upside down relative to its {k} nearest shapes: its hollow opens "
+                                    f"{_way(own)} ({own:+.2f}), theirs {_way(theirs)} ({theirs:+.2f}; the up "
+                                    f"component of the hollow's opening, 1 = a hull all hollow open upwards)"
+                                    f"{kept[j]}"))
         elif abs(angle) > settings.facing_angle and _faces_away(
                 search.cost(j, yaw_rotation(angle) @ rotations[j], references[j]), costs[j], coherence, settings):
-            reasons.append(f"faces {abs(angle):.0f}° away from its {k} nearest shapes{kept[j]}")
+            checks.append(PoseCheck(f"faces {abs(angle):.0f}° away from its {k} nearest shapes{kept[j]}",
+                                    yaw_rotation(angle) @ rotations[j], "face that way", nearest))
         elif symmetry_ready and (standing := standing_pose(search, symmetry, j, rotations[j], references[j],
                                                             settings)) is not None:
             fit, where, tilted = standing
-            reasons.append(f"{'tilted' if tilted else 'on its side'} relative to the collection's up axes: "
-                           f"{describe_rotation(fit.rotation @ rotations[j].T)} it would stand on {where}{kept[j]}")
+            checks.append(PoseCheck(f"{'tilted' if tilted else 'on its side'} relative to the collection's up axes: "
+                                    f"{describe_rotation(fit.rotation @ rotations[j].T)} it would stand on {where}"
+                                    f"{kept[j]}"))
         elif costs[j] > settings.outlier_factor * median:
-            reasons.append(f"fits its {k} nearest shapes {costs[j] / median:.1f}× worse than the collection's "
-                           "median shape does (an unusual shape, or a pose no turn fixes)")
+            checks.append(PoseCheck(f"fits its {k} nearest shapes {costs[j] / median:.1f}× worse than the "
+                                    "collection's median shape does (an unusual shape, or a pose no turn fixes)"))
         else:
-            reasons.append("")
-    return reasons
+            checks.append(PoseCheck(""))
+    return checks
+
+
+def restore_flagged(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
+                    settings: ConsensusSettings, decisions: Sequence[PoseDecision],
+                    symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseDecision]:
+    """The last step of the consensus: the pose check (`pose_checks`) of the settled poses,
+    whose references are every shape's nearest shapes in their final poses, and the turn
+    it asks for made on a shape not kept (a shape that was decided against references
+    in a wrong pose themselves: PSB cup 31 faces away from its neighbours but agreed with
+    two of them one by one, so it kept its pose and was a reference for cup 26)."""
+    checks = pose_checks(search, signatures, [d.rotation for d in decisions], keep, settings, symmetry, hollows)
+    restored = list(decisions)
+    for j, check in enumerate(checks):
+        if check.rotation is None or keep[j]:
+            continue
+        relative = check.rotation @ decisions[j].rotation.T
+        restored[j] = _combined(decisions[j], PoseDecision(check.rotation, (
+            f"{describe_rotation(relative)}: its {len(check.references)} nearest shapes in their final poses "
+            f"({', '.join(names[i] for i in check.references)}) {check.evidence}")))
+    return restored

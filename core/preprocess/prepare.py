@@ -11,6 +11,7 @@ from ..errors import CollectionError, MeshError
 from ..mesh import Mesh
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
+from .hollow import Hollows
 from .moments import SCALE_MODES, scale_measure, surface_moments
 from .posesearch import PoseSearch
 from .rotations import describe_rotation, horizontal_pca_rotation, up_rotation
@@ -58,22 +59,24 @@ def prepare_collection(
     report = progress or (lambda fraction, message: None)
 
     up = up_rotation(up_axis)
-    search = signatures = symmetry = None
+    search = signatures = symmetry = hollows = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         posed = [proxy_mesh(mesh, POSE_PROXY_FACES, above=dense_faces).mesh for mesh in meshes]
         search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed)
         signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
         symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor)
+        hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed)
         del posed
     report(0.2, "surface samples")
     if align == "consensus" and search is not None:
         decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report,
-                                        symmetry)
+                                        symmetry, hollows)
     else:
         decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
     outliers = [""] * len(meshes)
     if len(meshes) > 2:
-        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus, symmetry)
+        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus, symmetry,
+                                 hollows)
     report(0.9, "floor, centre and scale")
 
     transforms = [_floor_and_centre(mesh, d.rotation @ up, centre) for mesh, d in zip(meshes, decisions)]
