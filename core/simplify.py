@@ -62,7 +62,7 @@ def proxy_mesh(mesh: Mesh, max_faces: int = REGISTRATION_PROXY_FACES, above: int
     vertices) and grows until the face count fits."""
     if mesh.n_faces <= (max_faces if above is None else max(above, max_faces)):
         return Proxy(mesh)
-    used = np.unique(mesh.faces)
+    used = mesh.used_vertices()
     points = mesh.vertices[used]
     direction = _normal_class(mesh)[used]
     lower = points.min(axis=0)

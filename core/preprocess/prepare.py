@@ -100,7 +100,7 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
     """Step 4: the rotation, then the lowest surface vertex to z = 0 and the horizontal
     centre (surface centroid, highest vertex, or none) to x = y = 0."""
     # only vertices that belong to a face count (an unused stray vertex is no surface)
-    rotated = mesh.vertices[np.unique(mesh.faces)] @ rotation.T
+    rotated = mesh.vertices[mesh.used_vertices()] @ rotation.T
     shift = np.zeros(3)
     shift[2] = -rotated[:, 2].min()
     if centre == "centroid":
@@ -113,10 +113,15 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
 
 def _equal_size(meshes: Sequence[Mesh], transforms: Sequence[ShapeTransform], scale: str) -> list[ShapeTransform]:
     """Step 5: scale every shape so its measure (`scale_measure`) equals the geometric mean
-    of the collection's measures."""
+    of the collection's measures (the surface variance of the input mesh times the
+    transform's scale squared: a similarity's rotation and shift leave it as it is, so no
+    transformed copy is made for it)."""
     measures = []
     for mesh, transform in zip(meshes, transforms):
-        value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
+        if scale == "variance":
+            value = transform.scale ** 2 * scale_measure(mesh, scale)
+        else:
+            value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
         if not np.isfinite(value) or value <= 0:
             raise MeshError(
                 f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "
