@@ -215,7 +215,8 @@ class Mesh:
         return out
 
     def area(self) -> float:
-        return float(self.face_areas().sum())
+        """Total surface area (computed once per mesh)."""
+        return self.cached("area", lambda mesh: float(mesh.face_areas().sum()))
 
     def face_normals(self) -> np.ndarray:
         """Unit normals, (F, 3), right-hand rule over the face's vertex order."""
