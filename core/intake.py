@@ -89,7 +89,7 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     vertices = np.asarray(vertices, dtype=np.float64)
     n = len(vertices)
     tolerance = rtol * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray")
+    pairs = cKDTree(vertices, balanced_tree=False).query_pairs(tolerance, output_type="ndarray")  # exact either way
     if len(pairs) == 0:
         return vertices, np.arange(n)
     graph = sp.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
@@ -174,7 +174,7 @@ def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None
     part = np.zeros(len(faces), dtype=np.int64) if part is None else part
     n_parts = int(part.max()) + 1 if n_parts is None else n_parts
     cross = triangle_cross(vertices, faces)  # 2 A_f n_f
-    twice_area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    twice_area = np.linalg.norm(cross, axis=1)
     centroid = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3.0
     weight = np.bincount(part, twice_area, n_parts)
     middle = np.stack([np.bincount(part, twice_area * centroid[:, d], n_parts) for d in range(3)], axis=1)

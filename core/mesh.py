@@ -32,7 +32,7 @@ from .errors import MeshError
 if TYPE_CHECKING:
     from .layout import FaceLayout
 
-__all__ = ["Mesh", "MeshReport", "SurfaceSamples", "face_chunks", "triangle_cross", "cross_rows"]
+__all__ = ["Mesh", "MeshReport", "SurfaceSamples", "triangle_cross", "cross_rows"]
 
 #: Faces per chunk of the per-face computations (bounds their temporary memory).
 FACE_CHUNK = 1 << 18
@@ -211,7 +211,7 @@ class Mesh:
         out = np.empty(self.n_faces)
         for start in range(0, self.n_faces, FACE_CHUNK):
             cross = triangle_cross(self.vertices, self.faces[start:start + FACE_CHUNK])
-            out[start:start + FACE_CHUNK] = 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+            out[start:start + FACE_CHUNK] = 0.5 * np.linalg.norm(cross, axis=1)
         return out
 
     def area(self) -> float:
@@ -226,8 +226,9 @@ class Mesh:
     def vertex_normals(self) -> np.ndarray:
         """Area-weighted unit vertex normals, (V, 3); isolated vertices get (0, 0, 0)."""
         n = self.face_normals_unnormalised()  # weight by 2*area implicitly
-        corners = self.faces.ravel()
-        acc = np.stack([np.bincount(corners, np.repeat(n[:, d], 3), self.n_vertices) for d in range(3)], axis=1)
+        acc = np.zeros_like(self.vertices)
+        for corner in range(3):  # summed in this order (the results of every stage depend on its last bits)
+            np.add.at(acc, self.faces[:, corner], n)
         length = np.linalg.norm(acc, axis=1, keepdims=True)
         return np.divide(acc, length, out=np.zeros_like(acc), where=length > 0)
 
@@ -304,14 +305,6 @@ class Mesh:
 def _used_bounds(mesh: Mesh) -> np.ndarray:
     used = mesh.vertices[mesh.used_vertices()]
     return np.stack([used.min(axis=0), used.max(axis=0)])
-
-
-def face_chunks(mesh: Mesh):
-    """The mesh's faces in chunks of FACE_CHUNK, each as its corners' coordinates (a, b, c),
-    (n, 3) each."""
-    for start in range(0, mesh.n_faces, FACE_CHUNK):
-        part = mesh.faces[start:start + FACE_CHUNK]
-        yield mesh.vertices[part[:, 0]], mesh.vertices[part[:, 1]], mesh.vertices[part[:, 2]]
 
 
 def face_dtype(n_vertices: int):
@@ -395,9 +388,8 @@ def _degenerate_mask(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         a, b, c = vertices[part[:, 0]], vertices[part[:, 1]], vertices[part[:, 2]]
         u, v, w = b - a, c - a, c - b
         cross = cross_rows(u, v)
-        twice_area[start:start + FACE_CHUNK] = np.sqrt(np.einsum("ij,ij->i", cross, cross))
-        edge_sq[start:start + FACE_CHUNK] = (np.einsum("ij,ij->i", u, u) + np.einsum("ij,ij->i", v, v)
-                                             + np.einsum("ij,ij->i", w, w))
+        twice_area[start:start + FACE_CHUNK] = np.linalg.norm(cross, axis=1)
+        edge_sq[start:start + FACE_CHUNK] = (u ** 2).sum(axis=1) + (w ** 2).sum(axis=1) + (v ** 2).sum(axis=1)
     scale = max(float(np.median(edge_sq)), np.finfo(float).tiny) if len(edge_sq) else 1.0
     flat = twice_area <= DEGENERATE_AREA_RTOL * scale
     return repeated | flat

@@ -113,15 +113,10 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
 
 def _equal_size(meshes: Sequence[Mesh], transforms: Sequence[ShapeTransform], scale: str) -> list[ShapeTransform]:
     """Step 5: scale every shape so its measure (`scale_measure`) equals the geometric mean
-    of the collection's measures (the surface variance of the input mesh times the
-    transform's scale squared: a similarity's rotation and shift leave it as it is, so no
-    transformed copy is made for it)."""
+    of the collection's measures."""
     measures = []
     for mesh, transform in zip(meshes, transforms):
-        if scale == "variance":
-            value = transform.scale ** 2 * scale_measure(mesh, scale)
-        else:
-            value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
+        value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
         if not np.isfinite(value) or value <= 0:
             raise MeshError(
                 f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "
