@@ -33,8 +33,13 @@ def _surface_moments(mesh: Mesh) -> tuple[float, np.ndarray, np.ndarray]:
     for start, tri in _triangle_chunks(mesh):
         area = areas[start:start + len(tri)]
         s = tri.sum(axis=1)
-        first += (area[:, None] * s).sum(axis=0)
-        second += np.einsum("f,fki,fkj->ij", area, tri, tri) + np.einsum("f,fi,fj->ij", area, s, s)
+        if mesh.n_faces <= FACE_CHUNK:  # main's exact operations (every result downstream depends on its last bits)
+            first += (area[:, None] * s).sum(axis=0)
+            second += np.einsum("f,fki,fkj->ij", area, tri, tri) + np.einsum("f,fi,fj->ij", area, s, s)
+            continue
+        first += area @ s  # a dense mesh: matrix products, several times faster than the 3-operand einsum
+        for corner in (tri[:, 0], tri[:, 1], tri[:, 2], s):
+            second += (corner * area[:, None]).T @ corner
     mean = first / (3.0 * total)
     second /= 12.0 * total
     cov = second - np.outer(mean, mean)
