@@ -100,10 +100,10 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
 
 def _load_geometry(trimesh, handle, file_type: str) -> dict:
     """What trimesh's reader of `file_type` gives (vertices, faces, metadata, visual), read
-    with `process=False`: for OBJ, OFF, PLY and STL straight from trimesh's mesh loader
-    (issue 15: wrapping the arrays in a Trimesh, a Scene and a merged copy of it costs more
-    than parsing a binary PLY of a million vertices), for other formats and files with
-    several objects through `trimesh.load(force="mesh")`."""
+    with `process=False`: for OFF, PLY and STL straight from trimesh's mesh loader (issue
+    15: wrapping the arrays in a Trimesh, a Scene and a merged copy of it costs more than
+    parsing a binary PLY of a million vertices), for other formats (OBJ's loader returns a
+    scene) and files with several objects through `trimesh.load(force="mesh")`."""
     options = dict(process=False, maintain_order=True, skip_materials=True)
     loader = trimesh.exchange.load.mesh_loaders.get(file_type) if file_type in _DIRECT_FORMATS else None
     if loader is not None:
@@ -118,7 +118,7 @@ def _load_geometry(trimesh, handle, file_type: str) -> dict:
 
 
 #: formats read straight from trimesh's mesh loader (`_load_geometry`)
-_DIRECT_FORMATS = ("obj", "off", "ply", "stl")
+_DIRECT_FORMATS = ("off", "ply", "stl")
 
 
 def _loaded_faces(loaded: dict, faces: np.ndarray, n_vertices: int):
