@@ -74,7 +74,8 @@ class FitSettings(Settings):
                                     minimum=1)
     template: str | None = option(None, "correspondence template shape (default: the Chamfer medoid)",
                                   flag="--template")
-    jobs: int | None = option(None, "worker processes reading files and registering shapes (default: all cores)", flag="--jobs", minimum=1)
+    jobs: int | None = option(None, "worker processes reading files and registering shapes (default: all cores)",
+                              flag="--jobs", minimum=1)
     scheduler: str | None = option(None, "run the per-shape registrations on Dask: tcp://host:8786 or local:N "
                                    "(needs shapegen[dask])", flag="--scheduler")
     mesh_template: str = option("nearest-data", "template mesh of generated shapes when none is asked for: "
