@@ -138,6 +138,25 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
 
 
 # ---------------------------------------------------------------------------- child
+def _cpu_seconds() -> float:
+    """CPU time of this process and of its finished (waited-for) child processes: worker
+    pools are closed inside their stage, so a stage's difference holds its workers'
+    time too. Read beside the wall time on a loaded machine."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def _read(read_folder, folder, jobs):
+    """The folder read as `shapegen fit` reads it (in `jobs` processes; the core before
+    issue 15's dense-mesh changes reads in this process only)."""
+    try:
+        return read_folder(folder, jobs=jobs)
+    except TypeError:
+        return read_folder(folder)
+
+
 def run_row(row: str, args) -> dict:
     """The stages of one row in this process: {"stages": {stage: [seconds, peak bytes]}, ...}."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
@@ -151,14 +170,17 @@ def run_row(row: str, args) -> dict:
 
     memory = TreeMemory()
     stages: dict[str, list] = {}
-    info: dict = {"row": row}
+    cpus: dict[str, float] = {}
+    info: dict = {"row": row, "cpu": cpus}
 
     def stage(name, work):
         memory.reset()
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), _cpu_seconds()
         value = work()
         stages[name] = [time.perf_counter() - start, memory.peak()]
-        print(f"  {row}: {name} {stages[name][0]:.1f} s, {stages[name][1] / 1e9:.2f} GB", file=sys.stderr, flush=True)
+        cpus[name] = _cpu_seconds() - cpu
+        print(f"  {row}: {name} {stages[name][0]:.1f} s ({cpus[name]:.1f} CPU s), {stages[name][1] / 1e9:.2f} GB",
+              file=sys.stderr, flush=True)
         return value
 
     align = args.align or ("pca" if VASE_ROWS.get(row, 0) > 20 else "consensus")
@@ -166,7 +188,7 @@ def run_row(row: str, args) -> dict:
     info["align"] = align
     if row in DENSE_TARGETS:
         folder = dense_folder(Path(args.cache), args.psb_class, DENSE_TARGETS[row], args.dense_shapes)
-        meshes = stage("read", lambda: read_folder(folder))
+        meshes = stage("read", lambda: _read(read_folder, folder, args.jobs))
         models = ("ppca",)
     else:
         from shapegen_core.datasets import make_vases
@@ -200,8 +222,10 @@ def run_row(row: str, args) -> dict:
 
 
 # ---------------------------------------------------------------------------- table
-def _cell(value) -> str:
-    return "—" if value is None else f"{value[0]:7.1f} s {value[1] / 1e9:5.2f} GB"
+def _cell(value, cpu=None) -> str:
+    if value is None:
+        return "—"
+    return f"{value[0]:7.1f} s {value[1] / 1e9:5.2f} GB" + ("" if cpu is None else f" ({cpu:.0f} CPU s)")
 
 
 def table(results: list[dict]) -> str:
@@ -212,11 +236,13 @@ def table(results: list[dict]) -> str:
         for name, value in result["stages"].items():
             old = before.get(name)
             note = "" if old is None or before.get("shapes") == result["shapes"] else f" ({before['shapes']} shapes)"
-            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | {_cell(value)} | "
+            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | "
+                         f"{_cell(value, result.get('cpu', {}).get(name))} | "
                          f"{_cell(old)}{note} |")
         total = [sum(v[0] for k, v in result["stages"].items() if k not in ("make",)),
                  max(v[1] for v in result["stages"].values())]
-        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total)} | |")
+        cpu = sum(v for k, v in result.get("cpu", {}).items() if k != "make") if result.get("cpu") else None
+        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total, cpu)} | |")
     return "\n".join(lines)
 
 

@@ -139,7 +139,7 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
         raise CommandError(f"{path}: is a folder; expected {expected}")
     keep_pose = getattr(args, "keep_pose", None)
     if kind == "folder":
-        for mesh in (meshes := read_folder(path)):
+        for mesh in (meshes := read_folder(path, jobs=getattr(args, "jobs", 1))):
             if mesh.report.summary() != "clean":
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
         return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes,

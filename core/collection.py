@@ -94,11 +94,12 @@ class PreparedCollection:
         return self.shapes[index].transform.to_input(self.landmarks[index].points)
 
     # ------------------------------------------------------------------ persistence
-    def to_arrays(self) -> dict[str, np.ndarray]:
+    def to_arrays(self, lazy: bool = False) -> dict[str, np.ndarray]:
+        """The file's arrays (`lazy`: the meshes as `npzfile.Concatenation`s)."""
         l_off = np.cumsum([0] + [len(l) for l in self.landmarks])
         return {
             "names": np.asarray(self.names, dtype=str),
-            **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes]),
+            **meshset.pack([s.mesh.vertices for s in self.shapes], [s.mesh.faces for s in self.shapes], lazy=lazy),
             "transforms": np.stack([s.transform.matrix for s in self.shapes]),
             "orientation_changed": np.asarray([s.orientation_changed for s in self.shapes]),
             "pose_change": np.asarray([s.pose_change for s in self.shapes], dtype=str),
@@ -113,7 +114,7 @@ class PreparedCollection:
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        return save_npz(path, PREPARED_FORMAT, PREPARED_VERSION, self.to_arrays())
+        return save_npz(path, PREPARED_FORMAT, PREPARED_VERSION, self.to_arrays(lazy=True), stored=meshset.stored())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "PreparedCollection":

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import MeshError
-from .mesh import Mesh
+from .mesh import Mesh, triangle_cross
 
 __all__ = ["clean_mesh", "weld_vertices", "orient_faces", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
 
@@ -57,20 +57,24 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
     label = name or "mesh"
     mesh = Mesh.from_polygons(vertices, polygons, name=name)
     welded, vertex_map = weld_vertices(mesh.vertices)
-    faces = vertex_map[mesh.faces]
-    source = mesh.report.face_source if mesh.report.face_source is not None else np.arange(mesh.n_faces)
-    collapsed = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
-    if collapsed.all():
-        raise MeshError(f"{label}: every face is degenerate (its corners coincide once duplicates are welded)")
-    faces, source = faces[~collapsed], source[~collapsed]
-    faces, reversed_faces, counts = orient_faces(welded, faces, label)
     welded_away = len(vertex_map) - len(welded)
+    faces, source = mesh.faces, mesh.report.face_source
+    collapsed = np.zeros(len(faces), dtype=bool)
+    if welded_away:  # nothing welded: from_polygons already dropped faces with a repeated corner
+        faces = vertex_map[faces].astype(mesh.faces.dtype)
+        collapsed = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+        if collapsed.all():
+            raise MeshError(f"{label}: every face is degenerate (its corners coincide once duplicates are welded)")
+        if collapsed.any():
+            source = np.arange(mesh.n_faces) if source is None else source
+            faces, source = faces[~collapsed], source[~collapsed]
+    faces, reversed_faces, counts = orient_faces(welded, faces, label)
     report = replace(
         mesh.report,
         degenerate_faces_dropped=mesh.report.degenerate_faces_dropped + int(collapsed.sum()),
         vertices_welded=welded_away, mirrored=bool(mirrored), **counts,
         vertex_map=vertex_map if welded_away else None,
-        face_source=source if mesh.report.face_source is not None or collapsed.any() else None,
+        face_source=source,
         face_reversed=reversed_faces if reversed_faces.any() else None,
     )
     return Mesh(welded, faces, name=name, report=report)
@@ -85,7 +89,7 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     vertices = np.asarray(vertices, dtype=np.float64)
     n = len(vertices)
     tolerance = rtol * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray")
+    pairs = cKDTree(vertices, balanced_tree=False).query_pairs(tolerance, output_type="ndarray")  # exact either way
     if len(pairs) == 0:
         return vertices, np.arange(n)
     graph = sp.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
@@ -113,14 +117,20 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -
     Returns (faces (F, 3) with reversed faces' corners 1 and 2 swapped, reversed (F,) bool,
     counts for MeshReport: faces_rewound, parts_turned_outward, parts_without_inside).
     """
-    faces = np.asarray(faces, dtype=np.int64)
+    faces = np.asarray(faces)
     n = len(faces)
     first, second, same_direction, border = _shared_edges(faces)
-    rows = np.concatenate([first, first + n])
-    cols = np.concatenate([np.where(same_direction, second + n, second), np.where(same_direction, second, second + n)])
-    graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(2 * n, 2 * n))
-    _, colour = connected_components(graph, directed=False)
-    as_given, as_reversed = colour[:n], colour[n:]
+    if same_direction.any():
+        rows = np.concatenate([first, first + n])
+        cols = np.concatenate([np.where(same_direction, second + n, second),
+                               np.where(same_direction, second, second + n)])
+        graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(2 * n, 2 * n))
+        _, colour = connected_components(graph, directed=False)
+        as_given, as_reversed = colour[:n], colour[n:]
+    else:  # every neighbour agrees already (the usual file): the face graph alone, half the size
+        graph = sp.coo_matrix((np.ones(len(first), dtype=np.int8), (first, second)), shape=(n, n))
+        n_parts, as_given = connected_components(graph, directed=False)
+        as_reversed = as_given + n_parts
     conflict = as_given == as_reversed
     if conflict.any():
         raise MeshError(f"{label}: part of its surface is non-orientable (like a Möbius strip): no winding "
@@ -146,7 +156,9 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -
         "parts_turned_outward": int(np.sum(n_reversed == size)),
         "parts_without_inside": int(np.sum(~decided)),
     }
-    return np.where(reversed_faces[:, None], faces[:, [0, 2, 1]], faces), reversed_faces, counts
+    if reversed_faces.any():
+        faces = np.where(reversed_faces[:, None], faces[:, [0, 2, 1]], faces)
+    return faces, reversed_faces, counts
 
 
 def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None = None,
@@ -161,10 +173,9 @@ def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None
     faces one part by default)."""
     part = np.zeros(len(faces), dtype=np.int64) if part is None else part
     n_parts = int(part.max()) + 1 if n_parts is None else n_parts
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 A_f n_f
+    cross = triangle_cross(vertices, faces)  # 2 A_f n_f
     twice_area = np.linalg.norm(cross, axis=1)
-    centroid = tri.mean(axis=1)
+    centroid = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3.0
     weight = np.bincount(part, twice_area, n_parts)
     middle = np.stack([np.bincount(part, twice_area * centroid[:, d], n_parts) for d in range(3)], axis=1)
     middle /= np.maximum(weight, np.finfo(float).tiny)[:, None]
@@ -180,10 +191,10 @@ def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
     second (E,), and whether both faces run along the edge in the same direction (E,);
     plus the faces with a border or non-manifold edge (a face per such half-edge)."""
-    start = faces.ravel()
-    end = faces[:, [1, 2, 0]].ravel()  # half-edge h runs start[h] -> end[h] in face h // 3
+    start = faces.ravel().astype(np.int64)
+    end = faces[:, [1, 2, 0]].ravel().astype(np.int64)  # half-edge h runs start[h] -> end[h] in face h // 3
     key = np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)  # any order within an edge: the pairs and border faces are the same
     run_start = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
     run_length = np.diff(np.r_[run_start, len(key)])
     pair = run_start[run_length == 2]

@@ -37,6 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .child_process import exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
 from .intake import clean_mesh
 from .layout import FaceLayout
@@ -68,18 +69,16 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     try:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
-            source = dict(file_obj=io.BytesIO(text), file_type="obj")
+            loaded = _load_geometry(trimesh, io.BytesIO(text), "obj")
         else:
-            source = dict(file_obj=str(path))
-        loaded = trimesh.load(
-            **source, force="mesh", process=False, maintain_order=True, skip_materials=True
-        )
+            with open(path, "rb") as handle:
+                loaded = _load_geometry(trimesh, handle, suffix[1:])
     except IndexError as exc:
         raise MeshFileError(f"{label}: a face refers to a vertex that does not exist ({exc})") from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshFileError(f"{label}: not a readable {suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})") from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))))
+    vertices = np.asarray(loaded.get("vertices", np.empty((0, 3))), dtype=np.float64)
+    faces = np.asarray(loaded.get("faces", np.empty((0, 3))))
     if vertices.shape[0] == 0:
         if _holds_points_only(trimesh, path, suffix):
             raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
@@ -95,24 +94,59 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
     if file_faces is None:
-        file_faces = _loaded_faces(loaded, faces)
+        file_faces = _loaded_faces(loaded, faces, len(vertices))
     return _with_layout(mesh, file_faces, len(vertices))
 
 
-def _loaded_faces(loaded, faces: np.ndarray):
+def _load_geometry(trimesh, handle, file_type: str) -> dict:
+    """What trimesh's reader of `file_type` gives (vertices, faces, metadata, visual), read
+    with `process=False`: for OFF, PLY and STL straight from trimesh's mesh loader (issue
+    15: wrapping the arrays in a Trimesh, a Scene and a merged copy of it costs more than
+    parsing a binary PLY of a million vertices), for other formats (OBJ's loader returns a
+    scene) and files with several objects through `trimesh.load(force="mesh")`."""
+    options = dict(process=False, maintain_order=True, skip_materials=True)
+    loader = trimesh.exchange.load.mesh_loaders.get(file_type) if file_type in _DIRECT_FORMATS else None
+    if loader is not None:
+        start = handle.tell()
+        found = loader(file_obj=handle, file_type=file_type, resolver=None, metadata=None, **options)
+        if isinstance(found, dict) and "vertices" in found and "geometry" not in found:
+            return found
+        handle.seek(start)
+    loaded = trimesh.load(file_obj=handle, file_type=file_type, force="mesh", **options)
+    return {"vertices": getattr(loaded, "vertices", np.empty((0, 3))), "faces": getattr(loaded, "faces", None),
+            "metadata": getattr(loaded, "metadata", {}), "visual": getattr(loaded, "visual", None)}
+
+
+#: formats read straight from trimesh's mesh loader (`_load_geometry`)
+_DIRECT_FORMATS = ("off", "ply", "stl")
+
+
+def _loaded_faces(loaded: dict, faces: np.ndarray, n_vertices: int):
     """(sizes, corners, uv per corner or None) of a mesh trimesh loaded: PLY polygons from
-    its raw face lists, UVs per vertex where trimesh found them (PLY, glTF)."""
-    raw = getattr(loaded, "metadata", {}).get("_ply_raw", {}).get("face", {}).get("data", {})
-    lists = raw.get("vertex_indices", raw.get("vertex_index")) if hasattr(raw, "get") else None
-    if lists is not None and len(lists):
-        polygons = [np.asarray(p, dtype=np.int64).ravel() for p in lists]
+    its raw face lists, UVs per vertex where trimesh found them (PLY, glTF). Face lists of
+    one length (a binary PLY's record array) are taken whole, without a loop over faces."""
+    raw = (loaded.get("metadata") or {}).get("_ply_raw", {}).get("face", {}).get("data", {})
+    lists = None
+    if isinstance(raw, np.ndarray) and raw.dtype.names:
+        name = next((n for n in ("vertex_indices", "vertex_index") if n in raw.dtype.names), None)
+        lists = None if name is None else raw[name]
+    elif hasattr(raw, "get"):
+        lists = raw.get("vertex_indices", raw.get("vertex_index"))
+    if isinstance(lists, np.ndarray) and lists.dtype.names and "f1" in lists.dtype.names:
+        lists = lists["f1"]  # binary PLY: (count, indices) records of one length
+    if isinstance(lists, np.ndarray) and lists.dtype != object and lists.ndim == 2 and len(lists):
+        sizes = np.full(len(lists), lists.shape[1], dtype=np.int64)
+        corners = lists.astype(np.int64).ravel()
     else:
-        polygons = list(np.asarray(faces, dtype=np.int64))
-    sizes = np.array([len(p) for p in polygons], dtype=np.int64)
-    corners = np.concatenate(polygons) if polygons else np.empty(0, dtype=np.int64)
-    uv = getattr(getattr(loaded, "visual", None), "uv", None)
+        if lists is not None and len(lists):
+            polygons = [np.asarray(p, dtype=np.int64).ravel() for p in lists]
+        else:
+            polygons = list(np.asarray(faces, dtype=np.int64))
+        sizes = np.array([len(p) for p in polygons], dtype=np.int64)
+        corners = np.concatenate(polygons) if polygons else np.empty(0, dtype=np.int64)
+    uv = getattr(loaded.get("visual"), "uv", None)
     per_corner = None
-    if uv is not None and len(uv) == len(loaded.vertices):
+    if uv is not None and len(uv) == n_vertices:
         per_corner = np.asarray(uv, dtype=np.float64)[corners]
     return sizes, corners, per_corner
 
@@ -191,8 +225,9 @@ def list_mesh_files(folder: str | os.PathLike) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
 
 
-def read_folder(folder: str | os.PathLike, min_shapes: int = 2) -> list[Mesh]:
-    """Read every mesh file in `folder`.
+def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None = 1) -> list[Mesh]:
+    """Read every mesh file in `folder`, in `jobs` worker processes (None: all cores; 1:
+    in this process), one file per task, in file order either way.
 
     All files are tried; if any fail, one single-line MeshFileError names every failing
     file with its problem (starting with that file's path when only one fails).
@@ -204,12 +239,18 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2) -> list[Mesh]:
         raise CollectionError(
             f"{folder}: no mesh files found (looked for {', '.join(MESH_SUFFIXES)})"
         )
-    meshes, failures = [], []
-    for path in files:
-        try:
-            meshes.append(read_mesh(path))
-        except MeshFileError as exc:
-            failures.append(str(exc))
+    jobs = min(len(files), (os.cpu_count() or 1) if jobs is None else max(1, int(jobs)))
+    if jobs > 1:
+        import concurrent.futures as futures
+        import multiprocessing
+
+        with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=exit_with_parent) as pool:
+            outcomes = list(pool.map(_read_or_error, files))
+    else:
+        outcomes = [_read_or_error(path) for path in files]
+    meshes = [m for m in outcomes if isinstance(m, Mesh)]
+    failures = [m for m in outcomes if not isinstance(m, Mesh)]
     if failures:
         # one line (the CLI prints errors as one line): the failing file first when it is the
         # only one, so the message starts with the path of the file to fix
@@ -232,6 +273,14 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2) -> list[Mesh]:
             f"found {len(meshes)} ({', '.join(p.name for p in files)})"
         )
     return meshes
+
+
+def _read_or_error(path: Path) -> Mesh | str:
+    """The mesh of one file, or its MeshFileError's message (a worker task of `read_folder`)."""
+    try:
+        return read_mesh(path)
+    except MeshFileError as exc:
+        return str(exc)
 
 
 def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:

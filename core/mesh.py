@@ -4,7 +4,14 @@
 immutable by convention (arrays are made read-only) and always valid:
 
 * vertices: (V, 3) float64, all finite;
-* faces: (F, 3) int64, every index in [0, V), F >= 1, no degenerate triangle.
+* faces: (F, 3) int32 (int64 beyond 2³¹ vertices), every index in [0, V), F >= 1, no
+  degenerate triangle.
+
+Faces are int32 and an array that is already read-only and of the right dtype is kept,
+not copied (issue 15: a mesh of a million vertices held its faces as int64 and every
+`with_vertices` copied them). Per-face quantities are computed in chunks of
+`FACE_CHUNK` faces (no (F, 3, 3) temporaries), and the used vertices come from a mask,
+not a sort, so the cost stays linear in the mesh.
 
 Build one with `Mesh.from_polygons` (triangulates polygons, drops degenerate faces and
 counts what it did in `Mesh.report`) or `Mesh(vertices, faces)` for data already clean;
@@ -25,7 +32,10 @@ from .errors import MeshError
 if TYPE_CHECKING:
     from .layout import FaceLayout
 
-__all__ = ["Mesh", "MeshReport", "SurfaceSamples"]
+__all__ = ["Mesh", "MeshReport", "SurfaceSamples", "triangle_cross", "cross_rows"]
+
+#: Faces per chunk of the per-face computations (bounds their temporary memory).
+FACE_CHUNK = 1 << 18
 
 #: A triangle whose area is below this fraction of (mean edge length)^2 of the mesh is
 #: treated as degenerate (zero area up to rounding) and dropped.
@@ -100,7 +110,7 @@ class Mesh:
 
     def __post_init__(self):
         label = self.name or "mesh"
-        vertices = np.array(self.vertices, dtype=np.float64, copy=True)
+        vertices = _frozen(self.vertices, np.float64)
         faces_in = np.asarray(self.faces)
         if vertices.ndim != 2 or vertices.shape[1] != 3:
             raise MeshError(f"{label}: vertices must have shape (V, 3), got {vertices.shape}")
@@ -123,12 +133,16 @@ class Mesh:
         if not np.issubdtype(faces_in.dtype, np.integer):
             if not np.all(np.equal(np.mod(faces_in, 1), 0)):
                 raise MeshError(f"{label}: face indices must be integers")
-        faces = faces_in.astype(np.int64, copy=True)
+        faces = _frozen(faces_in, face_dtype(vertices.shape[0]))
         _check_face_indices(faces, vertices.shape[0], label)
-        vertices.flags.writeable = False
-        faces.flags.writeable = False
         object.__setattr__(self, "vertices", vertices)
         object.__setattr__(self, "faces", faces)
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled (a mesh sent to or from a worker process): read-only again."""
+        self.__dict__.update(state)
+        for key in ("vertices", "faces"):
+            state[key].flags.writeable = False
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -158,7 +172,8 @@ class Mesh:
             raise MeshError(f"{label}: vertex {first} has a NaN or infinite coordinate")
         keep = ~_degenerate_mask(vertices, triangles)
         n_dropped = int((~keep).sum())
-        triangles = triangles[keep]
+        if n_dropped:
+            triangles = triangles[keep]
         if triangles.shape[0] == 0:
             raise MeshError(f"{label}: every face is degenerate (zero area or repeated vertex)")
         report = MeshReport(n_poly, n_from_poly, n_dropped,
@@ -186,15 +201,22 @@ class Mesh:
 
     def face_normals_unnormalised(self) -> np.ndarray:
         """Cross products (b - a) x (c - a); length = 2 * area."""
-        tri = self.triangles
-        return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        out = np.empty((self.n_faces, 3))
+        for start in range(0, self.n_faces, FACE_CHUNK):
+            out[start:start + FACE_CHUNK] = triangle_cross(self.vertices, self.faces[start:start + FACE_CHUNK])
+        return out
 
     def face_areas(self) -> np.ndarray:
         """Area of every face, (F,)."""
-        return 0.5 * np.linalg.norm(self.face_normals_unnormalised(), axis=1)
+        out = np.empty(self.n_faces)
+        for start in range(0, self.n_faces, FACE_CHUNK):
+            cross = triangle_cross(self.vertices, self.faces[start:start + FACE_CHUNK])
+            out[start:start + FACE_CHUNK] = 0.5 * np.linalg.norm(cross, axis=1)
+        return out
 
     def area(self) -> float:
-        return float(self.face_areas().sum())
+        """Total surface area (computed once per mesh)."""
+        return self.cached("area", lambda mesh: float(mesh.face_areas().sum()))
 
     def face_normals(self) -> np.ndarray:
         """Unit normals, (F, 3), right-hand rule over the face's vertex order."""
@@ -205,15 +227,29 @@ class Mesh:
         """Area-weighted unit vertex normals, (V, 3); isolated vertices get (0, 0, 0)."""
         n = self.face_normals_unnormalised()  # weight by 2*area implicitly
         acc = np.zeros_like(self.vertices)
-        for corner in range(3):
+        for corner in range(3):  # summed in this order (the results of every stage depend on its last bits)
             np.add.at(acc, self.faces[:, corner], n)
         length = np.linalg.norm(acc, axis=1, keepdims=True)
         return np.divide(acc, length, out=np.zeros_like(acc), where=length > 0)
 
     def bounds(self) -> np.ndarray:
-        """(2, 3): min and max corner of the axis-aligned bounding box of used vertices."""
-        used = self.vertices[np.unique(self.faces)]
-        return np.stack([used.min(axis=0), used.max(axis=0)])
+        """(2, 3): min and max corner of the axis-aligned bounding box of used vertices
+        (computed once per mesh: the mesh is immutable)."""
+        return self.cached("bounds", _used_bounds).copy()
+
+    def cached(self, key: str, compute):
+        """`compute(self)`, computed once per mesh and kept (the mesh is immutable): for
+        small derived values (bounds, surface moments) that several stages ask for."""
+        store = self.__dict__.setdefault("_cached", {})
+        if key not in store:
+            store[key] = compute(self)
+        return store[key]
+
+    def used_vertices(self) -> np.ndarray:
+        """Sorted indices of the vertices some face uses (`np.unique(faces)`, by a mask)."""
+        used = np.zeros(self.n_vertices, dtype=bool)
+        used[self.faces.ravel()] = True
+        return np.flatnonzero(used)
 
     def bbox_diagonal(self) -> float:
         lo, hi = self.bounds()
@@ -226,13 +262,19 @@ class Mesh:
         return e
 
     def edges_unique(self) -> np.ndarray:
-        """(E, 2) undirected edges, each once, smaller index first."""
-        return np.unique(self._face_edges(), axis=0)
+        """(E, 2) undirected edges, each once, smaller index first (sorted)."""
+        keys = np.unique(self._edge_keys())
+        return np.stack([keys // self.n_vertices, keys % self.n_vertices], axis=1).astype(self.faces.dtype)
 
     def is_closed(self) -> bool:
         """True when every edge is shared by exactly two faces (a closed 2-manifold surface)."""
-        _, counts = np.unique(self._face_edges(), axis=0, return_counts=True)
+        _, counts = np.unique(self._edge_keys(), return_counts=True)
         return bool(np.all(counts == 2))
+
+    def _edge_keys(self) -> np.ndarray:
+        """(3F,) int64 key a · V + b of every face corner's edge (a < b)."""
+        edges = self._face_edges().astype(np.int64)
+        return edges[:, 0] * self.n_vertices + edges[:, 1]
 
     def mean_edge_length(self) -> float:
         e = self.edges_unique()
@@ -255,13 +297,52 @@ class Mesh:
         r1 = np.sqrt(rng.random(n))
         r2 = rng.random(n)
         bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-        tri = self.triangles[face_index]
+        tri = self.vertices[self.faces[face_index]]
         points = np.einsum("nk,nkd->nd", bary, tri)
         return SurfaceSamples(points, face_index.astype(np.int64), bary)
 
 
+def _used_bounds(mesh: Mesh) -> np.ndarray:
+    used = mesh.vertices[mesh.used_vertices()]
+    return np.stack([used.min(axis=0), used.max(axis=0)])
+
+
+def face_dtype(n_vertices: int):
+    """The dtype of a mesh's faces: int32, int64 for more than 2³¹ − 1 vertices."""
+    return np.int32 if n_vertices <= np.iinfo(np.int32).max else np.int64
+
+
+def _frozen(array, dtype) -> np.ndarray:
+    """`array` as a read-only array of `dtype`: itself when it is one already and nothing
+    can write to it (its memory is read-only too), else a read-only copy."""
+    if isinstance(array, np.ndarray) and array.dtype == dtype and not array.flags.writeable:
+        base = array
+        while isinstance(base, np.ndarray) and base.base is not None:
+            base = base.base
+        if isinstance(base, np.ndarray) and not base.flags.writeable:
+            return array
+    out = np.array(array, dtype=dtype, copy=True)
+    out.flags.writeable = False
+    return out
+
+
+def triangle_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) cross products (b − a) × (c − a) of the given faces (length 2 × area),
+    component by component (no (F, 3, 3) array)."""
+    a = vertices[faces[:, 0]]
+    return cross_rows(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a)
+
+
+def cross_rows(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise u × v of (n, 3) arrays."""
+    return np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+                     u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], axis=1)
+
+
 def _check_face_indices(faces: np.ndarray, n_vertices: int, label: str) -> None:
     """MeshError naming the first face whose vertex index is outside [0, n_vertices)."""
+    if faces.size and faces.min() >= 0 and faces.max() < n_vertices:
+        return
     out_of_range = (faces < 0) | (faces >= n_vertices)
     if out_of_range.any():
         row = int(np.flatnonzero(out_of_range.any(axis=1))[0])
@@ -272,7 +353,7 @@ def _triangulate(polygons, label: str) -> tuple[np.ndarray, int, int]:
     """Fan-triangulate polygons. Returns (triangles, n_polygons_split, n_triangles_made)."""
     if isinstance(polygons, np.ndarray) and polygons.ndim == 2:
         if polygons.shape[1] == 3:
-            return polygons.astype(np.int64), 0, 0
+            return polygons, 0, 0
         if polygons.shape[1] < 3:
             raise MeshError(f"{label}: faces need at least 3 vertices, got {polygons.shape[1]}")
         polygons = polygons.tolist()
@@ -300,14 +381,15 @@ def _degenerate_mask(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         | (triangles[:, 1] == triangles[:, 2])
         | (triangles[:, 2] == triangles[:, 0])
     )
-    tri = vertices[triangles]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    twice_area = np.linalg.norm(cross, axis=1)
-    edge_sq = (
-        ((tri[:, 1] - tri[:, 0]) ** 2).sum(axis=1)
-        + ((tri[:, 2] - tri[:, 1]) ** 2).sum(axis=1)
-        + ((tri[:, 0] - tri[:, 2]) ** 2).sum(axis=1)
-    )
+    twice_area = np.empty(len(triangles))
+    edge_sq = np.empty(len(triangles))
+    for start in range(0, len(triangles), FACE_CHUNK):
+        part = triangles[start:start + FACE_CHUNK]
+        a, b, c = vertices[part[:, 0]], vertices[part[:, 1]], vertices[part[:, 2]]
+        u, v, w = b - a, c - a, c - b
+        cross = cross_rows(u, v)
+        twice_area[start:start + FACE_CHUNK] = np.linalg.norm(cross, axis=1)
+        edge_sq[start:start + FACE_CHUNK] = (u ** 2).sum(axis=1) + (w ** 2).sum(axis=1) + (v ** 2).sum(axis=1)
     scale = max(float(np.median(edge_sq)), np.finfo(float).tiny) if len(edge_sq) else 1.0
     flat = twice_area <= DEGENERATE_AREA_RTOL * scale
     return repeated | flat

@@ -16,20 +16,24 @@ import numpy as np
 from .errors import ModelFileError, ShapeGenError
 from .intake import clean_mesh
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz
+from .npzfile import ArraySpec, Concatenation, load_npz, save_npz
 
-__all__ = ["pack", "unpack", "save_mesh_set", "load_mesh_set", "MESHES_FORMAT", "MESHES_VERSION"]
+__all__ = ["pack", "stored", "unpack", "save_mesh_set", "load_mesh_set", "MESHES_FORMAT", "MESHES_VERSION"]
 
 MESHES_FORMAT = "shapegen.meshes"
 MESHES_VERSION = 1
 
 
-def pack(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray], prefix: str = "") -> dict[str, np.ndarray]:
+def pack(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray], prefix: str = "",
+         lazy: bool = False) -> dict[str, np.ndarray]:
     """`{prefix}vertices`, `{prefix}faces` (concatenated, indices local to each mesh) and
-    `{prefix}vertex_offsets`, `{prefix}face_offsets` (M + 1 each)."""
+    `{prefix}vertex_offsets`, `{prefix}face_offsets` (M + 1 each). `lazy`: vertices and
+    faces as `npzfile.Concatenation`s that `save_npz` streams into the file (no copy of
+    every mesh in memory)."""
+    join = Concatenation if lazy else (lambda parts: np.concatenate(parts))
     return {
-        f"{prefix}vertices": np.concatenate([np.asarray(v) for v in vertices]),
-        f"{prefix}faces": np.concatenate([np.asarray(f) for f in faces]),
+        f"{prefix}vertices": join([np.asarray(v) for v in vertices]),
+        f"{prefix}faces": join([np.asarray(f) for f in faces]),
         f"{prefix}vertex_offsets": np.cumsum([0] + [len(v) for v in vertices]).astype(np.int64),
         f"{prefix}face_offsets": np.cumsum([0] + [len(f) for f in faces]).astype(np.int64),
     }
@@ -64,6 +68,11 @@ def unpack(arrays, names: Sequence[str], label: str, prefix: str = "",
         except ShapeGenError as exc:
             raise ModelFileError(f"{label}: mesh {str(name)!r} is invalid: {exc}") from None
     return meshes
+
+
+def stored(prefix: str = "") -> tuple[str, ...]:
+    """The keys of `pack`'s large arrays, written without compression (`save_npz(stored=)`)."""
+    return f"{prefix}vertices", f"{prefix}faces"
 
 
 def save_mesh_set(path: str | os.PathLike, names: Sequence[str], vertices: Sequence[np.ndarray],

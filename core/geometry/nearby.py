@@ -38,10 +38,12 @@ class _FaceGrid:
         centroids = np.empty((len(faces), 3))
         radii = np.empty(len(faces))
         for start in range(0, len(faces), _CHUNK):
-            tri = vertices[faces[start:start + _CHUNK]]
-            centre = tri.mean(axis=1)
+            part = faces[start:start + _CHUNK]
+            corners = [vertices[part[:, k]] for k in range(3)]  # (n, 3) each: no (n, 3, 3) reductions
+            centre = (corners[0] + corners[1] + corners[2]) / 3.0
             centroids[start:start + _CHUNK] = centre
-            radii[start:start + _CHUNK] = np.linalg.norm(tri - centre[:, None, :], axis=2).max(axis=1)
+            squared = [np.einsum("ij,ij->i", corner - centre, corner - centre) for corner in corners]
+            radii[start:start + _CHUNK] = np.sqrt(np.maximum(np.maximum(squared[0], squared[1]), squared[2]))
         self.centroids, self.radii = centroids, radii
         self.cell = max(2.0 * float(np.quantile(radii, 0.99)), np.finfo(float).tiny)
         small = radii <= self.cell / 2

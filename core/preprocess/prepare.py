@@ -8,7 +8,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import CollectionError, MeshError
-from ..mesh import Mesh
+from ..mesh import FACE_CHUNK, Mesh
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .hollow import Hollows
@@ -103,7 +103,7 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
     """Step 4: the rotation, then the lowest surface vertex to z = 0 and the horizontal
     centre (surface centroid, highest vertex, or none) to x = y = 0."""
     # only vertices that belong to a face count (an unused stray vertex is no surface)
-    rotated = mesh.vertices[np.unique(mesh.faces)] @ rotation.T
+    rotated = mesh.vertices[mesh.used_vertices()] @ rotation.T
     shift = np.zeros(3)
     shift[2] = -rotated[:, 2].min()
     if centre == "centroid":
@@ -116,10 +116,15 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
 
 def _equal_size(meshes: Sequence[Mesh], transforms: Sequence[ShapeTransform], scale: str) -> list[ShapeTransform]:
     """Step 5: scale every shape so its measure (`scale_measure`) equals the geometric mean
-    of the collection's measures."""
+    of the collection's measures. The surface variance of a mesh above FACE_CHUNK faces
+    comes from its own moments (a similarity's rotation and shift leave it, its scale
+    multiplies it by scale²), not from a transformed copy (issue 15)."""
     measures = []
     for mesh, transform in zip(meshes, transforms):
-        value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
+        if scale == "variance" and mesh.n_faces > FACE_CHUNK:
+            value = transform.scale ** 2 * scale_measure(mesh, scale)
+        else:
+            value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
         if not np.isfinite(value) or value <= 0:
             raise MeshError(
                 f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "

@@ -203,15 +203,15 @@ def test_cli_bad_folder_exits_2(vase_folder, tmp_path, content, fragment):
 
 
 def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
-    """A failure while writing (here: the compressor raising) leaves neither the output
-    nor a temporary file."""
+    """A failure while writing (here: streaming the meshes in raising half-way) leaves
+    neither the output nor a temporary file."""
     import shapegen_core.npzfile as npzfile
 
-    def broken(handle, **arrays):
-        handle.write(b"PK\x03\x04 partial")
+    def broken(self, handle):
+        handle.write(b"\x93NUMPY partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(npzfile.np, "savez_compressed", broken)
+    monkeypatch.setattr(npzfile.Concatenation, "write", broken)
     with pytest.raises(OSError, match="disk full"):
         prepared.save(tmp_path / "prepared.npz")
     assert list(tmp_path.iterdir()) == []

@@ -174,3 +174,57 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
         fit_shape_model([s.mesh for s in collection.shapes], corr, FitSettings(model="gplvm", latent_dim=1),
                         progress=lambda fraction, message: messages.append(message))
     assert any("N³" in m for m in messages)
+
+
+def test_files_read_in_workers_equal_those_read_here(vases, tmp_path):
+    """read_folder(jobs=2) (shapegen fit reads so) gives the meshes read in this process:
+    same names, order, vertices and int32 faces, read-only either way."""
+    from shapegen_core.io import read_folder
+
+    for index, mesh in enumerate(vases[:3]):
+        dense = _subdivided(mesh, 1)
+        trimesh.Trimesh(dense.vertices, dense.faces, process=False).export(tmp_path / f"v{index}.ply",
+                                                                            encoding="binary")
+    here, workers = read_folder(tmp_path, jobs=1), read_folder(tmp_path, jobs=2)
+    assert [m.name for m in here] == [m.name for m in workers] == ["v0", "v1", "v2"]
+    for a, b in zip(here, workers):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)
+        assert a.faces.dtype == b.faces.dtype == np.int32
+        assert not (b.vertices.flags.writeable or b.faces.flags.writeable)
+
+
+def test_meshes_share_read_only_arrays_instead_of_copying(vases):
+    """A mesh keeps read-only arrays of its dtypes as they are (with_vertices shares the
+    faces); an unpickled mesh is read-only again."""
+    mesh = vases[0]
+    moved = mesh.with_vertices(mesh.vertices + 1.0)
+    assert moved.faces is mesh.faces and mesh.faces.dtype == np.int32
+    writable = mesh.faces.copy()
+    assert not np.shares_memory(Mesh(mesh.vertices, writable).faces, writable)  # a writable array is copied
+    back = pickle.loads(pickle.dumps(mesh))
+    assert not (back.vertices.flags.writeable or back.faces.flags.writeable)
+    assert back.bbox_diagonal() == mesh.bbox_diagonal()
+
+
+def test_meshes_streamed_into_files_uncompressed(vases, tmp_path):
+    """npzfile.Concatenation writes the concatenated array without building it, `stored`
+    keys are written without compression, and the file reads back as before."""
+    import zipfile
+
+    from shapegen_core.npzfile import Concatenation, save_npz
+
+    parts = [m.vertices for m in vases[:3]]
+    path = save_npz(tmp_path / "x.npz", "shapegen.test", 1,
+                    {"vertices": Concatenation(parts), "faces": Concatenation([m.faces for m in vases[:3]]),
+                     "small": np.arange(5.0)}, stored=("vertices", "faces"))
+    with np.load(path, allow_pickle=False) as data:
+        np.testing.assert_array_equal(data["vertices"], np.concatenate(parts))
+        assert data["faces"].dtype == np.int32 and len(data["faces"]) == sum(m.n_faces for m in vases[:3])
+        np.testing.assert_array_equal(data["small"], np.arange(5.0))
+    with zipfile.ZipFile(path) as archive:
+        kinds = {info.filename: info.compress_type for info in archive.infolist()}
+    assert kinds["vertices.npy"] == kinds["faces.npy"] == zipfile.ZIP_STORED
+    assert kinds["small.npy"] == zipfile.ZIP_DEFLATED
+    with pytest.raises(ValueError):
+        Concatenation([np.zeros((2, 3)), np.zeros((2, 2))])
