@@ -15,9 +15,10 @@ memory of that process and every process it started, sampled every 20 ms):
 * vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
-  for 20 shapes and by pca for more (the consensus pose search compares every pair of
-  shapes in 24 poses: O(N²)); vases-20 also corresponds on a Dask LocalCluster (local:2)
-  and reports the largest difference from the process pool.
+  at every size (above 64 shapes its pose search computes the exact cost only for the
+  pairs a descriptor proposes: core/preprocess/neighbours.py); vases-20 also corresponds
+  on a Dask LocalCluster (local:2) and reports the largest difference from the process
+  pool.
 
 The table prints seconds and peak GB per stage, the figures of the same row before the
 issue's changes (`BEFORE`, measured with this script on the commit named there) and the
@@ -161,7 +162,7 @@ def run_row(row: str, args) -> dict:
         print(f"  {row}: {name} {stages[name][0]:.1f} s, {stages[name][1] / 1e9:.2f} GB", file=sys.stderr, flush=True)
         return value
 
-    align = args.align or ("pca" if VASE_ROWS.get(row, 0) > 20 else "consensus")
+    align = args.align or "consensus"
     prepare_settings = PrepareSettings(up_axis="y" if row in DENSE_TARGETS else "z", align=align)
     info["align"] = align
     if row in DENSE_TARGETS:
@@ -259,8 +260,7 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2, help="correspondence worker processes (default 2)")
     parser.add_argument("--cache", default="/tmp/shapegen-scale", help="folder of the dense PLY files")
     parser.add_argument("--align", default=None, choices=("consensus", "pca", "none"),
-                        help="Prepare's align (default: consensus, but pca for the 200 and 1000 vase rows: the "
-                             "consensus pose search compares every pair of shapes)")
+                        help="Prepare's align (default consensus)")
     parser.add_argument("--all-models", action="store_true", help="also gplvm above 200 shapes (N³: hours)")
     parser.add_argument("--no-dask", dest="dask", action="store_false",
                         help="skip the Dask LocalCluster comparison of the vases-20 row")

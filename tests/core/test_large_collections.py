@@ -1,6 +1,7 @@
 """Large collections (issue 15): Prepare's pose search proposes pairs instead of comparing
-every pair and still finds the same nearest shapes, and what Prepare holds per shape does
-not outgrow the shapes themselves."""
+every pair and still finds the same nearest shapes, what Prepare holds per shape does not
+outgrow the shapes themselves, and correspondence's medoid and leave-one-out flags avoid
+their N² and N³ costs with the same answers."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from shapegen_core.correspond import groupwise, outliers
 from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.geometry import chamfer_matrix
 from shapegen_core.preprocess.neighbours import field_descriptors, probe_grid
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.prepare import prepare_collection
@@ -73,3 +76,35 @@ def test_prepare_memory_does_not_grow_faster_than_the_shapes(align):
     assert per_shape_kept < 1.5 * mesh_bytes  # the prepared mesh itself, nothing else
     assert per_shape_peak < 4.0 * mesh_bytes, (per_shape_peak / mesh_bytes)
     assert len(prepared) == 12
+
+
+def test_screened_medoid_of_a_large_collection_is_the_medoid():
+    """Above MEDOID_EXACT_SHAPES the medoid is screened against a few reference sets and
+    summed over all for a shortlist: here the same set as the sum over every pair."""
+    rng = np.random.default_rng(0)
+    sets = [rng.normal(size=(60, 3)) * (1 + 0.3 * rng.random()) + rng.normal(size=3) * 0.5
+            for _ in range(groupwise.MEDOID_EXACT_SHAPES + 20)]
+    expected = int(np.argmin(chamfer_matrix(sets).sum(axis=1)))
+    assert groupwise.chamfer_medoid(sets) == expected
+
+
+def test_held_out_groups_flag_the_shape_leave_one_out_flags(monkeypatch):
+    """Above LEAVE_ONE_OUT_SHAPES the reconstruction model leaves out a group: no shape is
+    in its own model, and the errors stay those of leaving out one shape (a low-rank
+    family of 230 shapes plus one upside down: same median, the same one far above it)."""
+    count = outliers.LEAVE_ONE_OUT_SHAPES + 30
+    groups = outliers.held_out_groups(count)
+    assert sorted(i for g in groups for i in g) == list(range(count)) and len(groups) < count
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=(40, 3))
+    modes = rng.normal(size=(3, 40, 3))
+    points = base + np.einsum("nk,kld->nld", rng.normal(size=(count, 3)), modes) \
+        + 0.01 * rng.normal(size=(count, 40, 3))
+    points[11] = points[11] * np.array([1.0, -1.0, -1.0])
+    grouped = outliers.leave_one_out_errors(points, 0.9)
+    monkeypatch.setattr(outliers, "LEAVE_ONE_OUT_SHAPES", count)
+    alone = outliers.leave_one_out_errors(points, 0.9)
+    assert abs(np.median(grouped) / np.median(alone) - 1.0) < 0.1
+    assert np.isclose(grouped[11], alone[11], rtol=0.01)
+    assert list(np.flatnonzero(grouped > 5 * np.median(grouped))) == [11]
+    assert list(np.flatnonzero(alone > 5 * np.median(alone))) == [11]
