@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..progress import Progress, no_progress
 from .rotations import AXIS_ROTATIONS
 
 __all__ = ["EXACT_SHAPES", "CANDIDATES", "CandidateDistances", "complete_nearest", "field_descriptors"]
@@ -90,11 +91,12 @@ def field_differences(descriptors: np.ndarray) -> np.ndarray:
 
 class CandidateDistances:
     """The distance matrix of a large collection: exact for the pairs computed, the
-    scaled estimate elsewhere (module docstring); `known` marks the exact entries."""
+    scaled estimate elsewhere (module docstring); `known` marks the exact entries.
+    `progress` follows the exact costs of the proposed pairs."""
 
     def __init__(self, trees: Sequence[cKDTree], exact: Callable[[int, int], float],
                  candidates: int = CANDIDATES, quantile: float = ESTIMATE_QUANTILE,
-                 margin: float = ESTIMATE_MARGIN):
+                 margin: float = ESTIMATE_MARGIN, progress: Progress | None = None):
         self.exact = exact
         n = len(trees)
         differences = field_differences(field_descriptors(trees, probe_grid()))
@@ -104,8 +106,11 @@ class CandidateDistances:
         for j in range(n):
             order = np.argsort(differences[j], kind="stable")
             pairs.update((min(j, int(i)), max(j, int(i))) for i in order[order != j][:candidates])
-        for j, i in sorted(pairs):
+        report = progress or no_progress
+        for done, (j, i) in enumerate(sorted(pairs)):
             self.set(j, i, exact(j, i))
+            if done % n == n - 1 or done == len(pairs) - 1:
+                report((done + 1) / len(pairs), f"comparing {done + 1} of {len(pairs)} proposed pairs of shapes")
         rows, cols = np.nonzero(self.known & ~np.eye(n, dtype=bool))
         ratios = self.distance[rows, cols] / np.maximum(differences[rows, cols], 1e-300)
         self.scale = margin * float(np.quantile(ratios, quantile)) if len(ratios) else 1.0

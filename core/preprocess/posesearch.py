@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry.chamfer import chamfer_distance
 from ..mesh import Mesh
+from ..progress import Progress, no_progress
 from .moments import surface_moments
 from .neighbours import EXACT_SHAPES, CandidateDistances, complete_nearest
 from .rotations import AXIS_ROTATIONS, TILTS, yaw_rotation
@@ -60,7 +61,8 @@ class Fit:
 class PoseSearch:
     """Surface samples of a collection in base pose, their trees and descriptors."""
 
-    def __init__(self, samples: Sequence[np.ndarray], exact_shapes: int = EXACT_SHAPES):
+    def __init__(self, samples: Sequence[np.ndarray], exact_shapes: int = EXACT_SHAPES,
+                 progress: Progress | None = None):
         self.samples = [np.asarray(s, dtype=np.float64) for s in samples]
         self.trees = [cKDTree(s) for s in self.samples]
         self._pair_costs: dict[tuple[int, int, bytes], float] = {}
@@ -72,13 +74,15 @@ class PoseSearch:
         #: module `neighbours`)
         self.candidates: CandidateDistances | None = None
         if n > exact_shapes:
-            self.candidates = CandidateDistances(self.trees, self.axis_distance)
+            self.candidates = CandidateDistances(self.trees, self.axis_distance, progress=progress)
             self.distance = self.candidates.distance
             return
         self.distance = np.zeros((n, n))
+        report = progress or no_progress
         for j in range(n):
             for i in range(j + 1, n):
                 self.distance[i, j] = self.distance[j, i] = self.axis_distance(j, i)
+            report((j + 1) * (2 * n - j - 2) / max(n * (n - 1), 1), f"comparing shape {j + 1} of {n}")
 
     def axis_distance(self, j: int, i: int) -> float:
         """min over the 24 axis rotations R of C(R P_j, P_i): screened on the coarse
@@ -89,14 +93,16 @@ class PoseSearch:
         return min(self.cost(j, AXIS_ROTATIONS[r], [(i, np.eye(3))]) for r in screened)
 
     @classmethod
-    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int) -> "PoseSearch":
-        """`points` samples of every shape (generator seed + i) in its base rotation."""
+    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int,
+           progress: Progress | None = None) -> "PoseSearch":
+        """`points` samples of every shape (generator seed + i) in its base rotation;
+        `progress` follows the comparison of the shapes."""
         samples = []
         for i, (mesh, rotation) in enumerate(zip(meshes, base)):
             _, mean, cov = surface_moments(mesh)
             pts = mesh.sample_surface(points, np.random.default_rng(seed + i)).points
             samples.append((pts - mean) @ rotation.T / np.sqrt(np.trace(cov)))
-        return cls(samples)
+        return cls(samples, progress=progress)
 
     def __len__(self) -> int:
         return len(self.samples)

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..mesh import Mesh
+from ..progress import sub_range
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .moments import SCALE_MODES, scale_measure, surface_moments
@@ -61,7 +62,8 @@ def prepare_collection(
     search = signatures = symmetry = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         posed = [proxy_mesh(mesh, POSE_PROXY_FACES, above=dense_faces).mesh for mesh in meshes]
-        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed)
+        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
+                               sub_range(report, 0.0, 0.15, "pose search: "))
         signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
         symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor)
         del posed
