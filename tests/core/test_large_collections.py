@@ -108,3 +108,25 @@ def test_held_out_groups_flag_the_shape_leave_one_out_flags(monkeypatch):
     assert np.isclose(grouped[11], alone[11], rtol=0.01)
     assert list(np.flatnonzero(grouped > 5 * np.median(grouped))) == [11]
     assert list(np.flatnonzero(alone > 5 * np.median(alone))) == [11]
+
+
+@pytest.mark.parametrize("exact_shapes", [64, 0])
+def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
+    """Cancel is checked while the pose search compares shapes (every pair, or the
+    proposed pairs), not only after it: the search stops at its next report."""
+    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.errors import Cancelled
+    from shapegen_core.preprocess import posesearch
+
+    monkeypatch.setattr(posesearch.PoseSearch.__init__, "__defaults__", (exact_shapes, None))
+    compared = []
+    original = posesearch.PoseSearch.axis_distance
+    monkeypatch.setattr(posesearch.PoseSearch, "axis_distance",
+                        lambda self, j, i: compared.append((j, i)) or original(self, j, i))
+    messages = []
+    meshes = [v.mesh for v in make_vases(10, seed=2, resolution=(12, 16))]
+    with pytest.raises(Cancelled):
+        prepare_meshes(meshes, PrepareSettings(align="consensus"), progress=lambda f, m: messages.append(m),
+                       should_cancel=lambda: any("pose search" in m for m in messages))
+    assert messages and all("pose search" in m for m in messages)
+    assert 0 < len(compared) < 45  # stopped before every pair (10 shapes: 45)
