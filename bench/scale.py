@@ -53,7 +53,7 @@ QUICK_ROWS = ("dense-100k", "vases-20")
 VASE_RESOLUTION = (115, 135)
 
 #: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (seconds, bytes)}},
-#: measured with this script on main 5dbb1d5 (2 jobs) while other jobs kept the load of
+#: measured with this script on main 5dbb1d5 (dense rows; vase rows: see there) (2 jobs) while other jobs kept the load of
 #: the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
 #: shapes to stay within the machine's memory (the 1M row's Prepare of 2 shapes peaked at
 #: 15.4 GB); its ppca fit cannot run on 2 shapes.
@@ -63,6 +63,14 @@ BEFORE: dict[str, dict] = {
     "dense-300k": {"shapes": 6, "read": (11.6, 1.10e9), "prepare": (452.1, 5.89e9), "correspond": (463.0, 7.82e9),
                    "fit ppca": (0.0, 0.99e9), "save": (7.4, 0.99e9)},
     "dense-1M": {"shapes": 2, "read": (72.7, 2.78e9), "prepare": (376.9, 15.38e9), "correspond": (1111.0, 6.89e9)},
+    # the vase rows before the large-collection changes (main 9c9d469, docs/results.md: load 3-9;
+    # vases-200 prepared with align pca, vases-1000 stopped in Prepare; a peak not recorded: 0)
+    "vases-20": {"shapes": 20, "make": (0.3, 0.12e9), "prepare": (131.0, 0.77e9), "correspond": (85.9, 0.82e9),
+                 "correspond (dask local:2)": (66.3, 0.97e9), "fit ppca": (0.0, 0.64e9),
+                 "fit gplvm": (0.2, 0.64e9), "fit bgplvm": (0.4, 0.64e9)},
+    "vases-200": {"shapes": 200, "prepare": (957.7, 5.54e9), "correspond": (173.7, 10.8e9), "fit ppca": (0.0, 0.0),
+                  "fit gplvm": (4.2, 0.0), "fit bgplvm": (1.4, 0.0)},
+    "vases-1000": {"shapes": 1000, "make": (42.0, 2.0e9), "prepare": "stopped after 1920 s"},
 }
 
 
@@ -202,7 +210,9 @@ def run_row(row: str, args) -> dict:
 
 # ---------------------------------------------------------------------------- table
 def _cell(value) -> str:
-    return "—" if value is None else f"{value[0]:7.1f} s {value[1] / 1e9:5.2f} GB"
+    if value is None or isinstance(value, str):
+        return value or "—"
+    return f"{value[0]:7.1f} s " + (f"{value[1] / 1e9:5.2f} GB" if value[1] else "    — GB")
 
 
 def table(results: list[dict]) -> str:
