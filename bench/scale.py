@@ -180,14 +180,18 @@ def run_row(row: str, args) -> dict:
     else:
         from shapegen_core.datasets import make_vases
 
-        meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0,
-                                                                     resolution=VASE_RESOLUTION)])
+        meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0, resolution=VASE_RESOLUTION,
+                                                                     pose=not args.landmarks_only)])
         models = tuple(args.models.split(","))
         if VASE_ROWS[row] > CUBIC_NOTE_SHAPES and not args.all_models:  # hours: measured on fewer, see docs
             models = tuple(m for m in models if m != "gplvm")
     info["shapes"] = len(meshes)
     info["vertices"] = int(np.mean([m.n_vertices for m in meshes]))
-    prepared = stage("prepare", lambda: prepare_meshes(meshes, prepare_settings))
+    if args.landmarks_only and row in VASE_ROWS:
+        info["align"] = "landmarks only"
+        prepared = stage("landmarks", lambda: landmarks_only(meshes, prepare_settings))
+    else:
+        prepared = stage("prepare", lambda: prepare_meshes(meshes, prepare_settings))
     del meshes
     corr = stage("correspond", lambda: correspond(prepared, CorrespondenceSettings(), jobs=args.jobs))
     info["median_residual"] = float(np.median(corr.residuals))
@@ -206,6 +210,19 @@ def run_row(row: str, args) -> dict:
     memory.stop()
     info["stages"] = stages
     return info
+
+
+def landmarks_only(meshes, settings):
+    """A prepared collection of meshes made upright and facing alike (make_vases with
+    pose=False), left in their frame: Prepare's landmarks without its alignment, to time
+    the correspondence of a large collection on its own (--landmarks-only)."""
+    from shapegen_core.collection import PreparedCollection
+    from shapegen_core.landmarks import select_landmarks
+    from shapegen_core.preprocess.transform import PreparedShape, ShapeTransform
+
+    shapes = [PreparedShape(mesh, ShapeTransform.identity()) for mesh in meshes]
+    landmarks = [select_landmarks(mesh, settings.n_landmarks, seed=settings.seed + i) for i, mesh in enumerate(meshes)]
+    return PreparedCollection(shapes, landmarks, settings)
 
 
 # ---------------------------------------------------------------------------- table
@@ -272,6 +289,8 @@ def main() -> int:
     parser.add_argument("--align", default=None, choices=("consensus", "pca", "none"),
                         help="Prepare's align (default consensus)")
     parser.add_argument("--all-models", action="store_true", help="also gplvm above 200 shapes (N³: hours)")
+    parser.add_argument("--landmarks-only", action="store_true",
+                        help="vase rows: vases made upright, only Prepare's landmarks (times correspondence alone)")
     parser.add_argument("--no-dask", dest="dask", action="store_false",
                         help="skip the Dask LocalCluster comparison of the vases-20 row")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -294,6 +313,7 @@ def main() -> int:
                    "--psb-class", args.psb_class, "--models", args.models, "--jobs", str(args.jobs),
                    "--cache", args.cache] + (["--all-models"] if args.all_models else []) + \
             (["--align", args.align] if args.align else []) + \
+            (["--landmarks-only"] if args.landmarks_only else []) + \
             ([] if args.dask else ["--no-dask"])
         done = subprocess.run(command, stdout=subprocess.PIPE, text=True)
         if done.returncode != 0:
