@@ -117,6 +117,16 @@ class TreeMemory:
         self._stop.set()
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process and of its finished child processes (a
+    worker pool's, once it is closed): the work, whatever the load (wall time on an idle
+    machine with 2 cores is about half of it for the parallel stages)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 # ---------------------------------------------------------------------------- inputs
 def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
     """A folder of `shapes` PLY meshes of `psb_class` subdivided to about `target` vertices
@@ -164,10 +174,11 @@ def run_row(row: str, args) -> dict:
 
     def stage(name, work):
         memory.reset()
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), _cpu_seconds()
         value = work()
-        stages[name] = [time.perf_counter() - start, memory.peak()]
-        print(f"  {row}: {name} {stages[name][0]:.1f} s, {stages[name][1] / 1e9:.2f} GB", file=sys.stderr, flush=True)
+        stages[name] = [time.perf_counter() - start, memory.peak(), _cpu_seconds() - cpu]
+        print(f"  {row}: {name} {stages[name][0]:.1f} s, {stages[name][1] / 1e9:.2f} GB, cpu {stages[name][2]:.1f} s",
+              file=sys.stderr, flush=True)
         return value
 
     align = args.align or "consensus"
@@ -233,18 +244,19 @@ def _cell(value) -> str:
 
 
 def table(results: list[dict]) -> str:
-    lines = ["| row | shapes | vertices | stage | now | before |", "|---|---|---|---|---|---|"]
+    lines = ["| row | shapes | vertices | stage | now | cpu | before |", "|---|---|---|---|---|---|---|"]
     for result in results:
         row = result["row"]
         before = BEFORE.get(row, {})
         for name, value in result["stages"].items():
             old = before.get(name)
             note = "" if old is None or before.get("shapes") == result["shapes"] else f" ({before['shapes']} shapes)"
-            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | {_cell(value)} | "
+            cpu = f"{value[2]:.1f} s" if len(value) > 2 else "—"
+            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | {_cell(value)} | {cpu} | "
                          f"{_cell(old)}{note} |")
         total = [sum(v[0] for k, v in result["stages"].items() if k not in ("make",)),
                  max(v[1] for v in result["stages"].values())]
-        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total)} | |")
+        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total)} | | |")
     return "\n".join(lines)
 
 
