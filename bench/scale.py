@@ -53,8 +53,8 @@ QUICK_ROWS = ("dense-100k", "vases-20")
 VASE_RESOLUTION = (115, 135)
 
 #: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (seconds, bytes)}},
-#: measured with this script on main 5dbb1d5 (dense rows; vase rows: see there) (2 jobs) while other jobs kept the load of
-#: the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
+#: measured with this script on main 5dbb1d5 (dense rows; vase rows: see there) (2 jobs)
+#: while other jobs kept the load of the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
 #: shapes to stay within the machine's memory (the 1M row's Prepare of 2 shapes peaked at
 #: 15.4 GB); its ppca fit cannot run on 2 shapes.
 BEFORE: dict[str, dict] = {
