@@ -282,7 +282,7 @@ def targets(results: list[dict]) -> str:
                      f"vertices <= 2x | {ratio:.2f}x |")
     large = by_row.get("vases-1000")
     if large:
-        seconds, peak = large["stages"]["correspond"]
+        seconds, peak = large["stages"]["correspond"][:2]
         lines.append(f"| 1000 x 20k correspond <= 900 s, <= 4 GB | {seconds:.0f} s, {peak / 1e9:.2f} GB |")
     if small and "dask_max_difference" in small:
         lines.append(f"| Dask LocalCluster == pool to 1e-12 | max |difference| {small['dask_max_difference']:.1e} |")
