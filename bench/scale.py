@@ -15,9 +15,10 @@ memory of that process and every process it started, sampled every 20 ms):
 * vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
-  for 20 shapes and by pca for more (the consensus pose search compares every pair of
-  shapes in 24 poses: O(N²)); vases-20 also corresponds on a Dask LocalCluster (local:2)
-  and reports the largest difference from the process pool.
+  at every size (above 64 shapes its pose search computes the exact cost only for the
+  pairs a descriptor proposes: core/preprocess/neighbours.py); vases-20 also corresponds
+  on a Dask LocalCluster (local:2) and reports the largest difference from the process
+  pool.
 
 The table prints seconds and peak GB per stage, the figures of the same row before the
 issue's changes (`BEFORE`, measured with this script on the commit named there) and the
@@ -52,8 +53,8 @@ QUICK_ROWS = ("dense-100k", "vases-20")
 VASE_RESOLUTION = (115, 135)
 
 #: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (seconds, bytes)}},
-#: measured with this script on main 5dbb1d5 (2 jobs) while other jobs kept the load of
-#: the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
+#: measured with this script on main 5dbb1d5 (dense rows; vase rows: see there) (2 jobs)
+#: while other jobs kept the load of the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
 #: shapes to stay within the machine's memory (the 1M row's Prepare of 2 shapes peaked at
 #: 15.4 GB); its ppca fit cannot run on 2 shapes.
 BEFORE: dict[str, dict] = {
@@ -62,6 +63,14 @@ BEFORE: dict[str, dict] = {
     "dense-300k": {"shapes": 6, "read": (11.6, 1.10e9), "prepare": (452.1, 5.89e9), "correspond": (463.0, 7.82e9),
                    "fit ppca": (0.0, 0.99e9), "save": (7.4, 0.99e9)},
     "dense-1M": {"shapes": 2, "read": (72.7, 2.78e9), "prepare": (376.9, 15.38e9), "correspond": (1111.0, 6.89e9)},
+    # the vase rows before the large-collection changes (main 9c9d469, docs/results.md: load 3-9;
+    # vases-200 prepared with align pca, vases-1000 stopped in Prepare; a peak not recorded: 0)
+    "vases-20": {"shapes": 20, "make": (0.3, 0.12e9), "prepare": (131.0, 0.77e9), "correspond": (85.9, 0.82e9),
+                 "correspond (dask local:2)": (66.3, 0.97e9), "fit ppca": (0.0, 0.64e9),
+                 "fit gplvm": (0.2, 0.64e9), "fit bgplvm": (0.4, 0.64e9)},
+    "vases-200": {"shapes": 200, "prepare": (957.7, 5.54e9), "correspond": (173.7, 10.8e9), "fit ppca": (0.0, 0.0),
+                  "fit gplvm": (4.2, 0.0), "fit bgplvm": (1.4, 0.0)},
+    "vases-1000": {"shapes": 1000, "make": (42.0, 2.0e9), "prepare": "stopped after 1920 s"},
 }
 
 
@@ -108,6 +117,25 @@ class TreeMemory:
         self._stop.set()
 
 
+def _read(read_folder, folder, jobs):
+    """The folder read as `shapegen fit` reads it (in `jobs` processes; the core before
+    issue 15's dense-mesh changes reads in this process only)."""
+    try:
+        return read_folder(folder, jobs=jobs)
+    except TypeError:
+        return read_folder(folder)
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process and of its finished child processes (a
+    worker pool's, once it is closed): the work, whatever the load (wall time on an idle
+    machine with 2 cores is about half of it for the parallel stages)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 # ---------------------------------------------------------------------------- inputs
 def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
     """A folder of `shapes` PLY meshes of `psb_class` subdivided to about `target` vertices
@@ -138,25 +166,6 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
 
 
 # ---------------------------------------------------------------------------- child
-def _cpu_seconds() -> float:
-    """CPU time of this process and of its finished (waited-for) child processes: worker
-    pools are closed inside their stage, so a stage's difference holds its workers'
-    time too. Read beside the wall time on a loaded machine."""
-    import resource
-
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
-
-
-def _read(read_folder, folder, jobs):
-    """The folder read as `shapegen fit` reads it (in `jobs` processes; the core before
-    issue 15's dense-mesh changes reads in this process only)."""
-    try:
-        return read_folder(folder, jobs=jobs)
-    except TypeError:
-        return read_folder(folder)
-
-
 def run_row(row: str, args) -> dict:
     """The stages of one row in this process: {"stages": {stage: [seconds, peak bytes]}, ...}."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
@@ -170,20 +179,18 @@ def run_row(row: str, args) -> dict:
 
     memory = TreeMemory()
     stages: dict[str, list] = {}
-    cpus: dict[str, float] = {}
-    info: dict = {"row": row, "cpu": cpus}
+    info: dict = {"row": row}
 
     def stage(name, work):
         memory.reset()
         start, cpu = time.perf_counter(), _cpu_seconds()
         value = work()
-        stages[name] = [time.perf_counter() - start, memory.peak()]
-        cpus[name] = _cpu_seconds() - cpu
-        print(f"  {row}: {name} {stages[name][0]:.1f} s ({cpus[name]:.1f} CPU s), {stages[name][1] / 1e9:.2f} GB",
+        stages[name] = [time.perf_counter() - start, memory.peak(), _cpu_seconds() - cpu]
+        print(f"  {row}: {name} {stages[name][0]:.1f} s, {stages[name][1] / 1e9:.2f} GB, cpu {stages[name][2]:.1f} s",
               file=sys.stderr, flush=True)
         return value
 
-    align = args.align or ("pca" if VASE_ROWS.get(row, 0) > 20 else "consensus")
+    align = args.align or "consensus"
     prepare_settings = PrepareSettings(up_axis="y" if row in DENSE_TARGETS else "z", align=align)
     info["align"] = align
     if row in DENSE_TARGETS:
@@ -193,14 +200,18 @@ def run_row(row: str, args) -> dict:
     else:
         from shapegen_core.datasets import make_vases
 
-        meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0,
-                                                                     resolution=VASE_RESOLUTION)])
+        meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0, resolution=VASE_RESOLUTION,
+                                                                     pose=not args.landmarks_only)])
         models = tuple(args.models.split(","))
         if VASE_ROWS[row] > CUBIC_NOTE_SHAPES and not args.all_models:  # hours: measured on fewer, see docs
             models = tuple(m for m in models if m != "gplvm")
     info["shapes"] = len(meshes)
     info["vertices"] = int(np.mean([m.n_vertices for m in meshes]))
-    prepared = stage("prepare", lambda: prepare_meshes(meshes, prepare_settings))
+    if args.landmarks_only and row in VASE_ROWS:
+        info["align"] = "landmarks only"
+        prepared = stage("landmarks", lambda: landmarks_only(meshes, prepare_settings))
+    else:
+        prepared = stage("prepare", lambda: prepare_meshes(meshes, prepare_settings))
     del meshes
     corr = stage("correspond", lambda: correspond(prepared, CorrespondenceSettings(), jobs=args.jobs))
     info["median_residual"] = float(np.median(corr.residuals))
@@ -221,28 +232,40 @@ def run_row(row: str, args) -> dict:
     return info
 
 
+def landmarks_only(meshes, settings):
+    """A prepared collection of meshes made upright and facing alike (make_vases with
+    pose=False), left in their frame: Prepare's landmarks without its alignment, to time
+    the correspondence of a large collection on its own (--landmarks-only)."""
+    from shapegen_core.collection import PreparedCollection
+    from shapegen_core.landmarks import select_landmarks
+    from shapegen_core.preprocess.transform import PreparedShape, ShapeTransform
+
+    shapes = [PreparedShape(mesh, ShapeTransform.identity()) for mesh in meshes]
+    landmarks = [select_landmarks(mesh, settings.n_landmarks, seed=settings.seed + i) for i, mesh in enumerate(meshes)]
+    return PreparedCollection(shapes, landmarks, settings)
+
+
 # ---------------------------------------------------------------------------- table
-def _cell(value, cpu=None) -> str:
-    if value is None:
-        return "—"
-    return f"{value[0]:7.1f} s {value[1] / 1e9:5.2f} GB" + ("" if cpu is None else f" ({cpu:.0f} CPU s)")
+def _cell(value) -> str:
+    if value is None or isinstance(value, str):
+        return value or "—"
+    return f"{value[0]:7.1f} s " + (f"{value[1] / 1e9:5.2f} GB" if value[1] else "    — GB")
 
 
 def table(results: list[dict]) -> str:
-    lines = ["| row | shapes | vertices | stage | now | before |", "|---|---|---|---|---|---|"]
+    lines = ["| row | shapes | vertices | stage | now | cpu | before |", "|---|---|---|---|---|---|---|"]
     for result in results:
         row = result["row"]
         before = BEFORE.get(row, {})
         for name, value in result["stages"].items():
             old = before.get(name)
             note = "" if old is None or before.get("shapes") == result["shapes"] else f" ({before['shapes']} shapes)"
-            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | "
-                         f"{_cell(value, result.get('cpu', {}).get(name))} | "
+            cpu = f"{value[2]:.1f} s" if len(value) > 2 else "—"
+            lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | {name} | {_cell(value)} | {cpu} | "
                          f"{_cell(old)}{note} |")
         total = [sum(v[0] for k, v in result["stages"].items() if k not in ("make",)),
                  max(v[1] for v in result["stages"].values())]
-        cpu = sum(v for k, v in result.get("cpu", {}).items() if k != "make") if result.get("cpu") else None
-        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total, cpu)} | |")
+        lines.append(f"| {row} | {result['shapes']} | {result['vertices']} | **total** | {_cell(total)} | | |")
     return "\n".join(lines)
 
 
@@ -268,7 +291,7 @@ def targets(results: list[dict]) -> str:
                      f"vertices <= 2x | {ratio:.2f}x |")
     large = by_row.get("vases-1000")
     if large:
-        seconds, peak = large["stages"]["correspond"]
+        seconds, peak = large["stages"]["correspond"][:2]
         lines.append(f"| 1000 x 20k correspond <= 900 s, <= 4 GB | {seconds:.0f} s, {peak / 1e9:.2f} GB |")
     if small and "dask_max_difference" in small:
         lines.append(f"| Dask LocalCluster == pool to 1e-12 | max |difference| {small['dask_max_difference']:.1e} |")
@@ -282,12 +305,13 @@ def main() -> int:
     parser.add_argument("--dense-shapes", type=int, default=20, help="meshes per dense row (default 20)")
     parser.add_argument("--psb-class", default="Fish", help="shared PSB class of the dense rows (default Fish)")
     parser.add_argument("--models", default="ppca,gplvm,bgplvm", help="models of the vase rows")
-    parser.add_argument("--jobs", type=int, default=2, help="correspondence worker processes (default 2)")
+    parser.add_argument("--jobs", type=int, default=2, help="worker processes for reading and correspondence (default 2)")
     parser.add_argument("--cache", default="/tmp/shapegen-scale", help="folder of the dense PLY files")
     parser.add_argument("--align", default=None, choices=("consensus", "pca", "none"),
-                        help="Prepare's align (default: consensus, but pca for the 200 and 1000 vase rows: the "
-                             "consensus pose search compares every pair of shapes)")
+                        help="Prepare's align (default consensus)")
     parser.add_argument("--all-models", action="store_true", help="also gplvm above 200 shapes (N³: hours)")
+    parser.add_argument("--landmarks-only", action="store_true",
+                        help="vase rows: vases made upright, only Prepare's landmarks (times correspondence alone)")
     parser.add_argument("--no-dask", dest="dask", action="store_false",
                         help="skip the Dask LocalCluster comparison of the vases-20 row")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -310,6 +334,7 @@ def main() -> int:
                    "--psb-class", args.psb_class, "--models", args.models, "--jobs", str(args.jobs),
                    "--cache", args.cache] + (["--all-models"] if args.all_models else []) + \
             (["--align", args.align] if args.align else []) + \
+            (["--landmarks-only"] if args.landmarks_only else []) + \
             ([] if args.dask else ["--no-dask"])
         done = subprocess.run(command, stdout=subprocess.PIPE, text=True)
         if done.returncode != 0:

@@ -10,9 +10,10 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..errors import CollectionError, MeshError
-from ..geometry import SurfacePoints, chamfer_matrix, knn_graph, registration_frame
+from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
 from ..progress import Progress, no_progress, sub_range
 from ..simplify import Proxy
 from .engine import make_runner
@@ -26,13 +27,29 @@ from .settings import CorrespondenceSettings
 
 __all__ = ["chamfer_medoid", "correspond"]
 
+#: the medoid sums over every pair up to this many shapes; beyond, it screens against
+#: MEDOID_REFERENCES shapes and sums over all only for the MEDOID_SHORTLIST best
+MEDOID_EXACT_SHAPES, MEDOID_REFERENCES, MEDOID_SHORTLIST = 200, 32, 16
+
 
 def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> int:
-    """Index of the set with the smallest summed symmetric Chamfer distance
+    """Index of the point set with the smallest summed symmetric Chamfer distance
     (geometry.chamfer) to all others. Each set is thinned to its first `max_points` points
-    (landmarks come in random order, so these are spread)."""
+    (landmarks are farthest-point ordered, so a prefix covers the surface). Above
+    MEDOID_EXACT_SHAPES sets (issue 15: every pair is O(N²), 1000 shapes about 200 s) the
+    sums are screened against MEDOID_REFERENCES sets spread over the collection and only
+    the MEDOID_SHORTLIST best are summed over all sets."""
     sets = [np.asarray(s, dtype=np.float64)[:max_points] for s in point_sets]
-    return int(np.argmin(chamfer_matrix(sets).sum(axis=1)))
+    if len(sets) <= MEDOID_EXACT_SHAPES:
+        return int(np.argmin(chamfer_matrix(sets).sum(axis=1)))
+    trees = [cKDTree(s) for s in sets]
+
+    def summed(j: int, others) -> float:
+        return sum(chamfer_distance(sets[j], sets[i], None, trees[j], trees[i]) for i in others if i != j)
+
+    references = np.unique(np.linspace(0, len(sets) - 1, MEDOID_REFERENCES).round().astype(int))
+    screened = np.argsort([summed(j, references) for j in range(len(sets))], kind="stable")[:MEDOID_SHORTLIST]
+    return int(min(screened, key=lambda j: summed(int(j), range(len(sets)))))
 
 
 def _template_index(names: list[str], template: str | None, landmark_sets, candidates: Sequence[int]) -> int:

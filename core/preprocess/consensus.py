@@ -383,7 +383,7 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     decisions.update({j: PoseDecision(start[j]) for j in range(n) if keep[j] and j not in decisions})
     while len(decisions) < n:
         j = min((r for r in range(n) if r not in decisions),
-                key=lambda r: search.distance[r, references_pool].min())
+                key=lambda r: search.distance[r, search.nearest(r, references_pool, 1)[0]])
         references = [(i, decisions[i].rotation) for i in search.nearest(j, references_pool, k)]
         decisions[j] = decide(j, references)
         if not decisions[j].changed:  # a turned shape's pose is a guess: no reference

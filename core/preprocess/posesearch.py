@@ -20,7 +20,8 @@ turned by exactly 90°, not 89.6°).
 
 Nearest shapes are those with the smallest cost over the 24 axis rotations (screened on a
 quarter of the samples, the 4 best at full cost: the same distances on PSB and the
-procedural sets, a third of the time), so a shape in
+procedural sets, a third of the time; above `neighbours.EXACT_SHAPES` shapes only for
+the pairs a pose-aware descriptor proposes, issue 15), so a shape in
 a wrong pose still finds the shapes it resembles (a bowl finds bowls, not jugs: with a
 rotation-invariant descriptor of radii and spreads, PSB bowls found jugs and were laid on
 their sides to fit them).
@@ -37,7 +38,9 @@ from scipy.spatial import cKDTree
 
 from ..geometry.chamfer import chamfer_distance
 from ..mesh import Mesh
+from ..progress import Progress, no_progress
 from .moments import surface_moments
+from .neighbours import EXACT_SHAPES, CandidateDistances, complete_nearest
 from .rotations import AXIS_ROTATIONS, TILTS, yaw_rotation
 
 __all__ = ["PoseSearch", "Fit"]
@@ -58,37 +61,56 @@ class Fit:
 class PoseSearch:
     """Surface samples of a collection in base pose, their trees and descriptors."""
 
-    def __init__(self, samples: Sequence[np.ndarray]):
+    def __init__(self, samples: Sequence[np.ndarray], exact_shapes: int = EXACT_SHAPES,
+                 progress: Progress | None = None):
         self.samples = [np.asarray(s, dtype=np.float64) for s in samples]
         self.trees = [cKDTree(s) for s in self.samples]
         self._pair_costs: dict[tuple[int, int, bytes], float] = {}
         n = len(self.samples)
+        self._coarse = [s[:max(len(s) // SCREEN_FRACTION, 1)] for s in self.samples]
+        self._coarse_trees = [cKDTree(c) for c in self._coarse]
         #: rotation-minimised cost between every pair: min over the 24 axis rotations
+        #: (above `exact_shapes` shapes: of the pairs computed, an estimate elsewhere;
+        #: module `neighbours`)
+        self.candidates: CandidateDistances | None = None
+        if n > exact_shapes:
+            self.candidates = CandidateDistances(self.trees, self.axis_distance, progress=progress)
+            self.distance = self.candidates.distance
+            return
         self.distance = np.zeros((n, n))
-        coarse = [s[:max(len(s) // SCREEN_FRACTION, 1)] for s in self.samples]
-        coarse_trees = [cKDTree(c) for c in coarse]
+        report = progress or no_progress
         for j in range(n):
             for i in range(j + 1, n):
-                screened = np.argsort([chamfer_distance(coarse[j], coarse[i], r, coarse_trees[j], coarse_trees[i])
-                                       for r in AXIS_ROTATIONS], kind="stable")[:SCREEN_KEEP]
-                self.distance[i, j] = self.distance[j, i] = min(
-                    self.cost(j, AXIS_ROTATIONS[r], [(i, np.eye(3))]) for r in screened)
+                self.distance[i, j] = self.distance[j, i] = self.axis_distance(j, i)
+            report((j + 1) * (2 * n - j - 2) / max(n * (n - 1), 1), f"comparing shape {j + 1} of {n}")
+
+    def axis_distance(self, j: int, i: int) -> float:
+        """min over the 24 axis rotations R of C(R P_j, P_i): screened on the coarse
+        samples, the SCREEN_KEEP best at full cost (module docstring)."""
+        coarse, trees = self._coarse, self._coarse_trees
+        screened = np.argsort([chamfer_distance(coarse[j], coarse[i], r, trees[j], trees[i]) for r in AXIS_ROTATIONS],
+                              kind="stable")[:SCREEN_KEEP]
+        return min(self.cost(j, AXIS_ROTATIONS[r], [(i, np.eye(3))]) for r in screened)
 
     @classmethod
-    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int) -> "PoseSearch":
-        """`points` samples of every shape (generator seed + i) in its base rotation."""
+    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int,
+           progress: Progress | None = None) -> "PoseSearch":
+        """`points` samples of every shape (generator seed + i) in its base rotation;
+        `progress` follows the comparison of the shapes."""
         samples = []
         for i, (mesh, rotation) in enumerate(zip(meshes, base)):
             _, mean, cov = surface_moments(mesh)
             pts = mesh.sample_surface(points, np.random.default_rng(seed + i)).points
             samples.append((pts - mean) @ rotation.T / np.sqrt(np.trace(cov)))
-        return cls(samples)
+        return cls(samples, progress=progress)
 
     def __len__(self) -> int:
         return len(self.samples)
 
     def nearest(self, j: int, pool: Sequence[int], count: int) -> list[int]:
         """The `count` shapes of `pool` (j excluded) most like shape j in any axis pose."""
+        if self.candidates is not None:
+            return complete_nearest(self.candidates, j, pool, count)
         pool = [int(i) for i in pool if i != j]
         return [pool[k] for k in np.argsort(self.distance[j, pool], kind="stable")[:count]]
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..mesh import FACE_CHUNK, Mesh
+from ..progress import sub_range
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .hollow import Hollows
@@ -62,7 +63,8 @@ def prepare_collection(
     search = signatures = symmetry = hollows = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         posed = [proxy_mesh(mesh, POSE_PROXY_FACES, above=dense_faces).mesh for mesh in meshes]
-        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed)
+        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
+                               sub_range(report, 0.0, 0.15, "pose search: "))
         signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
         symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor)
         hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed)

@@ -37,9 +37,10 @@ def test_up_signature_from_moment_tensors_equals_the_quadrature_sum():
     signatures = Signatures(meshes, [np.eye(3)] * 3, 5)
     for j in range(3):
         rotation = Rotation.random(random_state=j).as_matrix()
-        points = signatures.points[j] @ rotation.T
+        points, weights, _ = signatures.quadrature(j)
+        points = points @ rotation.T
         z = points[:, 2]
-        expected = [signatures.weights[j] @ z**3, signatures.weights[j] @ (z * (points[:, 0] ** 2 + points[:, 1] ** 2))]
+        expected = [weights @ z**3, weights @ (z * (points[:, 0] ** 2 + points[:, 1] ** 2))]
         np.testing.assert_allclose(signatures.up(j, rotation), expected, rtol=1e-10, atol=1e-14)
         # remembered facing is the one computed
         np.testing.assert_array_equal(signatures.facing(j, rotation), signatures._facing_of(j, rotation))
