@@ -157,6 +157,9 @@ class PoseDecision:
 
     rotation: np.ndarray
     reason: str = ""  # empty when the shape kept its base pose
+    #: the reasons of the single turns a combined decision is made of (`_combined`), so a
+    #: decision combined again lists its turns once instead of nesting "in all (...)"
+    steps: tuple[str, ...] = ()
 
     @property
     def changed(self) -> bool:
@@ -353,13 +356,13 @@ def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -
 def _combined(*stages: PoseDecision) -> PoseDecision:
     """One decision for the stages: the last one's rotation (each starts from the one
     before), the reasons of those that turned the shape."""
-    reasons = [d.reason for d in stages if d.reason]
+    reasons = [step for d in stages if d.reason for step in (d.steps or (d.reason,))]
     if reasons and np.trace(stages[-1].rotation) > 1.0 + 2.0 * np.cos(np.radians(1.0)):
         return PoseDecision(np.eye(3))  # turned there and back (to within 1°): its input pose
     reason = "; then ".join(reasons)
     if len(reasons) > 1:
         reason = f"{describe_rotation(stages[-1].rotation)} in all ({reason})"
-    return PoseDecision(stages[-1].rotation, reason)
+    return PoseDecision(stages[-1].rotation, reason, tuple(reasons))
 
 
 def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np.ndarray],

@@ -59,3 +59,24 @@ def test_consistent_poses_are_left_alone():
     settled = [PoseDecision(np.eye(3))] * len(names)
     restored = restore_flagged(search, signatures, names, [False] * len(names), SETTINGS, settled)
     assert all(not d.changed and np.array_equal(d.rotation, np.eye(3)) for d in restored)
+
+
+def test_a_decision_combined_again_lists_its_turns_once():
+    """The final pose check combines a shape's stage decision (itself combined from the
+    stages that turned it) with its own turn: the reason lists every turn once, under one
+    "in all", instead of nesting "in all (... in all (...))"."""
+    from shapegen_core.preprocess.consensus import _combined
+
+    first = PoseDecision(yaw_rotation(30.0), "turned 30° about z: stage A")
+    second = PoseDecision(yaw_rotation(70.0), "turned 40° about z: stage B")
+    stages = _combined(first, second)
+    check = PoseDecision(yaw_rotation(160.0), "turned 90° about z: the pose check")
+    final = _combined(stages, check)
+    assert final.reason.count("in all") == 1
+    assert final.steps == ("turned 30° about z: stage A", "turned 40° about z: stage B",
+                           "turned 90° about z: the pose check")
+    assert final.reason.endswith("(turned 30° about z: stage A; then turned 40° about z: stage B; "
+                                 "then turned 90° about z: the pose check)")
+    assert np.allclose(final.rotation, yaw_rotation(160.0))
+    # a single turn keeps its own reason, no "in all"
+    assert _combined(PoseDecision(np.eye(3)), first).reason == first.reason
