@@ -45,7 +45,7 @@ def opening_vector(mesh: Mesh, rotation: np.ndarray, grid: int, seed: int) -> np
     """o of `mesh` turned by `rotation` (module docstring), (3,)."""
     _, mean, cov = surface_moments(mesh)
     scale = np.sqrt(np.trace(cov))
-    vertices = (mesh.vertices[np.unique(mesh.faces)] - mean) @ rotation.T / scale
+    vertices = (mesh.vertices[mesh.used_vertices()] - mean) @ rotation.T / scale
     points = (mesh.sample_surface(SAMPLES_PER_CELL * grid * grid, np.random.default_rng(seed)).points
               - mean) @ rotation.T / scale
     low, high = vertices.min(axis=0), vertices.max(axis=0)
