@@ -37,22 +37,24 @@ _TOLERANCE = 1e-9
 
 
 class _Candidates:
-    """Centroids c_f, bounding radii R_f and (optionally) unnormalised normals of the faces
-    `ids` (ascending) in the search frame."""
+    """Centroids c_f and bounding radii R_f (`spheres`) and unnormalised normals (`with_normals`)
+    of the faces `ids` (ascending) in the search frame."""
 
-    def __init__(self, vertices, faces, ids, centre, scale, with_normals: bool):
+    def __init__(self, vertices, faces, ids, centre, scale, with_normals: bool, spheres: bool = True):
         self.ids = ids
-        self.centroids = np.empty((len(ids), 3))
-        self.radii = np.empty(len(ids))
+        self.centroids = np.empty((len(ids), 3)) if spheres else None
+        self.radii = np.empty(len(ids)) if spheres else None
         self.cross = np.empty((len(ids), 3)) if with_normals else None
         self.length = np.empty(len(ids)) if with_normals else None
         for start in range(0, len(ids), _CHUNK):
             part = faces[ids[start:start + _CHUNK]]
             corners = [(vertices[part[:, k]] - centre) / scale for k in range(3)]  # (n, 3) each
-            middle = (corners[0] + corners[1] + corners[2]) / 3.0
-            self.centroids[start:start + _CHUNK] = middle
-            squared = [np.einsum("ij,ij->i", corner - middle, corner - middle) for corner in corners]
-            self.radii[start:start + _CHUNK] = np.sqrt(np.maximum(np.maximum(squared[0], squared[1]), squared[2]))
+            if spheres:
+                middle = (corners[0] + corners[1] + corners[2]) / 3.0
+                self.centroids[start:start + _CHUNK] = middle
+                squared = [np.einsum("ij,ij->i", corner - middle, corner - middle) for corner in corners]
+                self.radii[start:start + _CHUNK] = np.sqrt(np.maximum(np.maximum(squared[0], squared[1]),
+                                                                      squared[2]))
             if with_normals:
                 cross = np.cross(corners[1] - corners[0], corners[2] - corners[0])
                 self.cross[start:start + _CHUNK] = cross
@@ -90,11 +92,12 @@ class _Search:
             self.near = NearFaces(vertices, faces, (in_mesh - farthest * scale).min(axis=0),
                                   (in_mesh + farthest * scale).max(axis=0), float(np.median(reach)) * scale)
 
-    def _pairs(self, query: np.ndarray, reach: np.ndarray, tolerance: np.ndarray, tighten: bool
-               ) -> tuple[_Candidates, np.ndarray, tuple[np.ndarray, ...]]:
+    def _pairs(self, query: np.ndarray, reach: np.ndarray, tolerance: np.ndarray, tighten: bool,
+               normals: np.ndarray | None = None) -> tuple[_Candidates, np.ndarray, tuple[np.ndarray, ...]]:
         """The candidate faces, the bounds used (`reach`, or with `tighten` lowered to
         the nearest vertex where closer) and the pairs (row, at, |p − c_f|, gap) whose
-        sphere bound is within bound + tolerance."""
+        sphere bound is within bound + tolerance; with `normals`, compatible pairs only
+        (their faces' spheres computed for those alone)."""
         if self.everything is not None:
             step = max(1, _PAIR_CHUNK // max(1, len(self.faces)))
             count = len(self.faces)
@@ -106,6 +109,11 @@ class _Search:
                 tuple(np.zeros(0, dtype=dtype) for dtype in (np.int64, np.int64, float, float))
         ids, rows, at, used = self.near.pairs(query * self.scale + self.centre, reach * self.scale, tighten)
         reach = np.minimum(reach, used / self.scale)
+        if normals is not None:
+            oriented = _Candidates(self.vertices, self.faces, ids, self.centre, self.scale, True, spheres=False)
+            compatible = oriented.compatible(rows, at, normals, self.min_cos)
+            kept, at = np.unique(at[compatible], return_inverse=True)
+            ids, rows, at = ids[kept], rows[compatible], at.ravel()
         candidates = _Candidates(self.vertices, self.faces, ids, self.centre, self.scale, self.normals is not None)
         return candidates, reach, candidates.screened(query, reach + tolerance, rows, at)
 
@@ -115,7 +123,8 @@ class _Search:
         `tighten`, a row's bound is first lowered to its nearest vertex's distance."""
         query = self.points[rows]
         tolerance = self.tolerance[rows]
-        candidates, reach, (pair_rows, at, centre, gap) = self._pairs(query, reach, tolerance, tighten)
+        candidates, reach, (pair_rows, at, centre, gap) = self._pairs(
+            query, reach, tolerance, tighten, None if plain or self.normals is None else self.normals[rows])
         tested = np.zeros(len(pair_rows), dtype=bool)
         if plain:
             tested |= gap <= _row_min(len(rows), pair_rows, centre)[pair_rows] + tolerance[pair_rows]

@@ -31,8 +31,10 @@ __all__ = ["NearFaces"]
 
 #: fine cells per axis at most (int16 coordinates)
 _FINE_LIMIT = 32_000
-#: coarse cells of the marked grid at most (bytes of the boolean grid)
+#: coarse cells of the marked grid at most (slots of the grid)
 _COARSE_LIMIT = 1 << 24
+#: cells looked at for the queries' balls at most (coarser cells beyond)
+_MARK_LIMIT = 1 << 21
 #: faces sampled (evenly spaced) to size the fine grid
 _SAMPLE = 4096
 #: relative slack on every bound (absorbs rounding of coordinates and frame changes)
@@ -54,7 +56,7 @@ class NearFaces:
                    np.finfo(float).tiny)
         self.margin = (_COMPACT + 1) * np.sqrt(3.0) * fine * (1.0 + _SLACK) + self.slack
         # coarse cells of about a quarter of a typical query's reach, as many as the grid allows
-        start = max(1, int(np.floor(np.log2(max((typical + self.margin) / 4.0, fine) / fine))))
+        start = self._shift_for(typical + self.margin, fine)
         for shift in range(start, 15):
             coarse = fine * 2.0 ** shift
             self.origin = low - self.margin - 2.0 * coarse
@@ -63,24 +65,36 @@ class NearFaces:
                 break
         else:
             raise ValueError("NearFaces: no grid fits the region")  # unreachable: fine >= span / 8000
-        self.fine, self.coarse, self.shift = fine, coarse, shift
-        self._vertex_cells: np.ndarray | None = None
+        self.fine, self.shift, self.top = fine, shift, self.size * 2 ** shift - 1
+        self._columns: list[np.ndarray] | None = None
+        self._coarse_cells: dict[int, np.ndarray] = {}
         self._spread: np.ndarray | None = None
 
+    @staticmethod
+    def _shift_for(distance: float, fine: float) -> int:
+        """Coarse cells of 2^shift fine cells, about a quarter of `distance` (at least 2)."""
+        return max(1, int(np.floor(np.log2(max(distance / 4.0, fine) / fine))))
+
+    def _grid(self, shift: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """(side, size, per vertex the flat index) of the coarse cells of 2^shift fine cells."""
+        size = (self.top >> shift) + 1
+        if shift not in self._coarse_cells:
+            flat = (self._columns[0] >> shift).astype(np.int32)
+            for axis in (1, 2):
+                flat *= int(size[axis])
+                flat += self._columns[axis] >> shift
+            self._coarse_cells[shift] = flat
+        return self.fine * 2.0 ** shift, size, self._coarse_cells[shift]
+
     def _prepare(self) -> None:
-        """Per vertex its coarse cell (flat index); per face Σ_a (s_a + 1)² (0: not compact)."""
-        top = self.size * 2 ** self.shift - 1
+        """Per vertex its fine cell (int16 per axis); per face Σ_a (s_a + 1)² (0: not compact)."""
         cells = self.vertices - self.origin
         cells *= 1.0 / self.fine
         np.floor(cells, out=cells)
-        np.clip(cells, 0, top, out=cells)
+        np.clip(cells, 0, self.top, out=cells)
         columns = [cells[:, axis].astype(np.int16) for axis in range(3)]
         del cells
-        flat = (columns[0] >> self.shift).astype(np.int32)
-        for axis in (1, 2):
-            flat *= int(self.size[axis])
-            flat += columns[axis] >> self.shift
-        self._vertex_cells = flat
+        self._columns = columns
         spread = np.zeros(len(self.faces), dtype=np.int16)
         compact = np.ones(len(self.faces), dtype=bool)
         a, b, c = self.faces[:, 0], self.faces[:, 1], self.faces[:, 2]
@@ -102,16 +116,22 @@ class NearFaces:
         query; each ball lies inside the box. With `tighten`, a query's distance is first
         lowered to that of its nearest vertex if closer (a point of the surface, so still an
         upper bound on its distance to the surface); the distances used are returned."""
-        if self._vertex_cells is None:
+        if self._columns is None:
             self._prepare()
         points = np.asarray(points, dtype=np.float64)
         distance = np.asarray(distance, dtype=np.float64)
-        cells, cell_rows = self._marks(points, distance * (1.0 + _SLACK) + self.slack + self.margin)
+        reach = distance * (1.0 + _SLACK) + self.slack + self.margin
+        # coarse cells for this call's typical reach, coarser while the queries' boxes span too many
+        shift = max(self.shift, self._shift_for(float(np.median(reach)), self.fine))
+        while shift < 14 and self._box_cells(points, reach, self.fine * 2.0 ** shift) > _MARK_LIMIT:
+            shift += 1
+        side, size, vertex_cells = self._grid(shift)
+        cells, cell_rows = self._marks(points, reach, side, size)
         # the marked cells, and per vertex the slot of its cell among them (-1: not marked)
         boundary = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
-        slot = np.full(int(np.prod(self.size)), -1, dtype=np.int32)
+        slot = np.full(int(np.prod(size)), -1, dtype=np.int32)
         slot[cells[boundary]] = np.arange(len(boundary), dtype=np.int32)
-        slots = slot[self._vertex_cells]
+        slots = slot[vertex_cells]
         candidates = np.flatnonzero(slots >= 0)
         slots = slots[candidates]
         # every (candidate vertex, query that marked its cell), grouped by vertex
@@ -152,12 +172,18 @@ class NearFaces:
         at.append(np.repeat(others, len(points)))
         return faces, np.concatenate(rows), np.concatenate(at), distance
 
-    def _marks(self, points: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(cell, row) of every coarse cell whose box lies within `reach` of point `row`,
-        sorted by cell (flat index)."""
-        size = self.size
-        low = np.clip(np.floor((points - reach[:, None] - self.origin) / self.coarse).astype(np.int64), 0, size - 1)
-        high = np.clip(np.floor((points + reach[:, None] - self.origin) / self.coarse).astype(np.int64), 0, size - 1)
+    def _box_cells(self, points: np.ndarray, reach: np.ndarray, side: float) -> int:
+        """Cells of side `side` in the bounding boxes of the queries' balls, summed."""
+        low = np.floor((points - reach[:, None] - self.origin) / side)
+        high = np.floor((points + reach[:, None] - self.origin) / side)
+        return int((high - low + 1).prod(axis=1).sum())
+
+    def _marks(self, points: np.ndarray, reach: np.ndarray, side: float, size: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(cell, row) of every coarse cell (of `side`, `size` per axis) whose box lies within
+        `reach` of point `row`, sorted by cell (flat index)."""
+        low = np.clip(np.floor((points - reach[:, None] - self.origin) / side).astype(np.int64), 0, size - 1)
+        high = np.clip(np.floor((points + reach[:, None] - self.origin) / side).astype(np.int64), 0, size - 1)
         extent = high - low + 1
         count = extent.prod(axis=1)
         row = np.repeat(np.arange(len(points)), count)
@@ -165,8 +191,8 @@ class NearFaces:
         ny, nz = extent[row, 1], extent[row, 2]
         cell = np.stack([low[row, 0] + local // (ny * nz), low[row, 1] + (local // nz) % ny, low[row, 2] + local % nz],
                         axis=1)
-        box_low = self.origin + cell * self.coarse
-        outside = np.maximum(np.maximum(box_low - points[row], points[row] - (box_low + self.coarse)), 0.0)
+        box_low = self.origin + cell * side
+        outside = np.maximum(np.maximum(box_low - points[row], points[row] - (box_low + side)), 0.0)
         keep = np.einsum("ij,ij->i", outside, outside) <= reach[row] ** 2
         flat = ((cell[:, 0] * size[1] + cell[:, 1]) * size[2] + cell[:, 2])[keep]
         order = np.argsort(flat, kind="stable")
