@@ -92,45 +92,54 @@ class _Search:
             self.near = NearFaces(vertices, faces, (in_mesh - farthest * scale).min(axis=0),
                                   (in_mesh + farthest * scale).max(axis=0), float(np.median(reach)) * scale)
 
-    def _pairs(self, query: np.ndarray, reach: np.ndarray, tolerance: np.ndarray, tighten: bool,
-               normals: np.ndarray | None = None) -> tuple[_Candidates, np.ndarray, tuple[np.ndarray, ...]]:
+    def _pairs(self, query: np.ndarray, normals: np.ndarray | None, reach: np.ndarray, tolerance: np.ndarray,
+               tighten: bool, compatible_only: bool) -> tuple:
         """The candidate faces, the bounds used (`reach`, or with `tighten` lowered to
-        the nearest vertex where closer) and the pairs (row, at, |p − c_f|, gap) whose
-        sphere bound is within bound + tolerance; with `normals`, compatible pairs only
-        (their faces' spheres computed for those alone)."""
-        if self.everything is not None:
-            step = max(1, _PAIR_CHUNK // max(1, len(self.faces)))
+        the nearest vertex where closer), the pairs (row, at, |p − c_f|, gap) whose sphere
+        bound is within bound + tolerance (with `compatible_only`, compatible pairs only,
+        their faces' spheres computed for those alone) and, with `tighten` and normals,
+        per row the distance to the nearest centroid of a compatible candidate (None
+        otherwise: an upper bound on the distance to the closest compatible point)."""
+        if self.everything is not None:  # every face with every row, a block of rows at a time
             count = len(self.faces)
-            parts = [self.everything.screened(query, reach + tolerance, np.repeat(np.arange(start, min(start + step, len(query))),
-                                                                      count),
-                                              np.tile(np.arange(count), min(step, len(query) - start)))
-                     for start in range(0, len(query), step)]
-            return self.everything, reach, tuple(np.concatenate(part) for part in zip(*parts)) if parts else \
-                tuple(np.zeros(0, dtype=dtype) for dtype in (np.int64, np.int64, float, float))
+            step = max(1, _PAIR_CHUNK // max(1, count))
+            parts = [self.everything.screened(query, reach + tolerance, np.repeat(block, count),
+                                              np.tile(np.arange(count), len(block)))
+                     for block in np.array_split(np.arange(len(query)), -(-len(query) // step))]
+            return self.everything, reach, tuple(np.concatenate(part) for part in zip(*parts)), None
         ids, rows, at, used = self.near.pairs(query * self.scale + self.centre, reach * self.scale, tighten)
         reach = np.minimum(reach, used / self.scale)
-        if normals is not None:
+        if compatible_only:
             oriented = _Candidates(self.vertices, self.faces, ids, self.centre, self.scale, True, spheres=False)
             compatible = oriented.compatible(rows, at, normals, self.min_cos)
             kept, at = np.unique(at[compatible], return_inverse=True)
             ids, rows, at = ids[kept], rows[compatible], at.ravel()
-        candidates = _Candidates(self.vertices, self.faces, ids, self.centre, self.scale, self.normals is not None)
-        return candidates, reach, candidates.screened(query, reach + tolerance, rows, at)
+        candidates = _Candidates(self.vertices, self.faces, ids, self.centre, self.scale, normals is not None)
+        centre = np.linalg.norm(query[rows] - candidates.centroids[at], axis=1)
+        nearest = None
+        if tighten and normals is not None:
+            compatible = candidates.compatible(rows, at, normals, self.min_cos)
+            nearest = _row_min(len(query), rows[compatible], centre[compatible])
+        gap = centre - candidates.radii[at]
+        keep = gap <= (reach + tolerance)[rows]
+        return candidates, reach, (rows[keep], at[keep], centre[keep], gap[keep]), nearest
 
     def run(self, rows: np.ndarray, reach: np.ndarray, plain: bool, tighten: bool = False) -> tuple:
         """(closest point among the faces within `reach` (if `plain`), closest compatible
-        point within `reach` (with normals), the bounds used) of `points[rows]`; with
+        point within `reach` (with normals), the bounds used, an upper bound on the closest
+        compatible point's distance or None; see `_pairs`) of `points[rows]`; with
         `tighten`, a row's bound is first lowered to its nearest vertex's distance."""
         query = self.points[rows]
         tolerance = self.tolerance[rows]
-        candidates, reach, (pair_rows, at, centre, gap) = self._pairs(
-            query, reach, tolerance, tighten, None if plain or self.normals is None else self.normals[rows])
+        normals = None if self.normals is None else self.normals[rows]
+        candidates, reach, (pair_rows, at, centre, gap), nearest = self._pairs(
+            query, normals, reach, tolerance, tighten, compatible_only=not plain)
         tested = np.zeros(len(pair_rows), dtype=bool)
         if plain:
             tested |= gap <= _row_min(len(rows), pair_rows, centre)[pair_rows] + tolerance[pair_rows]
         compatible = None
-        if self.normals is not None:
-            compatible = candidates.compatible(pair_rows, at, self.normals[rows], self.min_cos)
+        if normals is not None:
+            compatible = candidates.compatible(pair_rows, at, normals, self.min_cos)
             bound = _row_min(len(rows), pair_rows[compatible], centre[compatible])
             tested |= compatible & (gap <= bound[pair_rows] + tolerance[pair_rows])
         best_plain = _empty_surface_points(len(rows)) if plain else None
@@ -148,7 +157,7 @@ class _Search:
             if compatible is not None:
                 within = np.flatnonzero(compatible[chunk] & (distance <= reach[pair]))
                 _keep_closest(best_compatible, pair[within], _take(found, within))
-        return best_plain, best_compatible, reach
+        return best_plain, best_compatible, reach, nearest
 
 
 def closest_within(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, reach: np.ndarray,
@@ -169,13 +178,17 @@ def closest_within(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
         return _empty_surface_points(0)
     search = _Search(vertices, faces, points, reach, normals, min_cos, centre, float(scale), everywhere)
     # first within the nearest vertex's distance (below `reach`): a compatible point found
-    # there is the closest overall; the other rows look within 4 × reach
-    plain, best, _ = search.run(np.arange(len(points)), reach, plain=True, tighten=not everywhere)
+    # there is the closest overall; the other rows look within 4 × reach, or only as far as
+    # a compatible face's centroid the first search saw (the closest compatible point is nearer)
+    plain, best, _, nearest = search.run(np.arange(len(points)), reach, plain=True, tighten=not everywhere)
     if normals is None:
         return plain
     rows = np.flatnonzero(~np.isfinite(best.distance))
     if len(rows):
-        _, found, _ = search.run(rows, _WIDER * reach[rows], plain=False)
+        wider = _WIDER * reach[rows]
+        if nearest is not None:
+            wider = np.minimum(wider, nearest[rows] * (1.0 + _TOLERANCE) + search.tolerance[rows])
+        _, found, _, _ = search.run(rows, wider, plain=False)
         _keep_closest(best, rows, found)
     missing = np.flatnonzero(~np.isfinite(best.distance))
     _keep_closest(best, missing, _take(plain, missing))
