@@ -3,13 +3,13 @@ registration time per shape grows by at most 2x from 20k to 1M vertices), in CPU
 of this one process (jobs=1: every registration, proxy and placement runs here, so the
 process's CPU time is all the work), split by part.
 
-    python bench/dense_registration.py [--shapes 4] [--dense-folder /tmp/shapegen-scale/Fish-1000000]
+    python bench/dense_registration.py [--shapes 4] [--vases 20] [--dense-folder /tmp/shapegen-scale/Fish-1000000]
 
-Two collections of `--shapes` meshes, each prepared (not timed) and then corresponded
-with the default settings: the first meshes of the dense folder (bench/scale.py's
-dense-1M cache: PSB fish subdivided to ~1.4M vertices; made by `bench/scale.py --rows
-dense-1M` when missing) and procedural vases of ~20k vertices (bench/scale.py's vase
-rows). Per shape: the whole correspondence, and the parts that run per dense shape: the
+Two collections, each prepared (not timed) and then corresponded with the default
+settings: the first `--shapes` meshes of the dense folder (bench/scale.py's dense-1M
+cache: PSB fish subdivided to ~1.4M vertices; made by `bench/scale.py --rows dense-1M`
+when missing) and `--vases` procedural vases of ~20k vertices (the same vases as
+bench/scale.py's vases-20 row). Per shape: the whole correspondence, and the parts that run per dense shape: the
 registration proxy built (a dense shape's; helper code of issue 15 removes that rebuild by
 reusing Prepare's proxy, so the script also prints the ratio without it, an estimate), the
 registration rounds (`register_task`), the exact placement on the full surface, and the
@@ -83,7 +83,8 @@ def _correspond(collection) -> dict[str, float]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--shapes", type=int, default=4, help="meshes per collection (default 4)")
+    parser.add_argument("--shapes", type=int, default=4, help="dense meshes (default 4)")
+    parser.add_argument("--vases", type=int, default=20, help="vases (default 20: bench/scale.py's vases-20)")
     parser.add_argument("--dense-folder", default="/tmp/shapegen-scale/Fish-1000000",
                         help="folder of dense PLY files (bench/scale.py's dense-1M cache)")
     args = parser.parse_args()
@@ -99,7 +100,7 @@ def main() -> int:
     print(f"uptime before: {subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}")
     collections = {
         "dense": [read_mesh(f) for f in files],
-        "vases": [s.mesh for s in make_vases(args.shapes, seed=0, resolution=VASE_RESOLUTION)],
+        "vases": [s.mesh for s in make_vases(args.vases, seed=0, resolution=VASE_RESOLUTION)],
     }
     results = {}
     for name, meshes in collections.items():
@@ -111,7 +112,7 @@ def main() -> int:
         del prepared
     print(f"uptime after: {subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}")
     labels = ["total", "proxy build", "registration rounds", "placement on the full surface"]
-    print(f"\nCPU seconds per shape ({args.shapes} shapes per collection, jobs=1):")
+    print(f"\nCPU seconds per shape ({args.shapes} dense shapes, {args.vases} vases, jobs=1):")
     print("| collection | vertices | " + " | ".join(labels) + " | rest | wall |")
     print("|---|---|" + "---|" * (len(labels) + 2))
     for name, row in results.items():

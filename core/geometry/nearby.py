@@ -4,9 +4,10 @@ million-vertex surface).
 
 `closest_within` answers, per query p with bound u (a point of the surface at distance u
 is known): the closest point of the mesh; with normals, the closest point among the faces
-whose normal n_f has n_f · normal >= min_cos if one lies within 4 u (looked for within u
-first), else the closest point. Among equally close faces the lowest face index wins, so
-the answer does not depend on which faces were looked at.
+whose normal n_f has n_f · normal >= min_cos if one lies within 4 u (looked for first
+within the distance to the nearest vertex, then as far as a compatible centroid seen, at
+most 4 u), else the closest point. Among equally close faces the lowest face index wins,
+so the answer does not depend on which faces were looked at.
 
 The search: `NearFaces` pairs each query with a set of faces that holds every face within
 its bound (integer cells of the vertices), or every face is paired with every query
