@@ -9,8 +9,11 @@ mesh of the proxy's size. After the last round every template point is placed on
 *full* surface, exactly as `registration._place` does on a surface it registered
 against: the closest compatible point (the closest of any normal where none is near),
 found by core/geometry/nearby.py from an upper bound, the distance to the nearest
-representative vertex of the proxy (a point of the full surface). Shapes below the size
-are registered against their own surface as before, and nothing here touches them.
+representative vertex of the proxy (a point of the full surface), among the faces near the
+points only (core/geometry/nearfaces.py: a pass of integer arithmetic over the vertices and
+faces, float work only near the points; no grid or tree over every face, no copy of every
+vertex in the registration frame). Shapes below the size are registered against their own
+surface as before, and nothing here touches them.
 """
 
 from __future__ import annotations
@@ -62,15 +65,18 @@ class PlacementTask:
 def place_on_full_surface(task: PlacementTask) -> Registration:
     """The registration with its points placed exactly on the full surface (closest
     compatible point, else the closest point; see module docstring), the target normals
-    there and the residual recomputed, all in the registration frame."""
-    vertices = (task.vertices - task.centre) / task.scale
+    there and the residual recomputed, all in the registration frame. Only the
+    representatives and the faces near the points are mapped to that frame."""
+    representatives = (task.vertices[task.representatives] - task.centre) / task.scale
     points = task.registration.deformed
-    reach, _ = cKDTree(vertices[task.representatives]).query(points)
+    reach, _ = cKDTree(representatives).query(points)
     normals = task.registration.deformed_normals if task.min_cos is not None else None
-    placed = closest_within(vertices, task.faces, points, reach, normals,
-                            -1.0 if task.min_cos is None else task.min_cos)
+    placed = closest_within(task.vertices, task.faces, points, reach, normals,
+                            -1.0 if task.min_cos is None else task.min_cos, task.centre, task.scale)
+    corners = (task.vertices[task.faces[placed.face_index].ravel()] - task.centre) / task.scale
     landmarks = (task.landmarks - task.centre) / task.scale
-    return replace(task.registration, placed=placed, normals=_unit_normals(vertices, task.faces[placed.face_index]),
+    return replace(task.registration, placed=placed,
+                   normals=_unit_normals(corners, np.arange(len(corners)).reshape(-1, 3)),
                    residual=fit_residual(placed, landmarks))
 
 
