@@ -47,6 +47,7 @@ from .models.scaling import ScaleWarning, size_note
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
+from .spill import full_mesh
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
@@ -246,7 +247,7 @@ class GenerativeShapeModel:
         key = (int(index), alpha)
         if key not in self._deformers:
             self._deformers[key] = EmbeddedDeformer(
-                self.meshes[index], self.correspondence.points[index], self.correspondence.edges,
+                full_mesh(self.meshes[index]), self.correspondence.points[index], self.correspondence.edges,
                 replace(self.deform_settings, final_alpha=alpha))
         return self._deformers[key]
 
@@ -285,7 +286,8 @@ class GenerativeShapeModel:
         if exact:
             mesh = deformer.deform(landmarks, "relax", name=name)
         else:
-            mesh = self.meshes[index].with_vertices(self.linear_map(index, stiffness).vertices(landmarks), name=name)
+            mesh = full_mesh(self.meshes[index]).with_vertices(self.linear_map(index, stiffness).vertices(landmarks),
+                                                              name=name)
         if smooth:
             mesh = smooth_curvature_flow(mesh, smooth)
         return mesh
