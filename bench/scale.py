@@ -130,13 +130,17 @@ def _read(read_folder, folder, jobs, spill=None):
         return read_folder(folder)
 
 
-def _spill_store(stack):
+def _spill_store(stack, read_folder):
     """The row's spill store (`shapegen fit` keeps one per run), entered on `stack`; None
-    for a core without one."""
-    try:
-        from shapegen_core.spill import SpillStore
-    except ImportError:
+    for a core whose `read_folder` takes none (asked of the function itself: with the
+    editable install, `shapegen_core.spill` imports even beside an older core on
+    PYTHONPATH)."""
+    import inspect
+
+    if "spill" not in inspect.signature(read_folder).parameters:
         return None
+    from shapegen_core.spill import SpillStore
+
     return stack.enter_context(SpillStore())
 
 
@@ -210,7 +214,7 @@ def run_row(row: str, args) -> dict:
     stack = ExitStack()  # the dense rows' spill store, removed at the end of the row
     if row in DENSE_TARGETS:
         folder = dense_folder(Path(args.cache), args.psb_class, DENSE_TARGETS[row], args.dense_shapes)
-        spill = _spill_store(stack)
+        spill = _spill_store(stack, read_folder)
         meshes = stage("read", lambda: _read(read_folder, folder, args.jobs, spill))
         models = ("ppca",)
     else:

@@ -109,7 +109,9 @@ def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
 
 
 class GenerativeShapeModel:
-    """A fitted shape class: sample, encode, complete and mesh new shapes."""
+    """A fitted shape class: sample, encode, complete and mesh new shapes. In the run that
+    fitted it, a dense training mesh may still be a `spill.StoredMesh` (kept on disk for
+    the run): loaded when it is meshed from, streamed into the file by `save`."""
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
                  settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None,
