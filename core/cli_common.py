@@ -113,7 +113,7 @@ class Source:
     path: Path
     kind: str  # one of SOURCE_KINDS
     prepare: PrepareSettings
-    meshes: list[Mesh] | None = None  # folder: the meshes read from it (dense ones spill.StoredMesh; None once prepared)
+    meshes: list[Mesh] | None = None  # folder: the meshes read (dense ones spill.StoredMesh; None once prepared)
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz

@@ -77,7 +77,8 @@ def test_a_spilled_fit_equals_the_in_memory_fit(folder, tmp_path):
         model_s.save(tmp_path / "spilled.npz")
         prepared_s.save(tmp_path / "spilled-prepared.npz")
     model.save(tmp_path / "memory.npz")
-    back, back_s = GenerativeShapeModel.load(tmp_path / "memory.npz"), GenerativeShapeModel.load(tmp_path / "spilled.npz")
+    back = GenerativeShapeModel.load(tmp_path / "memory.npz")
+    back_s = GenerativeShapeModel.load(tmp_path / "spilled.npz")
     for a, b in zip(back.meshes, back_s.meshes):
         np.testing.assert_array_equal(a.vertices, b.vertices)
         np.testing.assert_array_equal(a.faces, b.faces)
