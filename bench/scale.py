@@ -11,7 +11,9 @@ memory of that process and every process it started, sampled every 20 ms):
   (trimesh's midpoint subdivision, 4x the faces per step, as many steps as bring each
   mesh nearest to the target) and written as binary PLY to a cache folder outside the
   repository (`--cache`, default /tmp/shapegen-scale; never committed); then the stages of
-  `shapegen fit --model ppca` on that folder: read, prepare, correspond, fit ppca, save.
+  `shapegen fit --model ppca` on that folder: read, prepare, correspond, fit ppca, save
+  (as `shapegen fit` runs them: meshes above 100k faces kept in a spill store on disk, the
+  main process holding handles, core/spill.py).
 * vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
@@ -36,6 +38,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -117,13 +120,28 @@ class TreeMemory:
         self._stop.set()
 
 
-def _read(read_folder, folder, jobs):
-    """The folder read as `shapegen fit` reads it (in `jobs` processes; the core before
-    issue 15's dense-mesh changes reads in this process only)."""
+def _read(read_folder, folder, jobs, spill=None):
+    """The folder read as `shapegen fit` reads it: in `jobs` processes, the dense meshes
+    kept in the run's spill store (core/spill.py). The core before issue 15's dense-mesh
+    changes reads in this process only; before the spill store, every mesh stays in memory."""
     try:
-        return read_folder(folder, jobs=jobs)
+        return read_folder(folder, jobs=jobs, **({} if spill is None else {"spill": spill}))
     except TypeError:
         return read_folder(folder)
+
+
+def _spill_store(stack, read_folder):
+    """The row's spill store (`shapegen fit` keeps one per run), entered on `stack`; None
+    for a core whose `read_folder` takes none (asked of the function itself: with the
+    editable install, `shapegen_core.spill` imports even beside an older core on
+    PYTHONPATH)."""
+    import inspect
+
+    if "spill" not in inspect.signature(read_folder).parameters:
+        return None
+    from shapegen_core.spill import SpillStore
+
+    return stack.enter_context(SpillStore())
 
 
 def _cpu_seconds() -> float:
@@ -193,9 +211,11 @@ def run_row(row: str, args) -> dict:
     align = args.align or "consensus"
     prepare_settings = PrepareSettings(up_axis="y" if row in DENSE_TARGETS else "z", align=align)
     info["align"] = align
+    stack = ExitStack()  # the dense rows' spill store, removed at the end of the row
     if row in DENSE_TARGETS:
         folder = dense_folder(Path(args.cache), args.psb_class, DENSE_TARGETS[row], args.dense_shapes)
-        meshes = stage("read", lambda: _read(read_folder, folder, args.jobs))
+        spill = _spill_store(stack, read_folder)
+        meshes = stage("read", lambda: _read(read_folder, folder, args.jobs, spill))
         models = ("ppca",)
     else:
         from shapegen_core.datasets import make_vases
@@ -227,6 +247,7 @@ def run_row(row: str, args) -> dict:
             stage("save", lambda: fitted.save(out))
             out.unlink()
         del fitted
+    stack.close()
     memory.stop()
     info["stages"] = stages
     return info

@@ -18,6 +18,7 @@ from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .errors import ShapeGenError
 from .pipeline import FitSettings
+from .spill import SpillStore
 
 __all__ = ["main", "build_parser"]
 
@@ -25,9 +26,10 @@ __all__ = ["main", "build_parser"]
 # ---------------------------------------------------------------------------- prepare
 def cmd_prepare(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    source = read_source(args.directory, args, accepts=("folder",))
-    prepared = prepare_source(source)
-    prepared.save(args.output)
+    with SpillStore() as spill:  # dense meshes on disk until the file is written (core/spill.py)
+        source = read_source(args.directory, args, accepts=("folder",), spill=spill)
+        prepared = prepare_source(source)
+        prepared.save(args.output)
     counts = [len(l) for l in prepared.landmarks]
     print(
         f"prepared {len(prepared)} shapes -> {args.output}: landmarks {min(counts)}-{max(counts)} "
@@ -41,11 +43,12 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     import numpy as np
 
     start = time.perf_counter()
-    source = read_source(args.source, args, accepts=("folder", "prepared"))
     options = settings_from_args(FitSettings, args)
-    result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
-                                   settings=settings_from_args(CorrespondenceSettings, args),
-                                   scheduler=options.scheduler)
+    with SpillStore() as spill:
+        source = read_source(args.source, args, accepts=("folder", "prepared"), spill=spill)
+        result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
+                                       settings=settings_from_args(CorrespondenceSettings, args),
+                                       scheduler=options.scheduler)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -61,26 +64,16 @@ def cmd_correspond(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- evaluate
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate shape models on a folder of meshes or a correspondence .npz (issue 7)."""
-    from .evaluation import EvaluationError, EvaluationSettings, parse_model_names, run_evaluation
+    from .evaluation import EvaluationSettings, parse_model_names, run_evaluation
     from .report import write_report
 
     start = time.perf_counter()
     # check the cheap settings before any expensive correspondence work
     models = parse_model_names(args.models)
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
-    source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",))
-    if source.correspondence is not None:
-        corr = source.correspondence
-        unused = [flag_of(PrepareSettings, name) for name in given_options(PrepareSettings, args) if name != "seed"]
-        if unused:
-            print(f"note: {', '.join(unused)} not used: {source.path} is already corresponded", file=sys.stderr)
-    else:
-        if args.folds > len(source.meshes):
-            raise EvaluationError(f"--folds {args.folds} is more than the {len(source.meshes)} shapes in {source.path}")
-        corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs,
-                                     settings=settings_from_args(CorrespondenceSettings, args))
-        if args.save_correspondence is not None:
-            corr.save(args.save_correspondence)
+    with SpillStore() as spill:
+        source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",), spill=spill)
+        corr = _evaluated_correspondence(source, args)
     prepared_seconds = time.perf_counter() - start
     outliers = [n for n, flag in zip(corr.names, corr.outliers) if flag]
     seed = settings_from_args(PrepareSettings, args).seed  # --seed seeds the evaluation (and a folder's Prepare)
@@ -98,6 +91,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"evaluated {', '.join(models)} on {len(corr)} shapes x {corr.n_landmarks} landmarks -> {args.output} "
           f"({len(paths)} files); correspondence {prepared_seconds:.1f} s, total {total_seconds:.1f} s")
     return 0
+
+
+def _evaluated_correspondence(source, args: argparse.Namespace):
+    """The correspondence `evaluate` works on: the file's, or a folder's corresponded now."""
+    from .evaluation import EvaluationError
+
+    if source.correspondence is not None:
+        unused = [flag_of(PrepareSettings, name) for name in given_options(PrepareSettings, args) if name != "seed"]
+        if unused:
+            print(f"note: {', '.join(unused)} not used: {source.path} is already corresponded", file=sys.stderr)
+        return source.correspondence
+    if args.folds > len(source.meshes):
+        raise EvaluationError(f"--folds {args.folds} is more than the {len(source.meshes)} shapes in {source.path}")
+    corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs,
+                                 settings=settings_from_args(CorrespondenceSettings, args))
+    if args.save_correspondence is not None:
+        corr.save(args.save_correspondence)
+    return corr
 
 
 def build_parser() -> argparse.ArgumentParser:

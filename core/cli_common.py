@@ -19,6 +19,7 @@ from .mesh import Mesh
 from .npzfile import read_format
 from .progress import Progress
 from .settings import SettingsError
+from .spill import SpillStore
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
            "settings_from_args", "add_keep_pose_option", "read_source", "prepare_source", "pose_lines",
@@ -112,18 +113,19 @@ class Source:
     path: Path
     kind: str  # one of SOURCE_KINDS
     prepare: PrepareSettings
-    meshes: list[Mesh] | None = None  # folder: the meshes read from it (None once prepared)
+    meshes: list[Mesh] | None = None  # folder: the meshes read (dense ones spill.StoredMesh; None once prepared)
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
 
 
 def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS,
-                own: tuple[str, ...] = ()) -> Source:
+                own: tuple[str, ...] = (), spill: SpillStore | None = None) -> Source:
     """Read a folder of meshes, a prepared .npz or a correspondence .npz (the file's format
     tag decides). Prepare options given with a file must agree with the Prepare settings
     it records, except the `own` ones, which the command uses for itself (evaluate's
-    --seed seeds the evaluation)."""
+    --seed seeds the evaluation). `spill`: the run's store for a folder's dense meshes
+    (core/spill.py; the command keeps it open until it has written its output)."""
     path = Path(path)
     expected = _either([_DESCRIPTIONS[k] for k in accepts])
     if not path.exists():
@@ -139,7 +141,7 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
         raise CommandError(f"{path}: is a folder; expected {expected}")
     keep_pose = getattr(args, "keep_pose", None)
     if kind == "folder":
-        for mesh in (meshes := read_folder(path, jobs=getattr(args, "jobs", 1))):
+        for mesh in (meshes := read_folder(path, jobs=getattr(args, "jobs", 1), spill=spill)):
             if mesh.report.summary() != "clean":
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
         return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes,

@@ -32,6 +32,7 @@ from .deform import DeformSettings
 from .io import MeshWriters, read_folder
 from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+from .spill import SpillStore, loaded
 from .preprocess import ShapeTransform
 from .quality import QualitySettings
 from .sample_batch import contiguous_chunks, gated_samples_on_cluster
@@ -66,17 +67,19 @@ class _StagedOutput:
 
 
 # ---------------------------------------------------------------------------- fit
-def _meshes_for_correspondence(corr, meshes_dir: Path):
+def _meshes_for_correspondence(corr, meshes_dir: Path, spill: SpillStore | None = None):
     """Normalised training meshes for a correspondence file: re-read the inputs from
-    `meshes_dir` and apply the transforms recorded in the file."""
-    by_name = {m.name: m for m in read_folder(meshes_dir)}
+    `meshes_dir` and apply the transforms recorded in the file (dense ones kept in `spill`)."""
+    by_name = {m.name: m for m in read_folder(meshes_dir, spill=spill)}
     missing = [n for n in corr.names if n not in by_name]
     if missing:
         raise CommandError(f"{meshes_dir}: no mesh file for shape(s) {missing[:5]} of the correspondence")
     meshes = []
     for name, matrix in zip(corr.names, corr.transforms):
         mesh = by_name[name]
-        meshes.append(mesh.with_vertices(ShapeTransform.from_matrix(matrix).to_normalised(mesh.vertices)))
+        with loaded(mesh) as full:
+            vertices = ShapeTransform.from_matrix(matrix).to_normalised(full.vertices)
+        meshes.append(mesh.with_vertices(vertices))
     return meshes
 
 
@@ -86,22 +89,23 @@ def cmd_fit(args: argparse.Namespace) -> int:
     settings = settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
                                   correspondence=settings_from_args(CorrespondenceSettings, args),
                                   deform=settings_from_args(DeformSettings, args))
-    source = read_source(args.source, args)
-    settings = replace(settings, prepare=source.prepare)
-    report = console_progress("fit")
-    if source.correspondence is None:
-        if args.meshes is not None:
-            raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
-                               f"{source.kind}")
-        model = fit_meshes(prepare_source(source), settings, progress=report)
-    else:
-        if args.meshes is None:
-            raise CommandError(
-                f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
-                "was computed from) so the training meshes can be meshed")
-        meshes = _meshes_for_correspondence(source.correspondence, args.meshes)
-        model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
-    model.save(args.output)
+    with SpillStore() as spill:  # dense meshes on disk until the model file is written (core/spill.py)
+        source = read_source(args.source, args, spill=spill)
+        settings = replace(settings, prepare=source.prepare)
+        report = console_progress("fit")
+        if source.correspondence is None:
+            if args.meshes is not None:
+                raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
+                                   f"{source.kind}")
+            model = fit_meshes(prepare_source(source), settings, progress=report)
+        else:
+            if args.meshes is None:
+                raise CommandError(
+                    f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
+                    "was computed from) so the training meshes can be meshed")
+            meshes = _meshes_for_correspondence(source.correspondence, args.meshes, spill)
+            model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
+        model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
         if reason:

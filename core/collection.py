@@ -25,6 +25,7 @@ from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .progress import CancelCheck, Progress, sub_range
 from .settings import Settings, option, recorded_settings
+from .spill import REGISTRATION_PROXY, StoredMesh, loaded
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
            "PREPARED_VERSION"]
@@ -159,7 +160,10 @@ def prepare_meshes(
     """Align, scale and landmark a collection (thesis §3.4 and §4.2.1). `keep_pose`: the
     names of the shapes whose pose is kept (never turned beyond the up axis, still
     checked and flagged), or one bool per mesh. `progress` and `should_cancel` as in
-    core/progress.py; cancel is checked at every progress step."""
+    core/progress.py; cancel is checked at every progress step. Dense meshes kept on disk
+    (`spill.StoredMesh`, from `io.read_folder(spill=...)`) stay there: each is loaded for
+    its own steps, its prepared shape is stored beside it with its registration proxy
+    (`spill.REGISTRATION_PROXY`, built here at full density, once)."""
     meshes = list(meshes)
     if len(meshes) < min_shapes:
         names = ", ".join(m.name or "?" for m in meshes) or "none"
@@ -178,7 +182,10 @@ def prepare_meshes(
     )
     landmarks = []
     for i, shape in enumerate(shapes):
-        landmarks.append(select_landmarks(shape.mesh, settings.n_landmarks, seed=settings.seed + i))
+        with loaded(shape.mesh) as mesh:  # a stored dense mesh (core/spill.py): loaded for its own steps only
+            landmarks.append(select_landmarks(mesh, settings.n_landmarks, seed=settings.seed + i))
+            if isinstance(shape.mesh, StoredMesh):  # built here, at full density, once (correspondence reuses it)
+                shape.mesh.keep_proxy(mesh, REGISTRATION_PROXY)
         report(0.6 + 0.4 * (i + 1) / len(shapes), f"landmarks on {shape.name}")
     return PreparedCollection(shapes, landmarks, settings)
 

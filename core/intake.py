@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import MeshError
-from .mesh import Mesh, triangle_cross
+from .mesh import FACE_CHUNK, Mesh, triangle_cross
 
 __all__ = ["clean_mesh", "weld_vertices", "orient_faces", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
 
@@ -170,35 +170,58 @@ def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None
     volume (divergence theorem), so the sign is the volume's; it also decides open parts
     (a vase open at the top, a bowl), which enclose nothing. 1 for a sphere, 0 for a flat
     sheet, negative when the part is inside out. `part` (F,) numbers the parts (all
-    faces one part by default)."""
+    faces one part by default). Summed over chunks of FACE_CHUNK faces (up to that many,
+    the same floating-point operations as over the whole mesh)."""
     part = np.zeros(len(faces), dtype=np.int64) if part is None else part
     n_parts = int(part.max()) + 1 if n_parts is None else n_parts
-    cross = triangle_cross(vertices, faces)  # 2 A_f n_f
-    twice_area = np.linalg.norm(cross, axis=1)
-    centroid = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3.0
-    weight = np.bincount(part, twice_area, n_parts)
-    middle = np.stack([np.bincount(part, twice_area * centroid[:, d], n_parts) for d in range(3)], axis=1)
-    middle /= np.maximum(weight, np.finfo(float).tiny)[:, None]
-    offset = centroid - middle[part]
-    flux = np.bincount(part, np.einsum("ij,ij->i", cross, offset), n_parts)
-    spread = np.sqrt(np.bincount(part, twice_area * np.einsum("ij,ij->i", offset, offset), n_parts)
-                     / np.maximum(weight, np.finfo(float).tiny))
+    chunks = range(0, len(faces), FACE_CHUNK)  # one chunk up to FACE_CHUNK faces: the sums as over the whole
+    weight, moment = np.zeros(n_parts), np.zeros((n_parts, 3))
+    for start in chunks:
+        cut, cross, twice_area, centroid = _face_terms(vertices, faces, part, start)
+        weight += np.bincount(cut, twice_area, n_parts)
+        moment += np.stack([np.bincount(cut, twice_area * centroid[:, d], n_parts) for d in range(3)], axis=1)
+    middle = moment / np.maximum(weight, np.finfo(float).tiny)[:, None]
+    flux, second = np.zeros(n_parts), np.zeros(n_parts)
+    for start in chunks:
+        cut, cross, twice_area, centroid = _face_terms(vertices, faces, part, start)
+        offset = centroid - middle[cut]
+        flux += np.bincount(cut, np.einsum("ij,ij->i", cross, offset), n_parts)
+        second += np.bincount(cut, twice_area * np.einsum("ij,ij->i", offset, offset), n_parts)
+    spread = np.sqrt(second / np.maximum(weight, np.finfo(float).tiny))
     scale = weight * spread
     return np.divide(flux, scale, out=np.zeros(n_parts), where=scale > 0)
+
+
+def _face_terms(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, start: int):
+    """For the FACE_CHUNK faces from `start`: their parts, cross products (2 A_f n_f),
+    doubled areas and centroids (chunks bound a dense mesh's temporary memory, issue 15)."""
+    faces = faces[start:start + FACE_CHUNK]
+    cross = triangle_cross(vertices, faces)
+    centroid = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3.0
+    return part[start:start + FACE_CHUNK], cross, np.linalg.norm(cross, axis=1), centroid
 
 
 def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
     second (E,), and whether both faces run along the edge in the same direction (E,);
-    plus the faces with a border or non-manifold edge (a face per such half-edge)."""
-    start = faces.ravel().astype(np.int64)
-    end = faces[:, [1, 2, 0]].ravel().astype(np.int64)  # half-edge h runs start[h] -> end[h] in face h // 3
-    key = np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
+    plus the faces with a border or non-manifold edge (a face per such half-edge).
+    Built with at most three int64 arrays of the half-edges alive at a time (issue 15: a
+    reading worker's peak memory on a mesh of millions of faces)."""
+    faces = np.asarray(faces)
+    end = faces[:, [1, 2, 0]]  # half-edge h runs faces.ravel()[h] -> end.ravel()[h] in face h // 3
+    rising = (faces < end).ravel()
+    key = np.minimum(faces, end).ravel().astype(np.int64)
+    key *= int(faces.max()) + 1
+    key += np.maximum(faces, end).ravel()
+    del end
     order = np.argsort(key)  # any order within an edge: the pairs and border faces are the same
-    run_start = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
-    run_length = np.diff(np.r_[run_start, len(key)])
+    key = key[order]
+    run_start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    count = len(key)
+    del key
+    run_length = np.diff(np.r_[run_start, count])
     pair = run_start[run_length == 2]
     a, b = order[pair], order[pair + 1]
-    same_direction = (start[a] < end[a]) == (start[b] < end[b])
+    same_direction = rising[a] == rising[b]
     border = order[np.repeat(run_length != 2, run_length)] // 3
     return a // 3, b // 3, same_direction, border

@@ -42,6 +42,7 @@ from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
 from .intake import clean_mesh
 from .layout import FaceLayout
 from .mesh import Mesh
+from .spill import SpillStore, keep_dense
 
 __all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
            "ObjWriter", "MeshWriters"]
@@ -225,9 +226,12 @@ def list_mesh_files(folder: str | os.PathLike) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
 
 
-def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None = 1) -> list[Mesh]:
+def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None = 1,
+                spill: "SpillStore | None" = None) -> list:
     """Read every mesh file in `folder`, in `jobs` worker processes (None: all cores; 1:
-    in this process), one file per task, in file order either way.
+    in this process), one file per task, in file order either way. With a `spill` store
+    (core/spill.py), a mesh above its size is written there by the process that read it
+    and comes back as a `StoredMesh` (no full-density copy reaches this process).
 
     All files are tried; if any fail, one single-line MeshFileError names every failing
     file with its problem (starting with that file's path when only one fails).
@@ -240,17 +244,18 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
             f"{folder}: no mesh files found (looked for {', '.join(MESH_SUFFIXES)})"
         )
     jobs = min(len(files), (os.cpu_count() or 1) if jobs is None else max(1, int(jobs)))
+    target = None if spill is None else spill.target
     if jobs > 1:
         import concurrent.futures as futures
         import multiprocessing
 
         with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=exit_with_parent) as pool:
-            outcomes = list(pool.map(_read_or_error, files))
+            outcomes = list(pool.map(_read_or_error, files, [target] * len(files)))
     else:
-        outcomes = [_read_or_error(path) for path in files]
-    meshes = [m for m in outcomes if isinstance(m, Mesh)]
-    failures = [m for m in outcomes if not isinstance(m, Mesh)]
+        outcomes = [_read_or_error(path, target) for path in files]
+    meshes = [m for m in outcomes if not isinstance(m, str)]
+    failures = [m for m in outcomes if isinstance(m, str)]
     if failures:
         # one line (the CLI prints errors as one line): the failing file first when it is the
         # only one, so the message starts with the path of the file to fix
@@ -275,12 +280,14 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
     return meshes
 
 
-def _read_or_error(path: Path) -> Mesh | str:
-    """The mesh of one file, or its MeshFileError's message (a worker task of `read_folder`)."""
+def _read_or_error(path: Path, spill: tuple[str, int] | None = None):
+    """The mesh of one file (kept in the spill store `spill` = (folder, above) when it is
+    dense: `spill.keep_dense`), or its MeshFileError's message (a worker task of `read_folder`)."""
     try:
-        return read_mesh(path)
+        mesh = read_mesh(path)
     except MeshFileError as exc:
         return str(exc)
+    return mesh if spill is None else keep_dense(mesh, *spill)
 
 
 def write_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:

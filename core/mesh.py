@@ -32,7 +32,7 @@ from .errors import MeshError
 if TYPE_CHECKING:
     from .layout import FaceLayout
 
-__all__ = ["Mesh", "MeshReport", "SurfaceSamples", "triangle_cross", "cross_rows"]
+__all__ = ["Mesh", "MeshReport", "MeshSizes", "SurfaceSamples", "triangle_cross", "cross_rows"]
 
 #: Faces per chunk of the per-face computations (bounds their temporary memory).
 FACE_CHUNK = 1 << 18
@@ -99,8 +99,25 @@ class SurfaceSamples:
     barycentric: np.ndarray  # (n, 3), rows sum to 1
 
 
+class MeshSizes:
+    """What a mesh and a handle of one kept on disk (core/spill.py) both answer from their
+    `vertices` and `faces` shapes and their `bounds()`."""
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def bbox_diagonal(self) -> float:
+        lo, hi = self.bounds()
+        return float(np.linalg.norm(hi - lo))
+
+
 @dataclass(frozen=True, eq=False)
-class Mesh:
+class Mesh(MeshSizes):
     """A valid triangle mesh (see module docstring for the invariants)."""
 
     vertices: np.ndarray
@@ -187,17 +204,13 @@ class Mesh:
 
     # ------------------------------------------------------------------ geometry
     @property
-    def n_vertices(self) -> int:
-        return int(self.vertices.shape[0])
-
-    @property
-    def n_faces(self) -> int:
-        return int(self.faces.shape[0])
-
-    @property
     def triangles(self) -> np.ndarray:
         """(F, 3, 3) corner coordinates of every face."""
         return self.vertices[self.faces]
+
+    def face_corners(self, faces: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) corner coordinates of the given faces only."""
+        return self.vertices[self.faces[faces]]
 
     def face_normals_unnormalised(self) -> np.ndarray:
         """Cross products (b - a) x (c - a); length = 2 * area."""
@@ -250,10 +263,6 @@ class Mesh:
         used = np.zeros(self.n_vertices, dtype=bool)
         used[self.faces.ravel()] = True
         return np.flatnonzero(used)
-
-    def bbox_diagonal(self) -> float:
-        lo, hi = self.bounds()
-        return float(np.linalg.norm(hi - lo))
 
     def _face_edges(self) -> np.ndarray:
         """(3F, 2) the edge of every face corner, smaller index first (shared edges repeat)."""

@@ -29,11 +29,11 @@ def pack(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray], prefix: st
     """`{prefix}vertices`, `{prefix}faces` (concatenated, indices local to each mesh) and
     `{prefix}vertex_offsets`, `{prefix}face_offsets` (M + 1 each). `lazy`: vertices and
     faces as `npzfile.Concatenation`s that `save_npz` streams into the file (no copy of
-    every mesh in memory)."""
-    join = Concatenation if lazy else (lambda parts: np.concatenate(parts))
+    every mesh in memory; a stored mesh's arrays, `spill.StoredArray`, read one at a time)."""
+    join = Concatenation if lazy else (lambda parts: np.concatenate([np.asarray(part) for part in parts]))
     return {
-        f"{prefix}vertices": join([np.asarray(v) for v in vertices]),
-        f"{prefix}faces": join([np.asarray(f) for f in faces]),
+        f"{prefix}vertices": join(list(vertices)),
+        f"{prefix}faces": join(list(faces)),
         f"{prefix}vertex_offsets": np.cumsum([0] + [len(v) for v in vertices]).astype(np.int64),
         f"{prefix}face_offsets": np.cumsum([0] + [len(f) for f in faces]).astype(np.int64),
     }

@@ -30,20 +30,23 @@ __all__ = ["save_npz", "load_npz", "read_format", "validate_arrays", "ArraySpec"
 
 class Concatenation:
     """The array `np.concatenate(parts)` (in `dtype`, default the parts' common type) as
-    `save_npz` writes it: streamed part by part, never built in memory."""
+    `save_npz` writes it: streamed part by part, never built in memory. A part is an array
+    or an object with `shape`, `dtype` and `__array__` (e.g. an array kept on disk,
+    core/spill.py), made an array only when it is written."""
 
     def __init__(self, parts, dtype=None):
-        self.parts = [np.asarray(part) for part in parts]
+        self.parts = [part if all(hasattr(part, key) for key in ("shape", "dtype", "__array__")) else np.asarray(part)
+                      for part in parts]
         if not self.parts:
             raise ValueError("a Concatenation needs at least one part")
-        self.dtype = np.result_type(*self.parts) if dtype is None else np.dtype(dtype)
-        tails = {part.shape[1:] for part in self.parts}
+        self.dtype = np.result_type(*[part.dtype for part in self.parts]) if dtype is None else np.dtype(dtype)
+        tails = {tuple(part.shape[1:]) for part in self.parts}
         if len(tails) != 1:
             raise ValueError(f"parts of different shapes {sorted(tails)} cannot be concatenated")
-        self.shape = (sum(len(part) for part in self.parts), *tails.pop())
+        self.shape = (sum(part.shape[0] for part in self.parts), *tails.pop())
 
     def __array__(self, dtype=None, copy=None):
-        whole = np.concatenate(self.parts).astype(self.dtype, copy=False)
+        whole = np.concatenate([np.asarray(part) for part in self.parts]).astype(self.dtype, copy=False)
         return whole if dtype is None else whole.astype(dtype, copy=False)
 
     def write(self, handle) -> None:
@@ -51,7 +54,7 @@ class Concatenation:
         header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": self.shape}
         np.lib.format.write_array_header_1_0(handle, header)
         for part in self.parts:
-            handle.write(np.ascontiguousarray(part, dtype=self.dtype).data)
+            handle.write(np.ascontiguousarray(np.asarray(part), dtype=self.dtype).data)
 
 
 class ArraySpec:

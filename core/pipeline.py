@@ -47,6 +47,7 @@ from .models.scaling import ScaleWarning, size_note
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
+from .spill import full_mesh
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
@@ -108,7 +109,9 @@ def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
 
 
 class GenerativeShapeModel:
-    """A fitted shape class: sample, encode, complete and mesh new shapes."""
+    """A fitted shape class: sample, encode, complete and mesh new shapes. In the run that
+    fitted it, a dense training mesh may still be a `spill.StoredMesh` (kept on disk for
+    the run): loaded when it is meshed from, streamed into the file by `save`."""
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
                  settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None,
@@ -246,7 +249,7 @@ class GenerativeShapeModel:
         key = (int(index), alpha)
         if key not in self._deformers:
             self._deformers[key] = EmbeddedDeformer(
-                self.meshes[index], self.correspondence.points[index], self.correspondence.edges,
+                full_mesh(self.meshes[index]), self.correspondence.points[index], self.correspondence.edges,
                 replace(self.deform_settings, final_alpha=alpha))
         return self._deformers[key]
 
@@ -285,7 +288,8 @@ class GenerativeShapeModel:
         if exact:
             mesh = deformer.deform(landmarks, "relax", name=name)
         else:
-            mesh = self.meshes[index].with_vertices(self.linear_map(index, stiffness).vertices(landmarks), name=name)
+            mesh = full_mesh(self.meshes[index]).with_vertices(self.linear_map(index, stiffness).vertices(landmarks),
+                                                              name=name)
         if smooth:
             mesh = smooth_curvature_flow(mesh, smooth)
         return mesh

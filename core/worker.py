@@ -79,21 +79,31 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
     from .progress import sub_range
+    from .spill import SpillStore
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
     if "correspondence_of" in arguments:
         earlier = GenerativeShapeModel.load(arguments["correspondence_of"])
         model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
                                 should_cancel=should_cancel)
-    else:
+        return _save_result(model, arguments, should_cancel, "fit")
+    with SpillStore() as spill:  # dense meshes on disk until the model is written (core/spill.py)
         if "prepared" in arguments:
             source = PreparedCollection.load(arguments["prepared"])
         else:  # prepared here, as fit_meshes would (progress 0-0.15), so the kept poses count
-            source = prepare_meshes(load_mesh_set(arguments["meshes"]), settings.prepare,
+            source = prepare_meshes(_kept(load_mesh_set(arguments["meshes"]), spill), settings.prepare,
                                     progress=sub_range(progress, 0.0, 0.15, "prepare: "), should_cancel=should_cancel,
                                     keep_pose=arguments.get("keep_pose"))
         model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
-    return _save_result(model, arguments, should_cancel, "fit")
+        return _save_result(model, arguments, should_cancel, "fit")
+
+
+def _kept(meshes: list, spill) -> list:
+    """The meshes with the dense ones moved into the run's spill store (core/spill.py), so
+    the stages after loading hold one at a time."""
+    for index, mesh in enumerate(meshes):
+        meshes[index] = spill.keep(mesh)
+    return meshes
 
 
 def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
@@ -114,12 +124,14 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
     progress step (after each shape's stage)."""
     from .collection import PrepareSettings, prepare_meshes
     from .meshset import load_mesh_set
+    from .spill import SpillStore
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
-    meshes = load_mesh_set(arguments["meshes"])
-    prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel,
-                              keep_pose=arguments.get("keep_pose"))
-    return _save_result(prepared, arguments, should_cancel, "prepare")
+    with SpillStore() as spill:
+        meshes = _kept(load_mesh_set(arguments["meshes"]), spill)
+        prepared = prepare_meshes(meshes, settings, progress=progress, should_cancel=should_cancel,
+                                  keep_pose=arguments.get("keep_pose"))
+        return _save_result(prepared, arguments, should_cancel, "prepare")
 
 
 def task_correspond(arguments: dict, progress, should_cancel) -> str:

@@ -16,6 +16,7 @@ from ..errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
 from ..progress import Progress, no_progress, sub_range
 from ..simplify import Proxy
+from ..spill import full_mesh
 from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
@@ -201,8 +202,9 @@ def _refined(collection, keep, points, face_index, barycentric, edges, settings,
     if len(active) < 3:  # no population to speak of: the objective's covariance is degenerate
         report(1.0, f"refinement skipped: {len(active)} shapes fit")
         return points, face_index, barycentric, np.zeros((0, 3))
-    result = refine_population([collection.shapes[i].mesh for i in active], points[active], face_index[active],
-                               barycentric[active], settings, report, should_cancel, edges, jobs)
+    meshes = [full_mesh(collection.shapes[i].mesh) for i in active]  # a stored dense mesh loaded (core/spill.py)
+    result = refine_population(meshes, points[active], face_index[active], barycentric[active], settings, report,
+                               should_cancel, edges, jobs)
     points, face_index, barycentric = points.copy(), face_index.copy(), barycentric.copy()
     points[active], face_index[active], barycentric[active] = result.points, result.face_index, result.barycentric
     return points, face_index, barycentric, result.trace

@@ -26,24 +26,26 @@ from scipy.spatial import cKDTree
 from ..geometry.nearby import closest_within
 from ..mesh import Mesh
 from ..simplify import Proxy, proxy_mesh
+from ..spill import DENSE_RATIO, StoredMesh, full_mesh
 from .registration import Registration, fit_residual
 
-__all__ = ["PlacementTask", "ProxyTask", "build_proxy", "dense_shapes", "face_normals_at", "place_dense",
-           "place_on_full_surface", "proxies_of"]
+__all__ = ["DENSE_RATIO", "PlacementTask", "ProxyTask", "build_proxy", "dense_shapes", "face_normals_at",
+           "place_dense", "place_on_full_surface", "proxies_of"]
 
 
 @dataclass(frozen=True)
 class ProxyTask:
-    """One dense mesh to simplify (picklable; one mesh per worker call)."""
+    """One dense mesh to simplify (picklable; one mesh per worker call): in memory, or
+    kept on disk for the run (`spill.StoredMesh`, loaded by the worker)."""
 
-    mesh: Mesh
+    mesh: Mesh | StoredMesh
     max_faces: int
     above: int
 
 
 def build_proxy(task: ProxyTask) -> Proxy:
     """The proxy a worker builds for one mesh (core/simplify.py)."""
-    return proxy_mesh(task.mesh, task.max_faces, task.above)
+    return proxy_mesh(full_mesh(task.mesh), task.max_faces, task.above)
 
 
 @dataclass(frozen=True)
@@ -76,17 +78,14 @@ def place_on_full_surface(task: PlacementTask) -> Registration:
     corners = (task.vertices[task.faces[placed.face_index].ravel()] - task.centre) / task.scale
     landmarks = (task.landmarks - task.centre) / task.scale
     return replace(task.registration, placed=placed,
-                   normals=_unit_normals(corners, np.arange(len(corners)).reshape(-1, 3)),
+                   normals=_triangle_normals(corners.reshape(-1, 3, 3)),
                    residual=fit_residual(placed, landmarks))
 
 
 
-#: a shape with more than this many times `CorrespondenceSettings.proxy_faces` faces is dense
-DENSE_RATIO = 2.5
-
-
 def dense_limit(settings) -> int:
-    """Shapes with more faces than this are registered against a proxy."""
+    """Shapes with more faces than this (`spill.DENSE_RATIO` × proxy_faces) are registered
+    against a proxy."""
     return int(DENSE_RATIO * settings.proxy_faces)
 
 
@@ -99,15 +98,28 @@ def dense_shapes(shapes, settings) -> list[int]:
 
 
 def proxies_of(shapes, dense: list[int], settings, runner, progress) -> list[Proxy]:
-    """Per shape what its rounds register against: the proxy of a dense shape (built by
-    `runner`, one mesh per call), else the shape's own mesh (`Proxy.is_full`)."""
-    built = runner.map(build_proxy, [ProxyTask(shapes[i].mesh, settings.proxy_faces, dense_limit(settings))
-                                     for i in dense], progress,
-                       lambda k: f"proxy of {shapes[dense[k]].name}")
-    surfaces = [Proxy(shape.mesh) for shape in shapes]
-    for i, proxy in zip(dense, built):
-        surfaces[i] = proxy
-    return surfaces
+    """Per shape what its rounds register against: the proxy of a dense shape, else the
+    shape's own mesh (`Proxy.is_full`; a stored one loaded). A stored dense shape's proxy
+    built by Prepare at full density (`spill.StoredMesh.proxies`) is used as it is; the
+    others are built by `runner`, one mesh per call (a stored mesh loaded by the worker)."""
+    key = (settings.proxy_faces, dense_limit(settings))
+    missing = [i for i in dense if not (isinstance(shapes[i].mesh, StoredMesh) and key in shapes[i].mesh.proxies)]
+    built = runner.map(build_proxy, [ProxyTask(shapes[i].mesh, *key) for i in missing], progress,
+                       lambda k: f"proxy of {shapes[missing[k]].name}")
+    for i, proxy in zip(missing, built):
+        if isinstance(shapes[i].mesh, StoredMesh):
+            shapes[i].mesh.proxies[key] = proxy
+    made, dense_set = dict(zip(missing, built)), set(dense)
+    return [made[i] if i in made else shape.mesh.proxies[key] if i in dense_set else Proxy(full_mesh(shape.mesh))
+            for i, shape in enumerate(shapes)]
+
+
+def _place_loaded(item: tuple) -> Registration:
+    """`place_on_full_surface` of (mesh, task without the mesh's arrays): a stored mesh is
+    loaded here, in the worker."""
+    mesh, task = item
+    mesh = full_mesh(mesh)
+    return place_on_full_surface(replace(task, vertices=mesh.vertices, faces=mesh.faces))
 
 
 def place_dense(registrations: list[Registration], collection, surfaces: list[Proxy], dense: list[int], settings,
@@ -115,10 +127,10 @@ def place_dense(registrations: list[Registration], collection, surfaces: list[Pr
     """The registrations with those of the `dense` shapes placed on their full surfaces
     (`place_on_full_surface`, one shape per worker call), in the registration frame."""
     min_cos = None if settings.normal_max_angle is None else float(np.cos(np.radians(settings.normal_max_angle)))
-    tasks = [PlacementTask(collection.shapes[i].mesh.vertices, collection.shapes[i].mesh.faces,
-                           surfaces[i].representatives, collection.landmarks[i].points, registrations[i], min_cos,
-                           centre, scale) for i in dense]
-    placed = runner.map(place_on_full_surface, tasks, progress,
+    tasks = [(collection.shapes[i].mesh, PlacementTask(None, None, surfaces[i].representatives,
+                                                       collection.landmarks[i].points, registrations[i], min_cos,
+                                                       centre, scale)) for i in dense]
+    placed = runner.map(_place_loaded, tasks, progress,
                         lambda k: f"landmarks placed on the full surface of {collection.shapes[dense[k]].name}")
     registrations = list(registrations)
     for i, registration in zip(dense, placed):
@@ -126,14 +138,14 @@ def place_dense(registrations: list[Registration], collection, surfaces: list[Pr
     return registrations
 
 
-def face_normals_at(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
-    """Unit normals of the given faces only (not of the whole mesh)."""
-    return _unit_normals(mesh.vertices, mesh.faces[faces])
+def face_normals_at(mesh: Mesh | StoredMesh, faces: np.ndarray) -> np.ndarray:
+    """Unit normals of the given faces only (not of the whole mesh; a stored mesh's faces
+    read alone)."""
+    return _triangle_normals(mesh.face_corners(faces))
 
 
-def _unit_normals(vertices: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Unit normals of the triangles with the given corners (0 for a degenerate one)."""
-    triangles = vertices[corners]
+def _triangle_normals(triangles: np.ndarray) -> np.ndarray:
+    """Unit normals of (n, 3, 3) triangles (0 for a degenerate one)."""
     cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     length = np.linalg.norm(cross, axis=1, keepdims=True)
     return np.divide(cross, length, out=np.zeros_like(cross), where=length > 0)

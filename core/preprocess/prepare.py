@@ -10,7 +10,8 @@ import numpy as np
 from ..errors import CollectionError, MeshError
 from ..mesh import FACE_CHUNK, Mesh
 from ..progress import sub_range
-from ..simplify import DENSE_FACES, POSE_PROXY_FACES, proxy_mesh
+from ..simplify import DENSE_FACES, POSE_PROXY_FACES
+from ..spill import loaded, proxy_of
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
 from .hollow import Hollows
 from .moments import SCALE_MODES, scale_measure, surface_moments
@@ -44,7 +45,10 @@ def prepare_collection(
     pose is still checked and flagged (`PreparedShape.pose_outlier`).
     dense_faces: the pose search and signatures see a mesh with more faces through its
     proxy of about POSE_PROXY_FACES faces (core/simplify.py; issue 15), so their cost does
-    not grow with the density of the mesh."""
+    not grow with the density of the mesh.
+    meshes may be `spill.StoredMesh`es (dense meshes kept on disk for the run): the pose
+    search uses their proxies built when they were read, each per-shape step at full
+    density loads one at a time, and their prepared shapes are stored beside them."""
     if align not in ALIGN_MODES:
         raise ValueError(f"unknown align mode {align!r}; choose from {ALIGN_MODES}")
     if centre not in CENTRE_MODES:
@@ -62,7 +66,7 @@ def prepare_collection(
     up = up_rotation(up_axis)
     search = signatures = symmetry = hollows = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
-        posed = [proxy_mesh(mesh, POSE_PROXY_FACES, above=dense_faces).mesh for mesh in meshes]
+        posed = [proxy_of(mesh, POSE_PROXY_FACES, dense_faces).mesh for mesh in meshes]
         search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
                                sub_range(report, 0.0, 0.15, "pose search: "))
         signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
@@ -81,23 +85,34 @@ def prepare_collection(
                                  hollows)
     report(0.9, "floor, centre and scale")
 
-    transforms = [_floor_and_centre(mesh, d.rotation @ up, centre) for mesh, d in zip(meshes, decisions)]
+    transforms, measures = [], []
+    for mesh, d in zip(meshes, decisions):  # one mesh at full density at a time (a stored one loaded)
+        with loaded(mesh) as full:
+            transforms.append(_floor_and_centre(full, d.rotation @ up, centre))
+            if scale != "none":
+                measures.append(_measure(full, transforms[-1], scale))
     if scale != "none":
-        transforms = _equal_size(meshes, transforms, scale)
-    prepared = [
-        PreparedShape(mesh.with_vertices(t.to_normalised(mesh.vertices)), t, d.changed, d.rotation, d.reason, why)
-        for mesh, t, d, why in zip(meshes, transforms, decisions, outliers)
-    ]
+        transforms = _equal_size(transforms, measures, scale)
+    prepared = [PreparedShape(_normalised(mesh, t), t, d.changed, d.rotation, d.reason, why)
+                for mesh, t, d, why in zip(meshes, transforms, decisions, outliers)]
     report(1.0, "prepared")
     return prepared
 
 
-def _own_decision(mesh: Mesh, up: np.ndarray, align: str, keep: bool) -> PoseDecision:
+def _normalised(mesh, transform: ShapeTransform):
+    """The mesh in the normalised frame; a stored mesh (core/spill.py) stays stored."""
+    with loaded(mesh) as full:
+        vertices = transform.to_normalised(full.vertices)
+    return mesh.with_vertices(vertices)
+
+
+def _own_decision(mesh, up: np.ndarray, align: str, keep: bool) -> PoseDecision:
     """The turn after the up rotation without consensus: the horizontal PCA (align "pca",
     unless the pose is kept), else none."""
     if align == "none" or keep:
         return PoseDecision(np.eye(3))
-    yaw = horizontal_pca_rotation(mesh.with_vertices(mesh.vertices @ up.T))
+    with loaded(mesh) as full:
+        yaw = horizontal_pca_rotation(full.with_vertices(full.vertices @ up.T))
     return PoseDecision(yaw, f"{describe_rotation(yaw)}: its principal horizontal axis to x (align pca)")
 
 
@@ -116,23 +131,26 @@ def _floor_and_centre(mesh: Mesh, rotation: np.ndarray, centre: str) -> ShapeTra
     return ShapeTransform(rotation, 1.0, shift)
 
 
-def _equal_size(meshes: Sequence[Mesh], transforms: Sequence[ShapeTransform], scale: str) -> list[ShapeTransform]:
-    """Step 5: scale every shape so its measure (`scale_measure`) equals the geometric mean
-    of the collection's measures. The surface variance of a mesh above FACE_CHUNK faces
-    comes from its own moments (a similarity's rotation and shift leave it, its scale
-    multiplies it by scale²), not from a transformed copy (issue 15)."""
-    measures = []
-    for mesh, transform in zip(meshes, transforms):
-        if scale == "variance" and mesh.n_faces > FACE_CHUNK:
-            value = transform.scale ** 2 * scale_measure(mesh, scale)
-        else:
-            value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
-        if not np.isfinite(value) or value <= 0:
-            raise MeshError(
-                f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "
-                "(a flat or degenerate shape)"
-            )
-        measures.append(value)
+def _measure(mesh: Mesh, transform: ShapeTransform, scale: str) -> float:
+    """Step 5's measure (`scale_measure`) of one shape after `transform`. The surface
+    variance of a mesh above FACE_CHUNK faces comes from its own moments (a similarity's
+    rotation and shift leave it, its scale multiplies it by scale²), not from a transformed
+    copy (issue 15)."""
+    if scale == "variance" and mesh.n_faces > FACE_CHUNK:
+        value = transform.scale ** 2 * scale_measure(mesh, scale)
+    else:
+        value = scale_measure(mesh.with_vertices(transform.to_normalised(mesh.vertices)), scale)
+    if not np.isfinite(value) or value <= 0:
+        raise MeshError(
+            f"{mesh.name or 'mesh'}: cannot scale by {scale}: the measure is {value} "
+            "(a flat or degenerate shape)"
+        )
+    return value
+
+
+def _equal_size(transforms: Sequence[ShapeTransform], measures: Sequence[float], scale: str) -> list[ShapeTransform]:
+    """Step 5: scale every shape so its measure (`_measure`) equals the geometric mean of
+    the collection's measures."""
     measures = np.asarray(measures)
     target = float(np.exp(np.mean(np.log(measures))))
     power = 0.5 if scale == "variance" else 1.0 / 3.0

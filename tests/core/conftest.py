@@ -61,6 +61,16 @@ def unit_cube() -> Mesh:
     return Mesh(np.asarray(box.vertices) + 0.5, np.asarray(box.faces), name="cube")
 
 
+def subdivided(mesh: Mesh, steps: int, name: str | None = None) -> Mesh:
+    """The same surface with 4^steps times the faces (midpoint subdivision): a dense mesh."""
+    import trimesh
+
+    vertices, faces = mesh.vertices, mesh.faces
+    for _ in range(steps):
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    return Mesh(vertices, faces, name=name or mesh.name)
+
+
 def psb_class(name: str) -> Path:
     folder = PSB / name
     if not folder.is_dir() or not any(folder.glob("*.off")):

@@ -23,13 +23,10 @@ from shapegen_core.geometry.nearby import closest_within
 from shapegen_core.mesh import Mesh
 from shapegen_core.simplify import proxy_mesh
 
+from conftest import subdivided
 
-def _subdivided(mesh: Mesh, steps: int, name: str | None = None) -> Mesh:
-    """The same surface with 4^steps times the faces (midpoint subdivision)."""
-    vertices, faces = mesh.vertices, mesh.faces
-    for _ in range(steps):
-        vertices, faces = trimesh.remesh.subdivide(vertices, faces)
-    return Mesh(vertices, faces, name=name or mesh.name)
+
+_subdivided = subdivided
 
 
 @pytest.fixture(scope="module")
