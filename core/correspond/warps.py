@@ -50,7 +50,8 @@ from scipy.sparse.csgraph import dijkstra
 
 from ..mesh import Mesh
 from ..progress import CancelCheck, Progress, no_progress
-from .objective import CompactnessTerm, combined
+from .objective import CompactnessTerm
+from .refine import Refinement, population_objective
 from .shards import Shards
 
 __all__ = ["WarpBasis", "warp_basis", "refine_warps", "MAX_COEFFICIENT", "KERNELS", "WIDTH"]
@@ -154,7 +155,6 @@ def refine_warps(meshes: Sequence[Mesh], points: np.ndarray, face_index: np.ndar
     kernels live on. compactness: as for refine.refine_population. Returns a
     refine.Refinement whose trace has E at the start and after every L-BFGS iteration
     that lowered the best E so far."""
-    from .refine import Refinement
 
     report = progress or no_progress
     cancel = CancelCheck(should_cancel, "correspondence")
@@ -167,18 +167,8 @@ def refine_warps(meshes: Sequence[Mesh], points: np.ndarray, face_index: np.ndar
 
 
 def _search(shards: Shards, settings, edges, stages, width, report: Progress, cancel, make_compactness):
-    weights = (settings.refine_compactness, settings.refine_spread)
     answer = shards.propose(None)
-    if make_compactness is None:
-        compactness = CompactnessTerm(answer.state, settings.refine_regulariser, settings.refine_alignment,
-                                      settings.refine_normals)
-    else:
-        compactness = make_compactness(answer.state)
-
-    def evaluate(answer):
-        value_c, grad_c = compactness.evaluate(answer.state) if weights[0] else (0.0, 0.0)
-        return combined(weights, value_c, grad_c, answer.spread, answer.spread_gradient)
-
+    compactness, evaluate = population_objective(answer, settings, make_compactness)
     value, _ = evaluate(answer)
     trace, rejected = [value.as_row()], 0
     budget = settings.refine_iterations
@@ -219,7 +209,7 @@ def _search(shards: Shards, settings, edges, stages, width, report: Progress, ca
         value, answer = best["value"], best["answer"]
         if trace[-1][0] > value.total:
             trace.append(value.as_row())
-        if settings.refine_alignment != "none" and weights[0]:
+        if settings.refine_alignment != "none" and settings.refine_compactness:
             old = compactness.scales, compactness.rotations
             compactness.realign(answer.state.points)  # kept only if it lowers E as well
             realigned, _ = evaluate(answer)
