@@ -4,11 +4,13 @@ parameterisations move by sums of kernels, wide ones first): every shape's landm
 move by one smooth tangent displacement field with few parameters, and the population
 objective of objective.py is minimised over those parameters by a quasi-Newton search.
 
-Why not landmark-wise descent (refine.py): on the procedural vases the objective prefers
-the ground truth, but the way there is a long, shallow valley nearly orthogonal to the
-local gradient; steepest descent in landmark space stops after a few steps. A field of K
-wide kernels has 2K parameters per shape, and L-BFGS in that space follows the valley's
-curvature instead of the steep directions (docs/results.md, issue 13, third round).
+Why: on 40 procedural vases the objective prefers the ground truth by far, but
+landmark-wise steepest descent (refine.py) stops soon; the hope was a long, shallow
+valley that a field of K wide kernels (2K parameters per shape) searched by L-BFGS would
+follow. Measured (bench/refine_warps.py; docs/results.md, issue 13, third round): it
+lowers E, but the true error rises on every collection, because the objective charges
+the smooth part of the way to the truth (NICP + the truth's displacement fitted in
+these fields has E above NICP's); so this is a measured tool, not a `refine` option.
 
 The field of shape m, at landmark l (every stage starts from the current landmarks x⁰):
 
