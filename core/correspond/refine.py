@@ -38,10 +38,10 @@ import numpy as np
 from ..mesh import Mesh
 from ..progress import CancelCheck, Progress, no_progress
 from .objective import CompactnessTerm, LandmarkState, combined
-from .shards import ShapeShard, Shards, interpolated_normals
+from .shards import ShapeShard, ShardAnswer, Shards, interpolated_normals
 from .settings import REFINE_METHODS, CorrespondenceSettings
 
-__all__ = ["Refinement", "refine_population", "landmark_state", "smooth_basis", "interpolated_normals",
+__all__ = ["Refinement", "refine_population", "population_objective", "landmark_state", "smooth_basis", "interpolated_normals",
            "REFINE_METHODS", "GROW", "MAX_BACKTRACKS", "REALIGN_EVERY"]
 
 #: τ grows by this factor after an accepted step
@@ -120,21 +120,30 @@ def refine_population(meshes: Sequence[Mesh], points: np.ndarray, face_index: np
         shards.close()
 
 
+def population_objective(start: ShardAnswer, settings: CorrespondenceSettings, make_compactness=None):
+    """The compactness term anchored at the `start` landmarks (`CompactnessTerm` from the
+    settings, or `make_compactness(start.state)`) and `evaluate(answer)` → (E, ∂E/∂X): E =
+    w_c C + w_s S̄ of a shards' answer (objective.py)."""
+    weights = (settings.refine_compactness, settings.refine_spread)
+    if make_compactness is None:
+        compactness = CompactnessTerm(start.state, settings.refine_regulariser, settings.refine_alignment,
+                                      settings.refine_normals)
+    else:
+        compactness = make_compactness(start.state)
+
+    def evaluate(answer: ShardAnswer):
+        value_c, grad_c = compactness.evaluate(answer.state) if weights[0] else (0.0, 0.0)
+        return combined(weights, value_c, grad_c, answer.spread, answer.spread_gradient)
+
+    return compactness, evaluate
+
+
 def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Progress, cancel,
              make_compactness=None) -> Refinement:
     """The iterations of `refine_population` (module docstring)."""
     weights = (settings.refine_compactness, settings.refine_spread)
     answer = shards.propose(None)
-    if make_compactness is None:
-        compactness = CompactnessTerm(answer.state, settings.refine_regulariser, settings.refine_alignment,
-                                      settings.refine_normals)
-    else:
-        compactness = make_compactness(answer.state)
-
-    def evaluate(answer):
-        value_c, grad_c = compactness.evaluate(answer.state) if weights[0] else (0.0, 0.0)
-        return combined(weights, value_c, grad_c, answer.spread, answer.spread_gradient)
-
+    compactness, evaluate = population_objective(answer, settings, make_compactness)
     value, gradient = evaluate(answer)
     state = answer.state
     trace, rejected = [value.as_row()], 0
