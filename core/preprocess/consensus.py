@@ -378,13 +378,18 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     n = len(search)
     voters = [j for j in range(n) if eligible[j]]
     votes: dict[tuple[int, int], bool] = {}
+    # each voter's nearest voters, asked once: above neighbours.EXACT_SHAPES a later query
+    # can rank a pair whose exact cost another query computed since (its estimate was
+    # above it), and the majority must count the pairs voted on (1000 vases: a KeyError)
+    nearest: dict[int, list[int]] = {}
     for j in voters:  # a shape turned before has no vote, nor is it counted as a neighbour
-        for i in search.nearest(j, voters, k):
+        nearest[j] = search.nearest(j, voters, k)
+        for i in nearest[j]:
             pair = (min(i, j), max(i, j))
             if pair not in votes:
                 votes[pair] = agree(*pair)
         report(progress + 0.15 * (j + 1) / n, f"comparing {j + 1} of {n}")
-    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, k, voters)}
+    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, nearest, voters)}
     references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
     decisions.update({j: PoseDecision(start[j]) for j in range(n) if keep[j] and j not in decisions})
     # the next shape is the one closest to its nearest trusted shape (kept up to date as
@@ -403,14 +408,15 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     return [decisions[j] for j in range(n)]
 
 
-def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int, voters: Sequence[int]) -> list[int]:
-    """Step 2: the largest group of `voters` that agree with most of their nearest voters,
+def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], nearest: dict[int, list[int]],
+              voters: Sequence[int]) -> list[int]:
+    """Step 2: the largest group of `voters` that agree with most of their `nearest` voters,
     connected by agreeing pairs (when no shape agrees, the medoid of the voters, or of
     all shapes when there are none, alone)."""
     n = len(search)
     votes = np.zeros(n)
     for j in voters:
-        votes[j] = np.mean([agree[(min(i, j), max(i, j))] for i in search.nearest(j, voters, k)] or [0.0])
+        votes[j] = np.mean([agree[(min(i, j), max(i, j))] for i in nearest[j]] or [0.0])
     members = np.flatnonzero(votes > 0.5)
     if len(members) == 0:
         pool = np.asarray(voters if len(voters) else range(n), dtype=int)
