@@ -43,6 +43,32 @@ def test_candidate_pairs_find_the_nearest_shapes_of_all_pairs():
     assert known.sum() < n * n  # and still not every pair
 
 
+def test_nearest_in_pool_settles_in_the_order_of_all_pairs():
+    """consensus settles the waiting shape closest to a settled one next: NearestInPool,
+    kept up to date as the pool grows and exact only where the order needs it, gives the
+    order of the all-pairs matrix's row minima, on the exact and the candidate path."""
+    from shapegen_core.preprocess.posesearch import NearestInPool
+
+    meshes = _mixed(40, seed=4)
+    every_pair = PoseSearch.of(meshes, [np.eye(3)] * len(meshes), 300, 0)
+    proposed = PoseSearch(every_pair.samples, exact_shapes=0)
+    n, start = len(meshes), [0, 21]
+    expected, pool = [], list(start)
+    while len(pool) < n:
+        waiting = [r for r in range(n) if r not in pool]
+        nearest = every_pair.distance[np.ix_(waiting, pool)].min(axis=1)
+        expected.append(waiting[int(np.argmin(nearest))])
+        pool.append(expected[-1])
+    for search in (every_pair, proposed):
+        waiting = NearestInPool(search, start, [r for r in range(n) if r not in start])
+        order = []
+        for _ in range(n - len(start)):
+            order.append(waiting.closest())
+            waiting.join(order[-1])
+        assert order == expected
+    assert proposed.candidates.known.sum() < n * n  # exact costs only where the order needs them
+
+
 def test_field_descriptor_of_a_turned_shape_is_its_turned_field():
     """d_{RP}(q) = d_P(Rᵀq): the descriptor of a shape in axis rotation R equals the
     upright descriptor of the shape turned by R."""
