@@ -488,7 +488,8 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     model.fit(corr.landmark_matrix(), progress=cancel.before(sub_range(report, 0.0, 0.95, f"{settings.model}: ")))
     cancel()
     report(0.95, "encoding the training shapes")
-    latents = model.encode(corr.landmark_matrix())
+    latents = model.training_latents(corr.landmark_matrix(),
+                                     cancel.before(sub_range(report, 0.95, 1.0, "encoding the training shapes: ")))
     cancel()
     report(1.0, "fitted")
     from . import __version__

@@ -312,6 +312,11 @@ class ShapeModel:
         return Y, mask
 
     # ---- sampling
+    def training_latents(self, Y, progress=None) -> np.ndarray:
+        """The latents of the training rows Y (the rows the model was fitted to, in order),
+        (N, Q): `encode`; the GP-LVMs may take the fit's own (latent_variable.py)."""
+        return self.encode(Y)
+
     def sample_with_latents(self, n: int, rng=None) -> tuple[np.ndarray, np.ndarray]:
         """n shapes (n, D) from the model, as its settings ask (PPCA: `sample_noise`), and the
         latents (n, Q) they were decoded from."""

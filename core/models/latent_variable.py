@@ -25,8 +25,9 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
 from ..progress import Progress
-from .base import (ShapeModel, check_latent_dim, check_rows, check_training_data,
+from .base import (ModelInputError, ShapeModel, check_latent_dim, check_rows, check_training_data,
                    default_latent_dim)
+from .scaling import ENCODE_SEARCH_SHAPES
 
 __all__ = ["LatentVariableModel", "TrainingData", "FitProblem", "OptimiserRun", "two_start_search", "best_start",
            "lbfgs", "inverse_cholesky"]
@@ -227,9 +228,10 @@ class LatentVariableModel(ShapeModel):
         c = Q.T @ r_o
         return c, R, max(float(r_o @ r_o - c @ c), 0.0), r_o.size
 
-    def _search_rows(self, Y: np.ndarray, mask: np.ndarray, scoring: bool = False):
+    def _search_rows(self, Y: np.ndarray, mask: np.ndarray, scoring: bool = False, progress: Progress | None = None):
         """Each row's search result (n, K) (a row of `_row_candidates`' kind) and objective (n,).
-        scoring=True asks for the search whose objective is the model's score."""
+        scoring=True asks for the search whose objective is the model's score; `progress`
+        after each row."""
         residuals = np.where(mask, Y - self.mean_, 0.0)
         basis = self.decode_basis()
         found = np.empty((len(Y), self._row_candidates.shape[1]))
@@ -237,6 +239,8 @@ class LatentVariableModel(ShapeModel):
         for i, observed in enumerate(mask):
             args = self._row_setup(basis[:, observed], residuals[i, observed])
             found[i], values[i] = self._search_row(args, scoring)
+            if progress is not None:
+                progress((i + 1) / len(Y), f"shape {i + 1} of {len(Y)}")
         return found, values
 
     def _best_candidates(self, scores: np.ndarray) -> list[np.ndarray]:
@@ -254,6 +258,18 @@ class LatentVariableModel(ShapeModel):
         self._check_fitted()
         Y = check_rows(Y, self.n_features_)
         return self._search_rows(Y, np.ones(Y.shape, bool))[0][:, : self.latent_dim]
+
+    def training_latents(self, Y, progress: Progress | None = None) -> np.ndarray:
+        """The latents of the training rows Y (the rows fitted, in order), (N, Q): each
+        row's search as `encode` (`progress` per row) up to `ENCODE_SEARCH_SHAPES` rows,
+        above it the fit's own latents, the searches' first candidates (scaling.py)."""
+        self._check_fitted()
+        Y = check_rows(Y, self.n_features_)
+        if len(Y) != len(self._row_candidates):
+            raise ModelInputError(f"{len(Y)} rows for a model fitted to {len(self._row_candidates)}")
+        if len(Y) > ENCODE_SEARCH_SHAPES:
+            return self._row_candidates[:, : self.latent_dim].copy()
+        return self._search_rows(Y, np.ones(Y.shape, bool), progress=progress)[0][:, : self.latent_dim]
 
     def score(self, Y) -> float:
         """Mean over rows of the searched objective (see the model's `_search_row`)."""

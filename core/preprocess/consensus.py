@@ -84,8 +84,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..progress import Progress, no_progress, sub_range
 from .hollow import Hollows
-from .posesearch import Fit, PoseSearch
+from .posesearch import Fit, NearestInPool, PoseSearch
 from .rotations import describe_rotation, yaw_rotation
 from .signature import Signatures
 from .symmetry import AxisSymmetry
@@ -176,8 +177,8 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
     n = len(search)
     k = min(settings.neighbours, n - 1)
     identity = np.eye(3)
-    stood = up_by_symmetry(search, symmetry, names, keep, settings) if symmetry is not None else \
-        [PoseDecision(identity)] * n
+    stood = up_by_symmetry(search, symmetry, names, keep, settings, lambda f, m: report(0.2, m)) \
+        if symmetry is not None else [PoseDecision(identity)] * n
     start = [d.rotation for d in stood]
     report(0.2, "up axes by symmetry")
 
@@ -245,7 +246,8 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
                      [not (a.changed or b.changed) for a, b in zip(stood, first)])
     decisions = [_combined(*stages) for stages in zip(stood, first, second)]
     report(0.85, "checking the poses")
-    return restore_flagged(search, signatures, names, keep, settings, decisions, symmetry, hollows)
+    return restore_flagged(search, signatures, names, keep, settings, decisions, symmetry, hollows,
+                           sub_range(report, 0.85, 0.88, "checking the poses: "))
 
 
 _HALF_TURN_X = np.diag([1.0, -1.0, -1.0])
@@ -279,7 +281,7 @@ def _or_none(rotation: np.ndarray) -> np.ndarray | None:
 
 
 def up_by_symmetry(search: PoseSearch, symmetry: AxisSymmetry, names: Sequence[str], keep: Sequence[bool],
-                   settings: ConsensusSettings) -> list[PoseDecision]:
+                   settings: ConsensusSettings, report: Progress | None = None) -> list[PoseDecision]:
     """Stage 0: the up axis of each shape by the symmetries its collection's shapes share
     about their up axes (`symmetry`, `standing_pose`), against its nearest shapes whose
     up already scores best of their axes. Fewer than `symmetry_shapes` shapes, or kept
@@ -291,8 +293,9 @@ def up_by_symmetry(search: PoseSearch, symmetry: AxisSymmetry, names: Sequence[s
     symmetry.fit_profile([identity] * n, range(n))
     scores = np.array([symmetry.axis_scores(j, identity) for j in range(n)])
     trusted = [j for j in range(n) if np.argmin(scores[j]) == 0]
-    decisions = []
+    decisions, report = [], report or no_progress
     for j in range(n):
+        report((j + 1) / n, f"up axes by symmetry: {j + 1} of {n}")
         pool = [i for i in trusted if i != j]
         references = [(i, identity) for i in search.nearest(j, pool or range(n), settings.neighbours)]
         standing = None if keep[j] else standing_pose(search, symmetry, j, identity, references, settings)
@@ -375,34 +378,45 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
     n = len(search)
     voters = [j for j in range(n) if eligible[j]]
     votes: dict[tuple[int, int], bool] = {}
+    # each voter's nearest voters, asked once: above neighbours.EXACT_SHAPES a later query
+    # can rank a pair whose exact cost another query computed since (its estimate was
+    # above it), and the majority must count the pairs voted on (1000 vases: a KeyError)
+    nearest: dict[int, list[int]] = {}
     for j in voters:  # a shape turned before has no vote, nor is it counted as a neighbour
-        for i in search.nearest(j, voters, k):
+        nearest[j] = search.nearest(j, voters, k)
+        for i in nearest[j]:
             pair = (min(i, j), max(i, j))
             if pair not in votes:
                 votes[pair] = agree(*pair)
         report(progress + 0.15 * (j + 1) / n, f"comparing {j + 1} of {n}")
-    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, k, voters)}
+    decisions = {j: PoseDecision(start[j]) for j in _majority(search, votes, nearest, voters)}
     references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
     decisions.update({j: PoseDecision(start[j]) for j in range(n) if keep[j] and j not in decisions})
+    # the next shape is the one closest to its nearest trusted shape (kept up to date as
+    # the pool grows, not asked of every shape after every decision: issue 15)
+    waiting = NearestInPool(search, references_pool, [r for r in range(n) if r not in decisions])
     while len(decisions) < n:
-        j = min((r for r in range(n) if r not in decisions),
-                key=lambda r: search.distance[r, search.nearest(r, references_pool, 1)[0]])
+        j = waiting.closest()
         references = [(i, decisions[i].rotation) for i in search.nearest(j, references_pool, k)]
         decisions[j] = decide(j, references)
         if not decisions[j].changed:  # a turned shape's pose is a guess: no reference
             references_pool.append(j)
+            waiting.join(j)
+        else:
+            waiting.leave(j)
         report(progress + 0.15 + 0.15 * len(decisions) / n, f"orienting {len(decisions)} of {n}")
     return [decisions[j] for j in range(n)]
 
 
-def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], k: int, voters: Sequence[int]) -> list[int]:
-    """Step 2: the largest group of `voters` that agree with most of their nearest voters,
+def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], nearest: dict[int, list[int]],
+              voters: Sequence[int]) -> list[int]:
+    """Step 2: the largest group of `voters` that agree with most of their `nearest` voters,
     connected by agreeing pairs (when no shape agrees, the medoid of the voters, or of
     all shapes when there are none, alone)."""
     n = len(search)
     votes = np.zeros(n)
     for j in voters:
-        votes[j] = np.mean([agree[(min(i, j), max(i, j))] for i in search.nearest(j, voters, k)] or [0.0])
+        votes[j] = np.mean([agree[(min(i, j), max(i, j))] for i in nearest[j]] or [0.0])
     members = np.flatnonzero(votes > 0.5)
     if len(members) == 0:
         pool = np.asarray(voters if len(voters) else range(n), dtype=int)
@@ -430,14 +444,17 @@ class PoseCheck:
 
 def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
                   keep: Sequence[bool], settings: ConsensusSettings,
-                  symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[str]:
+                  symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
+                  report: Progress | None = None) -> list[str]:
     """Why each shape's final pose looks wrong ('' when it does not): `pose_checks`."""
-    return [check.reason for check in pose_checks(search, signatures, rotations, keep, settings, symmetry, hollows)]
+    return [check.reason for check in pose_checks(search, signatures, rotations, keep, settings, symmetry, hollows,
+                                                  report)]
 
 
 def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
                 keep: Sequence[bool], settings: ConsensusSettings,
-                symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseCheck]:
+                symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
+                report: Progress | None = None) -> list[PoseCheck]:
     """Each shape's final pose checked against its nearest shapes in their final poses
     (rotations relative to the base pose): it looks wrong when a rotation would
     fit them more than `margin` times better (a change of up: also `tilt_margin` times
@@ -458,8 +475,9 @@ def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[
     symmetry_ready = symmetry is not None and n >= settings.symmetry_shapes
     if symmetry_ready:
         symmetry.fit_profile(rotations, range(n))
-    checks = []
+    checks, report = [], report or no_progress
     for j in range(n):
+        report((j + 1) / n, f"{j + 1} of {n}")
         nearest = tuple(i for i, _ in references[j])
         upright, fit = search.best_rotation(j, references[j], settings.yaw_step, settings.tilts, False,
                                             settings.snap, _or_none(rotations[j]))
@@ -504,13 +522,15 @@ def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[
 
 def restore_flagged(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
                     settings: ConsensusSettings, decisions: Sequence[PoseDecision],
-                    symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseDecision]:
+                    symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
+                    report: Progress | None = None) -> list[PoseDecision]:
     """The last step of the consensus: the pose check (`pose_checks`) of the settled poses,
     whose references are every shape's nearest shapes in their final poses, and the turn
     it asks for made on a shape not kept (a shape that was decided against references
     in a wrong pose themselves: PSB cup 31 faces away from its neighbours but agreed with
     two of them one by one, so it kept its pose and was a reference for cup 26)."""
-    checks = pose_checks(search, signatures, [d.rotation for d in decisions], keep, settings, symmetry, hollows)
+    checks = pose_checks(search, signatures, [d.rotation for d in decisions], keep, settings, symmetry, hollows,
+                         report)
     restored = list(decisions)
     for j, check in enumerate(checks):
         if check.rotation is None or keep[j]:

@@ -32,6 +32,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from ..mesh import Mesh
+from ..progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Hollows", "opening_vector"]
@@ -92,10 +93,15 @@ class Hollows:
         self.openings = [np.asarray(o, dtype=np.float64) for o in openings]
 
     @classmethod
-    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], grid: int, seed: int) -> "Hollows":
-        """Opening vectors of the meshes turned by their base rotations (samples: seed + i)."""
-        return cls([opening_vector(mesh, rotation, grid, seed + i)
-                    for i, (mesh, rotation) in enumerate(zip(meshes, base))])
+    def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], grid: int, seed: int,
+           progress: Progress | None = None) -> "Hollows":
+        """Opening vectors of the meshes turned by their base rotations (samples: seed + i),
+        `progress` per shape."""
+        report, openings = progress or no_progress, []
+        for i, (mesh, rotation) in enumerate(zip(meshes, base)):
+            openings.append(opening_vector(mesh, rotation, grid, seed + i))
+            report((i + 1) / len(meshes), f"hollows of shape {i + 1} of {len(meshes)}")
+        return cls(openings)
 
     def vertical(self, j: int, rotation: np.ndarray) -> float:
         """The up component of shape j's opening vector when turned by `rotation`."""

@@ -28,11 +28,12 @@ has only an estimate, and ranks again, until its answer rests on exact costs onl
 (`complete_nearest`). Where the estimates lie below the exact costs, as they are scaled
 to, and rank the nearest shapes among the first REACH · k, that answer is the one of the
 all-pairs matrix: tests/core/test_large_collections.py checks it on a procedural
-collection; 100 vases in random poses got the same pose decisions and reasons as with
-every pair (2474 of 4950 pairs computed, most of them by consensus asking for each
-undecided shape's nearest settled shape while that set grows: about 4 ln N new pairs
-per shape). Up to `EXACT_SHAPES` shapes every pair is computed
-as before (the orientation benchmark's and PSB's collections: same decisions).
+collection; 100 vases in random poses got the same pose decisions, reasons and flags as
+with every pair (`bench/prepare_scale.py`: 2153 of 4950 pairs computed; consensus's
+order of settling asks for the nearest settled shape of every waiting one through
+`posesearch.NearestInPool`, which makes an estimate exact only for the row that would
+come next). Up to `EXACT_SHAPES` shapes every pair is computed as before (the
+orientation benchmark's and PSB's collections: same decisions).
 """
 
 from __future__ import annotations

@@ -38,12 +38,12 @@ from scipy.spatial import cKDTree
 
 from ..geometry.chamfer import chamfer_distance
 from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..progress import Progress, no_progress, sub_range
 from .moments import surface_moments
 from .neighbours import EXACT_SHAPES, CandidateDistances, complete_nearest
 from .rotations import AXIS_ROTATIONS, TILTS, yaw_rotation
 
-__all__ = ["PoseSearch", "Fit"]
+__all__ = ["PoseSearch", "Fit", "NearestInPool"]
 
 #: the distance matrix screens the 24 axis rotations of a pair on every SCREEN_FRACTION-th
 #: share of the samples (they are independent draws, so the first ones are a uniform
@@ -96,13 +96,15 @@ class PoseSearch:
     def of(cls, meshes: Sequence[Mesh], base: Sequence[np.ndarray], points: int, seed: int,
            progress: Progress | None = None) -> "PoseSearch":
         """`points` samples of every shape (generator seed + i) in its base rotation;
-        `progress` follows the comparison of the shapes."""
+        `progress` follows the sampling (its first tenth) and the comparison of the shapes."""
         samples = []
+        report = progress or no_progress
         for i, (mesh, rotation) in enumerate(zip(meshes, base)):
             _, mean, cov = surface_moments(mesh)
             pts = mesh.sample_surface(points, np.random.default_rng(seed + i)).points
             samples.append((pts - mean) @ rotation.T / np.sqrt(np.trace(cov)))
-        return cls(samples, progress=progress)
+            report(0.1 * (i + 1) / len(meshes), f"sampling shape {i + 1} of {len(meshes)}")
+        return cls(samples, progress=sub_range(progress, 0.1, 1.0))
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -113,6 +115,15 @@ class PoseSearch:
             return complete_nearest(self.candidates, j, pool, count)
         pool = [int(i) for i in pool if i != j]
         return [pool[k] for k in np.argsort(self.distance[j, pool], kind="stable")[:count]]
+
+    def is_exact(self, j: int, i: int) -> bool:
+        """Whether `distance[j, i]` is the exact cost (always, up to `exact_shapes` shapes)."""
+        return self.candidates is None or bool(self.candidates.known[j, i])
+
+    def make_exact(self, j: int, i: int) -> None:
+        """Replace the estimate `distance[j, i]` by the exact cost."""
+        if not self.is_exact(j, i):
+            self.candidates.set(j, i, self.axis_distance(min(j, i), max(j, i)))
 
     def cost(self, j: int, rotation: np.ndarray, references: Sequence[tuple[int, np.ndarray]]) -> float:
         """f_j(rotation): mean Chamfer distance of shape j turned by `rotation` to each
@@ -172,6 +183,59 @@ class PoseSearch:
             if result.fun < value:
                 angle, value = float(result.x), float(result.fun)
         return Fit(yaw_rotation(angle) @ tilt, value)
+
+
+class NearestInPool:
+    """The distance of every shape outside a growing pool to its nearest shape in the pool,
+    kept as shapes join (consensus settles the shape closest to the settled ones next:
+    asking `PoseSearch.nearest` of every unsettled shape after every join took N²
+    queries over a pool of up to N, with an exact cost for every pair that a query's
+    estimates put first; issue 15). `closest` is the row minimum of the all-pairs matrix
+    over the pool (ties: the lowest row, the earliest pool shape); an entry resting on an
+    estimate is made exact only when its row would come next, and the row is ranked
+    again, so the answer is the all-pairs one wherever the estimates lie below the exact
+    costs, as `neighbours` scales them to be."""
+
+    def __init__(self, search: PoseSearch, pool: Sequence[int], outside: Sequence[int]):
+        self.search = search
+        n = len(search)
+        self.pool = [int(i) for i in pool]
+        self.outside = np.zeros(n, dtype=bool)
+        self.outside[[int(r) for r in outside]] = True
+        self.best = np.full(n, np.inf)
+        self.nearest = np.full(n, -1)
+        rows = np.flatnonzero(self.outside)
+        if len(rows) and self.pool:
+            block = search.distance[np.ix_(rows, self.pool)]
+            first = np.argmin(block, axis=1)
+            self.best[rows] = block[np.arange(len(rows)), first]
+            self.nearest[rows] = np.asarray(self.pool)[first]
+
+    def join(self, j: int) -> None:
+        """Shape j leaves the outside (if it was there) and joins the pool."""
+        self.leave(j)
+        self.pool.append(int(j))
+        column = self.search.distance[:, j]
+        nearer = self.outside & (column < self.best)
+        self.best[nearer] = column[nearer]
+        self.nearest[nearer] = j
+
+    def leave(self, j: int) -> None:
+        """Shape j no longer waits outside (it was settled without joining the pool)."""
+        self.outside[j] = False
+        self.best[j] = np.inf
+
+    def closest(self) -> int:
+        """The outside shape whose nearest pool shape is closest, by exact cost."""
+        while True:
+            r = int(np.argmin(np.where(self.outside, self.best, np.inf)))
+            i = int(self.nearest[r])
+            if self.search.is_exact(r, i):
+                return r
+            self.search.make_exact(r, i)
+            row = self.search.distance[r, self.pool]
+            first = int(np.argmin(row))
+            self.best[r], self.nearest[r] = row[first], self.pool[first]
 
 
 def _after(rotation: np.ndarray, start: np.ndarray | None) -> np.ndarray:

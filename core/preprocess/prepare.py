@@ -69,9 +69,10 @@ def prepare_collection(
         posed = [proxy_of(mesh, POSE_PROXY_FACES, dense_faces).mesh for mesh in meshes]
         search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
                                sub_range(report, 0.0, 0.15, "pose search: "))
-        signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order)
-        symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor)
-        hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed)
+        signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order, sub_range(report, 0.15, 0.17))
+        symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor,
+                                   sub_range(report, 0.17, 0.18))
+        hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed, sub_range(report, 0.18, 0.2))
         del posed
     report(0.2, "surface samples")
     if align == "consensus" and search is not None:
@@ -82,7 +83,7 @@ def prepare_collection(
     outliers = [""] * len(meshes)
     if len(meshes) > 2:
         outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus, symmetry,
-                                 hollows)
+                                 hollows, sub_range(report, 0.88, 0.9, "checking the poses: "))
     report(0.9, "floor, centre and scale")
 
     transforms, measures = [], []

@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ..mesh import Mesh
+from ..progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Signatures", "FACING_FLOOR"]
@@ -52,16 +53,19 @@ class Signatures:
     again from its mesh when a facing is asked for (kept, they took 23 MB per 20k-vertex
     shape: 23 GB for a collection of 1000; issue 15)."""
 
-    def __init__(self, meshes: Sequence[Mesh], base: Sequence[np.ndarray], order: int):
+    def __init__(self, meshes: Sequence[Mesh], base: Sequence[np.ndarray], order: int,
+                 progress: Progress | None = None):
         self.order = order
         self.meshes, self.frames, self.third, self.radial = list(meshes), [], [], []
-        for mesh, rotation in zip(meshes, base):
+        report = progress or no_progress
+        for count, (mesh, rotation) in enumerate(zip(meshes, base), 1):
             area, mean, cov = surface_moments(mesh)
             self.frames.append((area, mean, rotation, np.sqrt(np.trace(cov))))
             points, weights, _ = self.quadrature(len(self.frames) - 1)
             weighted = points * weights[:, None]
             self.third.append(np.einsum("na,nb,nc->abc", weighted, points, points))
             self.radial.append(weighted.T @ np.einsum("na,na->n", points, points))
+            report(count / len(self.meshes), f"signatures of shape {count} of {len(self.meshes)}")
         self._facing: dict[tuple[int, bytes], np.ndarray] = {}
 
     def quadrature(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -41,6 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry.chamfer import chamfer_distance
 from ..mesh import Mesh
+from ..progress import Progress, no_progress
 from .moments import surface_moments
 from .posesearch import PoseSearch
 from .rotations import TILTS
@@ -69,16 +70,17 @@ class AxisSymmetry:
 
     @classmethod
     def of(cls, search: PoseSearch, meshes: Sequence[Mesh], base: Sequence[np.ndarray], seed: int,
-           floor: float) -> "AxisSymmetry":
+           floor: float, progress: Progress | None = None) -> "AxisSymmetry":
         """The sampling noise ν of every shape: its samples against a second, independent
-        sampling (generator seeded by (seed, i, 1)) in the same frame."""
-        noise = []
+        sampling (generator seeded by (seed, i, 1)) in the same frame; `progress` per shape."""
+        noise, report = [], progress or no_progress
         for i, (mesh, rotation) in enumerate(zip(meshes, base)):
             _, mean, cov = surface_moments(mesh)
             samples = search.samples[i]
             other = mesh.sample_surface(len(samples), np.random.default_rng([seed, i, 1])).points
             other = (other - mean) @ rotation.T / np.sqrt(np.trace(cov))
             noise.append(max(chamfer_distance(other, samples, None, cKDTree(other), search.trees[i]), 1e-300))
+            report((i + 1) / len(meshes), f"sampling noise of shape {i + 1} of {len(meshes)}")
         return cls(search, noise, floor)
 
     def axis_costs(self, j: int, direction: np.ndarray) -> np.ndarray:

@@ -43,6 +43,32 @@ def test_candidate_pairs_find_the_nearest_shapes_of_all_pairs():
     assert known.sum() < n * n  # and still not every pair
 
 
+def test_nearest_in_pool_settles_in_the_order_of_all_pairs():
+    """consensus settles the waiting shape closest to a settled one next: NearestInPool,
+    kept up to date as the pool grows and exact only where the order needs it, gives the
+    order of the all-pairs matrix's row minima, on the exact and the candidate path."""
+    from shapegen_core.preprocess.posesearch import NearestInPool
+
+    meshes = _mixed(40, seed=4)
+    every_pair = PoseSearch.of(meshes, [np.eye(3)] * len(meshes), 300, 0)
+    proposed = PoseSearch(every_pair.samples, exact_shapes=0)
+    n, start = len(meshes), [0, 21]
+    expected, pool = [], list(start)
+    while len(pool) < n:
+        waiting = [r for r in range(n) if r not in pool]
+        nearest = every_pair.distance[np.ix_(waiting, pool)].min(axis=1)
+        expected.append(waiting[int(np.argmin(nearest))])
+        pool.append(expected[-1])
+    for search in (every_pair, proposed):
+        waiting = NearestInPool(search, start, [r for r in range(n) if r not in start])
+        order = []
+        for _ in range(n - len(start)):
+            order.append(waiting.closest())
+            waiting.join(order[-1])
+        assert order == expected
+    assert proposed.candidates.known.sum() < n * n  # exact costs only where the order needs them
+
+
 def test_field_descriptor_of_a_turned_shape_is_its_turned_field():
     """d_{RP}(q) = d_P(Rᵀq): the descriptor of a shape in axis rotation R equals the
     upright descriptor of the shape turned by R."""
@@ -134,6 +160,36 @@ def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
     meshes = [v.mesh for v in make_vases(10, seed=2, resolution=(12, 16))]
     with pytest.raises(Cancelled):
         prepare_meshes(meshes, PrepareSettings(align="consensus"), progress=lambda f, m: messages.append(m),
-                       should_cancel=lambda: any("pose search" in m for m in messages))
+                       should_cancel=lambda: any("pose search: comparing" in m for m in messages))
     assert messages and all("pose search" in m for m in messages)
     assert 0 < len(compared) < 45  # stopped before every pair (10 shapes: 45)
+
+
+#: the start of the first message of each of Prepare's loops over the shapes (align consensus)
+PREPARE_LOOPS = ["pose search: sampling shape 1 of", "pose search: comparing shape 1 of", "signatures of shape 1 of",
+                 "sampling noise of shape 1 of", "hollows of shape 1 of", "up axes by symmetry: 1 of",
+                 "comparing 1 of", "orienting ", "checking the poses: 1 of", "landmarks on "]
+
+
+@pytest.mark.parametrize("loop", PREPARE_LOOPS)
+def test_prepare_reports_and_cancels_in_every_loop_over_the_shapes(loop):
+    """Every loop of Prepare over the shapes reports progress per shape (or per shape's
+    worth of pairs) and stops at its next report once Cancel is asked (issue 15: a
+    1000-shape Prepare spends minutes in each): cancelled at the loop's first report, the
+    last report is that first one."""
+    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.errors import Cancelled
+
+    messages, fractions = [], []
+    meshes = [v.mesh for v in make_vases(10, seed=2, resolution=(12, 16))]
+
+    def progress(fraction, message):
+        messages.append(message)
+        fractions.append(fraction)
+
+    with pytest.raises(Cancelled):
+        prepare_meshes(meshes, PrepareSettings(align="consensus"), progress=progress,
+                       should_cancel=lambda: any(m.startswith(loop) for m in messages))
+    assert messages[-1].startswith(loop), messages[-3:]
+    assert sum(m.startswith(loop) for m in messages) == 1
+    assert fractions == sorted(fractions)

@@ -602,3 +602,43 @@ def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words():
     Y = np.random.default_rng(0).normal(size=(4, 30))
     with pytest.raises(ModelInputError, match="Latent Dimension below 3"):
         PPCA(n_components=3, shrinkage=0.0).fit(Y)
+
+
+# ----------------------------------------------------------------------------- training latents (issue 15)
+
+def test_training_latents_are_searched_up_to_the_size_then_the_fit_own(fitted, monkeypatch):
+    """Up to ENCODE_SEARCH_SHAPES rows a model's training latents are exactly `encode`'s
+    (what a saved model gives for small N is unchanged); above it the GP-LVMs give the
+    fit's own latents (X, the means of q(X)) without a search, close to the searched ones."""
+    from shapegen_core.models import latent_variable
+
+    models, Y, _ = fitted
+    searched = {name: model.encode(Y) for name, model in models.items()}
+    for name, model in models.items():
+        np.testing.assert_array_equal(model.training_latents(Y), searched[name])
+    monkeypatch.setattr(latent_variable, "ENCODE_SEARCH_SHAPES", len(Y) - 1)
+    np.testing.assert_array_equal(models["ppca"].training_latents(Y), searched["ppca"])
+    np.testing.assert_array_equal(models["gplvm"].training_latents(Y), models["gplvm"].latents_)
+    np.testing.assert_array_equal(models["bgplvm"].training_latents(Y), models["bgplvm"].latent_mean_)
+    for name in ("gplvm", "bgplvm"):
+        own = models[name].training_latents(Y)
+        spread = np.sqrt(((own - own.mean(axis=0)) ** 2).sum(axis=1).mean())
+        assert np.linalg.norm(own - searched[name], axis=1).max() < 0.2 * spread
+    with pytest.raises(ModelInputError):
+        models["bgplvm"].training_latents(Y[:-1])
+
+
+def test_training_latents_search_reports_and_cancels_per_shape(fitted):
+    """The search of the training latents reports after every shape, so a fit's encoding
+    step can be cancelled within it (fit_shape_model passes its cancel check)."""
+    models, Y, _ = fitted
+    seen = []
+
+    def progress(fraction, message):
+        seen.append(fraction)
+        if len(seen) == 3:
+            raise Cancelled("fit cancelled")
+
+    with pytest.raises(Cancelled):
+        models["bgplvm"].training_latents(Y, progress)
+    assert seen == [1 / len(Y), 2 / len(Y), 3 / len(Y)]
