@@ -27,14 +27,17 @@ import scipy.sparse as sp
 
 from .mesh import Mesh
 
-__all__ = ["DENSE_FACES", "POSE_PROXY_FACES", "REGISTRATION_PROXY_FACES", "Proxy", "proxy_mesh"]
+__all__ = ["DENSE_FACES", "DENSE_RATIO", "POSE_PROXY_FACES", "REGISTRATION_PROXY_FACES", "Proxy", "proxy_mesh"]
 
-#: Meshes with more faces than this are dense and get a proxy (about 50k vertices: every
-#: mesh of the shared test and benchmark collections is below, so their results are
-#: unchanged).
-DENSE_FACES = 100_000
 #: Faces of the proxy a registration round registers against (the size of a 20k-vertex mesh).
 REGISTRATION_PROXY_FACES = 40_000
+#: a shape with more than this many times `CorrespondenceSettings.proxy_faces` faces is
+#: registered against its proxy (core/correspond/proxy.py)
+DENSE_RATIO = 2.5
+#: Meshes with more faces than this (100k: DENSE_RATIO × REGISTRATION_PROXY_FACES) are dense
+#: and get a proxy (about 50k vertices: every mesh of the shared test and benchmark
+#: collections is below, so their results are unchanged).
+DENSE_FACES = int(DENSE_RATIO * REGISTRATION_PROXY_FACES)
 #: Faces of the proxy Prepare's pose search and signatures see (they compare coarse shape).
 POSE_PROXY_FACES = 20_000
 #: Grid refinements tried when the first cell size leaves too many faces.

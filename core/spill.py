@@ -34,16 +34,13 @@ from .errors import ShapeGenError
 from .mesh import Mesh, MeshReport, MeshSizes
 from .simplify import DENSE_FACES, POSE_PROXY_FACES, REGISTRATION_PROXY_FACES, Proxy, proxy_mesh
 
-__all__ = ["DENSE_RATIO", "POSE_PROXY", "REGISTRATION_PROXY", "SpillStore", "StoredArray", "StoredMesh", "full_mesh",
+__all__ = ["POSE_PROXY", "REGISTRATION_PROXY", "SpillStore", "StoredArray", "StoredMesh", "full_mesh",
            "keep_dense", "loaded", "proxy_of"]
 
-#: a shape with more than this many times `CorrespondenceSettings.proxy_faces` faces is
-#: registered against its proxy (core/correspond/proxy.py)
-DENSE_RATIO = 2.5
 #: (max_faces, above) of the proxy Prepare's pose search sees (core/preprocess/prepare.py)
 POSE_PROXY = (POSE_PROXY_FACES, DENSE_FACES)
 #: (max_faces, above) of the proxy correspondence registers against at the default settings
-REGISTRATION_PROXY = (REGISTRATION_PROXY_FACES, int(DENSE_RATIO * REGISTRATION_PROXY_FACES))
+REGISTRATION_PROXY = (REGISTRATION_PROXY_FACES, DENSE_FACES)
 
 
 @dataclass(frozen=True)
@@ -98,10 +95,7 @@ class StoredMesh(MeshSizes):
 
     def cached(self, key: str, compute):
         """`Mesh.cached` on the full surface: loaded once to compute it, then kept."""
-        if key not in self.summaries:
-            with loaded(self) as mesh:
-                mesh.cached(key, compute)
-        return self.summaries[key]
+        return self._summary(key, lambda mesh: mesh.cached(key, compute))
 
     def area(self) -> float:
         return self._summary("area", Mesh.area)

@@ -25,8 +25,8 @@ from scipy.spatial import cKDTree
 
 from ..geometry.nearby import closest_within
 from ..mesh import Mesh
-from ..simplify import Proxy, proxy_mesh
-from ..spill import DENSE_RATIO, StoredMesh, full_mesh
+from ..simplify import DENSE_RATIO, Proxy, proxy_mesh
+from ..spill import StoredMesh, full_mesh
 from .registration import Registration, fit_residual
 
 __all__ = ["DENSE_RATIO", "PlacementTask", "ProxyTask", "build_proxy", "dense_shapes", "face_normals_at",
@@ -84,7 +84,7 @@ def place_on_full_surface(task: PlacementTask) -> Registration:
 
 
 def dense_limit(settings) -> int:
-    """Shapes with more faces than this (`spill.DENSE_RATIO` × proxy_faces) are registered
+    """Shapes with more faces than this (`simplify.DENSE_RATIO` × proxy_faces) are registered
     against a proxy."""
     return int(DENSE_RATIO * settings.proxy_faces)
 
