@@ -20,7 +20,10 @@ Steps, in order (`prepare_collection`):
    its own up does), then against its nearest shapes, a rotation (24 axis rotations,
    then any turn about up) fits `margin` times better (Chamfer cost), or its top and
    bottom or its facing disagree with theirs (exact odd-moment signatures, any angle).
-   The majority's poses are the collection's and are never changed; shapes with
+   The majority's poses are the collection's and are never changed (inputs turned
+   about up at random share no facing: then one shape's facing is the collection's and
+   every other shape is turned to it as closely as its signature measures; issue 13,
+   beyond the thesis); shapes with
    `keep_pose` are never turned. Each change is reported (`PreparedShape.pose_change`,
    `pose_rotation`), and a pose that still looks wrong is flagged with its reason
    (`PreparedShape.pose_outlier`, in every align mode). Details and the calibration in
