@@ -1,0 +1,109 @@
+"""True correspondence error over several procedural collections (issue 13).
+
+bench/correspondence.py measures one collection (seed 11) in depth; its error there has
+a small angle part, while other seeds' collections have large ones (Prepare's yaw), so
+this script repeats the headline rows on several seeds and decomposes each:
+
+    python bench/correspondence_seeds.py [--shapes 6] [--seeds 11 1 2 3 4]
+        [--variants "" "feature_normals=0.5;feature_up=1.0"]
+
+Per seed: `make_vases(shapes, seed, resolution=(65, 130))`, Prepare (800 landmarks,
+seed 0), then groupwise `correspond` with each variant (CorrespondenceSettings fields
+as `name=value;...`, "" the defaults) and the naive baseline (bounding-box scaling and
+closest point, bench/correspondence.py) from the same template. Columns: error against
+the template's true surface coordinates (% of the bounding-box diagonal), its profile
+and angle parts (`decompose`), naive over ours, and seconds of `correspond`. The mean
+row is over seeds. Writes bench_output/correspondence_seeds.{json,txt}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from correspondence import LANDMARKS, OUTPUT, decompose, error_vs_template, naive_baseline  # noqa: E402
+
+from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
+from shapegen_core.datasets import make_vases  # noqa: E402
+
+
+def parse_variant(spec: str) -> dict:
+    """'a=1;b=0.5' -> {'a': 1, 'b': 0.5} (values as Python literals: ints, floats, names)."""
+    options = {}
+    for item in filter(None, spec.split(";")):
+        key, value = item.split("=", 1)
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value.strip()
+    return options
+
+
+def one_collection(n: int, seed: int, variants: list[str]) -> dict:
+    shapes = make_vases(n, seed=seed, resolution=(65, 130))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=LANDMARKS, seed=0))
+    to_input = lambda pts: np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, pts)])  # noqa: E731
+    rows = {}
+    template = None
+    for spec in variants:
+        start = time.perf_counter()
+        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), jobs=1)
+        seconds = time.perf_counter() - start
+        t = result.names.index(result.template_name)
+        template = t if template is None else template
+        landmarks = prepared.landmarks[t]
+        parts = decompose(shapes, t, landmarks, result.face_index, result.barycentric)
+        naive = naive_baseline(prepared, t)
+        naive_error = error_vs_template(shapes, t, landmarks, to_input(naive[0])).mean()
+        error = error_vs_template(shapes, t, landmarks, to_input(result.points)).mean()
+        rows[spec or "defaults"] = {"error_pct": 100 * float(error), "profile_pct": parts["profile (s)"],
+                                    "angle_pct": parts["angle (θ)"], "naive_pct": 100 * float(naive_error),
+                                    "naive_over_ours": float(naive_error / error), "seconds": seconds,
+                                    "template": result.template_name}
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shapes", type=int, default=6)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[11, 1, 2, 3, 4])
+    parser.add_argument("--variants", nargs="+", default=[""])
+    args = parser.parse_args()
+    OUTPUT.mkdir(exist_ok=True)
+    lines = []
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+        lines.append(text)
+
+    log(f"{args.shapes} procedural vases per seed, {LANDMARKS} landmarks; errors in % of the diagonal")
+    log("| variant | seed | error | profile part | angle part | naive | naive / ours | s |")
+    log("|---|---|---|---|---|---|---|---|")
+    report = {}
+    for seed in args.seeds:
+        report[seed] = one_collection(args.shapes, seed, args.variants)
+        for name, r in report[seed].items():
+            log(f"| {name} | {seed} | {r['error_pct']:.3f} | {r['profile_pct']:.3f} | {r['angle_pct']:.3f} | "
+                f"{r['naive_pct']:.3f} | {r['naive_over_ours']:.2f} | {r['seconds']:.1f} |")
+    for name in report[args.seeds[0]]:
+        mean = {k: np.mean([report[s][name][k] for s in args.seeds])
+                for k in ("error_pct", "profile_pct", "angle_pct", "naive_pct", "naive_over_ours", "seconds")}
+        log(f"| {name} | mean | {mean['error_pct']:.3f} | {mean['profile_pct']:.3f} | {mean['angle_pct']:.3f} | "
+            f"{mean['naive_pct']:.3f} | {mean['naive_over_ours']:.2f} | {mean['seconds']:.1f} |")
+    (OUTPUT / "correspondence_seeds.json").write_text(json.dumps({"shapes": args.shapes, "rows": report}, indent=2))
+    (OUTPUT / "correspondence_seeds.txt").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
