@@ -1,19 +1,25 @@
-"""True correspondence error over several procedural collections (issue 13).
+"""True correspondence error over several procedural collections, and PSB label
+transfer and model quality, per settings variant (issue 13).
 
 bench/correspondence.py measures one collection (seed 11) in depth; its error there has
 a small angle part, while other seeds' collections have large ones (Prepare's yaw), so
 this script repeats the headline rows on several seeds and decomposes each:
 
-    python bench/correspondence_seeds.py [--shapes 6] [--seeds 11 1 2 3 4]
-        [--variants "" "feature_normals=0.5;feature_up=1.0"]
+    python bench/correspondence_seeds.py [--shapes 6] [--seeds 11 1 2 3 4] [--psb 20]
+        [--variants "" "matching=features"]
 
 Per seed: `make_vases(shapes, seed, resolution=(65, 130))`, Prepare (800 landmarks,
 seed 0), then groupwise `correspond` with each variant (CorrespondenceSettings fields
 as `name=value;...`, "" the defaults) and the naive baseline (bounding-box scaling and
 closest point, bench/correspondence.py) from the same template. Columns: error against
 the template's true surface coordinates (% of the bounding-box diagonal), its profile
-and angle parts (`decompose`), naive over ours, and seconds of `correspond`. The mean
-row is over seeds. Writes bench_output/correspondence_seeds.{json,txt}.
+and angle parts (`decompose`), naive over ours, seconds of `correspond`, and the PPCA
+held-out log-likelihood and completion error of a model of the landmarks (`model_quality`). The mean
+row is over seeds. With `--psb SHAPES`: the first SHAPES shapes of every PSB class
+(400 landmarks, up y), per variant from the first variant's template: label-transfer
+accuracy (bench/correspondence.py part 3), shapes below the naive baseline, and PPCA
+held-out log-likelihood and Table 5.1 completion error (`model_quality`). Writes
+bench_output/correspondence_seeds.{json,txt}.
 """
 
 from __future__ import annotations
@@ -30,11 +36,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from correspondence import LANDMARKS, OUTPUT, decompose, error_vs_template, naive_baseline  # noqa: E402
+from correspondence import (LANDMARKS, OUTPUT, PSB, decompose, error_vs_template, face_labels,  # noqa: E402
+                            model_quality, naive_baseline)
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.io import read_folder  # noqa: E402
 
 
 def parse_variant(spec: str) -> dict:
@@ -69,7 +77,33 @@ def one_collection(n: int, seed: int, variants: list[str]) -> dict:
         rows[spec or "defaults"] = {"error_pct": 100 * float(error), "profile_pct": parts["profile (s)"],
                                     "angle_pct": parts["angle (θ)"], "naive_pct": 100 * float(naive_error),
                                     "naive_over_ours": float(naive_error / error), "seconds": seconds,
-                                    "template": result.template_name}
+                                    "template": result.template_name, **model_quality(result.landmark_matrix())}
+    return rows
+
+
+def psb_class(folder: Path, n: int, variants: list[str]) -> dict:
+    meshes = read_folder(folder)[:n]
+    labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=400, up_axis="y", seed=0))
+    rows, template, naive = {}, None, None
+    for spec in variants:
+        start = time.perf_counter()
+        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), template=template, jobs=1)
+        seconds = time.perf_counter() - start
+        template = result.template_name
+        ref = result.names.index(template)
+        reference = labels[template][result.face_index[ref]]
+        accuracy = [np.mean(labels[name][result.face_index[m]] == reference)
+                    for m, name in enumerate(result.names) if m != ref]
+        if naive is None:
+            placed = naive_baseline(prepared, ref)[1]
+            naive = [np.mean(labels[name][placed[m]] == labels[template][prepared.landmarks[ref].face_index])
+                     for m, name in enumerate(result.names) if m != ref]
+        rows[spec or "defaults"] = {"accuracy_pct": 100 * float(np.mean(accuracy)),
+                                    "naive_pct": 100 * float(np.mean(naive)),
+                                    "below_naive": int(sum(a < b for a, b in zip(accuracy, naive))),
+                                    "shapes": len(accuracy), "outliers": int(result.outliers.sum()),
+                                    "seconds": seconds, **model_quality(result.landmark_matrix())}
     return rows
 
 
@@ -78,6 +112,7 @@ def main() -> int:
     parser.add_argument("--shapes", type=int, default=6)
     parser.add_argument("--seeds", type=int, nargs="+", default=[11, 1, 2, 3, 4])
     parser.add_argument("--variants", nargs="+", default=[""])
+    parser.add_argument("--psb", type=int, default=0, help="also PSB: this many shapes per class (0: no)")
     args = parser.parse_args()
     OUTPUT.mkdir(exist_ok=True)
     lines = []
@@ -87,20 +122,36 @@ def main() -> int:
         lines.append(text)
 
     log(f"{args.shapes} procedural vases per seed, {LANDMARKS} landmarks; errors in % of the diagonal")
-    log("| variant | seed | error | profile part | angle part | naive | naive / ours | s |")
-    log("|---|---|---|---|---|---|---|---|")
+    log("| variant | seed | error | profile part | angle part | naive | naive / ours | held-out LL | completion | s |")
+    log("|---|---|---|---|---|---|---|---|---|---|")
     report = {}
     for seed in args.seeds:
         report[seed] = one_collection(args.shapes, seed, args.variants)
         for name, r in report[seed].items():
             log(f"| {name} | {seed} | {r['error_pct']:.3f} | {r['profile_pct']:.3f} | {r['angle_pct']:.3f} | "
-                f"{r['naive_pct']:.3f} | {r['naive_over_ours']:.2f} | {r['seconds']:.1f} |")
+                f"{r['naive_pct']:.3f} | {r['naive_over_ours']:.2f} | {r['heldout_log_likelihood']:.1f} | "
+                f"{r['completion_error_middle']:.3f} | {r['seconds']:.1f} |")
     for name in report[args.seeds[0]]:
         mean = {k: np.mean([report[s][name][k] for s in args.seeds])
-                for k in ("error_pct", "profile_pct", "angle_pct", "naive_pct", "naive_over_ours", "seconds")}
+                for k in ("error_pct", "profile_pct", "angle_pct", "naive_pct", "naive_over_ours",
+                          "heldout_log_likelihood", "completion_error_middle", "seconds")}
         log(f"| {name} | mean | {mean['error_pct']:.3f} | {mean['profile_pct']:.3f} | {mean['angle_pct']:.3f} | "
-            f"{mean['naive_pct']:.3f} | {mean['naive_over_ours']:.2f} | {mean['seconds']:.1f} |")
-    (OUTPUT / "correspondence_seeds.json").write_text(json.dumps({"shapes": args.shapes, "rows": report}, indent=2))
+            f"{mean['naive_pct']:.3f} | {mean['naive_over_ours']:.2f} | {mean['heldout_log_likelihood']:.1f} | "
+            f"{mean['completion_error_middle']:.3f} | {mean['seconds']:.1f} |")
+    psb = {}
+    if args.psb and PSB.is_dir():
+        log(f"PSB, {args.psb} shapes per class, 400 landmarks: label transfer, PPCA held-out log-likelihood, "
+            "completion error")
+        log("| class | variant | accuracy % | naive % | below naive | held-out LL | completion | s |")
+        log("|---|---|---|---|---|---|---|---|")
+        for folder in sorted(p for p in PSB.iterdir() if p.is_dir()):
+            psb[folder.name] = psb_class(folder, args.psb, args.variants)
+            for name, r in psb[folder.name].items():
+                log(f"| {folder.name} | {name} | {r['accuracy_pct']:.1f} | {r['naive_pct']:.1f} | "
+                    f"{r['below_naive']}/{r['shapes']} | {r['heldout_log_likelihood']:.1f} | "
+                    f"{r['completion_error_middle']:.3f} | {r['seconds']:.1f} |")
+    (OUTPUT / "correspondence_seeds.json").write_text(json.dumps({"shapes": args.shapes, "rows": report, "psb": psb},
+                                                                 indent=2))
     (OUTPUT / "correspondence_seeds.txt").write_text("\n".join(lines) + "\n")
     return 0
 

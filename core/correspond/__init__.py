@@ -52,7 +52,7 @@ from .outliers import flag_outliers, leave_one_out_errors
 from .registration import Anchors, Registration, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
 from .refine import Refinement, refine_population
-from .settings import REFINE_METHODS, CorrespondenceSettings
+from .settings import MATCHING_METHODS, REFINE_METHODS, CorrespondenceSettings
 
 __all__ = [
     "CorrespondenceSettings",
@@ -66,6 +66,7 @@ __all__ = [
     "leave_one_out_errors",
     "refine_population",
     "Refinement",
+    "MATCHING_METHODS",
     "REFINE_METHODS",
     "CORRESPONDENCE_FORMAT",
     "CORRESPONDENCE_SPEC",

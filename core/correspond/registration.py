@@ -5,7 +5,9 @@ Per iteration: forward matches v_n(i) (closest, normal-compatible target point o
 template point), backward matches m(j) (closest template point of every target
 landmark, weighted by λ), optional known pairs (`Anchors`), one affine-graph solve (4.31,
 core/geometry/affine_graph.py), move the points. At the end every point is placed on the
-target surface (or snapped to a vertex).
+target surface (or snapped to a vertex). With `matching="features"` (beyond the thesis,
+features.py) both kinds of match are nearest points in a joint space of position and
+surface features instead.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from scipy.spatial import cKDTree
 from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, stiffness_energy,
                         transform_normals)
 from ..progress import CancelCheck
+from .features import FeatureMatcher, point_features, uses_features
 from .settings import CorrespondenceSettings
 
 __all__ = ["Anchors", "Registration", "fit_residual", "register"]
@@ -122,6 +125,7 @@ def register(
     should_cancel=None,
     anchors: Anchors | None = None,
     initial_points: np.ndarray | None = None,
+    initial_normals: np.ndarray | None = None,
 ) -> Registration:
     """Iterative stiffness relaxation (Alg. 3) of `template` (L, 3) onto `target`.
 
@@ -131,7 +135,9 @@ def register(
     (4.31), move the points. With `update_template` the next solve starts from the moved
     points (the thesis's Alg. 3); otherwise from the original template (Amberg et al.).
     `initial_points` (L, 3): a warm start, where the template points begin (e.g. an earlier
-    registration's `deformed`); the affines still act on `template`. Raises Cancelled
+    registration's `deformed`); the affines still act on `template`. `initial_normals`
+    (L, 3): the template's normals at that start (the earlier registration's `normals`),
+    which feature-space matches compare from the first iteration on. Raises Cancelled
     between iterations once `should_cancel` (None, a callable or an Event-like object;
     core/progress.py) says so."""
     base = np.asarray(template, dtype=np.float64)
@@ -145,6 +151,13 @@ def register(
             raise ValueError(f"initial_points must be finite with the template's shape {base.shape}, "
                              f"got {initial_points.shape}")
         points = initial_points.copy()
+    warm_normals = None
+    if initial_normals is not None:
+        warm_normals = np.asarray(initial_normals, dtype=np.float64)
+        if base_normals is None or warm_normals.shape != base.shape or not np.isfinite(warm_normals).all():
+            raise ValueError(f"initial_normals must be finite with the template's shape {base.shape}, beside "
+                             f"template_normals, got {warm_normals.shape}")
+        normals = warm_normals
     n_points = len(points)
     cancel = CancelCheck(should_cancel, "correspondence")
     solver = AffineSolver(edges, n_points, settings.gamma)
@@ -153,14 +166,29 @@ def register(
     energies: list[float] = []
     previous = np.inf
     iteration = 0
-    for alpha in settings.alphas:
+    features = None
+    if uses_features(settings) and base_normals is not None:
+        matcher = FeatureMatcher(target, target_landmarks, target_landmark_normals, n_points, settings)
+        features = point_features(normals, settings)
+    for alpha_index, alpha in enumerate(settings.alphas):
+        if features is not None and alpha_index == 1 and warm_normals is None:  # the template's features as the stiffest α fitted them
+            features = point_features(normals, settings)
         for _ in range(settings.max_iterations_per_alpha):
             cancel()
-            forward, weights = _forward_matches(target, points, normals, settings, finder)
-            rows, goals = np.arange(n_points), forward.points
+            if features is None:
+                forward, weights = _forward_matches(target, points, normals, settings, finder)
+                goals = forward.points
+            else:
+                goals, distance = matcher.forward(points, features)
+                weights = _distance_weights(distance) if settings.distance_weights else np.ones(n_points)
+            rows = np.arange(n_points)
             if lam > 0:
-                nearest, w_back = _backward_matches(points, normals, target_landmarks,
-                                                    target_landmark_normals, settings)
+                if features is None:
+                    nearest, w_back = _backward_matches(points, normals, target_landmarks,
+                                                        target_landmark_normals, settings)
+                else:
+                    nearest, distance = matcher.backward(points, features)
+                    w_back = _distance_weights(distance) if settings.distance_weights else np.ones(len(nearest))
                 rows = np.r_[rows, nearest]
                 goals = np.vstack([goals, target_landmarks])
                 weights = np.r_[weights, lam * w_back]

@@ -136,6 +136,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
         column = layout.column(align=True)
         column.prop(settings, "n_landmarks")
         column.prop(settings, "stiffness")
+        column.prop(settings, "matching")
         column.prop(settings, "refine")
         column.prop(settings, "mesh_stiffness")
         layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")

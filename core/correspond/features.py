@@ -1,0 +1,95 @@
+"""Feature-space matches for non-rigid ICP (**beyond** the thesis, opt-in with
+`CorrespondenceSettings(matching="features")`; issue 13).
+
+The thesis's data term (§4.2.2, 4.11) matches every template point to its closest
+(normal-compatible) target point. Along a smooth wall every nearby point is equally close,
+so landmarks slide for free and the stiffness term slides them to the smoothest map, which
+does not put the template's belly on the target's belly. Here a match is the nearest
+target point in a joint space of position and surface features (ICP with invariant
+features, Sharp, Lucas & Hebert 2002):
+
+    v_n(i) = argmin_y ‖x_i − y‖² + ‖f_i − f(y)‖²,    f(n) = [w_n · n,  w_u · tanh(n_z / h)],
+
+x_i the template point, n its unit normal; n_z = n · up (+z after Prepare). The first part
+keeps a point on the side of a wall that faces its way (it replaces the compatibility test
+of `normal_max_angle`); the second, the saturated up-component, marks where the surface
+turns from facing down to facing up: a belly or a neck (n_z = 0 between the two) is a
+level set of it whatever the shape's proportions, so matching it lines such features up
+(`CorrespondenceSettings.feature_*` explain the defaults and what they measured).
+
+The template point's features are its normals as the first (stiffest, nearly affine) α of
+the schedule left them (`register`): a taller target tilts every normal less, and the
+near-affine fit carries that over before features are compared (a warm start's
+`initial_normals` instead, when given). The target is represented
+by its landmarks and area-uniform surface samples (their face normals),
+`feature_samples` per template point, in one KD-tree over the joint space; a match is the
+closest point on the face of the nearest sample (the samples only choose the face), and
+the final placement is the exact closest surface point as before (registration.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import TargetSurface, closest_points_on_triangles
+from ..mesh import Mesh
+from .settings import CorrespondenceSettings
+
+__all__ = ["point_features", "uses_features", "FeatureMatcher"]
+
+#: seed of the target's surface samples (fixed: a registration is deterministic)
+SAMPLE_SEED = 0
+
+
+def uses_features(settings: CorrespondenceSettings) -> bool:
+    """Whether the data term compares features (`matching="features"`)."""
+    return settings.matching == "features"
+
+
+def point_features(normals: np.ndarray, settings: CorrespondenceSettings) -> np.ndarray:
+    """f(n) of the module docstring for (n, 3) normals (normalised here; a zero normal
+    gives zero features): (n, 4) = [w_n · n, w_u · tanh(n_z / h)]."""
+    normals = np.asarray(normals, dtype=np.float64)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    up = np.tanh(unit[:, 2] / settings.feature_up_width)
+    return np.hstack([settings.feature_normals * unit, settings.feature_up * up[:, None]])
+
+
+class FeatureMatcher:
+    """One target's side of the feature-aware data term: its surface samples and
+    landmarks in the joint space of position and features (module docstring)."""
+
+    def __init__(self, target: TargetSurface, target_landmarks: np.ndarray, target_landmark_normals: np.ndarray | None,
+                 n_template_points: int, settings: CorrespondenceSettings):
+        count = max(1, settings.feature_samples * n_template_points)
+        samples = Mesh(target.vertices, target.faces).sample_surface(count, np.random.default_rng(SAMPLE_SEED))
+        self.landmarks = np.asarray(target_landmarks, dtype=np.float64)
+        normals = np.zeros_like(self.landmarks) if target_landmark_normals is None else target_landmark_normals
+        self.landmark_features = point_features(normals, settings)
+        sample_features = point_features(target.face_normals[samples.face_index], settings)
+        self.triangles = target.triangles
+        if target_landmark_normals is not None:  # the landmarks are surface points too: a shape matches itself exactly
+            landmark_faces = target.closest(self.landmarks).face_index
+            self.sample_points = np.vstack([self.landmarks, samples.points])
+            self.sample_features = np.vstack([self.landmark_features, sample_features])
+            self.sample_faces = np.r_[landmark_faces, samples.face_index]
+        else:
+            self.sample_points, self.sample_features = samples.points, sample_features
+            self.sample_faces = samples.face_index
+        self.tree = cKDTree(np.hstack([self.sample_points, self.sample_features]))
+
+    def forward(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """v_n(i): the closest point to every template point (`points`, its `features`)
+        on the face of the target sample nearest to it in the joint space (the samples
+        choose the face, the face gives the exact point), and the distance to it."""
+        _, nearest = self.tree.query(np.hstack([points, features]))
+        goals, _ = closest_points_on_triangles(points, self.triangles[self.sample_faces[nearest]])
+        return goals, np.linalg.norm(goals - points, axis=1)
+
+    def backward(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """m(j): the template point nearest to every target landmark in the joint space,
+        and the positional distance between them."""
+        _, nearest = cKDTree(np.hstack([points, features])).query(np.hstack([self.landmarks, self.landmark_features]))
+        return nearest, np.linalg.norm(points[nearest] - self.landmarks, axis=1)
