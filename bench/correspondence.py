@@ -33,6 +33,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -561,18 +562,24 @@ def psb(quick: bool, log) -> dict:
     return out
 
 
+def console_log() -> tuple[Callable[[str], None], list[str]]:
+    """A log that prints every line at once and keeps them all (the .txt report)."""
+    lines: list[str] = []
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+        lines.append(text)
+
+    return log, lines
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer shapes (a few minutes)")
     parser.add_argument("--parts", default="1,2,3", help="which parts to run (default all)")
     args = parser.parse_args()
     OUTPUT.mkdir(exist_ok=True)
-    lines = []
-
-    def log(text: str) -> None:
-        print(text, flush=True)
-        lines.append(text)
-
+    log, lines = console_log()
     report = {"quick": args.quick, "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
               "numpy": np.__version__}
     parts = args.parts.split(",")

@@ -36,8 +36,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from correspondence import (LANDMARKS, OUTPUT, PSB, decompose, error_vs_template, face_labels,  # noqa: E402
-                            model_quality, naive_baseline)
+from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, error_vs_template,  # noqa: E402
+                            face_labels, model_quality, naive_baseline)
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
@@ -115,12 +115,7 @@ def main() -> int:
     parser.add_argument("--psb", type=int, default=0, help="also PSB: this many shapes per class (0: no)")
     args = parser.parse_args()
     OUTPUT.mkdir(exist_ok=True)
-    lines = []
-
-    def log(text: str) -> None:
-        print(text, flush=True)
-        lines.append(text)
-
+    log, lines = console_log()
     log(f"{args.shapes} procedural vases per seed, {LANDMARKS} landmarks; errors in % of the diagonal")
     log("| variant | seed | error | profile part | angle part | naive | naive / ours | held-out LL | completion | s |")
     log("|---|---|---|---|---|---|---|---|---|---|")

@@ -46,6 +46,11 @@ def _distance_weights(distance: np.ndarray) -> np.ndarray:
     return s / s.max() if s.max() > 0 else s
 
 
+def _match_weights(distance: np.ndarray, settings: CorrespondenceSettings) -> np.ndarray:
+    """w of every match: (4.12–4.13) with `distance_weights`, otherwise 1 (0 where unmatched: d = inf)."""
+    return _distance_weights(distance) if settings.distance_weights else np.isfinite(distance).astype(float)
+
+
 def _forward_matches(target: TargetSurface, points: np.ndarray, normals: np.ndarray | None,
                      settings: CorrespondenceSettings, finder=None) -> tuple[SurfacePoints, np.ndarray]:
     """v_n(i) of (4.11): closest target point of every template point (the closest point
@@ -63,8 +68,7 @@ def _forward_matches(target: TargetSurface, points: np.ndarray, normals: np.ndar
         matches = finder.closest(points)
     unmatched = ~np.isfinite(matches.distance)
     matches.points[unmatched] = points[unmatched]  # any finite goal: its weight is 0
-    weights = _distance_weights(matches.distance) if settings.distance_weights else (~unmatched).astype(float)
-    return matches, weights
+    return matches, _match_weights(matches.distance, settings)
 
 
 def _backward_matches(points: np.ndarray, normals: np.ndarray | None, target_landmarks: np.ndarray,
@@ -85,8 +89,7 @@ def _backward_matches(points: np.ndarray, normals: np.ndarray | None, target_lan
         rows = np.arange(len(nearest))
         distance = np.where(ok[rows, first], distance[rows, first], np.inf)
         nearest = nearest[rows, first]
-    weights = _distance_weights(distance) if settings.distance_weights else np.isfinite(distance).astype(float)
-    return nearest, weights
+    return nearest, _match_weights(distance, settings)
 
 
 def _cos(settings: CorrespondenceSettings) -> float:
@@ -180,7 +183,7 @@ def register(
                 goals = forward.points
             else:
                 goals, distance = matcher.forward(points, features)
-                weights = _distance_weights(distance) if settings.distance_weights else np.ones(n_points)
+                weights = _match_weights(distance, settings)
             rows = np.arange(n_points)
             if lam > 0:
                 if features is None:
@@ -188,7 +191,7 @@ def register(
                                                         target_landmark_normals, settings)
                 else:
                     nearest, distance = matcher.backward(points, features)
-                    w_back = _distance_weights(distance) if settings.distance_weights else np.ones(len(nearest))
+                    w_back = _match_weights(distance, settings)
                 rows = np.r_[rows, nearest]
                 goals = np.vstack([goals, target_landmarks])
                 weights = np.r_[weights, lam * w_back]
