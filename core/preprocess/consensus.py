@@ -55,6 +55,19 @@ B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is fl
    Chamfer cost is flat in yaw there, within 1-2 % over ±30°). The facing signature of
    these vases, exact moments, measures their turn to 0.01°.
 
+   Unshared pose (the same for stage A; beyond the thesis): when at most `shared_pose` of
+   the Chamfer votes agree (PSB classes as filed 0.77-1.0; every file of PSB Airplane or
+   Fish turned about up at random 0.09-0.33), no input pose is shared. The search then
+   compares shapes at any turn about up (`PoseSearch.compare_turned`: at the 24 axis
+   rotations alone the nearest shapes of a turned airplane are chance ones, and fitted to
+   chance shapes 2-4 of 20 took a wrong turn, half a turn where the Chamfer cost of the
+   right shapes tells it 2-10× apart), the medoid keeps its pose, and every other shape,
+   nearest to the settled ones first, takes the rotation that fits its nearest settled
+   shapes best when it fits them `unshared_margin` times better; a shape settled so,
+   turned or not, is a reference for the next ones (no input pose is more to trust).
+   Near-round shapes (PSB cups and vases, procedural vases) fit each other as well at
+   any turn, agree in stage A whatever their turns, and are left to stage B.
+
 Stages A and B each take the same three steps (`_settle`):
 
 1. Votes: every shape not turned by an earlier stage against each of its `neighbours`
@@ -143,6 +156,14 @@ class ConsensusSettings:
     #: facing difference (degrees) above which a shape is turned when the collection
     #: shares no input facing (the facing of one shape is the collection's, to this angle)
     unshared_angle: float = 0.5
+    #: share of the Chamfer votes (pairs of nearest shapes that fit each other within
+    #: `margin` as they are) at or below which the collection shares no input pose (PSB
+    #: classes as filed 0.77-1.0; every file turned about up at random: Airplane and Fish
+    #: 0.09-0.33, near-round Cup and Vase 0.6-0.8, whose turns stage B's facing then decides)
+    shared_pose: float = 0.4
+    #: cost ratio (its pose / best rotation) above which a shape is turned when the
+    #: collection shares no input pose
+    unshared_margin: float = 1.1
     #: Chamfer improvement with which a weakly shared facing still flags a shape
     facing_support: float = 1.2
     #: Legendre polynomials in height in the facing signature
@@ -223,7 +244,25 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
         return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
                                           f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better")
 
-    first = _settle(search, k, keep, start, by_cost_agree, by_cost, report, 0.2, [not d.changed for d in stood])
+    def by_cost_unshared(j: int, references: list[tuple[int, np.ndarray]], unshared: str) -> PoseDecision:
+        # no input pose to keep: the best fit to the shapes settled nearest, when it is
+        # worth a turn (a near-round shape fits its references as well at any turn)
+        upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, True, settings.snap,
+                                            _or_none(start[j]))
+        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start[j]):
+            fit = upright
+        ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
+        if ratio <= settings.unshared_margin:
+            return PoseDecision(start[j])
+        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
+                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better "
+                                          f"({unshared})")
+
+    # inputs turned about up at random share no pose for a majority to keep: one shape's
+    # pose is the collection's and the others follow it shape by shape, nearest first
+    first = _settle(search, k, keep, start, by_cost_agree, by_cost, report, 0.2, [not d.changed for d in stood],
+                    by_cost_unshared, settings.shared_pose, "pose",
+                    unshared_search=lambda: search.compare_turned(settings.yaw_step))
     turned = [d.rotation for d in first]
 
     def by_signature_agree(j: int, i: int) -> bool:
@@ -268,7 +307,8 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
     # collection's, and every other shape is turned to it by what its signature measures
     second = _settle(search, k, keep, turned, by_signature_agree, by_signature, report, 0.5,
                      [not (a.changed or b.changed) for a, b in zip(stood, first)],
-                     lambda j, references, why: by_signature(j, references, unshared=why), settings.shared_facing)
+                     lambda j, references, why: by_signature(j, references, unshared=why), settings.shared_facing,
+                     "facing")
     decisions = [_combined(*stages) for stages in zip(stood, first, second)]
     report(0.85, "checking the poses")
     return restore_flagged(search, signatures, names, keep, settings, decisions, symmetry, hollows,
@@ -397,14 +437,18 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
             agree: Callable[[int, int], bool], decide: Callable[[int, list], PoseDecision],
             report: Callable[[float, str], None], progress: float, eligible: Sequence[bool],
             decide_unshared: Callable[[int, list, str], PoseDecision] | None = None,
-            shared_votes: float = 0.0) -> list[PoseDecision]:
+            shared_votes: float = 0.0, what: str = "pose",
+            unshared_search: Callable[[], None] | None = None) -> list[PoseDecision]:
     """Steps 1–3 with one test: votes of every shape with its k nearest shapes (`agree`),
     the majority group (of `eligible` shapes) keeps its poses, everyone else is decided
     (`decide`) against its k nearest settled shapes, closest to the settled ones first;
     `keep` shapes never move. When at most `shared_votes` of the votes agree, the inputs
     share no pose that this test could keep (the majority is a chance group): the medoid
     of the voters alone keeps its pose, and everyone else is decided by `decide_unshared`
-    (given why, for its reason)."""
+    (given why, for its reason). With `unshared_search` (called first: it makes the
+    search compare shapes at any turn) a shape it turns is then a reference for the
+    shapes after it like one it keeps (no input pose is more to trust than a turned one),
+    so the collection follows the medoid from nearest shape to nearest shape."""
     n = len(search)
     voters = [j for j in range(n) if eligible[j]]
     votes: dict[tuple[int, int], bool] = {}
@@ -421,9 +465,13 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
         report(progress + 0.15 * (j + 1) / n, f"comparing {j + 1} of {n}")
     majority = _majority(search, votes, nearest, voters)
     agreeing = sum(votes.values())
-    if decide_unshared is not None and votes and agreeing <= shared_votes * len(votes):
+    unshared = decide_unshared is not None and bool(votes) and agreeing <= shared_votes * len(votes)
+    trust_turned = unshared and unshared_search is not None
+    if trust_turned:
+        unshared_search()
+    if unshared:
         majority = [_medoid(search, voters)]
-        why = f"no input facing is shared: {agreeing} of {len(votes)} pairs of nearest shapes agree"
+        why = f"no input {what} is shared: {agreeing} of {len(votes)} pairs of nearest shapes agree"
         decide = lambda j, references: decide_unshared(j, references, why)  # noqa: E731
     decisions = {j: PoseDecision(start[j]) for j in majority}
     references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
@@ -435,7 +483,7 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
         j = waiting.closest()
         references = [(i, decisions[i].rotation) for i in search.nearest(j, references_pool, k)]
         decisions[j] = decide(j, references)
-        if not decisions[j].changed:  # a turned shape's pose is a guess: no reference
+        if trust_turned or not decisions[j].changed:  # a turned shape's pose is a guess: no reference
             references_pool.append(j)
             waiting.join(j)
         else:

@@ -75,13 +75,14 @@ def probe_grid(steps: int = PROBE_STEPS, radius: float = PROBE_RADIUS) -> np.nda
     return np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def field_descriptors(trees: Sequence[cKDTree], probes: np.ndarray, cutoff: float = FIELD_CUTOFF) -> np.ndarray:
-    """(N, 24, P) distance fields min(d_{R P_j}(q), cutoff) of every shape j (its samples'
-    KD-tree) in every axis rotation R at the probe points q: the distances of Rᵀq to the
-    samples."""
-    turned_back = np.stack([probes @ r for r in AXIS_ROTATIONS])  # rows Rᵀq
+def field_descriptors(trees: Sequence[cKDTree], probes: np.ndarray, cutoff: float = FIELD_CUTOFF,
+                      rotations: np.ndarray = AXIS_ROTATIONS) -> np.ndarray:
+    """(N, R, P) distance fields min(d_{R P_j}(q), cutoff) of every shape j (its samples'
+    KD-tree) in every rotation R (the axis rotations; the first is the identity) at the
+    probe points q: the distances of Rᵀq to the samples."""
+    turned_back = np.stack([probes @ r for r in rotations])  # rows Rᵀq
     return np.stack([tree.query(turned_back.reshape(-1, 3), distance_upper_bound=cutoff)[0]
-                     .clip(max=cutoff).reshape(len(AXIS_ROTATIONS), -1) for tree in trees])
+                     .clip(max=cutoff).reshape(len(rotations), -1) for tree in trees])
 
 
 def field_differences(descriptors: np.ndarray) -> np.ndarray:
@@ -103,14 +104,16 @@ def field_differences(descriptors: np.ndarray) -> np.ndarray:
 class CandidateDistances:
     """The distance matrix of a large collection: exact for the pairs computed, the
     scaled estimate elsewhere (module docstring); `known` marks the exact entries.
-    `progress` follows the exact costs of the proposed pairs."""
+    `progress` follows the exact costs of the proposed pairs; `rotations` are those the
+    distance `exact` minimises over (the descriptors are compared over the same)."""
 
     def __init__(self, trees: Sequence[cKDTree], exact: Callable[[int, int], float],
                  candidates: int = CANDIDATES, quantile: float = ESTIMATE_QUANTILE,
-                 margin: float = ESTIMATE_MARGIN, progress: Progress | None = None):
+                 margin: float = ESTIMATE_MARGIN, progress: Progress | None = None,
+                 rotations: np.ndarray = AXIS_ROTATIONS):
         self.exact = exact
         n = len(trees)
-        differences = field_differences(field_descriptors(trees, probe_grid()))
+        differences = field_differences(field_descriptors(trees, probe_grid(), rotations=rotations))
         self.known = np.eye(n, dtype=bool)
         self.distance = np.zeros((n, n))
         pairs = set()

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from .moments import surface_moments, third_central_moment
 
 __all__ = ["UP_AXES", "up_rotation", "horizontal_pca_rotation", "AXIS_ROTATIONS", "TILTS", "yaw_rotation",
-           "describe_rotation"]
+           "turn_rotations", "describe_rotation"]
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
@@ -72,6 +72,15 @@ TILTS = np.stack([
 
 #: the 24 rotations of the cube, (24, 3, 3): number 4·d + k is TILTS[d], then k·90° about z
 AXIS_ROTATIONS = np.stack([yaw_rotation(90.0 * k) @ tilt for tilt in TILTS for k in range(4)])
+
+
+def turn_rotations(yaw_step: float) -> np.ndarray:
+    """(24 + 4·(m − 1), 3, 3): the 24 axis rotations, then the upright turns about z on a
+    grid of `yaw_step` degrees that are not quarter turns (m = 90 / yaw_step steps per
+    quarter): the rotations over which shapes turned about up at random are compared."""
+    steps = max(int(round(90.0 / yaw_step)), 1)
+    turns = [yaw_rotation(90.0 * k + 90.0 * m / steps) for k in range(4) for m in range(1, steps)]
+    return np.concatenate([AXIS_ROTATIONS, np.reshape(turns, (-1, 3, 3))])
 
 
 def describe_rotation(rotation: np.ndarray) -> str:
