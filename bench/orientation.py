@@ -14,8 +14,16 @@ Sets:
   (d) mugs modelled in Blender through bpy (bench/blender_mugs.py `model_mugs`: quads,
       32-gon caps, UVs, a material, a handle as a second part; plain, mirrored, parented,
       rotated and subdivided objects, all +Z up facing +x in world coordinates), read as
-      the add-on reads them, at --mug-seeds seeds; and the same with a known subset turned
-      (upside down, on its side, a quarter or three-eighths turn about up) or mirrored.
+      the add-on reads them, at --mug-seeds seeds; the same with a known subset turned
+      (upside down, on its side, a quarter or three-eighths turn about up) or mirrored;
+      and the same with every mug turned about up at random (objects scattered over a
+      scene), "restored" counting those that end in the collection's pose;
+  (e) the PSB classes with every file turned about its own up at random (the up its
+      version's Prepare found for the file as it is), at --turned-seeds seeds: "wrong" =
+      shapes that end visibly away from that version's result for the files as they are,
+      after one common turn (the rotation between the two moves the shape's own surface
+      more than a 20° turn about up does, by self-Chamfer distance, and by more than
+      VISIBLE_CHAMFER: a round cup may end at any turn, a cup's handle may not).
 
 Counts per set: "changed" = shapes whose rotation is not the up rotation alone; "wrong" =
 shapes whose pose (canonical frame → prepared frame) is more than 20° from the
@@ -26,7 +34,8 @@ moved. PSB has no canonical frame: the counts are changed and flagged; wrong one
 counted on the rendered pictures (render mode: every version drawn, turned shapes red,
 flagged ones marked "!"). A table of all rows is printed at the end.
 
-    python bench/orientation.py [--seeds 20] [--mug-seeds 10] [--shapes 12] [--no-render] [--sets a c d]
+    python bench/orientation.py [--seeds 20] [--mug-seeds 10] [--shapes 12] [--no-render] [--sets a c d e]
+        [--turned-seeds 4]
         [--classes Cup Vase] [--revisions old=5a0b44e main=5dbb1d5] [--methods main after]
 
 Writes <out>/orientation_<Class>_<version>.png in render mode (needs bpy).
@@ -65,6 +74,9 @@ REVISIONS = {"old": "5a0b44e", "main": "5dbb1d5"}  # old default; the default be
 CLASSES = ("Fish", "Vase", "Airplane", "Cup")
 COLUMNS = 8
 WRONG_DEGREES = 20.0
+#: self-Chamfer distance (samples of unit RMS radius) below which a turn of a shape is
+#: invisible whatever a 20° turn about up does (set e)
+VISIBLE_CHAMFER = 0.01
 ROWS: list[dict] = []  # every measured row, printed as one table at the end
 
 
@@ -182,15 +194,24 @@ def procedural(kind: str, seeds: int, n: int, count: int, methods: dict) -> None
             c.report()
 
 
+def mug_turns(n: int, seed: int) -> dict[int, np.ndarray]:
+    """Every mug turned about up by a random angle (objects scattered over a scene)."""
+    rng = np.random.default_rng(4000 + seed)
+    return {i: yaw_rotation(float(rng.uniform(0.0, 360.0))) for i in range(n)}
+
+
 def blender(seeds: int, n: int, count: int, methods: dict) -> None:
-    """Set (d): mugs modelled in Blender (consistent, then a perturbed subset)."""
+    """Set (d): mugs modelled in Blender (consistent, a perturbed subset, all turned about up)."""
     from blender_mugs import model_mugs
 
-    for perturbed in (False, True):
-        label = f"(d) Blender mugs{' perturbed' if perturbed else ''}"
-        counts = {name: Counts(label, name, perturbed) for name in methods}
+    for variant in ("", " perturbed", " turned"):
+        label = f"(d) Blender mugs{variant}"
+        counts = {name: Counts(label, name, bool(variant)) for name in methods}
         for seed in range(seeds):
-            maps, turns = mug_perturbations(n, count, seed) if perturbed else ({}, {})
+            if variant == " perturbed":
+                maps, turns = mug_perturbations(n, count, seed)
+            else:
+                maps = turns = mug_turns(n, seed) if variant else {}
             meshes, _ = model_mugs(n, seed, maps)
             for name, prepare in methods.items():
                 prepared, seconds = run(prepare, meshes, "z")
@@ -230,6 +251,53 @@ def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool
                 if oblique:
                     render(prepared, turned, flags, out / f"orientation_{cls}_{name}_oblique.png",
                            f"{cls}: {name}, seen from front-left, above", OBLIQUE)
+
+
+def turned_psb(data: Path, classes, up: str, methods: dict, seeds: int) -> None:
+    """Set (e): every PSB file turned about its own up at random (module docstring)."""
+    from shapegen_core.geometry.chamfer import chamfer_distance
+    from scipy.spatial import cKDTree
+
+    for cls in classes:
+        folder = data / cls
+        if not folder.is_dir():
+            print(f"(e) {cls}: {folder} missing, skipped")
+            continue
+        meshes = read_folder(folder)
+        for name, prepare in methods.items():
+            as_filed, _ = run(prepare, meshes, up)
+            poses = [s.transform.rotation for s in as_filed]  # file -> prepared frame
+            samples = []
+            for s in as_filed:
+                x = s.mesh.sample_surface(2000, np.random.default_rng(0)).points
+                x = x - x.mean(axis=0)
+                samples.append(x / np.sqrt((x ** 2).sum(axis=1).mean()))
+            trees = [cKDTree(x) for x in samples]
+
+            def moves(j: int, rotation: np.ndarray) -> float:
+                return chamfer_distance(samples[j], samples[j], rotation, trees[j], trees[j])
+
+            visible = [max(moves(j, yaw_rotation(WRONG_DEGREES)), VISIBLE_CHAMFER) for j in range(len(meshes))]
+            wrong = flagged = changed = 0
+            seconds = 0.0
+            for seed in range(seeds):
+                angles = np.random.default_rng(5000 + seed).uniform(0.0, 360.0, len(meshes))
+                turns = [pose.T @ yaw_rotation(a) @ pose for pose, a in zip(poses, angles)]
+                prepared, spent = run(prepare, [m.with_vertices(m.vertices @ t.T) for m, t in zip(meshes, turns)], up)
+                relative = [s.transform.rotation @ t @ pose.T for s, t, pose in zip(prepared, turns, poses)]
+                off = min(([j for j in range(len(meshes)) if moves(j, common.T @ relative[j]) > visible[j]]
+                           for common in relative), key=len)
+                wrong, seconds = wrong + len(off), seconds + spent
+                flagged += sum(bool(getattr(s, "pose_outlier", "")) for s in prepared)
+                changed += sum(bool(getattr(s, "pose_change", "")) for s in prepared)
+                for j in off:
+                    print(f"      seed {seed} {meshes[j].name}: {getattr(prepared[j], 'pose_change', '') or '-'} | "
+                          f"{getattr(prepared[j], 'pose_outlier', '') or '-'}")
+            print(f"(e) {cls:16s} {name:6s}: {len(meshes)} shapes ({seeds} seeds), changed {changed}, wrong {wrong}, "
+                  f"flagged {flagged}; {seconds / max(seeds, 1):.1f} s per collection", flush=True)
+            ROWS.append({"set": f"(e) PSB {cls} turned", "version": name, "shapes": len(meshes) * seeds,
+                         "seeds": seeds, "changed": changed, "restored": "", "moved": "", "flagged": flagged,
+                         "wrong": wrong, "seconds": seconds / max(seeds, 1)})
 
 
 def table() -> None:
@@ -316,7 +384,8 @@ def main(argv=None) -> int:
     parser.add_argument("--mugs", type=int, default=14, help="mugs per Blender collection (set d)")
     parser.add_argument("--mugs-perturbed", type=int, default=4)
     parser.add_argument("--mug-seeds", type=int, default=10, help="Blender collections per variant (set d)")
-    parser.add_argument("--sets", nargs="+", default=["a", "c", "d"], help="a (with b), c, d")
+    parser.add_argument("--sets", nargs="+", default=["a", "c", "d", "e"], help="a (with b), c, d, e")
+    parser.add_argument("--turned-seeds", type=int, default=4, help="random turns of every PSB file (set e)")
     parser.add_argument("--revisions", nargs="+", default=[f"{k}={v}" for k, v in REVISIONS.items()],
                         help="NAME=REV: versions of the core to compare with the working tree ('after')")
     parser.add_argument("--methods", nargs="+", default=None, help="versions to run (default: all)")
@@ -345,6 +414,8 @@ def main(argv=None) -> int:
             blender(args.mug_seeds, args.mugs, args.mugs_perturbed, methods)
     if "c" in args.sets:
         psb(args.data, args.classes, args.up, methods, args.out, can_render, args.oblique)
+    if "e" in args.sets:
+        turned_psb(args.data, args.classes, args.up, methods, args.turned_seeds)
     table()
     return 0
 
