@@ -225,15 +225,35 @@ def blender(seeds: int, n: int, count: int, methods: dict) -> None:
             c.report()
 
 
-def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool, oblique: bool) -> None:
+#: what sets (c) and (e) share, read and prepared once: class -> meshes, and
+#: (class, version) -> (that version's result for the files as they are, seconds)
+PSB_MESHES: dict[str, list] = {}
+PSB_AS_FILED: dict[tuple[str, str], tuple[list, float]] = {}
+
+
+def psb_classes(data: Path, classes, label: str):
+    """(class, its meshes) for every PSB class folder present; a missing one is named and skipped."""
     for cls in classes:
         folder = data / cls
         if not folder.is_dir():
-            print(f"(c) {cls}: {folder} missing, skipped")
+            print(f"{label} {cls}: {folder} missing, skipped")
             continue
-        meshes = read_folder(folder)
+        if cls not in PSB_MESHES:
+            PSB_MESHES[cls] = read_folder(folder)
+        yield cls, PSB_MESHES[cls]
+
+
+def as_filed(cls: str, meshes, name: str, prepare, up: str):
+    """Version `name`'s Prepare of the class's files as they are, and its seconds (run once)."""
+    if (cls, name) not in PSB_AS_FILED:
+        PSB_AS_FILED[cls, name] = run(prepare, meshes, up)
+    return PSB_AS_FILED[cls, name]
+
+
+def psb(data: Path, classes, up: str, methods: dict, out: Path, can_render: bool, oblique: bool) -> None:
+    for cls, meshes in psb_classes(data, classes, "(c)"):
         for name, prepare in methods.items():
-            prepared, seconds = run(prepare, meshes, up)
+            prepared, seconds = as_filed(cls, meshes, name, prepare, up)
             base = up_rotation(up)
             turned = [not np.allclose(s.transform.rotation, base, atol=1e-12) for s in prepared]
             flags = [s.name for s in prepared if getattr(s, "pose_outlier", "")]
@@ -258,17 +278,12 @@ def turned_psb(data: Path, classes, up: str, methods: dict, seeds: int) -> None:
     from shapegen_core.geometry.chamfer import chamfer_distance
     from scipy.spatial import cKDTree
 
-    for cls in classes:
-        folder = data / cls
-        if not folder.is_dir():
-            print(f"(e) {cls}: {folder} missing, skipped")
-            continue
-        meshes = read_folder(folder)
+    for cls, meshes in psb_classes(data, classes, "(e)"):
         for name, prepare in methods.items():
-            as_filed, _ = run(prepare, meshes, up)
-            poses = [s.transform.rotation for s in as_filed]  # file -> prepared frame
+            filed, _ = as_filed(cls, meshes, name, prepare, up)
+            poses = [s.transform.rotation for s in filed]  # file -> prepared frame
             samples = []
-            for s in as_filed:
+            for s in filed:
                 x = s.mesh.sample_surface(2000, np.random.default_rng(0)).points
                 x = x - x.mean(axis=0)
                 samples.append(x / np.sqrt((x ** 2).sum(axis=1).mean()))

@@ -228,12 +228,14 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
         _, fit = search.best_rotation(j, reference, settings.yaw_step, settings.tilts, False, 0.0, _or_none(start[j]))
         return search.cost(j, start[j], reference) <= settings.margin * fit.cost
 
+    def turned_by_cost(j: int, fit: Fit, ratio: float, references: list[tuple[int, np.ndarray]],
+                       why: str = "") -> PoseDecision:
+        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
+                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better"
+                                          + (f" ({why})" if why else ""))
+
     def by_cost(j: int, references: list[tuple[int, np.ndarray]]) -> PoseDecision:
-        upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, True, settings.snap,
-                                            _or_none(start[j]))
-        # a change of up needs its own evidence, and no worse symmetry about the new up
-        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start[j]):
-            fit = upright
+        fit = _best_pose(search, symmetry, settings, j, references, start[j], refine=True)
         ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
         # most references must ask for the turn one by one (a bowl among jugs: the jugs
         # prefer it on its side, the other bowls upright)
@@ -241,22 +243,16 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
                    for r in references)
         if ratio <= settings.margin or 2 * each <= len(references):
             return PoseDecision(start[j])
-        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
-                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better")
+        return turned_by_cost(j, fit, ratio, references)
 
     def by_cost_unshared(j: int, references: list[tuple[int, np.ndarray]], unshared: str) -> PoseDecision:
         # no input pose to keep: the best fit to the shapes settled nearest, when it is
         # worth a turn (a near-round shape fits its references as well at any turn)
-        upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, True, settings.snap,
-                                            _or_none(start[j]))
-        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start[j]):
-            fit = upright
+        fit = _best_pose(search, symmetry, settings, j, references, start[j], refine=True)
         ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
         if ratio <= settings.unshared_margin:
             return PoseDecision(start[j])
-        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
-                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better "
-                                          f"({unshared})")
+        return turned_by_cost(j, fit, ratio, references, unshared)
 
     # inputs turned about up at random share no pose for a majority to keep: one shape's
     # pose is the collection's and the others follow it shape by shape, nearest first
@@ -333,6 +329,19 @@ def _faces_away(turned_cost: float, cost: float, coherence: float, settings: Con
     fits 1.3× better)."""
     return ((coherence > settings.coherence and turned_cost <= (1.0 + settings.tolerance) * cost)
             or (coherence > settings.coherence / 2 and settings.facing_support * turned_cost < cost))
+
+
+def _best_pose(search: PoseSearch, symmetry: AxisSymmetry | None, settings: ConsensusSettings, j: int,
+               references: list[tuple[int, np.ndarray]], start: np.ndarray, refine: bool) -> Fit:
+    """The rotation of shape j (now turned by `start`) that fits the references best
+    (`PoseSearch.best_rotation`, refined or on the grid), keeping its up unless a change
+    of up fits `tilt_margin` times better than the best upright pose and the new up has
+    no worse symmetry: a change of up needs its own evidence."""
+    upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, refine,
+                                        settings.snap, _or_none(start))
+    if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start):
+        return upright
+    return fit
 
 
 def _symmetry_allows(symmetry: AxisSymmetry | None, j: int, fit: Fit, start: np.ndarray) -> bool:
@@ -568,10 +577,7 @@ def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[
     for j in range(n):
         report((j + 1) / n, f"{j + 1} of {n}")
         nearest = tuple(i for i, _ in references[j])
-        upright, fit = search.best_rotation(j, references[j], settings.yaw_step, settings.tilts, False,
-                                            settings.snap, _or_none(rotations[j]))
-        if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, rotations[j]):
-            fit = upright
+        fit = _best_pose(search, symmetry, settings, j, references[j], rotations[j], refine=False)
         ratio = costs[j] / max(fit.cost, 1e-300)
         angle, coherence = signatures.facing_turn(j, rotations[j], references[j])
         if ratio > settings.margin:
