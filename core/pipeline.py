@@ -386,13 +386,13 @@ def _load_fit_settings(arrays: dict, path) -> FitSettings:
     try:
         if "settings" in arrays or "settings_keys" not in arrays:
             validate_arrays(arrays, {"settings": ArraySpec("U", ())}, str(path))
-            return FitSettings.from_json(str(arrays["settings"]))
+            return FitSettings.from_json(str(arrays["settings"]), recorded=True)
         validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
         options = _nest_prepare(legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist()))
         defaults = DeformSettings()
         options["deform"] = {key: type(getattr(defaults, key, 0.0))(value)
                              for key, value in zip(arrays["deform_keys"].tolist(), arrays["deform_values"].tolist())}
-        return FitSettings.from_dict(options)
+        return FitSettings.from_dict(options, recorded=True)
     except SettingsError as exc:
         raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None
 

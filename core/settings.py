@@ -83,14 +83,18 @@ def settings_to_json(settings) -> str:
     return json.dumps(asdict(settings))
 
 
-def settings_from_dict(cls, data: Mapping, path: str = ""):
+def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = False):
     """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
     nested objects, missing fields at their defaults. Unknown names and invalid values
     raise SettingsError; an error of nested settings names the option by its dotted path
-    ("deform.final_alpha")."""
+    ("deform.final_alpha"). `recorded`: the data is what a file recorded, so a field the
+    file predates takes the value its run used (`cls.FIELDS_ADDED_LATER`), not today's
+    default."""
     label = path or cls.__name__
     if not isinstance(data, Mapping):
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
+    if recorded:
+        data = {**getattr(cls, "FIELDS_ADDED_LATER", {}), **data}
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -99,7 +103,7 @@ def settings_from_dict(cls, data: Mapping, path: str = ""):
     values = {}
     for name, value in data.items():
         if is_dataclass(hints[name]) and isinstance(value, Mapping):
-            value = settings_from_dict(hints[name], value, f"{path}.{name}" if path else name)
+            value = settings_from_dict(hints[name], value, f"{path}.{name}" if path else name, recorded)
         values[name] = value
     try:
         return cls(**values)
@@ -111,13 +115,13 @@ def settings_from_dict(cls, data: Mapping, path: str = ""):
         raise SettingsError(label, f"is invalid: {exc}") from None
 
 
-def settings_from_json(cls, text: str):
+def settings_from_json(cls, text: str, recorded: bool = False):
     """`settings_from_dict` of one JSON string; a broken string raises SettingsError."""
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SettingsError(cls.__name__, f"is not valid JSON ({exc})") from None
-    return settings_from_dict(cls, data)
+    return settings_from_dict(cls, data, recorded=recorded)
 
 
 def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
@@ -148,17 +152,19 @@ def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
         if key in arrays or keys not in arrays:
             validate_arrays(arrays, {key: ArraySpec("U", ())}, label)
             text = str(arrays[key])
-            return None if text == "null" else cls.from_json(text)
+            return None if text == "null" else cls.from_json(text, recorded=True)
         validate_arrays(arrays, {keys: ArraySpec("U", ("S",)), values: ArraySpec("U", ("S",))}, label)
         legacy = legacy_settings(arrays[keys].tolist(), arrays[values].tolist())
-        return cls.from_dict(legacy) if legacy else None
+        return cls.from_dict(legacy, recorded=True) if legacy else None
     except SettingsError as exc:
         raise ModelFileError(f"{label}: recorded settings are invalid: {exc}") from None
 
 
 class Settings:
     """Base of frozen settings dataclasses: checks its fields after construction and
-    round-trips through plain data / JSON."""
+    round-trips through plain data / JSON. A subclass's `FIELDS_ADDED_LATER` (a class
+    attribute) maps a field added after files were written to the value runs recorded
+    in those files used (when it differs from the field's default)."""
 
     def __post_init__(self):
         check_fields(self)
@@ -170,9 +176,9 @@ class Settings:
         return settings_to_json(self)
 
     @classmethod
-    def from_dict(cls, data: Mapping):
-        return settings_from_dict(cls, data)
+    def from_dict(cls, data: Mapping, recorded: bool = False):
+        return settings_from_dict(cls, data, recorded=recorded)
 
     @classmethod
-    def from_json(cls, text: str):
-        return settings_from_json(cls, text)
+    def from_json(cls, text: str, recorded: bool = False):
+        return settings_from_json(cls, text, recorded)

@@ -119,8 +119,8 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
     # --- fit (Correspondence + Model sub-panels)
     stiffness: FloatProperty(
         name="Stiffness", default=5.0, min=0.01, soft_max=100.0,
-        description="Final stiffness of the correspondence (thesis: 5 vases and teapots, 10 cars); "
-                    "higher keeps the template's shape, lower follows each shape closely",
+        description="Final stiffness of the correspondence (thesis: 5 vases and teapots, 10 cars; feature "
+                    "matches end at 0.4 of it); higher keeps the template's shape, lower follows each shape closely",
     )
     matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default="closest",
                            description="What non-rigid ICP pulls each landmark to (CorrespondenceSettings.matching)")

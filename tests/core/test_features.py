@@ -3,6 +3,8 @@ the thesis, opt-in with `matching="features"`)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,8 @@ from shapegen_core.correspond.features import FeatureMatcher, point_features
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface, knn_graph, registration_frame
 from shapegen_core.landmarks import select_landmarks
-from shapegen_core.settings import SettingsError
+from shapegen_core.pipeline import FitSettings
+from shapegen_core.settings import SettingsError, recorded_settings
 
 FEATURES = CorrespondenceSettings(matching="features")
 
@@ -67,7 +70,9 @@ def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():
     placed, _, _ = _register(coarse.mesh, landmarks, fine.mesh, select_landmarks(fine.mesh, 300, seed=1))
     truth = fine.points_at(coarse.surface_coordinates(landmarks.face_index, landmarks.barycentric))
     error = np.linalg.norm(placed - truth, axis=1).mean()
-    assert error < 0.25 * fine.mesh.mean_edge_length(), f"{error / fine.mesh.mean_edge_length():.3f} edges"  # 0.218
+    # measured 0.308 edges; the softer end of the schedule (feature_stiffness 0.4) follows the
+    # finer mesh more than α 5 did (0.218), the price of its lower error across shapes
+    assert error < 0.35 * fine.mesh.mean_edge_length(), f"{error / fine.mesh.mean_edge_length():.3f} edges"
 
 
 def test_a_warm_start_with_its_normals_converges_to_the_same_placement():
@@ -93,12 +98,26 @@ def _true_error(shapes, prepared, result) -> float:
 
 
 def test_feature_matches_lower_the_true_error_of_a_procedural_class():
-    # measured 2.74 % (closest points) → 2.59 % (features); at full size docs/results.md
+    # measured 2.74 % (closest points) → 2.59 % (features as first shipped: h 0.1, α ending
+    # at 5) → 2.48 % (h 0.01, α ending at 0.4 × 5); at full size docs/results.md
     shapes = make_vases(5, seed=11, resolution=(33, 64))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=300, seed=0))
     closest = _true_error(shapes, prepared, correspond(prepared, CorrespondenceSettings(), jobs=1))
+    first = CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0)
+    features_first = _true_error(shapes, prepared, correspond(prepared, first, jobs=1))
     features = _true_error(shapes, prepared, correspond(prepared, FEATURES, jobs=1))
-    assert features < 0.97 * closest, f"features {features:.4f} vs closest {closest:.4f}"
+    assert features_first < 0.97 * closest, f"features {features_first:.4f} vs closest {closest:.4f}"
+    assert features < 0.98 * features_first, f"features {features:.4f} vs as first shipped {features_first:.4f}"
+
+
+def test_feature_matches_end_the_stiffness_schedule_softer():
+    assert CorrespondenceSettings().alphas.tolist() == [100.0, 76.25, 52.5, 28.75, 5.0]  # the thesis's schedule
+    np.testing.assert_allclose(FEATURES.alphas, np.linspace(100.0, 2.0, 5))
+    one = CorrespondenceSettings(matching="features", alpha_end=10.0, alpha_steps=1, feature_stiffness=0.5)
+    assert one.alphas.tolist() == [5.0]
+    assert CorrespondenceSettings(feature_stiffness=0.5).alphas[-1] == 5.0  # closest points ignore it
+    with pytest.raises(SettingsError, match="feature_stiffness must be at most 1"):
+        CorrespondenceSettings(matching="features", feature_stiffness=1.5)
 
 
 def test_matching_setting_and_flag():
@@ -110,3 +129,18 @@ def test_matching_setting_and_flag():
         assert settings_from_args(CorrespondenceSettings, args).matching == "features"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["correspond", "x", "-o", "y", "--matching", "nearest"])
+
+
+def test_files_written_before_feature_stiffness_record_the_schedule_they_ran():
+    # a file recorded every field but feature_stiffness: its run ended the schedule at alpha_end
+    old = CorrespondenceSettings(matching="features").as_dict()
+    del old["feature_stiffness"]
+    loaded = recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))}, "old.npz")
+    assert loaded.feature_stiffness == 1.0 and loaded.alphas[-1] == 5.0
+    fit = FitSettings(correspondence=CorrespondenceSettings(matching="features")).as_dict()
+    del fit["correspondence"]["feature_stiffness"]
+    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence.alphas[-1] == 5.0
+    # options given today (the panel's, the command line's) take today's default
+    assert CorrespondenceSettings.from_dict({"matching": "features"}).alphas[-1] == 2.0
+    new = CorrespondenceSettings(matching="features", feature_stiffness=0.5)
+    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(new.to_json())}, "new.npz") == new
