@@ -25,6 +25,11 @@ by its landmarks and area-uniform surface samples (their face normals),
 `feature_samples` per template point, in one KD-tree over the joint space; a match is the
 closest point on the face of the nearest sample (the samples only choose the face), and
 the final placement is the exact closest surface point as before (registration.py).
+
+With `feature_between` > 0 a fifth feature, w_b · g, compares where a point lies between
+the turning lines of its region (turning.py): the template's g is the population's mean
+from the groupwise round on (the first round compares sides only and reports each
+target's g at its placed points).
 """
 
 from __future__ import annotations
@@ -35,8 +40,9 @@ from scipy.spatial import cKDTree
 from ..geometry import TargetSurface, closest_points_on_triangles
 from ..mesh import Mesh
 from .settings import CorrespondenceSettings
+from .turning import NO_LINE, position_between_turning_lines
 
-__all__ = ["point_features", "uses_features", "FeatureMatcher"]
+__all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "FeatureMatcher"]
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
@@ -47,38 +53,82 @@ def uses_features(settings: CorrespondenceSettings) -> bool:
     return settings.matching == "features"
 
 
-def point_features(normals: np.ndarray, settings: CorrespondenceSettings) -> np.ndarray:
-    """f(n) of the module docstring for (n, 3) normals (normalised here; a zero normal
-    gives zero features): (n, 4) = [w_n · n, w_u · tanh(n_z / h)]."""
+def point_features(normals: np.ndarray, settings: CorrespondenceSettings, between: np.ndarray | None = None) -> np.ndarray:
+    """f of the module docstring for (n, 3) normals (normalised here; a zero normal gives
+    zero features): (n, 4) = [w_n · n, w_u · tanh(n_z / h)], and when `between` (n,) is
+    given a fifth column w_b · g: the points' positions between turning lines (turning.py;
+    w_b = `feature_between`)."""
     normals = np.asarray(normals, dtype=np.float64)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     up = np.tanh(unit[:, 2] / settings.feature_up_width)
-    return np.hstack([settings.feature_normals * unit, settings.feature_up * up[:, None]])
+    columns = [settings.feature_normals * unit, settings.feature_up * up[:, None]]
+    if between is not None:
+        if np.shape(between) != (len(normals),):
+            raise ValueError(f"between must hold one position per normal ({len(normals)}), got {np.shape(between)}")
+        columns.append(settings.feature_between * np.asarray(between, dtype=np.float64)[:, None])
+    return np.hstack(columns)
+
+
+def uses_between(settings: CorrespondenceSettings) -> bool:
+    """Whether feature matches compare positions between turning lines (`feature_between` > 0)."""
+    return uses_features(settings) and settings.feature_between > 0
+
+
+def carry_positions(between: np.ndarray, points: np.ndarray, normals: np.ndarray, to_points: np.ndarray,
+                    to_normals: np.ndarray, neighbours: int = 8) -> np.ndarray:
+    """g at `to_points`: that of the nearest of `points` (among its `neighbours` nearest)
+    whose normal is within 60° of the point's own, so a point on one face of a thin wall
+    never takes the other face's; NO_LINE when none is."""
+    points, normals = np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64)
+    to_normals = np.asarray(to_normals, dtype=np.float64)
+    k = min(neighbours, len(points))
+    _, nearest = cKDTree(points).query(to_points, k)
+    nearest = nearest.reshape(len(to_points), k)
+    cosine = np.einsum("nj,nkj->nk", to_normals, normals[nearest])
+    agree = cosine >= 0.5 * np.linalg.norm(to_normals, axis=1)[:, None] * np.linalg.norm(normals[nearest], axis=2)
+    chosen = between[nearest[np.arange(len(to_points)), np.argmax(agree, axis=1)]]
+    return np.where(agree.any(axis=1), chosen, NO_LINE)
 
 
 class FeatureMatcher:
     """One target's side of the feature-aware data term: its surface samples and
-    landmarks in the joint space of position and features (module docstring)."""
+    landmarks in the joint space of position and features (module docstring).
+
+    With `feature_between` > 0 the target's positions between turning lines (turning.py)
+    are computed on all of these points (`self.between`); they enter the joint space only
+    `with_between` (when the template has positions of its own to compare)."""
 
     def __init__(self, target: TargetSurface, target_landmarks: np.ndarray, target_landmark_normals: np.ndarray | None,
-                 n_template_points: int, settings: CorrespondenceSettings):
+                 n_template_points: int, settings: CorrespondenceSettings, with_between: bool = False):
         count = max(1, settings.feature_samples * n_template_points)
         samples = Mesh(target.vertices, target.faces).sample_surface(count, np.random.default_rng(SAMPLE_SEED))
         self.landmarks = np.asarray(target_landmarks, dtype=np.float64)
-        normals = np.zeros_like(self.landmarks) if target_landmark_normals is None else target_landmark_normals
-        self.landmark_features = point_features(normals, settings)
-        sample_features = point_features(target.face_normals[samples.face_index], settings)
         self.triangles = target.triangles
+        sample_normals = target.face_normals[samples.face_index]
         if target_landmark_normals is not None:  # the landmarks are surface points too: a shape matches itself exactly
-            landmark_faces = target.closest(self.landmarks).face_index
             self.sample_points = np.vstack([self.landmarks, samples.points])
-            self.sample_features = np.vstack([self.landmark_features, sample_features])
-            self.sample_faces = np.r_[landmark_faces, samples.face_index]
+            self.sample_faces = np.r_[target.closest(self.landmarks).face_index, samples.face_index]
+            self.sample_normals = np.vstack([np.asarray(target_landmark_normals, dtype=np.float64), sample_normals])
+        else:  # landmarks without normals: zero normal features, the nearest sample's position between lines
+            self.sample_points, self.sample_faces, self.sample_normals = samples.points, samples.face_index, sample_normals
+        self.between = (position_between_turning_lines(self.sample_points, self.sample_normals)
+                        if uses_between(settings) else None)
+        compared = self.between if with_between else None
+        self.sample_features = point_features(self.sample_normals, settings, compared)
+        if target_landmark_normals is not None:
+            self.landmark_features = self.sample_features[:len(self.landmarks)]
         else:
-            self.sample_points, self.sample_features = samples.points, sample_features
-            self.sample_faces = samples.face_index
+            landmark_between = None if compared is None else compared[cKDTree(samples.points).query(self.landmarks)[1]]
+            self.landmark_features = point_features(np.zeros_like(self.landmarks), settings, landmark_between)
         self.tree = cKDTree(np.hstack([self.sample_points, self.sample_features]))
+
+    def positions_at(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray | None:
+        """The target's positions between turning lines at its surface points `points`
+        (with their normals); None when not computed."""
+        if self.between is None:
+            return None
+        return carry_positions(self.between, self.sample_points, self.sample_normals, points, normals)
 
     def forward(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """v_n(i): the closest point to every template point (`points`, its `features`)

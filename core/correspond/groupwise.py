@@ -229,16 +229,17 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
     rounds = settings.groupwise_rounds + 1
     outcome = None
-    current_template, current_normals = template_points, template_normals
+    current_template, current_normals, current_between = template_points, template_normals, None
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         if outcome is not None:
-            current_template, current_normals = _mean_template(outcome.results, outcome.keep)
+            current_template, current_normals, current_between = _mean_template(outcome.results, outcome.keep)
             report(round_index / rounds, f"mean template ({label})")
         template_in_frame = to_frame(current_template)
         tasks = [
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
-                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale)
+                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale,
+                             current_between)
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)
@@ -278,12 +279,16 @@ def _to_normalised(registration: Registration, centre: np.ndarray, scale: float)
     )
 
 
-def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """§4.2.7: the mean landmark cloud over the shapes that fit (all, if none does), with
-    the normalised mean of the target normals at the placed points."""
+    the normalised mean of the target normals at the placed points, and (feature matches,
+    **beyond** the thesis) the mean of the shapes' positions between turning lines there:
+    where the population puts each landmark between its own belly and neck (None when the
+    registrations did not compute them)."""
     use = [r for r, k in zip(results, keep) if k] or list(results)
     points = np.mean([r.placed.points for r in use], axis=0)
     normals = np.sum([r.normals for r in use], axis=0)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    return points, normals
+    between = None if any(r.between is None for r in use) else np.mean([r.between for r in use], axis=0)
+    return points, normals, between

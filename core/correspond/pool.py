@@ -45,6 +45,7 @@ class RegistrationTask:
     settings: CorrespondenceSettings
     centre: np.ndarray  # the registration frame
     scale: float
+    template_between: np.ndarray | None = None  # positions between turning lines (features.py; None: not compared)
 
 
 # worker-process state set by _init_worker (spawned processes only)
@@ -61,7 +62,8 @@ def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None)
     """Register the template to one shape (in this process or any worker)."""
     surface = TargetSurface((task.vertices - task.centre) / task.scale, task.faces)
     return register(task.template, task.edges, surface, (task.landmarks - task.centre) / task.scale, task.settings,
-                    task.template_normals, task.landmark_normals, on_iteration, should_cancel)
+                    task.template_normals, task.landmark_normals, on_iteration, should_cancel,
+                    template_between=task.template_between)
 
 
 def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:

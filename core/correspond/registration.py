@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, stiffness_energy,
                         transform_normals)
 from ..progress import CancelCheck
-from .features import FeatureMatcher, point_features, uses_features
+from .features import FeatureMatcher, point_features, uses_between, uses_features
 from .settings import CorrespondenceSettings
 
 __all__ = ["Anchors", "Registration", "fit_residual", "register"]
@@ -38,6 +38,7 @@ class Registration:
     iterations: int
     energies: np.ndarray  # objective after every iteration
     deformed_normals: np.ndarray | None = None  # (L, 3) template normals after the last step (None: no normals)
+    between: np.ndarray | None = None  # (L,) the target's positions between turning lines at the placed points (features.py)
 
 
 def _distance_weights(distance: np.ndarray) -> np.ndarray:
@@ -129,6 +130,7 @@ def register(
     anchors: Anchors | None = None,
     initial_points: np.ndarray | None = None,
     initial_normals: np.ndarray | None = None,
+    template_between: np.ndarray | None = None,
 ) -> Registration:
     """Iterative stiffness relaxation (Alg. 3) of `template` (L, 3) onto `target`.
 
@@ -140,7 +142,10 @@ def register(
     `initial_points` (L, 3): a warm start, where the template points begin (e.g. an earlier
     registration's `deformed`); the affines still act on `template`. `initial_normals`
     (L, 3): the template's normals at that start (the earlier registration's `normals`),
-    which feature-space matches compare from the first iteration on. Raises Cancelled
+    which feature-space matches compare from the first iteration on. `template_between`
+    (L,): the template points' positions between turning lines (turning.py; groupwise: the
+    population's mean), compared by feature matches when `feature_between` > 0; the result
+    then reports the target's at the placed points. Raises Cancelled
     between iterations once `should_cancel` (None, a callable or an Event-like object;
     core/progress.py) says so."""
     base = np.asarray(template, dtype=np.float64)
@@ -170,12 +175,20 @@ def register(
     previous = np.inf
     iteration = 0
     features = None
+    matcher = None
+    between = None
     if uses_features(settings) and base_normals is not None:
-        matcher = FeatureMatcher(target, target_landmarks, target_landmark_normals, n_points, settings)
-        features = point_features(normals, settings)
+        if template_between is not None and uses_between(settings):
+            between = np.asarray(template_between, dtype=np.float64)
+            if between.shape != (n_points,) or not np.isfinite(between).all():
+                raise ValueError(f"template_between must be finite with one value per template point ({n_points}), "
+                                 f"got {between.shape}")
+        matcher = FeatureMatcher(target, target_landmarks, target_landmark_normals, n_points, settings,
+                                 with_between=between is not None)
+        features = point_features(normals, settings, between)
     for alpha_index, alpha in enumerate(settings.alphas):
         if features is not None and alpha_index == 1 and warm_normals is None:  # the template's features as the stiffest α fitted them
-            features = point_features(normals, settings)
+            features = point_features(normals, settings, between)
         for _ in range(settings.max_iterations_per_alpha):
             cancel()
             if features is None:
@@ -223,8 +236,10 @@ def register(
             break
     placed = _place(target, points, normals, settings, finder)
     residual = fit_residual(placed, target_landmarks)
-    return Registration(placed, target.face_normals[placed.face_index], points, residual, iteration,
-                        np.asarray(energies), normals)
+    placed_normals = target.face_normals[placed.face_index]
+    target_between = None if matcher is None else matcher.positions_at(placed.points, placed_normals)
+    return Registration(placed, placed_normals, points, residual, iteration, np.asarray(energies), normals,
+                        target_between)
 
 
 def _place(target: TargetSurface, points: np.ndarray, normals: np.ndarray | None,

@@ -83,6 +83,18 @@ class CorrespondenceSettings(Settings):
         at 0.2. With closest points a softer end does not help (α 1: 2.431 against
         2.401 %, template excluded). The price: a remeshed copy of one vase is matched
         within 0.31 edge lengths instead of 0.22 (tests/core/test_features.py).
+      feature_between: w_b > 0 adds a fifth feature, w_b · g: where a point lies between
+        the turning lines of its region (turning.py: 0 on the lower line, 1 on the upper,
+        by geodesic distance on a k-NN graph), so the points on both sides of a line are
+        pulled in proportion, not only those between the template's line and the target's.
+        The template's g is the population's: the first round compares sides only and
+        every shape reports its own g at its placed points; the groupwise round's mean
+        template carries their mean (groupwise.py). 0 (default): off. Measured at 1
+        (docs/results.md "Fourth round, fifth part"): procedural true error 1.424 → 1.324 %
+        (lower on every seed), PSB label transfer higher on Cup, Fish and Vase (mean
+        85.9 → 86.2 %) but lower on Airplane (95.2 → 94.0 %, 0 → 3 shapes below the naive
+        baseline), and Fish models less compact: it helps smooth, revolved classes, not
+        yet the default.
       feature_samples: area-uniform surface samples of the target per template point;
         they choose the face a match lies on (the match is the closest point of that
         face, and the final placement is the exact closest surface point as always).
@@ -183,6 +195,8 @@ class CorrespondenceSettings(Settings):
                                      above=0)
     feature_stiffness: float = option(0.4, "features: the stiffness schedule ends at this fraction of alpha_end",
                                       above=0)
+    feature_between: float = option(0.0, "features: weight of a point's position between the turning lines of its "
+                                    "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
     feature_samples: int = option(20, "features: target surface samples per template point", minimum=1)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")

@@ -4,6 +4,7 @@ the thesis, opt-in with `matching="features"`)."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import CorrespondenceSettings, correspond, register
+from shapegen_core.correspond import CorrespondenceSettings, correspond, pool, register
 from shapegen_core.correspond.features import FeatureMatcher, point_features
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface, knn_graph, registration_frame
@@ -20,6 +21,7 @@ from shapegen_core.pipeline import FitSettings
 from shapegen_core.settings import SettingsError, recorded_settings
 
 FEATURES = CorrespondenceSettings(matching="features")
+BETWEEN = CorrespondenceSettings(matching="features", feature_between=1.0)  # positions between turning lines too
 
 
 def _register(template, template_lm, target, target_lm, settings=FEATURES, **options):
@@ -35,11 +37,17 @@ def _register(template, template_lm, target, target_lm, settings=FEATURES, **opt
 
 
 def test_point_features_closed_form():
-    settings = CorrespondenceSettings(matching="features", feature_normals=0.5, feature_up=2.0, feature_up_width=0.1)
+    settings = CorrespondenceSettings(matching="features", feature_normals=0.5, feature_up=2.0, feature_up_width=0.1,
+                                      feature_between=0.0)
     normals = np.array([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6, -0.8]])
     features = point_features(normals, settings)
     expected = np.array([[0, 0, 0.5, 2 * np.tanh(10.0)], [0.5, 0, 0, 0.0], [0, 0, 0, 0], [0, 0.3, -0.4, 2 * np.tanh(-8.0)]])
     np.testing.assert_allclose(features, expected, atol=1e-15)
+    between = np.array([0.0, 0.25, 0.5, 1.0])
+    with_between = point_features(normals, replace(settings, feature_between=2.0), between)
+    np.testing.assert_allclose(with_between, np.c_[expected, 2.0 * between], atol=1e-15)
+    with pytest.raises(ValueError, match="between must hold one position per normal"):
+        point_features(normals, replace(settings, feature_between=2.0), between[:3])
 
 
 def test_a_shape_matches_itself_exactly():
@@ -98,16 +106,57 @@ def _true_error(shapes, prepared, result) -> float:
 
 
 def test_feature_matches_lower_the_true_error_of_a_procedural_class():
-    # measured 2.74 % (closest points) → 2.59 % (features as first shipped: h 0.1, α ending
-    # at 5) → 2.48 % (h 0.01, α ending at 0.4 × 5); at full size docs/results.md
+    # measured 2.74 % (closest points) → 2.60 % (features as first shipped: h 0.1, α ending
+    # at 5) → 2.48 % (h 0.01, α ending at 0.4 × 5) → 2.40 % (and positions between turning
+    # lines in the groupwise round); at full size docs/results.md
     shapes = make_vases(5, seed=11, resolution=(33, 64))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=300, seed=0))
-    closest = _true_error(shapes, prepared, correspond(prepared, CorrespondenceSettings(), jobs=1))
-    first = CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0)
-    features_first = _true_error(shapes, prepared, correspond(prepared, first, jobs=1))
-    features = _true_error(shapes, prepared, correspond(prepared, FEATURES, jobs=1))
-    assert features_first < 0.97 * closest, f"features {features_first:.4f} vs closest {closest:.4f}"
-    assert features < 0.98 * features_first, f"features {features:.4f} vs as first shipped {features_first:.4f}"
+    error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
+    closest = error(CorrespondenceSettings())
+    first = error(CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0,
+                                         feature_between=0.0))
+    sides_only = error(FEATURES)
+    features = error(BETWEEN)
+    assert first < 0.97 * closest, f"features {first:.4f} vs closest {closest:.4f}"
+    assert sides_only < 0.98 * first, f"features {sides_only:.4f} vs as first shipped {first:.4f}"
+    assert features < 0.985 * sides_only, f"features {features:.4f} vs without positions between lines {sides_only:.4f}"
+
+
+def test_positions_between_turning_lines_come_from_the_population():
+    # the first registration has no template positions: it compares sides only and reports
+    # the target's positions at its placed points; given those, a shape matches itself exactly
+    vase = make_vases(1, seed=3, resolution=(18, 18), pose=False)[0]
+    landmarks = select_landmarks(vase.mesh, 300, seed=0)
+    _, first, args = _register(vase.mesh, landmarks, vase.mesh, landmarks, settings=BETWEEN)
+    assert first.between is not None and first.between.shape == (len(landmarks.points),)  # about 300
+    assert ((first.between >= 0) & (first.between <= 1)).all() and np.ptp(first.between) > 0.9
+    again = register(*args, template_between=first.between)
+    np.testing.assert_allclose(again.between, first.between, atol=1e-12)
+    assert np.abs(again.placed.points - first.placed.points).max() <= 1e-9
+    with pytest.raises(ValueError, match="template_between"):
+        register(*args, template_between=first.between[:-1])
+    off = register(*args[:4], FEATURES, *args[5:], template_between=first.between)
+    assert off.between is None  # not compared, not reported
+    closest = register(*args[:4], CorrespondenceSettings(), *args[5:])
+    assert closest.between is None
+
+
+def test_the_mean_template_carries_the_mean_position_between_turning_lines(monkeypatch):
+    shapes = make_vases(4, seed=2, resolution=(20, 28))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
+    seen = []
+    original = pool.register_task
+
+    def recording(task, *args, **kwargs):
+        seen.append(task.template_between)
+        return original(task, *args, **kwargs)
+
+    monkeypatch.setattr(pool, "register_task", recording)
+    correspond(prepared, BETWEEN, jobs=1)
+    first_round, second_round = seen[:4], seen[4:]
+    assert all(b is None for b in first_round) and len(second_round) == 4
+    assert all(b is not None and b.shape == (150,) for b in second_round)
+    np.testing.assert_array_equal(second_round[0], second_round[-1])  # one template for every shape
 
 
 def test_feature_matches_end_the_stiffness_schedule_softer():
@@ -127,6 +176,8 @@ def test_matching_setting_and_flag():
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--matching", "features"])
         assert settings_from_args(CorrespondenceSettings, args).matching == "features"
+        args = build_parser().parse_args(command + ["--matching", "features", "--feature-between", "1"])
+        assert settings_from_args(CorrespondenceSettings, args).feature_between == 1.0
     with pytest.raises(SystemExit):
         build_parser().parse_args(["correspond", "x", "-o", "y", "--matching", "nearest"])
 

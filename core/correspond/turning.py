@@ -1,0 +1,112 @@
+"""Where a surface point lies between the turning lines of its region (**beyond** the
+thesis; a feature of `matching="features"`, features.py; issue 13).
+
+A turning line is where the surface turns from facing down to facing up (n_z = 0 with +z
+up after Prepare): the belly and the neck of a vase, a shoulder, the equator of a sphere.
+The saturated up-feature of features.py tells which side of such a line a point is on;
+it pulls only the points lying between the template's line and the target's, which pile
+up just beyond it (docs/results.md "Fourth round, fourth part"). This module gives every
+point a position along its region instead, so points on both sides of a line are pulled
+in proportion:
+
+    g(x) = d_low(x) / (d_low(x) + d_high(x))     (a region between two turning lines)
+    g(x) = d(x) / max_region d                   (a region with one turning line)
+
+with d the geodesic distance within the region (shortest paths on a k-nearest-neighbour
+graph of the points) to a turning line, "low" and "high" the region's lines of lowest and
+highest mean height. A region is a connected part of the surface facing one way (up or
+down); graph edges between points whose normals differ by more than `max_angle` are cut,
+so the two faces of a thin wall, and a crease such as a vase's rim or base, are not
+joined. g lies in [0, 1]: 0 on the lower (or only) line. A region without a turning line
+gets 0.5. g is invariant to scale and to how densely the surface is sampled, up to the
+graph's approximation of geodesic distances (a vase's landmarks and 20 times as many
+surface samples agree within about 0.1 along its walls).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
+
+__all__ = ["position_between_turning_lines"]
+
+#: g of points in regions without a turning line (and of isolated points)
+NO_LINE = 0.5
+
+
+def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neighbours: int = 8,
+                                   max_angle: float = 60.0, min_line_share: float = 0.02) -> np.ndarray:
+    """g (module docstring) of every point, (n,), from points (n, 3) and their normals (n, 3).
+
+    neighbours: k of the graph. max_angle: edges between points whose normals differ by more
+    (degrees) are cut. min_line_share: a turning line needs at least this share of its
+    region's line points (and 3 points); smaller pieces are noise of a near-vertical wall."""
+    points = np.asarray(points, dtype=np.float64)
+    unit = np.asarray(normals, dtype=np.float64)
+    unit = unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-300)
+    count = len(points)
+    position = np.full(count, NO_LINE)
+    k = min(neighbours, count - 1)
+    if k < 1:
+        return position
+    distance, nearest = cKDTree(points).query(points, k + 1)
+    i, j, d = np.repeat(np.arange(count), k), nearest[:, 1:].ravel(), distance[:, 1:].ravel()
+    keep = np.einsum("ij,ij->i", unit[i], unit[j]) >= np.cos(np.radians(max_angle))
+    i, j, d = i[keep], j[keep], d[keep]
+    faces_up = unit[:, 2] > 0
+    same_side = faces_up[i] == faces_up[j]
+    on_line = np.zeros(count, dtype=bool)
+    on_line[i[~same_side]] = on_line[j[~same_side]] = True
+    graph = coo_matrix((d[same_side], (i[same_side], j[same_side])), shape=(count, count)).tocsr()
+    graph = graph.maximum(graph.T)
+    _, region = connected_components(graph, directed=False)
+    line = _line_pieces(points, on_line, faces_up, 3 * float(np.median(d)) if len(d) else 0.0)
+    for members in _groups(region):
+        ends = _turning_lines(members[on_line[members]], line, points, min_line_share)
+        if not ends:
+            continue
+        low = dijkstra(graph, indices=ends[0], min_only=True)[members]
+        if len(ends) == 1:
+            reached = np.isfinite(low)
+            if reached.any() and low[reached].max() > 0:
+                position[members[reached]] = low[reached] / low[reached].max()
+            continue
+        high = dijkstra(graph, indices=ends[-1], min_only=True)[members]
+        reached = np.isfinite(low) & np.isfinite(high) & (low + high > 0)
+        position[members[reached]] = low[reached] / (low[reached] + high[reached])
+    return position
+
+
+def _groups(labels: np.ndarray) -> list[np.ndarray]:
+    """Indices of every label's members."""
+    order = np.argsort(labels, kind="stable")
+    cuts = np.flatnonzero(np.diff(labels[order])) + 1
+    return np.split(order, cuts)
+
+
+def _line_pieces(points: np.ndarray, on_line: np.ndarray, faces_up: np.ndarray, reach: float) -> np.ndarray:
+    """A label per point: line points within `reach` of each other on the same side form one
+    piece of a turning line (a line's points are not always graph neighbours)."""
+    members = np.flatnonzero(on_line)
+    pairs = cKDTree(points[members]).query_pairs(reach, output_type="ndarray") if reach > 0 else np.zeros((0, 2), int)
+    pairs = pairs[faces_up[members[pairs[:, 0]]] == faces_up[members[pairs[:, 1]]]]
+    links = coo_matrix((np.ones(len(pairs)), (members[pairs[:, 0]], members[pairs[:, 1]])),
+                       shape=(len(points), len(points)))
+    return connected_components(links, directed=False)[1]
+
+
+def _turning_lines(line_points: np.ndarray, line: np.ndarray, points: np.ndarray, min_share: float) -> list[np.ndarray]:
+    """A region's turning lines as point sets, the lowest (by mean height) first and the
+    highest last (one set when the region has one line; none when it has none)."""
+    if len(line_points) == 0:
+        return []
+    labels, sizes = np.unique(line[line_points], return_counts=True)
+    labels = labels[sizes >= max(3, min_share * len(line_points))]
+    if len(labels) == 0:
+        return []
+    pieces = [line_points[line[line_points] == label] for label in labels]
+    heights = [points[piece, 2].mean() for piece in pieces]
+    low, high = pieces[int(np.argmin(heights))], pieces[int(np.argmax(heights))]
+    return [low] if low is high else [low, high]
