@@ -37,10 +37,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import TargetSurface, closest_points_on_triangles
+from ..geometry import TargetSurface, closest_points_on_triangles, nearest_facing_alike
 from ..mesh import Mesh
 from .settings import CorrespondenceSettings
-from .turning import NO_LINE, position_between_turning_lines
+from .turning import MAX_ANGLE, NO_LINE, position_between_turning_lines
 
 __all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "FeatureMatcher"]
 
@@ -76,19 +76,13 @@ def uses_between(settings: CorrespondenceSettings) -> bool:
 
 
 def carry_positions(between: np.ndarray, points: np.ndarray, normals: np.ndarray, to_points: np.ndarray,
-                    to_normals: np.ndarray, neighbours: int = 8) -> np.ndarray:
-    """g at `to_points`: that of the nearest of `points` (among its `neighbours` nearest)
-    whose normal is within 60° of the point's own, so a point on one face of a thin wall
-    never takes the other face's; NO_LINE when none is."""
-    points, normals = np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64)
-    to_normals = np.asarray(to_normals, dtype=np.float64)
-    k = min(neighbours, len(points))
-    _, nearest = cKDTree(points).query(to_points, k)
-    nearest = nearest.reshape(len(to_points), k)
-    cosine = np.einsum("nj,nkj->nk", to_normals, normals[nearest])
-    agree = cosine >= 0.5 * np.linalg.norm(to_normals, axis=1)[:, None] * np.linalg.norm(normals[nearest], axis=2)
-    chosen = between[nearest[np.arange(len(to_points)), np.argmax(agree, axis=1)]]
-    return np.where(agree.any(axis=1), chosen, NO_LINE)
+                    to_normals: np.ndarray) -> np.ndarray:
+    """g at `to_points` (unit normals `to_normals`): that of the nearest of `points` (unit
+    `normals`) facing alike as turning.py's graph joins points (`geometry.nearest_facing_alike`),
+    so a point on one face of a thin wall never takes the other face's; NO_LINE when none
+    of its nearest does."""
+    index, distance = nearest_facing_alike(points, normals, to_points, to_normals, np.cos(np.radians(MAX_ANGLE)))
+    return np.where(np.isfinite(distance), np.asarray(between)[index], NO_LINE)
 
 
 class FeatureMatcher:

@@ -18,8 +18,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, stiffness_energy,
-                        transform_normals)
+from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, nearest_facing_alike,
+                        stiffness_energy, transform_normals)
 from ..progress import CancelCheck
 from .features import FeatureMatcher, point_features, uses_between, uses_features
 from .settings import CorrespondenceSettings
@@ -78,18 +78,10 @@ def _backward_matches(points: np.ndarray, normals: np.ndarray | None, target_lan
     """m(j) of (4.11): the template point closest to every target landmark u_j (the
     closest with a compatible normal when `normal_max_angle` is set, searched among the
     8 nearest), and its weight w'_j (before λ)."""
-    tree = cKDTree(points)
     if settings.normal_max_angle is None or normals is None or target_normals is None:
-        distance, nearest = tree.query(target_landmarks)
+        distance, nearest = cKDTree(points).query(target_landmarks)
     else:
-        k = min(8, len(points))
-        distance, nearest = tree.query(target_landmarks, k=k)
-        distance, nearest = distance.reshape(-1, k), nearest.reshape(-1, k)
-        ok = np.einsum("jkd,jd->jk", normals[nearest], target_normals) >= _cos(settings)
-        first = np.argmax(ok, axis=1)
-        rows = np.arange(len(nearest))
-        distance = np.where(ok[rows, first], distance[rows, first], np.inf)
-        nearest = nearest[rows, first]
+        nearest, distance = nearest_facing_alike(points, normals, target_landmarks, target_normals, _cos(settings))
     return nearest, _match_weights(distance, settings)
 
 

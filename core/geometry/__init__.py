@@ -8,6 +8,7 @@ shape models.
 
 from .affine_graph import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines, knn_graph,
                            registration_frame, stiffness_energy, stiffness_matrix, transform_normals)
+from .alike import nearest_facing_alike
 from .chamfer import chamfer_distance, chamfer_matrix
 from .surface import SurfacePoints, TargetSurface, closest_points_on_triangles
 
@@ -23,6 +24,7 @@ __all__ = [
     "data_blocks",
     "identity_affines",
     "knn_graph",
+    "nearest_facing_alike",
     "registration_frame",
     "stiffness_energy",
     "stiffness_matrix",
