@@ -111,7 +111,7 @@ def _line_pieces(points: np.ndarray, on_line: np.ndarray, faces_up: np.ndarray, 
 
 
 def _turning_lines(line_points: np.ndarray, line: np.ndarray, points: np.ndarray, min_share: float,
-                   extent: float = 0.0) -> list[np.ndarray]:
+                   extent: float) -> list[np.ndarray]:
     """A region's turning lines as point sets, the lowest (by mean height) first and the
     highest last (one set when the region has one line; none when it has none).
 
