@@ -90,11 +90,11 @@ class CorrespondenceSettings(Settings):
         The template's g is the population's: the first round compares sides only and
         every shape reports its own g at its placed points; the groupwise round's mean
         template carries their mean (groupwise.py). 0 (default): off. Measured at 1
-        (docs/results.md "Fourth round, fifth part"): procedural true error 1.424 → 1.324 %
-        (lower on every seed), PSB label transfer higher on Cup, Fish and Vase (mean
-        85.9 → 86.2 %) but lower on Airplane (95.2 → 94.0 %, 0 → 3 shapes below the naive
-        baseline), and Fish models less compact: it helps smooth, revolved classes, not
-        yet the default.
+        (docs/results.md "Fourth round", fifth and seventh parts): procedural true error
+        1.424 → 1.298 % (lower on every seed), PSB label transfer higher on Cup,
+        Fish and Vase (mean equal, 85.9 %) but lower on Airplane (95.2 → 93.0 %, 0 → 5
+        shapes below the naive baseline), and Fish models less compact: it helps smooth,
+        revolved classes, not yet the default.
       feature_samples: area-uniform surface samples of the target per template point;
         they choose the face a match lies on (the match is the closest point of that
         face, and the final placement is the exact closest surface point as always).
