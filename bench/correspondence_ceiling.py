@@ -12,19 +12,22 @@ registration:
 
 Rows per seed (6 vases, `make_vases(6, seed, resolution=(65, 130))`, 800 landmarks, the
 Chamfer-medoid template): `features` (turning-line feature off), `features + between`
-(the computed feature, `feature_between=1`), and per W two truth rows. "template from
-population" is what correspondence does with any feature: the first round compares sides
-only and later rounds give the template the population's mean feature at its matches.
-"template own" gives the template its own true s from the second round on (the first
-still compares sides only). Columns: true error against the template's surface
+(the computed feature, `feature_between=1`), and per W two truth rows. "template own" is
+what correspondence does with the feature: the first round compares sides only, later
+rounds give the template the feature of the shape it was made from, at its landmarks (here
+its true s). "template from population" is what it did before (docs/results.md "Fourth
+round, eighth part"): the population's mean feature at the first round's matches. With the
+truth every shape compares the feature with the full weight (the agreement weights of
+features.py are set to 1). Columns: true error against the template's surface
 coordinates (% of the diagonal; bench/correspondence_seeds.py counts the template's own
 row as well, "others" leaves it out, "with a neck" keeps the others whose neck is a
 turning line: on a vase whose lip is narrower than its neck, the generator's neck is a
 point of an even taper that no geometry marks), its profile and angle parts (`decompose`), and the
 mean |Δs| of the outer wall in thirds of the wall (belly to neck is one third).
 
-How the truth gets in: `features.position_between_turning_lines` and
-`groupwise._mean_template` are wrapped while this script runs (registrations in this
+How the truth gets in: `features.position_between_turning_lines`,
+`groupwise.registration_frame`, `groupwise._template_between` and
+`groupwise.agreement_weights` are wrapped while this script runs (registrations in this
 process, jobs=1); a target point's true s is that of its closest point on the shape it
 lies on, found among the collection's shapes by distance. Writes
 bench_output/correspondence_ceiling.{json,txt}.
@@ -86,22 +89,27 @@ def run(prepared, shapes, template: int, settings: CorrespondenceSettings, weigh
     truth = TruthProfile(prepared, shapes)
     landmarks = prepared.landmarks[template]
     own_s = shapes[template].surface_coordinates(landmarks.face_index, landmarks.barycentric)[:, 0]
-    saved = features.position_between_turning_lines, groupwise.registration_frame, groupwise._mean_template
+    saved = (features.position_between_turning_lines, groupwise.registration_frame, groupwise._template_between,
+             groupwise.agreement_weights)
 
     def frame(points, name):
         truth.frame = saved[1](points, name)
         return truth.frame
 
-    def mean_template(results, keep):
-        points, normals, between = saved[2](results, keep)
-        return points, normals, (weight * own_s if own else between)
+    def template_between(outcome, start):
+        if own:
+            return weight * own_s
+        kept = [r.between for r, k in zip(outcome.results, outcome.keep) if k] or [r.between for r in outcome.results]
+        return np.mean(kept, axis=0)
 
     features.position_between_turning_lines = lambda points, normals: weight * truth.s_at(points)
-    groupwise.registration_frame, groupwise._mean_template = frame, mean_template
+    groupwise.registration_frame, groupwise._template_between = frame, template_between
+    groupwise.agreement_weights = lambda template, shapes: np.ones(len(shapes))
     try:
         return correspond(prepared, settings, template=prepared.names[template], jobs=1)
     finally:
-        features.position_between_turning_lines, groupwise.registration_frame, groupwise._mean_template = saved
+        (features.position_between_turning_lines, groupwise.registration_frame, groupwise._template_between,
+         groupwise.agreement_weights) = saved
 
 
 def one_collection(seed: int, weights: list[float]) -> dict:

@@ -27,9 +27,13 @@ closest point on the face of the nearest sample (the samples only choose the fac
 the final placement is the exact closest surface point as before (registration.py).
 
 With `feature_between` > 0 a fifth feature, w_b · g, compares where a point lies between
-the turning lines of its region (turning.py): the template's g is the population's mean
-from the groupwise round on (the first round compares sides only and reports each
-target's g at its placed points).
+the turning lines of its region (turning.py), from the groupwise round on. The first round
+compares sides only and reports every shape's g at its placed points; the template then
+keeps the g of the shape it was made from, at that shape's own landmarks (its own belly
+and neck, not the population's mean at matches the first round biased), and every shape
+compares it with the weight its agreement earned (`agreement_weights`): a shape whose
+turning lines are not the template's (a vase without a neck; an airplane, whose lines run
+round a fuselage or a wing however Prepare stood it) is matched without it.
 """
 
 from __future__ import annotations
@@ -42,10 +46,19 @@ from ..mesh import Mesh
 from .settings import CorrespondenceSettings
 from .turning import MAX_ANGLE, NO_LINE, position_between_turning_lines
 
-__all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "FeatureMatcher"]
+__all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "agreement_weights",
+           "FeatureMatcher"]
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
+#: a shape whose positions between turning lines differ from the template's by at most
+#: this on average (at the first round's matches) compares them with the full weight w_b,
+#: by `NO_AGREEMENT` or more not at all, linearly between. Positions of unrelated structures
+#: differ by 1/3 on average (two independent uniform values). Measured after the first
+#: round: procedural vases 0.03-0.15 (the three without a neck 0.10-0.15), PSB shapes
+#: 0.10-0.57, three quarters of them above 0.2 (docs/results.md "Fourth round, eighth part").
+FULL_AGREEMENT = 0.1
+NO_AGREEMENT = 0.2
 
 
 def uses_features(settings: CorrespondenceSettings) -> bool:
@@ -68,6 +81,15 @@ def point_features(normals: np.ndarray, settings: CorrespondenceSettings, betwee
             raise ValueError(f"between must hold one position per normal ({len(normals)}), got {np.shape(between)}")
         columns.append(settings.feature_between * np.asarray(between, dtype=np.float64)[:, None])
     return np.hstack(columns)
+
+
+def agreement_weights(template_between: np.ndarray, shape_between: list[np.ndarray]) -> np.ndarray:
+    """Per shape, the share in [0, 1] of w_b it compares positions between turning lines
+    with: 1 when its positions g at its matches (n,) differ from the template's (n,) by at
+    most `FULL_AGREEMENT` on average, 0 from `NO_AGREEMENT` on, linear between."""
+    template_between = np.asarray(template_between, dtype=np.float64)
+    difference = np.array([np.abs(np.asarray(g, dtype=np.float64) - template_between).mean() for g in shape_between])
+    return np.clip((NO_AGREEMENT - difference) / (NO_AGREEMENT - FULL_AGREEMENT), 0.0, 1.0)
 
 
 def uses_between(settings: CorrespondenceSettings) -> bool:

@@ -22,6 +22,7 @@ from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .refine import refine_population
+from .features import agreement_weights, uses_between
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
@@ -230,16 +231,23 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     rounds = settings.groupwise_rounds + 1
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
+    shape_settings = [settings] * len(names)
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         if outcome is not None:
-            current_template, current_normals, current_between = _mean_template(outcome.results, outcome.keep)
-            report(round_index / rounds, f"mean template ({label})")
+            current_template, current_normals = _mean_template(outcome.results, outcome.keep)
+            message = f"mean template ({label})"
+            if current_between is None and uses_between(settings):
+                current_between = _template_between(outcome, start)
+                shares = agreement_weights(current_between, [r.between for r in outcome.results])
+                shape_settings = [replace(settings, feature_between=settings.feature_between * share) for share in shares]
+                message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
+            report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
         tasks = [
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
-                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale,
-                             current_between)
+                             landmark_normals[i], template_in_frame, current_normals, edges, shape_settings[i], centre,
+                             scale, current_between)
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)
@@ -279,16 +287,22 @@ def _to_normalised(registration: Registration, centre: np.ndarray, scale: float)
     )
 
 
-def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """§4.2.7: the mean landmark cloud over the shapes that fit (all, if none does), with
-    the normalised mean of the target normals at the placed points, and (feature matches,
-    **beyond** the thesis) the mean of the shapes' positions between turning lines there:
-    where the population puts each landmark between its own belly and neck (None when the
-    registrations did not compute them)."""
+    the normalised mean of the target normals at the placed points."""
     use = [r for r, k in zip(results, keep) if k] or list(results)
     points = np.mean([r.placed.points for r in use], axis=0)
     normals = np.sum([r.normals for r in use], axis=0)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    between = None if any(r.between is None for r in use) else np.mean([r.between for r in use], axis=0)
-    return points, normals, between
+    return points, normals
+
+
+def _template_between(outcome: _Rounds, start: int) -> np.ndarray:
+    """(feature matches, **beyond** the thesis; features.py) the template's positions
+    between turning lines from the groupwise round on: those of the shape it was made from,
+    at its own landmarks (its registration onto itself in the first round). The population's
+    mean at the first round's matches, used before, carries that round's bias (it compares
+    sides only): procedural 1.265 -> 1.175 %, both with agreement weights (docs/results.md "Fourth
+    round, eighth part")."""
+    return outcome.results[start].between

@@ -85,16 +85,19 @@ class CorrespondenceSettings(Settings):
         within 0.31 edge lengths instead of 0.22 (tests/core/test_features.py).
       feature_between: w_b > 0 adds a fifth feature, w_b · g: where a point lies between
         the turning lines of its region (turning.py: 0 on the lower line, 1 on the upper,
-        by geodesic distance on a k-NN graph), so the points on both sides of a line are
-        pulled in proportion, not only those between the template's line and the target's.
-        The template's g is the population's: the first round compares sides only and
-        every shape reports its own g at its placed points; the groupwise round's mean
-        template carries their mean (groupwise.py). 0 (default): off. Measured at 1
-        (docs/results.md "Fourth round", fifth and seventh parts): procedural true error
-        1.424 → 1.298 % (lower on every seed), PSB label transfer higher on Cup,
-        Fish and Vase (mean equal, 85.9 %) but lower on Airplane (95.2 → 93.0 %, 0 → 5
-        shapes below the naive baseline), and Fish models less compact: it helps smooth,
-        revolved classes, not yet the default.
+        by the height a path within the region climbs), so the points on both sides of a
+        line are pulled in proportion, not only those between the template's line and the
+        target's. The first round compares sides only and every shape reports its own g at
+        its placed points; from the groupwise round on the template keeps the g of the
+        shape it was made from, and every shape compares it with a share of w_b that falls
+        from 1 to 0 as its first-round g disagrees with the template's by 0.1 to 0.2 on
+        average (features.agreement_weights; groupwise.py). 0 (default): off. Measured at
+        1 (docs/results.md "Fourth round", fifth, seventh and eighth parts): procedural
+        true error 1.424 → 1.175 % (lower on every seed; seeds 5–9 2.056 → 1.885),
+        PSB label transfer within 0.3 points of features alone on every class (most PSB
+        shapes disagree and are matched without it; Airplane 95.1 %, Vase 67.0 %, Vase
+        1.3 points below the 68.3 % an ungated, population-mean feature gave): it helps
+        revolved classes whose shapes share their turning lines, not yet the default.
       feature_samples: area-uniform surface samples of the target per template point;
         they choose the face a match lies on (the match is the closest point of that
         face, and the final placement is the exact closest surface point as always).

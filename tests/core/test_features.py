@@ -13,7 +13,7 @@ from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond, pool, register
-from shapegen_core.correspond.features import FeatureMatcher, point_features
+from shapegen_core.correspond.features import FeatureMatcher, agreement_weights, point_features
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface, knn_graph, registration_frame
 from shapegen_core.landmarks import select_landmarks
@@ -141,22 +141,40 @@ def test_positions_between_turning_lines_come_from_the_population():
     assert closest.between is None
 
 
-def test_the_mean_template_carries_the_mean_position_between_turning_lines(monkeypatch):
+def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monkeypatch):
     shapes = make_vases(4, seed=2, resolution=(20, 28))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
     seen = []
     original = pool.register_task
 
     def recording(task, *args, **kwargs):
-        seen.append(task.template_between)
-        return original(task, *args, **kwargs)
+        result = original(task, *args, **kwargs)
+        seen.append((task, result))
+        return result
 
     monkeypatch.setattr(pool, "register_task", recording)
-    correspond(prepared, BETWEEN, jobs=1)
+    result = correspond(prepared, BETWEEN, jobs=1)
     first_round, second_round = seen[:4], seen[4:]
-    assert all(b is None for b in first_round) and len(second_round) == 4
-    assert all(b is not None and b.shape == (150,) for b in second_round)
-    np.testing.assert_array_equal(second_round[0], second_round[-1])  # one template for every shape
+    assert all(task.template_between is None for task, _ in first_round) and len(second_round) == 4
+    # the template's positions are the template shape's own, at its landmarks, for every shape
+    template = result.names.index(result.template_name)
+    own = first_round[template][1].between
+    assert own.shape == (150,)
+    for task, _ in second_round:
+        np.testing.assert_array_equal(task.template_between, own)
+    # each shape compares them with the weight its first-round agreement earned
+    shares = agreement_weights(own, [r.between for _, r in first_round])
+    assert shares[template] == 1.0
+    for (task, _), share in zip(second_round, shares):
+        assert task.settings.feature_between == BETWEEN.feature_between * share
+
+
+def test_agreement_weights_give_the_full_weight_to_agreement_and_none_to_unrelated_lines():
+    rng = np.random.default_rng(0)
+    template = rng.uniform(size=2000)
+    shifted = lambda amount: np.clip(template + rng.choice([-amount, amount], size=2000), -1, 2)  # noqa: E731
+    shares = agreement_weights(template, [template, shifted(0.05), shifted(0.15), shifted(0.3), rng.uniform(size=2000)])
+    np.testing.assert_allclose(shares, [1.0, 1.0, 0.5, 0.0, 0.0])
 
 
 def test_feature_matches_end_the_stiffness_schedule_softer():
