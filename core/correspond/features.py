@@ -25,6 +25,9 @@ by its landmarks and area-uniform surface samples (their face normals),
 `feature_samples` per template point, in one KD-tree over the joint space; a match is the
 closest point on the face of the nearest sample (the samples only choose the face), and
 the final placement is the exact closest surface point as before (registration.py).
+An iteration drops the matches farther than `feature_trim` × the median match distance
+(`kept_matches`): a part of the template with no counterpart on the target follows its
+neighbours instead of being dragged to the nearest surface facing its way.
 
 With `feature_between` > 0 a fifth feature, w_b · g, compares where a point lies between
 the turning lines of its region (turning.py), from the groupwise round on. The first round
@@ -47,7 +50,7 @@ from .settings import CorrespondenceSettings
 from .turning import MAX_ANGLE, NO_LINE, position_between_turning_lines
 
 __all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "agreement_weights",
-           "FeatureMatcher"]
+           "kept_matches", "FeatureMatcher"]
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
@@ -90,6 +93,18 @@ def agreement_weights(template_between: np.ndarray, shape_between: list[np.ndarr
     template_between = np.asarray(template_between, dtype=np.float64)
     difference = np.array([np.abs(np.asarray(g, dtype=np.float64) - template_between).mean() for g in shape_between])
     return np.clip((NO_AGREEMENT - difference) / (NO_AGREEMENT - FULL_AGREEMENT), 0.0, 1.0)
+
+
+def kept_matches(distance: np.ndarray, trim: float) -> np.ndarray:
+    """1.0 for every match at most `trim` × the median match distance away, 0.0 beyond
+    (`feature_trim`; trimmed ICP); all 1 when trim is 0. Distances are in the registration
+    frame (unit scale), so a median of 0 (a shape on itself) still keeps matches within 1e-9."""
+    distance = np.asarray(distance, dtype=np.float64)
+    if trim <= 0 or len(distance) == 0:
+        return np.ones(len(distance))
+    finite = distance[np.isfinite(distance)]
+    limit = trim * max(float(np.median(finite)) if len(finite) else 0.0, 1e-9)
+    return (distance <= limit).astype(np.float64)
 
 
 def uses_between(settings: CorrespondenceSettings) -> bool:

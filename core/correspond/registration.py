@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, nearest_facing_alike,
                         stiffness_energy, transform_normals)
 from ..progress import CancelCheck
-from .features import FeatureMatcher, point_features, uses_between, uses_features
+from .features import FeatureMatcher, kept_matches, point_features, uses_between, uses_features
 from .settings import CorrespondenceSettings
 
 __all__ = ["Anchors", "Registration", "fit_residual", "register"]
@@ -189,7 +189,7 @@ def register(
                 goals = forward.points
             else:
                 goals, distance = matcher.forward(points, features)
-                weights = _match_weights(distance, settings)
+                weights = _match_weights(distance, settings) * kept_matches(distance, settings.feature_trim)
             rows = np.arange(n_points)
             if lam > 0:
                 if features is None:
