@@ -121,7 +121,7 @@ def one_collection(seed: int, weights: list[float]) -> dict:
     on_wall = (s_template > WALL[0]) & (s_template < WALL[1])
     # shapes other than the template whose neck is a turning line: the lip is wider than the neck
     necked = np.array([m != template and s.params.lip_radius > s.params.neck_radius for m, s in enumerate(shapes)])
-    plain = CorrespondenceSettings(matching="features")
+    plain = CorrespondenceSettings(matching="features", feature_between=0.0)
     between = CorrespondenceSettings(matching="features", feature_between=1.0)
     variants = [("features", plain, None, False), ("features + between", between, None, False)]
     for w in weights:

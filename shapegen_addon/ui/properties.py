@@ -42,9 +42,10 @@ CENTRE_ITEMS = [
 ]
 MATCHING_ITEMS = [
     ("closest", "Closest Points", "Each landmark is pulled to the closest surface point facing its way (the thesis)"),
-    ("features", "Features", "Beyond the thesis: to the nearest surface point in position and surface normal, "
-                             "so bellies and necks line up; lower correspondence error on vases, but models "
-                             "fitted on it were less compact on real classes (docs/results.md)"),
+    ("features", "Features", "Beyond the thesis: to the nearest surface point in position, surface normal and "
+                             "height between the turning lines, so bellies and necks line up; lower "
+                             "correspondence error on vases, but models fitted on it were less compact on real "
+                             "classes (docs/results.md)"),
 ]
 REFINE_ITEMS = [
     ("none", "None", "Non-rigid ICP's landmarks as they are (the thesis)"),

@@ -20,8 +20,8 @@ from shapegen_core.landmarks import select_landmarks
 from shapegen_core.pipeline import FitSettings
 from shapegen_core.settings import SettingsError, recorded_settings
 
-FEATURES = CorrespondenceSettings(matching="features")
-BETWEEN = CorrespondenceSettings(matching="features", feature_between=1.0)  # positions between turning lines too
+FEATURES = CorrespondenceSettings(matching="features", feature_between=0.0)  # sides only
+BETWEEN = CorrespondenceSettings(matching="features")  # positions between turning lines too (the default)
 
 
 def _register(template, template_lm, target, target_lm, settings=FEATURES, **options):
@@ -224,13 +224,14 @@ def test_feature_matches_end_the_stiffness_schedule_softer():
 
 def test_matching_setting_and_flag():
     assert CorrespondenceSettings().matching == "closest"  # the thesis stays the default
+    assert CorrespondenceSettings(matching="features").feature_between == 1.0  # with its positions between lines
     with pytest.raises(SettingsError, match="matching"):
         CorrespondenceSettings(matching="nearest")
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--matching", "features"])
         assert settings_from_args(CorrespondenceSettings, args).matching == "features"
-        args = build_parser().parse_args(command + ["--matching", "features", "--feature-between", "1"])
-        assert settings_from_args(CorrespondenceSettings, args).feature_between == 1.0
+        args = build_parser().parse_args(command + ["--matching", "features", "--feature-between", "0"])
+        assert settings_from_args(CorrespondenceSettings, args).feature_between == 0.0
     with pytest.raises(SystemExit):
         build_parser().parse_args(["correspond", "x", "-o", "y", "--matching", "nearest"])
 
@@ -244,6 +245,9 @@ def test_files_written_before_feature_stiffness_record_the_schedule_they_ran():
     assert loaded.feature_trim == 10.0  # recorded in it
     del old["feature_trim"]  # a file written before feature_trim kept every match
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))}, "old.npz").feature_trim == 0
+    del old["feature_between"]  # and one written before feature_between compared sides only
+    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
+                             "old.npz").feature_between == 0
     fit = FitSettings(correspondence=CorrespondenceSettings(matching="features")).as_dict()
     del fit["correspondence"]["feature_stiffness"]
     assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence.alphas[-1] == 5.0
