@@ -79,6 +79,7 @@ class _Rounds:
     rounds_run: int
     centre: np.ndarray | None = None  # the registration frame of these rounds
     scale: float = 1.0
+    between_shares: np.ndarray | None = None  # (M,) each shape's share of feature_between (None: not compared)
 
     @property
     def keep(self) -> np.ndarray:
@@ -189,6 +190,7 @@ def correspond(
         prepare=collection.settings,
         refinement=settings.refine if len(trace) else "none",
         refinement_trace=trace,
+        between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
     )
 
 
@@ -231,7 +233,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     rounds = settings.groupwise_rounds + 1
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
-    shape_settings = [settings] * len(names)
+    shape_settings, shares = [settings] * len(names), None
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         if outcome is not None:
@@ -256,7 +258,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
-                          round_index + 1, centre, scale)
+                          round_index + 1, centre, scale, shares)
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome

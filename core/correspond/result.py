@@ -6,7 +6,10 @@ recorded); files written before held the correspondence settings as repr strings
 and no Prepare settings, and still load. Since issue 13 it also records which refinement
 ran after NICP ("population" or "none") and its objective trace (one row E, compactness,
 spread per accepted step, the start first); files without them load as "none" with an
-empty trace (optional arrays, so the format version stays 1)."""
+empty trace (optional arrays, so the format version stays 1). Likewise each shape's share
+of `feature_between` (features.agreement_weights: 0 when its turning lines disagree with
+the template's and it was matched without them); empty when positions between turning
+lines were not compared, and in files written before."""
 
 from __future__ import annotations
 
@@ -49,6 +52,7 @@ class Correspondence:
     prepare: PrepareSettings | None = None  # how its collection was prepared (None: not recorded)
     refinement: str = "none"  # the refinement that ran after NICP (refine.py): "population" or "none"
     refinement_trace: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) E, compactness, spread
+    between_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not compared
 
     def __len__(self) -> int:
         return len(self.names)
@@ -80,6 +84,7 @@ class Correspondence:
             "prepare_settings": np.asarray(_json(self.prepare)),
             "refinement": np.asarray(self.refinement, dtype=str),
             "refinement_trace": np.asarray(self.refinement_trace, dtype=np.float64).reshape(-1, 3),
+            "between_shares": np.asarray(self.between_shares, dtype=np.float64).reshape(-1),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -113,6 +118,11 @@ class Correspondence:
         validate_arrays({"refinement": np.asarray(refinement), "refinement_trace": trace}, _REFINEMENT_SPEC, label)
         if refinement not in REFINE_METHODS:
             raise ModelFileError(f"{label}: unknown refinement {refinement!r} (expected {' or '.join(REFINE_METHODS)})")
+        shares = np.asarray(a["between_shares"]) if "between_shares" in a else np.zeros(0)
+        validate_arrays({"between_shares": shares}, _SHARES_SPEC, label)
+        if len(shares) not in (0, len(a["names"])) or not np.all((shares >= 0) & (shares <= 1)):
+            raise ModelFileError(f"{label}: between_shares must be empty or one share in [0, 1] per shape "
+                                 f"({len(a['names'])}), got {len(shares)} values")
         return cls(
             names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
             face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
@@ -121,7 +131,7 @@ class Correspondence:
             outliers=a["outliers"], outlier_reasons=a["outlier_reasons"].tolist(),
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
-            refinement=refinement, refinement_trace=trace,
+            refinement=refinement, refinement_trace=trace, between_shares=shares,
         )
 
 
@@ -149,3 +159,5 @@ CORRESPONDENCE_SPEC = {
 
 #: the optional refinement record (files before issue 13 lack it)
 _REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}
+#: the optional shares of feature_between (files before it lack them)
+_SHARES_SPEC = {"between_shares": ArraySpec("f", ("S",))}

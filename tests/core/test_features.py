@@ -12,9 +12,10 @@ import pytest
 from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import CorrespondenceSettings, correspond, pool, register
+from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond, pool, register
 from shapegen_core.correspond.features import FeatureMatcher, agreement_weights, kept_matches, point_features
 from shapegen_core.datasets import make_vases
+from shapegen_core.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, knn_graph, registration_frame
 from shapegen_core.landmarks import select_landmarks
 from shapegen_core.pipeline import FitSettings
@@ -202,6 +203,24 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
     assert shares[template] == 1.0
     for (task, _), share in zip(second_round, shares):
         assert task.settings.feature_between == BETWEEN.feature_between * share
+    np.testing.assert_array_equal(result.between_shares, shares)  # recorded with the correspondence
+
+
+def test_correspondence_files_record_each_shapes_share_of_the_positions(tmp_path):
+    shapes = make_vases(3, seed=2, resolution=(20, 28))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=100, seed=0))
+    result = correspond(prepared, BETWEEN, jobs=1)
+    assert result.between_shares.shape == (3,) and ((result.between_shares >= 0) & (result.between_shares <= 1)).all()
+    loaded = Correspondence.load(result.save(tmp_path / "c.npz"))
+    np.testing.assert_array_equal(loaded.between_shares, result.between_shares)
+    assert correspond(prepared, FEATURES, jobs=1).between_shares.shape == (0,)  # not compared: empty
+    arrays = result.to_arrays()
+    del arrays["between_shares"]  # a file written before the shares
+    assert Correspondence.from_arrays(arrays, "old").between_shares.shape == (0,)
+    for wrong in (np.full(2, 0.5), np.array([0.5, 1.5, 0.0]), np.array([0.5, np.nan, 0.0])):
+        arrays["between_shares"] = wrong
+        with pytest.raises(ModelFileError, match="between_shares"):
+            Correspondence.from_arrays(arrays, "bad")
 
 
 def test_agreement_weights_give_the_full_weight_to_agreement_and_none_to_unrelated_lines():
