@@ -136,7 +136,7 @@ def register(
     (L, 3): the template's normals at that start (the earlier registration's `normals`),
     which feature-space matches compare from the first iteration on. `template_between`
     (L,): the template points' positions between turning lines (turning.py; groupwise: the
-    population's mean), compared by feature matches when `feature_between` > 0; with
+    template shape's own), compared by feature matches when `feature_between` > 0; with
     feature matches and `feature_between` > 0 the result reports the target's positions at
     its placed points (`Registration.between`), given a template's or not. Raises Cancelled
     between iterations once `should_cancel` (None, a callable or an Event-like object;

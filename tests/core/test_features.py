@@ -158,7 +158,7 @@ def test_kept_matches_drop_those_beyond_the_trim_times_the_median():
     np.testing.assert_array_equal(kept_matches(np.r_[np.zeros(5), 1e-10, 1e-3], 10.0), np.r_[np.ones(6), 0.0])
 
 
-def test_positions_between_turning_lines_come_from_the_population():
+def test_the_first_registration_reports_positions_between_turning_lines():
     # the first registration has no template positions: it compares sides only and reports
     # the target's positions at its placed points; given those, a shape matches itself exactly
     vase = make_vases(1, seed=3, resolution=(18, 18), pose=False)[0]
