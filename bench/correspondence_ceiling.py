@@ -99,8 +99,7 @@ def run(prepared, shapes, template: int, settings: CorrespondenceSettings, weigh
     def template_between(outcome, start):
         if own:
             return weight * own_s
-        kept = [r.between for r, k in zip(outcome.results, outcome.keep) if k] or [r.between for r in outcome.results]
-        return np.mean(kept, axis=0)
+        return np.mean([r.between for r in groupwise._fitting(outcome.results, outcome.keep)], axis=0)
 
     features.position_between_turning_lines = lambda points, normals: weight * truth.s_at(points)
     groupwise.registration_frame, groupwise._template_between = frame, template_between

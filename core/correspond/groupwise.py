@@ -242,7 +242,8 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             if current_between is None and uses_between(settings):
                 current_between = _template_between(outcome, start)
                 shares = agreement_weights(current_between, [r.between for r in outcome.results])
-                shape_settings = [replace(settings, feature_between=settings.feature_between * share) for share in shares]
+                shape_settings = [replace(settings, feature_between=settings.feature_between * share)
+                                  for share in shares]
                 message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
             report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
@@ -292,7 +293,7 @@ def _to_normalised(registration: Registration, centre: np.ndarray, scale: float)
 def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """§4.2.7: the mean landmark cloud over the shapes that fit (all, if none does), with
     the normalised mean of the target normals at the placed points."""
-    use = [r for r, k in zip(results, keep) if k] or list(results)
+    use = _fitting(results, keep)
     points = np.mean([r.placed.points for r in use], axis=0)
     normals = np.sum([r.normals for r in use], axis=0)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
@@ -300,11 +301,16 @@ def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[n
     return points, normals
 
 
+def _fitting(results: Sequence[Registration], keep: np.ndarray) -> list[Registration]:
+    """The registrations of the shapes that fit (all, if none does)."""
+    return [r for r, k in zip(results, keep) if k] or list(results)
+
+
 def _template_between(outcome: _Rounds, start: int) -> np.ndarray:
     """(feature matches, **beyond** the thesis; features.py) the template's positions
     between turning lines from the groupwise round on: those of the shape it was made from,
     at its own landmarks (its registration onto itself in the first round). The population's
     mean at the first round's matches, used before, carries that round's bias (it compares
-    sides only): procedural 1.265 -> 1.175 %, both with agreement weights (docs/results.md "Fourth
-    round, eighth part")."""
+    sides only): procedural 1.265 -> 1.175 %, both with agreement weights
+    (docs/results.md "Fourth round, eighth part")."""
     return outcome.results[start].between

@@ -193,8 +193,9 @@ class CorrespondenceSettings(Settings):
       refine_tolerance: stop when an accepted step lowers E by less than this (relative).
     """
 
-    #: files written before these fields existed ran with these values (settings.Settings)
-    FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0}  # not annotated: a class attribute, not a field
+    #: files written before these fields existed ran with these values (settings.Settings);
+    #: not annotated: a class attribute, not a field
+    FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0}
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)

@@ -90,13 +90,15 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
     line = _line_pieces(points, on_line, faces_up, 3 * float(np.median(d)) if len(d) else 0.0)
     low_lines, high_lines, one_line, two_lines = [], [], [], []
     for members in _groups(region):
-        heights = points[members, 2]
-        ends = _turning_lines(members[on_line[members]], line, points, min_line_share, float(np.ptp(heights)))
+        extent = float(np.ptp(points[members, 2]))
+        ends = _turning_lines(members[on_line[members]], line, points, min_line_share, extent)
         if not ends:
             continue
         low_lines.append(ends[0])
-        (one_line if len(ends) == 1 else two_lines).append(members)
-        if len(ends) > 1:
+        if len(ends) == 1:
+            one_line.append(members)
+        else:
+            two_lines.append(members)
             high_lines.append(ends[-1])
     if not low_lines:
         return position
