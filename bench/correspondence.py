@@ -39,6 +39,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import Anchors, CorrespondenceSettings, correspond, refine_population, register  # noqa: E402
@@ -264,21 +265,46 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
 REFINED = CorrespondenceSettings(refine="population")
 
 
-def model_quality(landmark_matrix: np.ndarray, folds: int = 5, seed: int = 0) -> dict:
+def model_quality(landmark_matrix: np.ndarray, folds: int = 5, seed: int = 0, meshes=None) -> dict:
     """PPCA (80 % rule) on the landmark rows, k-fold: mean held-out log-likelihood per shape
     and the Table 5.1 completion error of the middle third along z (hidden landmarks chosen
-    on the training mean), mean over held-out shapes (core/evaluation's protocol)."""
+    on the training mean), mean over held-out shapes (core/evaluation's protocol).
+
+    Both compare landmarks with landmarks, so they reward a correspondence whose landmarks
+    vary little, right or wrong (sliding along walls makes a population compact). With
+    `meshes` (each shape's mesh in the landmarks' frame) also `completion_surface_pct`,
+    which asks the held-out SURFACE instead: the completed hidden landmarks' mean distance
+    to the held-out shape's surface and the shape's own hidden landmarks' mean distance to
+    the nearest completed one, averaged, in % of its bounding-box diagonal. Two
+    correspondences of the same shapes are compared on the same geometry."""
     Y = np.asarray(landmark_matrix, dtype=np.float64)
-    scores, errors = [], []
+    scores, errors, surface = [], [], []
     for test in heldout_folds(len(Y), folds, seed):
         train = np.setdiff1d(np.arange(len(Y)), test)
         model = PPCA().fit(Y[train])
         scores.extend(model.log_likelihood(Y[test]))
-        hidden = hidden_coordinates(region_mask(Y[train].mean(axis=0).reshape(-1, 3), "middle"))
+        hidden_landmarks = region_mask(Y[train].mean(axis=0).reshape(-1, 3), "middle")
+        hidden = hidden_coordinates(hidden_landmarks)
         observed = np.tile(~hidden, (len(test), 1))
         completed = model.complete(np.where(observed, Y[test], np.nan), observed)
         errors.extend(np.sum((completed[:, hidden] - Y[test][:, hidden]) ** 2, axis=1))
-    return {"heldout_log_likelihood": float(np.mean(scores)), "completion_error_middle": float(np.mean(errors))}
+        if meshes is not None:
+            for row, m in zip(completed, test):
+                surface.append(completion_on_surface(row.reshape(-1, 3)[hidden_landmarks],
+                                                     Y[m].reshape(-1, 3)[hidden_landmarks], meshes[m]))
+    quality = {"heldout_log_likelihood": float(np.mean(scores)), "completion_error_middle": float(np.mean(errors))}
+    if meshes is not None:
+        quality["completion_surface_pct"] = float(np.mean(surface))
+    return quality
+
+
+def completion_on_surface(completed: np.ndarray, own: np.ndarray, mesh) -> float:
+    """`model_quality`'s surface measure for one held-out shape: completed points (K, 3) to
+    its surface and its own hidden landmarks `own` (K, 3) to the nearest completed point,
+    mean distances averaged, in % of the mesh's bounding-box diagonal."""
+    to_surface = TargetSurface(mesh.vertices, mesh.faces).closest(completed).distance.mean()
+    to_completed = cKDTree(completed).query(own)[0].mean()
+    return float(100 * (to_surface + to_completed) / 2 / mesh.bbox_diagonal())
 
 
 def population_objective(prepared, corr, settings=REFINED) -> PopulationObjective:

@@ -6,7 +6,7 @@ a small angle part, while other seeds' collections have large ones (Prepare's ya
 this script repeats the headline rows on several seeds and decomposes each:
 
     python bench/correspondence_seeds.py [--shapes 6] [--seeds 11 1 2 3 4] [--psb 20]
-        [--variants "" "matching=features"]
+        [--mugs 14] [--variants "" "matching=features"]
 
 Per seed: `make_vases(shapes, seed, resolution=(65, 130))`, Prepare (800 landmarks,
 seed 0), then groupwise `correspond` with each variant (CorrespondenceSettings fields
@@ -14,11 +14,14 @@ as `name=value;...`, "" the defaults) and the naive baseline (bounding-box scali
 closest point, bench/correspondence.py) from the same template. Columns: error against
 the template's true surface coordinates (% of the bounding-box diagonal), its profile
 and angle parts (`decompose`), naive over ours, seconds of `correspond`, and the PPCA
-held-out log-likelihood and completion error of a model of the landmarks (`model_quality`). The mean
+held-out log-likelihood and completion error of a model of the landmarks, and the
+completion measured on the held-out surface (`model_quality`; correspondence-agnostic). The mean
 row is over seeds. With `--psb SHAPES`: the first SHAPES shapes of every PSB class
 (400 landmarks, up y), per variant from the first variant's template: label-transfer
 accuracy (bench/correspondence.py part 3), shapes below the naive baseline, and PPCA
-held-out log-likelihood and Table 5.1 completion error (`model_quality`). Writes
+held-out log-likelihood, Table 5.1 completion error and completion on the surface
+(`model_quality`). With `--mugs N`: N mugs modelled in Blender (bench/blender_mugs.py), per
+variant the outliers flagged and the model quality. Writes
 bench_output/correspondence_seeds.{json,txt}.
 """
 
@@ -43,6 +46,7 @@ from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E4
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.io import read_folder  # noqa: E402
+from shapegen_core.mesh import Mesh  # noqa: E402
 
 
 def parse_variant(spec: str) -> dict:
@@ -77,7 +81,8 @@ def one_collection(n: int, seed: int, variants: list[str]) -> dict:
         rows[spec or "defaults"] = {"error_pct": 100 * float(error), "profile_pct": parts["profile (s)"],
                                     "angle_pct": parts["angle (θ)"], "naive_pct": 100 * float(naive_error),
                                     "naive_over_ours": float(naive_error / error), "seconds": seconds,
-                                    "template": result.template_name, **model_quality(result.landmark_matrix())}
+                                    "template": result.template_name,
+                                    **model_quality(result.landmark_matrix(), meshes=[s.mesh for s in prepared.shapes])}
     return rows
 
 
@@ -103,7 +108,29 @@ def psb_class(folder: Path, n: int, variants: list[str]) -> dict:
                                     "naive_pct": 100 * float(np.mean(naive)),
                                     "below_naive": int(sum(a < b for a, b in zip(accuracy, naive))),
                                     "shapes": len(accuracy), "outliers": int(result.outliers.sum()),
-                                    "seconds": seconds, **model_quality(result.landmark_matrix())}
+                                    "seconds": seconds,
+                                    **model_quality(result.landmark_matrix(), meshes=[s.mesh for s in prepared.shapes])}
+    return rows
+
+
+def mug_collection(n: int, variants: list[str]) -> dict:
+    """Mugs modelled in Blender (bench/blender_mugs.py `mug_meshes`: bmesh, quads, walls
+    leaning in or out, a handle), 400 landmarks, +z up: per variant from the first variant's
+    template, the shapes flagged as outliers, the largest fit residual over the median, and
+    the model quality (`model_quality`). No ground truth: the surface measures judge."""
+    from blender_mugs import mug_meshes  # bpy: imported only when mugs are asked for
+    meshes = [Mesh(vertices, faces, name=name) for name, vertices, faces in mug_meshes(n, 0)]
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=400, seed=0))
+    rows, template = {}, None
+    for spec in variants:
+        start = time.perf_counter()
+        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), template=template, jobs=1)
+        seconds = time.perf_counter() - start
+        template = result.template_name
+        rows[spec or "defaults"] = {"outliers": int(result.outliers.sum()), "shapes": len(result.names),
+                                    "residual_over_median": float(result.residuals.max() / np.median(result.residuals)),
+                                    "seconds": seconds,
+                                    **model_quality(result.landmark_matrix(), meshes=[s.mesh for s in prepared.shapes])}
     return rows
 
 
@@ -113,40 +140,55 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[11, 1, 2, 3, 4])
     parser.add_argument("--variants", nargs="+", default=[""])
     parser.add_argument("--psb", type=int, default=0, help="also PSB: this many shapes per class (0: no)")
+    parser.add_argument("--mugs", type=int, default=0, help="also mugs modelled in Blender: this many (0: no)")
     args = parser.parse_args()
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
     log(f"{args.shapes} procedural vases per seed, {LANDMARKS} landmarks; errors in % of the diagonal")
-    log("| variant | seed | error | profile part | angle part | naive | naive / ours | held-out LL | completion | s |")
-    log("|---|---|---|---|---|---|---|---|---|---|")
+    log("| variant | seed | error | profile part | angle part | naive | naive / ours | held-out LL | completion | "
+        "completion on the surface % | s |")
+    log("|---|---|---|---|---|---|---|---|---|---|---|")
     report = {}
     for seed in args.seeds:
         report[seed] = one_collection(args.shapes, seed, args.variants)
         for name, r in report[seed].items():
             log(f"| {name} | {seed} | {r['error_pct']:.3f} | {r['profile_pct']:.3f} | {r['angle_pct']:.3f} | "
                 f"{r['naive_pct']:.3f} | {r['naive_over_ours']:.2f} | {r['heldout_log_likelihood']:.1f} | "
-                f"{r['completion_error_middle']:.3f} | {r['seconds']:.1f} |")
+                f"{r['completion_error_middle']:.3f} | {r['completion_surface_pct']:.3f} | {r['seconds']:.1f} |")
     for name in report[args.seeds[0]]:
         mean = {k: np.mean([report[s][name][k] for s in args.seeds])
                 for k in ("error_pct", "profile_pct", "angle_pct", "naive_pct", "naive_over_ours",
-                          "heldout_log_likelihood", "completion_error_middle", "seconds")}
+                          "heldout_log_likelihood", "completion_error_middle", "completion_surface_pct", "seconds")}
         log(f"| {name} | mean | {mean['error_pct']:.3f} | {mean['profile_pct']:.3f} | {mean['angle_pct']:.3f} | "
             f"{mean['naive_pct']:.3f} | {mean['naive_over_ours']:.2f} | {mean['heldout_log_likelihood']:.1f} | "
-            f"{mean['completion_error_middle']:.3f} | {mean['seconds']:.1f} |")
+            f"{mean['completion_error_middle']:.3f} | {mean['completion_surface_pct']:.3f} | {mean['seconds']:.1f} |")
     psb = {}
     if args.psb and PSB.is_dir():
         log(f"PSB, {args.psb} shapes per class, 400 landmarks: label transfer, PPCA held-out log-likelihood, "
-            "completion error")
-        log("| class | variant | accuracy % | naive % | below naive | held-out LL | completion | s |")
-        log("|---|---|---|---|---|---|---|---|")
+            "completion error (on the landmarks and on the surface)")
+        log("| class | variant | accuracy % | naive % | below naive | held-out LL | completion | "
+            "completion on the surface % | s |")
+        log("|---|---|---|---|---|---|---|---|---|")
         for folder in sorted(p for p in PSB.iterdir() if p.is_dir()):
             psb[folder.name] = psb_class(folder, args.psb, args.variants)
             for name, r in psb[folder.name].items():
                 log(f"| {folder.name} | {name} | {r['accuracy_pct']:.1f} | {r['naive_pct']:.1f} | "
                     f"{r['below_naive']}/{r['shapes']} | {r['heldout_log_likelihood']:.1f} | "
-                    f"{r['completion_error_middle']:.3f} | {r['seconds']:.1f} |")
-    (OUTPUT / "correspondence_seeds.json").write_text(json.dumps({"shapes": args.shapes, "rows": report, "psb": psb},
-                                                                 indent=2))
+                    f"{r['completion_error_middle']:.3f} | {r['completion_surface_pct']:.3f} | {r['seconds']:.1f} |")
+    mugs = {}
+    if args.mugs:
+        log(f"{args.mugs} mugs modelled in Blender, 400 landmarks: outliers flagged, largest residual / median, "
+            "PPCA held-out log-likelihood, completion error (on the landmarks and on the surface)")
+        log("| variant | outliers | residual max / median | held-out LL | completion | "
+            "completion on the surface % | s |")
+        log("|---|---|---|---|---|---|---|")
+        mugs = mug_collection(args.mugs, args.variants)
+        for name, r in mugs.items():
+            log(f"| {name} | {r['outliers']}/{r['shapes']} | {r['residual_over_median']:.2f} | "
+                f"{r['heldout_log_likelihood']:.1f} | {r['completion_error_middle']:.3f} | "
+                f"{r['completion_surface_pct']:.3f} | {r['seconds']:.1f} |")
+    (OUTPUT / "correspondence_seeds.json").write_text(json.dumps({"shapes": args.shapes, "rows": report, "psb": psb,
+                                                                  "mugs": mugs}, indent=2))
     (OUTPUT / "correspondence_seeds.txt").write_text("\n".join(lines) + "\n")
     return 0
 
