@@ -39,6 +39,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from blender_mugs import mug_meshes  # noqa: E402
 from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, error_vs_template,  # noqa: E402
                             face_labels, model_quality, naive_baseline)
 
@@ -86,30 +87,36 @@ def one_collection(n: int, seed: int, variants: list[str]) -> dict:
     return rows
 
 
-def psb_class(folder: Path, n: int, variants: list[str]) -> dict:
-    meshes = read_folder(folder)[:n]
-    labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
-    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=400, up_axis="y", seed=0))
-    rows, template, naive = {}, None, None
+def from_one_template(prepared, variants: list[str]):
+    """Each variant's correspondence of `prepared` from the first variant's template: yields
+    (row name, result, seconds of `correspond`, `model_quality` with the surface measure)."""
+    meshes, template = [s.mesh for s in prepared.shapes], None
     for spec in variants:
         start = time.perf_counter()
         result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), template=template, jobs=1)
         seconds = time.perf_counter() - start
         template = result.template_name
+        yield spec or "defaults", result, seconds, model_quality(result.landmark_matrix(), meshes=meshes)
+
+
+def psb_class(folder: Path, n: int, variants: list[str]) -> dict:
+    meshes = read_folder(folder)[:n]
+    labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=400, up_axis="y", seed=0))
+    rows, naive = {}, None
+    for name, result, seconds, quality in from_one_template(prepared, variants):
+        template = result.template_name
         ref = result.names.index(template)
         reference = labels[template][result.face_index[ref]]
-        accuracy = [np.mean(labels[name][result.face_index[m]] == reference)
-                    for m, name in enumerate(result.names) if m != ref]
+        accuracy = [np.mean(labels[shape][result.face_index[m]] == reference)
+                    for m, shape in enumerate(result.names) if m != ref]
         if naive is None:
             placed = naive_baseline(prepared, ref)[1]
-            naive = [np.mean(labels[name][placed[m]] == labels[template][prepared.landmarks[ref].face_index])
-                     for m, name in enumerate(result.names) if m != ref]
-        rows[spec or "defaults"] = {"accuracy_pct": 100 * float(np.mean(accuracy)),
-                                    "naive_pct": 100 * float(np.mean(naive)),
-                                    "below_naive": int(sum(a < b for a, b in zip(accuracy, naive))),
-                                    "shapes": len(accuracy), "outliers": int(result.outliers.sum()),
-                                    "seconds": seconds,
-                                    **model_quality(result.landmark_matrix(), meshes=[s.mesh for s in prepared.shapes])}
+            naive = [np.mean(labels[shape][placed[m]] == labels[template][prepared.landmarks[ref].face_index])
+                     for m, shape in enumerate(result.names) if m != ref]
+        rows[name] = {"accuracy_pct": 100 * float(np.mean(accuracy)), "naive_pct": 100 * float(np.mean(naive)),
+                      "below_naive": int(sum(a < b for a, b in zip(accuracy, naive))),
+                      "shapes": len(accuracy), "outliers": int(result.outliers.sum()), "seconds": seconds, **quality}
     return rows
 
 
@@ -118,20 +125,12 @@ def mug_collection(n: int, variants: list[str]) -> dict:
     leaning in or out, a handle), 400 landmarks, +z up: per variant from the first variant's
     template, the shapes flagged as outliers, the largest fit residual over the median, and
     the model quality (`model_quality`). No ground truth: the surface measures judge."""
-    from blender_mugs import mug_meshes  # bpy: imported only when mugs are asked for
     meshes = [Mesh(vertices, faces, name=name) for name, vertices, faces in mug_meshes(n, 0)]
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=400, seed=0))
-    rows, template = {}, None
-    for spec in variants:
-        start = time.perf_counter()
-        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), template=template, jobs=1)
-        seconds = time.perf_counter() - start
-        template = result.template_name
-        rows[spec or "defaults"] = {"outliers": int(result.outliers.sum()), "shapes": len(result.names),
-                                    "residual_over_median": float(result.residuals.max() / np.median(result.residuals)),
-                                    "seconds": seconds,
-                                    **model_quality(result.landmark_matrix(), meshes=[s.mesh for s in prepared.shapes])}
-    return rows
+    return {name: {"outliers": int(result.outliers.sum()), "shapes": len(result.names),
+                   "residual_over_median": float(result.residuals.max() / np.median(result.residuals)),
+                   "seconds": seconds, **quality}
+            for name, result, seconds, quality in from_one_template(prepared, variants)}
 
 
 def main() -> int:
