@@ -56,7 +56,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     print(
         f"corresponded {len(result)} shapes x {result.n_landmarks} landmarks -> {args.output}; "
         f"template {result.template_name}; median residual {100 * float(np.median(result.residuals)):.2f} % "
-        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {time.perf_counter() - start:.1f} s"
+        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {result.matching_summary()}; "
+        f"{time.perf_counter() - start:.1f} s"
     )
     return 0
 

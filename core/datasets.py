@@ -14,6 +14,9 @@ Barrels (`make_barrels`): closed barrels nearly symmetric top-to-bottom (a bulgi
 small knob on the lid, a tap at mid height giving the facing), for orientation tests and
 benchmarks: their third moments along the axis are small, so a sign rule is noise there.
 
+Cups (`make_cups`): thick-walled cups without handles whose straight walls lean in on some
+and out on others, the geometry that defeats feature matches (core/correspond/features.py).
+
 Meshes are triangulated differently on purpose: ring and segment counts, ring offsets and
 quad diagonals vary per shape. Each shape is also placed in a random input pose (scale,
 yaw, translation), so alignment has work to do.
@@ -30,7 +33,7 @@ from scipy.interpolate import PchipInterpolator
 from .mesh import Mesh
 from .preprocess import ShapeTransform
 
-__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "make_barrels", "vase_surface",
+__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "make_barrels", "make_cups", "vase_surface",
            "write_collection", "PROFILE_BREAKS"]
 
 #: s-values where the profile changes part: base disk | outer wall | rim | inner wall | floor.
@@ -303,6 +306,30 @@ def make_barrels(n: int = 24, seed: int = 0, rings: tuple[int, int] = (14, 22), 
         vertices, faces = _revolved_mesh(profile, radius_scale, rng, int(rng.integers(28, 40)))
         placement = _random_placement(rng) if pose else ShapeTransform.identity()
         shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"barrel_{i:03d}"))
+    return shapes
+
+
+def make_cups(n: int = 12, seed: int = 0, taper: tuple[float, float] = (-0.2, 0.25), rings: tuple[int, int] = (8, 14),
+              pose: bool = True) -> list[Mesh]:
+    """`n` random thick-walled cups standing on +z, without handles: the outer radius runs
+    linearly from (1 − t/2) to (1 + t/2) times the mid radius from bottom to rim, t drawn from
+    `taper`, so with the default some walls lean in and some out (as bench/blender_mugs.py's
+    mugs, whose walls defeat feature matches; core/correspond/features.py `worse_fits`).
+    Before the optional random input pose (yaw, scale, translation)."""
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for i in range(n):
+        radius, height = rng.uniform(0.8, 1.2), rng.uniform(1.4, 2.4)
+        lean, wall, floor = rng.uniform(*taper), rng.uniform(0.10, 0.14), rng.uniform(0.12, 0.2)
+        count = int(rng.integers(rings[0], rings[1] + 1))
+        outer = lambda z: radius * (1.0 + lean * (z / height - 0.5))  # noqa: E731
+        up, down = np.linspace(0.0, height, count), np.linspace(height, floor, count)
+        profile = np.concatenate([[[0.0, 0.0]], np.stack([outer(up), up], axis=1),
+                                  np.stack([outer(down) - wall, down], axis=1), [[0.0, floor]]])
+        vertices, faces = _revolved_mesh(profile, lambda theta, z: np.ones_like(theta), rng,
+                                         int(rng.integers(28, 40)))
+        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"cup_{i:03d}"))
     return shapes
 
 

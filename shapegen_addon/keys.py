@@ -22,6 +22,7 @@ N_LANDMARKS_KEY = "shapegen_n_landmarks"
 TEMPLATE_KEY = "shapegen_template"  # Text: the correspondence template; tagged object: the training shape it deforms
 RESIDUAL_MEDIAN_KEY = "shapegen_residual_median"  # median correspondence residual, fraction of the diagonal
 OUTLIERS_KEY = "shapegen_outliers"  # "name: reason" of every outlier shape
+MATCHING_KEY = "shapegen_matching"  # which data term matched the landmarks (Correspondence.matching_summary)
 
 # ------------------------------------------------------------------ a user's training collection
 EXCLUDED_KEY = "shapegen_excluded"  # names of its objects Prepare, Find Correspondences and Fit leave out

@@ -35,8 +35,8 @@ import numpy as np
 
 from ..core.errors import ModelFileError, ShapeGenError
 from ..core.pipeline import GenerativeShapeModel
-from .keys import (LATENT_DIM_KEY, MODEL_FILE_KEY, MODEL_ID_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY,
-                   N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
+from .keys import (LATENT_DIM_KEY, MATCHING_KEY, MODEL_FILE_KEY, MODEL_ID_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
+                   N_LANDMARKS_KEY, N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 
 __all__ = ["NeedsModel", "pack_model", "get_model", "require_model", "model_id", "model_name", "model_bytes",
            "read_model_file", "store_fitted_model", "forget_cache"]
@@ -105,6 +105,7 @@ def describe(text: bpy.types.Text, model: GenerativeShapeModel) -> None:
     text[N_LANDMARKS_KEY] = int(model.n_landmarks)
     text[TEMPLATE_KEY] = str(corr.template_name)
     text[RESIDUAL_MEDIAN_KEY] = float(np.median(corr.residuals))
+    text[MATCHING_KEY] = corr.matching_summary()
     text[OUTLIERS_KEY] = [f"{n}: {r}" if r else n for n, r, bad in
                                  zip(corr.names, corr.outlier_reasons, corr.outliers) if bad]
 

@@ -50,7 +50,7 @@ from .settings import CorrespondenceSettings
 from .turning import MAX_ANGLE, NO_LINE, position_between_turning_lines
 
 __all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "agreement_weights",
-           "kept_matches", "FeatureMatcher"]
+           "checks_fit", "worse_fits", "keeps_features", "kept_matches", "FeatureMatcher"]
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
@@ -62,6 +62,12 @@ SAMPLE_SEED = 0
 #: 0.10-0.57, three quarters of them above 0.2 (docs/results.md "Fourth round, eighth part").
 FULL_AGREEMENT = 0.1
 NO_AGREEMENT = 0.2
+#: feature matches fit a shape worse when their residual exceeds the closest-point fit's by
+#: more than this fraction (`worse_fits`). Lining features up costs some distance (first
+#: round, procedural vases of seeds 1-9: up to 1.21 ×, but one vase 1.33 ×); a template
+#: collapsed onto part of a shape costs more (Blender mugs 1.41-1.93 ×, PSB cups up to
+#: 1.42 ×; docs/results.md "Fourth round, twelfth part")
+FIT_TOLERANCE = 0.25
 
 
 def uses_features(settings: CorrespondenceSettings) -> bool:
@@ -93,6 +99,36 @@ def agreement_weights(template_between: np.ndarray, shape_between: list[np.ndarr
     template_between = np.asarray(template_between, dtype=np.float64)
     difference = np.array([np.abs(np.asarray(g, dtype=np.float64) - template_between).mean() for g in shape_between])
     return np.clip((NO_AGREEMENT - difference) / (NO_AGREEMENT - FULL_AGREEMENT), 0.0, 1.0)
+
+
+def checks_fit(settings: CorrespondenceSettings) -> bool:
+    """Whether feature matches are checked against closest points (`feature_fit_check`)."""
+    return uses_features(settings) and settings.feature_fit_check
+
+
+def worse_fits(feature_residuals: np.ndarray, closest_residuals: np.ndarray) -> np.ndarray:
+    """(M,) bool: the shapes that feature matches fit worse than closest points do, i.e.
+    whose data-term residual (registration.py `fit_residual`, the same template and frame)
+    is larger by more than FIT_TOLERANCE (residuals within 1e-9, a shape on itself, are
+    equal). Where the features contradict the geometry (walls leaning out on the template
+    and in on the shape: Blender mugs, PSB cups) the template collapses onto part of the
+    surface and the residual grows; where they line features up, the fit is usually closer
+    than by closest points (procedural vases and PSB Airplane, Fish and Vase after the first
+    round: 0.6-1.0 ×)."""
+    feature_residuals = np.asarray(feature_residuals, dtype=np.float64)
+    closest_residuals = np.asarray(closest_residuals, dtype=np.float64)
+    if feature_residuals.shape != closest_residuals.shape:
+        raise ValueError(f"one residual per shape from each data term, got {feature_residuals.shape} and "
+                         f"{closest_residuals.shape}")
+    return feature_residuals > (1.0 + FIT_TOLERANCE) * closest_residuals + 1e-9  # a shape on itself: both 0
+
+
+def keeps_features(worse: np.ndarray, fallback_share: float) -> bool:
+    """Whether a collection stays with feature matches after the fit check: unless more than
+    `fallback_share` (`feature_fallback_share`) of its shapes are fitted worse (`worse`,
+    from `worse_fits`), when the whole collection is matched by closest points."""
+    worse = np.asarray(worse, dtype=bool)
+    return not (len(worse) and worse.mean() > fallback_share)
 
 
 def kept_matches(distance: np.ndarray, trim: float) -> np.ndarray:

@@ -22,7 +22,7 @@ from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .refine import refine_population
-from .features import agreement_weights, uses_between
+from .features import agreement_weights, checks_fit, keeps_features, uses_between, worse_fits
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
@@ -80,6 +80,7 @@ class _Rounds:
     centre: np.ndarray | None = None  # the registration frame of these rounds
     scale: float = 1.0
     between_shares: np.ndarray | None = None  # (M,) each shape's share of feature_between (None: not compared)
+    feature_fit_worse: np.ndarray | None = None  # (M,) bool: feature matches fitted worse (None: not checked)
 
     @property
     def keep(self) -> np.ndarray:
@@ -191,6 +192,7 @@ def correspond(
         refinement=settings.refine if len(trace) else "none",
         refinement_trace=trace,
         between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
+        feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
     )
 
 
@@ -233,16 +235,18 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     rounds = settings.groupwise_rounds + 1
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
-    shape_settings, shares = [settings] * len(names), None
+    round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
+    shape_settings = [settings] * len(names)
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
+        round_report = sub_range(report, round_index / rounds, (round_index + 1) / rounds)
         if outcome is not None:
             current_template, current_normals = _mean_template(outcome.results, outcome.keep)
             message = f"mean template ({label})"
-            if current_between is None and uses_between(settings):
+            if current_between is None and uses_between(round_settings):
                 current_between = _template_between(outcome, start)
                 shares = agreement_weights(current_between, [r.between for r in outcome.results])
-                shape_settings = [replace(settings, feature_between=settings.feature_between * share)
+                shape_settings = [replace(round_settings, feature_between=round_settings.feature_between * share)
                                   for share in shares]
                 message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
             report(round_index / rounds, message)
@@ -253,16 +257,45 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
                              scale, current_between)
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
-        registrations = runner.run(tasks, sub_range(report, round_index / rounds, (round_index + 1) / rounds), label)
+        if round_index == 0 and checks_fit(settings):
+            registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
+            shape_settings = [round_settings] * len(names)
+        else:
+            registrations = runner.run(tasks, round_report, label)
         results = [_to_normalised(r, centre, scale) for r in registrations]
         residuals = _relative_residuals(registrations, scale, collection.shapes)
         reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
-                          round_index + 1, centre, scale, shares)
+                          round_index + 1, centre, scale, shares, worse)
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
+
+
+def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: RegistrationRunner, report: Progress,
+                          label: str) -> tuple[list[Registration], CorrespondenceSettings, np.ndarray]:
+    """(feature matches, **beyond** the thesis; `feature_fit_check`) the first round by
+    feature matches and by closest points side by side, from the same template. When
+    feature matches fit more than `feature_fallback_share` of the shapes worse
+    (features.worse_fits: the template collapsed onto part of them), the collection is
+    matched by closest points, and the result is the closest-point correspondence exactly;
+    else by feature matches, as without the check. The template's own shape decides nothing
+    (it fits itself either way). Returns the round's registrations, the settings of the
+    rounds to come and (M,) bool: the shapes feature matches fitted worse."""
+    settings = tasks[0].settings
+    closest_settings = replace(settings, matching="closest")
+    closest_tasks = [replace(task, index=len(tasks) + task.index, name=f"{task.name} (closest points)",
+                             settings=closest_settings, template_between=None) for task in tasks]
+    both = runner.run(tasks + closest_tasks, report, f"{label}, feature matches checked against closest points")
+    by_features, by_closest = both[:len(tasks)], both[len(tasks):]
+    worse = worse_fits([r.residual for r in by_features], [r.residual for r in by_closest])
+    worse[start] = False
+    if keeps_features(worse, settings.feature_fallback_share):
+        return by_features, settings, worse
+    report(1.0, f"feature matches fit {int(worse.sum())} of {len(tasks)} shapes worse than closest points "
+                f"({', '.join(t.name for t, w in zip(tasks, worse) if w)}): closest points for the collection")
+    return by_closest, closest_settings, worse
 
 
 def _relative_residuals(registrations: Sequence[Registration], scale: float, shapes) -> np.ndarray:

@@ -9,7 +9,10 @@ spread per accepted step, the start first); files without them load as "none" wi
 empty trace (optional arrays, so the format version stays 1). Likewise each shape's share
 of `feature_between` (features.agreement_weights: 0 when its turning lines disagree with
 the template's and it was matched without them); empty when positions between turning
-lines were not compared, and in files written before."""
+lines were not compared, and in files written before. Likewise the outcome of the
+feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted worse than
+closest points, groupwise.py `_checked_feature_fits`; `matched_by_features` says which shapes
+they then registered): empty when they were not checked, and in files written before."""
 
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ from ..collection import PrepareSettings
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..settings import recorded_settings
+from .features import keeps_features, uses_features
 from .settings import REFINE_METHODS, CorrespondenceSettings
 
 __all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
@@ -53,6 +57,7 @@ class Correspondence:
     refinement: str = "none"  # the refinement that ran after NICP (refine.py): "population" or "none"
     refinement_trace: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) E, compactness, spread
     between_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not compared
+    feature_fit_worse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (M,) or (0,): not checked
 
     def __len__(self) -> int:
         return len(self.names)
@@ -60,6 +65,32 @@ class Correspondence:
     @property
     def n_landmarks(self) -> int:
         return int(self.points.shape[1])
+
+    def matched_by_features(self) -> np.ndarray:
+        """(M,) bool: the shapes registered by feature matches (features.py), the others by
+        closest points: none unless the settings asked for feature matches, all when they
+        were not checked against closest points (`feature_fit_check` off, older files)."""
+        count = len(self.names)
+        if self.settings is None or not uses_features(self.settings):
+            return np.zeros(count, dtype=bool)
+        kept = keeps_features(self.feature_fit_worse, self.settings.feature_fallback_share)
+        return np.full(count, kept)
+
+    def matching_summary(self) -> str:
+        """One line for people: which data term matched the landmarks, and whether the fit
+        check (`feature_fit_check`) chose closest points instead of feature matches."""
+        if self.settings is None:
+            return "matches not recorded"
+        if not uses_features(self.settings):
+            return "closest points"
+        worse = np.asarray(self.feature_fit_worse, dtype=bool)
+        if not len(worse):
+            return "feature matches"
+        count = f"{int(worse.sum())} of {len(self)} shapes"
+        if self.matched_by_features().all():
+            return f"feature matches (they fitted {count} worse than closest points)"
+        return (f"closest points: feature matches fitted {count} worse "
+                f"(more than {self.settings.feature_fallback_share:.0%})")
 
     def landmark_matrix(self) -> np.ndarray:
         """Y = N × 3L (method.md §4), rows in the normalised frame."""
@@ -85,6 +116,7 @@ class Correspondence:
             "refinement": np.asarray(self.refinement, dtype=str),
             "refinement_trace": np.asarray(self.refinement_trace, dtype=np.float64).reshape(-1, 3),
             "between_shares": np.asarray(self.between_shares, dtype=np.float64).reshape(-1),
+            "feature_fit_worse": np.asarray(self.feature_fit_worse, dtype=bool).reshape(-1),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -123,6 +155,11 @@ class Correspondence:
         if len(shares) not in (0, len(a["names"])) or not np.all((shares >= 0) & (shares <= 1)):
             raise ModelFileError(f"{label}: between_shares must be empty or one share in [0, 1] per shape "
                                  f"({len(a['names'])}), got {len(shares)} values")
+        worse = np.asarray(a["feature_fit_worse"]) if "feature_fit_worse" in a else np.zeros(0, dtype=bool)
+        validate_arrays({"feature_fit_worse": worse}, _FIT_CHECK_SPEC, label)
+        if len(worse) not in (0, len(a["names"])):
+            raise ModelFileError(f"{label}: feature_fit_worse must be empty or one flag per shape "
+                                 f"({len(a['names'])}), got {len(worse)}")
         return cls(
             names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
             face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
@@ -132,6 +169,7 @@ class Correspondence:
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
             refinement=refinement, refinement_trace=trace, between_shares=shares,
+            feature_fit_worse=worse,
         )
 
 
@@ -161,3 +199,5 @@ CORRESPONDENCE_SPEC = {
 _REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}
 #: the optional shares of feature_between (files before it lack them)
 _SHARES_SPEC = {"between_shares": ArraySpec("f", ("S",))}
+#: the optional outcome of the feature-match fit check (files before it lack it)
+_FIT_CHECK_SPEC = {"feature_fit_worse": ArraySpec("b", ("S",))}

@@ -13,8 +13,8 @@ import bpy
 
 from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
-from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY, N_LANDMARKS_KEY,
-                   N_SHAPES_KEY, OUTLIERS_KEY, QUALITY_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
+from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MATCHING_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
+                   N_LANDMARKS_KEY, N_SHAPES_KEY, OUTLIERS_KEY, QUALITY_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 from ..prepared import prepared_collection_for, prepared_objects, prepared_pose_notes
 
 __all__ = ["CLASSES"]
@@ -155,6 +155,9 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
         median = text.get(RESIDUAL_MEDIAN_KEY)
         if median is not None:
             box.label(text=f"Median residual: {100 * median:.2f} % of the diagonal")
+        matching = text.get(MATCHING_KEY)
+        if matching is not None:
+            box.label(text=f"Matches: {matching}")
         model_outliers = [str(line) for line in text.get(OUTLIERS_KEY, [])]
         if model_outliers and not listed:  # outliers of a model fitted to another collection
             box.label(text=f"{len(model_outliers)} outlier(s) in the model:", icon="ERROR")

@@ -45,8 +45,10 @@ MATCHING_ITEMS = [
     ("features", "Features", "Beyond the thesis: to the nearest surface point in position, surface normal and "
                              "height between the turning lines, so bellies and necks line up; lower "
                              "correspondence error on vases, but models fitted on it were less compact on real "
-                             "classes, and it fits badly (flagged as outliers) where walls lean in on some "
-                             "shapes and out on others, as mugs can (docs/results.md)"),
+                             "classes. Where it fits more than a tenth of the shapes clearly worse than closest "
+                             "points (walls leaning in on some shapes and out on others, as mugs can), the "
+                             "collection is matched by closest points; the Correspondence panel says which "
+                             "(docs/results.md)"),
 ]
 REFINE_ITEMS = [
     ("none", "None", "Non-rigid ICP's landmarks as they are (the thesis)"),

@@ -83,6 +83,7 @@ def test_panels_draw_with_a_model_a_live_object_and_a_map(model_files):
     calls = _draw_all()
     sliders = [c for c in calls if c == ("prop", "value")]
     assert len(sliders) == 2
+    assert ("label", "Matches: closest points") in calls  # the model's data term (Correspondence.matching_summary)
     for idname in ("shapegen.explore_randomise", "shapegen.explore_snap", "shapegen.explore_bake",
                    "shapegen.sample", "shapegen.interpolate", "shapegen.modes_to_shape_keys"):
         assert ("operator", idname) in calls

@@ -13,8 +13,9 @@ from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond, pool, register
-from shapegen_core.correspond.features import FeatureMatcher, agreement_weights, kept_matches, point_features
-from shapegen_core.datasets import make_vases
+from shapegen_core.correspond.features import (FIT_TOLERANCE, FeatureMatcher, agreement_weights, keeps_features,
+                                               kept_matches, point_features, worse_fits)
+from shapegen_core.datasets import make_cups, make_vases
 from shapegen_core.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, knn_graph, registration_frame
 from shapegen_core.landmarks import select_landmarks
@@ -116,7 +117,7 @@ def test_feature_matches_lower_the_true_error_of_a_procedural_class():
     error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
     closest = error(CorrespondenceSettings())
     first = error(CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0,
-                                         feature_between=0.0))
+                                         feature_between=0.0, feature_fit_check=False))  # as first shipped
     sides_only = error(FEATURES)
     features = error(BETWEEN)
     assert first < 0.97 * closest, f"features {first:.4f} vs closest {closest:.4f}"
@@ -190,7 +191,9 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
 
     monkeypatch.setattr(pool, "register_task", recording)
     result = correspond(prepared, BETWEEN, jobs=1)
-    first_round, second_round = seen[:4], seen[4:]
+    # the first round by feature matches, then by closest points for the fit check
+    first_round, checked, second_round = seen[:4], seen[4:8], seen[8:]
+    assert [task.settings.matching for task, _ in checked] == ["closest"] * 4 and not result.feature_fit_worse.any()
     assert all(task.template_between is None for task, _ in first_round) and len(second_round) == 4
     # the template's positions are the template shape's own, at its landmarks, for every shape
     template = result.names.index(result.template_name)
@@ -274,3 +277,70 @@ def test_files_written_before_feature_stiffness_record_the_schedule_they_ran():
     assert CorrespondenceSettings.from_dict({"matching": "features"}).alphas[-1] == 2.0
     new = CorrespondenceSettings(matching="features", feature_stiffness=0.5)
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(new.to_json())}, "new.npz") == new
+
+
+def test_worse_fits_and_the_collection_rule():
+    closest = np.array([0.04, 0.05, 0.05, 0.0, 1e-14])
+    features = np.array([0.03, 0.05 * (1 + FIT_TOLERANCE) - 1e-6, 0.05 * (1 + FIT_TOLERANCE) + 1e-6, 1e-12, 0.0])
+    np.testing.assert_array_equal(worse_fits(features, closest), [False, False, True, False, False])  # a shape on itself: 0 ≈ 0
+    with pytest.raises(ValueError, match="one residual per shape"):
+        worse_fits(features[:3], closest)
+    assert keeps_features(np.zeros(10, bool), 0.1) and keeps_features(np.r_[True, np.zeros(9, bool)], 0.1)
+    assert not keeps_features(np.r_[True, True, np.zeros(8, bool)], 0.1)  # 2 of 10 > 10 %
+    assert keeps_features(np.zeros(0, bool), 0.1)
+    with pytest.raises(SettingsError, match="feature_fallback_share must be at most 1"):
+        CorrespondenceSettings(feature_fallback_share=1.5)
+
+
+def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_path):
+    # the template (cup 3) leans in (top radius 12 % below the bottom's); in the first round
+    # feature matches collapse it onto part of the three cups leaning out by 12-21 % (residual
+    # 1.55-1.65 × the closest-point fit's), so the collection is matched by closest points,
+    # bit for bit
+    prepared = prepare_meshes(make_cups(8, seed=1, rings=(8, 14)), PrepareSettings(n_landmarks=300, seed=0))
+    closest = correspond(prepared, CorrespondenceSettings(), jobs=1)
+    checked = correspond(prepared, BETWEEN, jobs=1)
+    unchecked = correspond(prepared, replace(BETWEEN, feature_fit_check=False), jobs=1)
+    assert closest.template_name == checked.template_name == "cup_003"
+    np.testing.assert_array_equal(checked.points, closest.points)
+    np.testing.assert_array_equal(checked.face_index, closest.face_index)
+    np.testing.assert_array_equal(checked.residuals, closest.residuals)
+    worse = checked.feature_fit_worse
+    assert worse.sum() >= 2 and not worse[checked.names.index("cup_003")]
+    assert not checked.matched_by_features().any() and unchecked.matched_by_features().all()
+    assert checked.matching_summary().startswith(f"closest points: feature matches fitted {int(worse.sum())} of 8")
+    loaded = Correspondence.load(checked.save(tmp_path / "cups.npz"))
+    np.testing.assert_array_equal(loaded.feature_fit_worse, worse)
+    assert loaded.matching_summary() == checked.matching_summary()
+
+
+def test_the_fit_check_changes_nothing_where_feature_matches_fit():
+    shapes = make_vases(4, seed=2, resolution=(20, 28))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
+    checked = correspond(prepared, BETWEEN, jobs=1)
+    unchecked = correspond(prepared, replace(BETWEEN, feature_fit_check=False), jobs=1)
+    np.testing.assert_array_equal(checked.points, unchecked.points)
+    np.testing.assert_array_equal(checked.between_shares, unchecked.between_shares)
+    np.testing.assert_array_equal(checked.feature_fit_worse, np.zeros(4, bool))
+    assert checked.matched_by_features().all() and checked.matching_summary().startswith("feature matches (they")
+    assert unchecked.feature_fit_worse.shape == (0,) and unchecked.matching_summary() == "feature matches"
+    closest = correspond(prepared, CorrespondenceSettings(), jobs=1)
+    assert closest.feature_fit_worse.shape == (0,) and closest.matching_summary() == "closest points"
+    assert not closest.matched_by_features().any()
+
+
+def test_files_before_the_fit_check_load_and_bad_records_are_refused():
+    shapes = make_vases(3, seed=2, resolution=(20, 28))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=100, seed=0))
+    arrays = correspond(prepared, BETWEEN, jobs=1).to_arrays()
+    del arrays["feature_fit_worse"]
+    old = Correspondence.from_arrays(arrays, "old")
+    assert old.feature_fit_worse.shape == (0,) and old.matched_by_features().all()
+    for wrong in (np.zeros(2, bool), np.zeros(3)):
+        arrays["feature_fit_worse"] = wrong
+        with pytest.raises(ModelFileError, match="feature_fit_worse"):
+            Correspondence.from_arrays(arrays, "bad")
+    recorded = CorrespondenceSettings(matching="features").as_dict()
+    del recorded["feature_fit_check"]  # a file written before the check ran without it
+    assert not recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))},
+                                 "old.npz").feature_fit_check
