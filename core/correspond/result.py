@@ -11,8 +11,9 @@ of `feature_between` (features.agreement_weights: 0 when its turning lines disag
 the template's and it was matched without them); empty when positions between turning
 lines were not compared, and in files written before. Likewise the outcome of the
 feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted worse than
-closest points, groupwise.py `_checked_feature_fits`; `matched_by_features` says which shapes
-they then registered): empty when they were not checked, and in files written before."""
+closest points, groupwise.py `_checked_feature_fits`; `matched_by_features` says whether
+they then matched the collection): empty when they were not checked, and in files written
+before."""
 
 from __future__ import annotations
 
