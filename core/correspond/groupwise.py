@@ -236,7 +236,6 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
     round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
-    shape_settings = [settings] * len(names)
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         round_report = sub_range(report, round_index / rounds, (round_index + 1) / rounds)
@@ -246,11 +245,12 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             if current_between is None and uses_between(round_settings):
                 current_between = _template_between(outcome, start)
                 shares = agreement_weights(current_between, [r.between for r in outcome.results])
-                shape_settings = [replace(round_settings, feature_between=round_settings.feature_between * share)
-                                  for share in shares]
                 message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
             report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
+        shape_settings = ([round_settings] * len(names) if shares is None else
+                          [replace(round_settings, feature_between=round_settings.feature_between * share)
+                           for share in shares])
         tasks = [
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
                              landmark_normals[i], template_in_frame, current_normals, edges, shape_settings[i], centre,
@@ -259,7 +259,6 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         ]
         if round_index == 0 and checks_fit(settings):
             registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
-            shape_settings = [round_settings] * len(names)
         else:
             registrations = runner.run(tasks, round_report, label)
         results = [_to_normalised(r, centre, scale) for r in registrations]

@@ -11,7 +11,7 @@ of `feature_between` (features.agreement_weights: 0 when its turning lines disag
 the template's and it was matched without them); empty when positions between turning
 lines were not compared, and in files written before. Likewise the outcome of the
 feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted worse than
-closest points, groupwise.py `_checked_feature_fits`; `matched_by_features` says whether
+closest points, groupwise.py `_checked_feature_fits`; `feature_matches_ran` says whether
 they then matched the collection): empty when they were not checked, and in files written
 before."""
 
@@ -67,15 +67,15 @@ class Correspondence:
     def n_landmarks(self) -> int:
         return int(self.points.shape[1])
 
-    def matched_by_features(self) -> np.ndarray:
-        """(M,) bool: the shapes registered by feature matches (features.py), the others by
-        closest points: none unless the settings asked for feature matches, all when they
-        were not checked against closest points (`feature_fit_check` off, older files)."""
-        count = len(self.names)
+    @property
+    def feature_matches_ran(self) -> bool:
+        """Whether feature matches (features.py) registered the collection, not closest
+        points: never unless the settings asked for them; always when they were not checked
+        against closest points (`feature_fit_check` off, older files); else as the check
+        decided (`features.keeps_features`)."""
         if self.settings is None or not uses_features(self.settings):
-            return np.zeros(count, dtype=bool)
-        kept = keeps_features(self.feature_fit_worse, self.settings.feature_fallback_share)
-        return np.full(count, kept)
+            return False
+        return keeps_features(self.feature_fit_worse, self.settings.feature_fallback_share)
 
     def matching_summary(self) -> str:
         """One line for people: which data term matched the landmarks, and whether the fit
@@ -88,7 +88,7 @@ class Correspondence:
         if not len(worse):
             return "feature matches"
         count = f"{int(worse.sum())} of {len(self)} shapes"
-        if self.matched_by_features().all():
+        if self.feature_matches_ran:
             return f"feature matches (they fitted {count} worse than closest points)"
         return (f"closest points: feature matches fitted {count} worse "
                 f"(more than {self.settings.feature_fallback_share:.0%})")

@@ -307,7 +307,7 @@ def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_pa
     np.testing.assert_array_equal(checked.residuals, closest.residuals)
     worse = checked.feature_fit_worse
     assert worse.sum() >= 2 and not worse[checked.names.index("cup_003")]
-    assert not checked.matched_by_features().any() and unchecked.matched_by_features().all()
+    assert not checked.feature_matches_ran and unchecked.feature_matches_ran
     assert checked.matching_summary().startswith(f"closest points: feature matches fitted {int(worse.sum())} of 8")
     loaded = Correspondence.load(checked.save(tmp_path / "cups.npz"))
     np.testing.assert_array_equal(loaded.feature_fit_worse, worse)
@@ -322,11 +322,11 @@ def test_the_fit_check_changes_nothing_where_feature_matches_fit():
     np.testing.assert_array_equal(checked.points, unchecked.points)
     np.testing.assert_array_equal(checked.between_shares, unchecked.between_shares)
     np.testing.assert_array_equal(checked.feature_fit_worse, np.zeros(4, bool))
-    assert checked.matched_by_features().all() and checked.matching_summary().startswith("feature matches (they")
+    assert checked.feature_matches_ran and checked.matching_summary().startswith("feature matches (they")
     assert unchecked.feature_fit_worse.shape == (0,) and unchecked.matching_summary() == "feature matches"
     closest = correspond(prepared, CorrespondenceSettings(), jobs=1)
     assert closest.feature_fit_worse.shape == (0,) and closest.matching_summary() == "closest points"
-    assert not closest.matched_by_features().any()
+    assert not closest.feature_matches_ran
 
 
 def test_files_before_the_fit_check_load_and_bad_records_are_refused():
@@ -335,7 +335,7 @@ def test_files_before_the_fit_check_load_and_bad_records_are_refused():
     arrays = correspond(prepared, BETWEEN, jobs=1).to_arrays()
     del arrays["feature_fit_worse"]
     old = Correspondence.from_arrays(arrays, "old")
-    assert old.feature_fit_worse.shape == (0,) and old.matched_by_features().all()
+    assert old.feature_fit_worse.shape == (0,) and old.feature_matches_ran
     for wrong in (np.zeros(2, bool), np.zeros(3)):
         arrays["feature_fit_worse"] = wrong
         with pytest.raises(ModelFileError, match="feature_fit_worse"):
