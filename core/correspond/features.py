@@ -8,14 +8,17 @@ does not put the template's belly on the target's belly. Here a match is the nea
 target point in a joint space of position and surface features (ICP with invariant
 features, Sharp, Lucas & Hebert 2002):
 
-    v_n(i) = argmin_y ‖x_i − y‖² + ‖f_i − f(y)‖²,    f(n) = [w_n · n,  w_u · tanh(n_z / h)],
+    v_n(i) = argmin_y ‖x_i − y‖² + ‖f_i − f(y)‖²,
+    f(n) = [w_n · (n_x, n_y, c · n_z),  w_u · tanh(n_z / h)],
 
 x_i the template point, n its unit normal; n_z = n · up (+z after Prepare). The first part
 keeps a point on the side of a wall that faces its way (it replaces the compatibility test
-of `normal_max_angle`); the second, the saturated up-component, marks where the surface
-turns from facing down to facing up: a belly or a neck (n_z = 0 between the two) is a
-level set of it whatever the shape's proportions, so matching it lines such features up
-(`CorrespondenceSettings.feature_*` explain the defaults and what they measured).
+of `normal_max_angle`; c = `feature_tilt`, 0 by default: the normal's slope would pull
+matches towards equal slope, a different height on every flaring lip); the second, the
+saturated up-component, marks where the surface turns from facing down to facing up: a
+belly or a neck (n_z = 0 between the two) is a level set of it whatever the shape's
+proportions, so matching it lines such features up (`CorrespondenceSettings.feature_*`
+explain the defaults and what they measured).
 
 The template point's features are its normals as the first (stiffest, nearly affine) α of
 the schedule left them (`register`): a taller target tilts every normal less, and the
@@ -77,14 +80,15 @@ def uses_features(settings: CorrespondenceSettings) -> bool:
 
 def point_features(normals: np.ndarray, settings: CorrespondenceSettings, between: np.ndarray | None = None) -> np.ndarray:
     """f of the module docstring for (n, 3) normals (normalised here; a zero normal gives
-    zero features): (n, 4) = [w_n · n, w_u · tanh(n_z / h)], and when `between` (n,) is
-    given a fifth column w_b · g: the points' positions between turning lines (turning.py;
-    w_b = `feature_between`)."""
+    zero features): (n, 4) = [w_n · (n_x, n_y, c · n_z), w_u · tanh(n_z / h)] (c =
+    `feature_tilt`), and when `between` (n,) is given a fifth column w_b · g: the points'
+    positions between turning lines (turning.py; w_b = `feature_between`)."""
     normals = np.asarray(normals, dtype=np.float64)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     up = np.tanh(unit[:, 2] / settings.feature_up_width)
-    columns = [settings.feature_normals * unit, settings.feature_up * up[:, None]]
+    tilted = unit * np.array([1.0, 1.0, settings.feature_tilt])
+    columns = [settings.feature_normals * tilted, settings.feature_up * up[:, None]]
     if between is not None:
         if np.shape(between) != (len(normals),):
             raise ValueError(f"between must hold one position per normal ({len(normals)}), got {np.shape(between)}")

@@ -73,6 +73,19 @@ class CorrespondenceSettings(Settings):
         ending at 5): lower procedural error than 1 (1.763 against
         1.810 %) and a remeshed copy within 0.22 edge lengths (1: 0.27); 1 transfers PSB
         labels better (Vase 70.3 against 67.7 %).
+      feature_tilt: c: the normal feature is w_n · (n_x, n_y, c · n_z). The up feature
+        below already says which side of a turning line a point lies on; the normal's
+        own up-component also pulls matches towards points of equal slope, which on a
+        flaring lip or a belly is a different height on every shape. 0 (default; files
+        written before it record 1): the normal keeps a match on the side of a thin wall
+        facing its way by its horizontal direction, and facing up or down by the up
+        feature. Measured at 0 against 1 (docs/results.md "Fourth round, thirteenth
+        part"): procedural true error 1.135 → 1.082 % (6 vases, lower on all five
+        seeds; seeds 5–9 1.770 → 1.728, 20 vases 1.768 → 1.749 %), PSB Vase models
+        more compact (held-out log-likelihood 1447 → 1524, completion on the surface 3.02
+        → 2.79 %), completion on the surface 1.35 → 1.33 % on Airplane and 1.49 → 1.51 %
+        on Fish, label transfer within 0.3 points (Airplane 95.2 → 94.9, Fish 87.0 → 87.1,
+        Vase 66.9 → 66.7 %); 0.3 gave the same procedural error and Vase 65.9 %.
       feature_up: w_u: weight of the saturated up-component of the normal (+z is up after
         Prepare): where the surface turns from facing down to facing up.
       feature_up_width: h: n_z well below h counts as "facing sideways", well above as up.
@@ -218,7 +231,7 @@ class CorrespondenceSettings(Settings):
     #: files written before these fields existed ran with these values (settings.Settings);
     #: not annotated: a class attribute, not a field
     FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0,
-                          "feature_fit_check": False}
+                          "feature_fit_check": False, "feature_tilt": 1.0}
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
@@ -231,6 +244,8 @@ class CorrespondenceSettings(Settings):
                            "nearest in position and surface normal (beyond the thesis)", flag="--matching",
                            choices=MATCHING_METHODS)
     feature_normals: float = option(0.5, "features: weight of the surface normal beside the position", minimum=0)
+    feature_tilt: float = option(0.0, "features: weight of the normal's up-component within the normal feature, "
+                                      "relative to its horizontal part", minimum=0)
     feature_up: float = option(1.0, "features: weight of the saturated up-component of the normal", minimum=0)
     feature_up_width: float = option(0.01, "features: up-components well below this count as facing sideways",
                                      above=0)

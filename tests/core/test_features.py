@@ -40,11 +40,16 @@ def _register(template, template_lm, target, target_lm, settings=FEATURES, **opt
 
 def test_point_features_closed_form():
     settings = CorrespondenceSettings(matching="features", feature_normals=0.5, feature_up=2.0, feature_up_width=0.1,
-                                      feature_between=0.0)
+                                      feature_between=0.0, feature_tilt=1.0)
     normals = np.array([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6, -0.8]])
     features = point_features(normals, settings)
     expected = np.array([[0, 0, 0.5, 2 * np.tanh(10.0)], [0.5, 0, 0, 0.0], [0, 0, 0, 0], [0, 0.3, -0.4, 2 * np.tanh(-8.0)]])
     np.testing.assert_allclose(features, expected, atol=1e-15)
+    # feature_tilt scales the normal's up-component only; the up feature still tells the side
+    tilted = point_features(normals, replace(settings, feature_tilt=0.25))
+    np.testing.assert_allclose(tilted, expected * [1, 1, 0.25, 1], atol=1e-15)
+    level = point_features(normals, replace(settings, feature_tilt=0.0))  # the default
+    np.testing.assert_allclose(level, expected * [1, 1, 0, 1], atol=1e-15)
     between = np.array([0.0, 0.25, 0.5, 1.0])
     with_between = point_features(normals, replace(settings, feature_between=2.0), between)
     np.testing.assert_allclose(with_between, np.c_[expected, 2.0 * between], atol=1e-15)
@@ -111,18 +116,22 @@ def test_feature_matches_lower_the_true_error_of_a_procedural_class():
     # measured 2.74 % (closest points) → 2.60 % (features as first shipped: h 0.1, α ending
     # at 5) → 2.48 % (h 0.01, α ending at 0.4 × 5) → 2.29 % (and positions between turning
     # lines in the groupwise round, 2.40 % before they were measured by height and the
-    # template kept its own); at full size docs/results.md
+    # template kept its own) → 2.23 % (normals compared without their up-component,
+    # feature_tilt 0); at full size docs/results.md
     shapes = make_vases(5, seed=11, resolution=(33, 64))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=300, seed=0))
     error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
     closest = error(CorrespondenceSettings())
     first = error(CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0,
-                                         feature_between=0.0, feature_fit_check=False))  # as first shipped
-    sides_only = error(FEATURES)
+                                         feature_between=0.0, feature_fit_check=False,
+                                         feature_tilt=1.0))  # as first shipped
+    sides_only = error(replace(FEATURES, feature_tilt=1.0))
+    tilted = error(replace(BETWEEN, feature_tilt=1.0))
     features = error(BETWEEN)
     assert first < 0.97 * closest, f"features {first:.4f} vs closest {closest:.4f}"
     assert sides_only < 0.98 * first, f"features {sides_only:.4f} vs as first shipped {first:.4f}"
-    assert features < 0.985 * sides_only, f"features {features:.4f} vs without positions between lines {sides_only:.4f}"
+    assert tilted < 0.985 * sides_only, f"features {tilted:.4f} vs without positions between lines {sides_only:.4f}"
+    assert features < 0.985 * tilted, f"features {features:.4f} vs with the normals' up-component {tilted:.4f}"
 
 
 def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours():
@@ -270,6 +279,10 @@ def test_files_written_before_feature_stiffness_record_the_schedule_they_ran():
     del old["feature_between"]  # and one written before feature_between compared sides only
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
                              "old.npz").feature_between == 0
+    assert CorrespondenceSettings(matching="features").feature_tilt == 0.0
+    del old["feature_tilt"]  # and one written before feature_tilt compared whole normals
+    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
+                             "old.npz").feature_tilt == 1.0
     fit = FitSettings(correspondence=CorrespondenceSettings(matching="features")).as_dict()
     del fit["correspondence"]["feature_stiffness"]
     assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence.alphas[-1] == 5.0
