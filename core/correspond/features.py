@@ -50,10 +50,11 @@ from scipy.spatial import cKDTree
 from ..geometry import TargetSurface, closest_points_on_triangles, nearest_facing_alike
 from ..mesh import Mesh
 from .settings import CorrespondenceSettings
-from .turning import MAX_ANGLE, NO_LINE, position_between_turning_lines
+from .turning import MAX_ANGLE, NO_LINE, facing_regions, position_between_turning_lines
 
 __all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "agreement_weights",
-           "checks_fit", "worse_fits", "keeps_features", "kept_matches", "FeatureMatcher"]
+           "checks_fit", "worse_fits", "keeps_features", "kept_matches", "checks_regions", "merged_regions",
+           "FeatureMatcher"]
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
@@ -71,6 +72,13 @@ NO_AGREEMENT = 0.2
 #: collapsed onto part of a shape costs more (Blender mugs 1.41-1.93 ×, PSB cups up to
 #: 1.42 ×; docs/results.md "Fourth round, twelfth part")
 FIT_TOLERANCE = 0.25
+#: a template region counts in `merged_regions` when it holds at least this share of the
+#: template's points (smaller ones are noise of a near-vertical wall or a rim's edge)
+MIN_REGION_SHARE = 0.02
+#: the joint-space columns a plain match compares: the normal's (features.point_features)
+NORMAL_COLUMNS = 3
+#: label of a point whose region is unknown (no sample facing alike near it)
+NO_REGION = -1
 
 
 def uses_features(settings: CorrespondenceSettings) -> bool:
@@ -147,6 +155,49 @@ def kept_matches(distance: np.ndarray, trim: float) -> np.ndarray:
     return (distance <= limit).astype(np.float64)
 
 
+def checks_regions(settings: CorrespondenceSettings) -> bool:
+    """Whether feature matches look for template regions that merge on a shape
+    (`feature_merged_regions`)."""
+    return uses_features(settings) and settings.feature_merged_regions
+
+
+def merged_regions(template_regions: np.ndarray, template_normals: np.ndarray,
+                   shape_regions: np.ndarray) -> np.ndarray:
+    """(L,) bool: the template points whose region merges with a region facing the other way
+    on a shape, so feature matches compare them plainly there (position and normal
+    direction; `feature_merged_regions`).
+
+    `template_regions` (L,): each template point's region on the template's own surface
+    (turning.facing_regions); `template_normals` (L, 3) its normals; `shape_regions` (L,):
+    the region of the shape at the template point's first-round match (NO_REGION unknown).
+    Each template region holding at least MIN_REGION_SHARE of the points goes where most of
+    its matches lie; when two of them facing opposite ways land in the same region of the
+    shape, the shape has one region where the template has two (a vase whose lip is
+    narrower than its neck: belly to rim faces up in one piece, where the template's neck
+    splits it into a wall facing up and one facing down). Up and down, and the positions
+    between turning lines, then mean different parts on the two, and matching them drags
+    the template's lines onto whatever line the shape has."""
+    template_regions = np.asarray(template_regions)
+    shape_regions = np.asarray(shape_regions)
+    faces_up = np.asarray(template_normals, dtype=np.float64)[:, 2] > 0
+    if template_regions.shape != shape_regions.shape or faces_up.shape != template_regions.shape:
+        raise ValueError(f"one region per template point on both, and one normal each, got {template_regions.shape}, "
+                         f"{shape_regions.shape} and {np.shape(template_normals)}")
+    labels, counts = np.unique(template_regions, return_counts=True)
+    landing: dict[int, list[tuple[int, bool]]] = {}
+    for label in labels[counts >= MIN_REGION_SHARE * len(template_regions)]:
+        members = template_regions == label
+        found, votes = np.unique(shape_regions[members], return_counts=True)
+        target = found[np.argmax(votes)]
+        if target != NO_REGION:
+            landing.setdefault(int(target), []).append((int(label), bool(faces_up[members].mean() > 0.5)))
+    plain = np.zeros(len(template_regions), dtype=bool)
+    for sources in landing.values():
+        if len({up for _, up in sources}) > 1:
+            plain |= np.isin(template_regions, [label for label, _ in sources])
+    return plain
+
+
 def uses_between(settings: CorrespondenceSettings) -> bool:
     """Whether feature matches compare positions between turning lines (`feature_between` > 0)."""
     return uses_features(settings) and settings.feature_between > 0
@@ -185,6 +236,8 @@ class FeatureMatcher:
             self.sample_points, self.sample_faces, self.sample_normals = samples.points, samples.face_index, sample_normals
         self.between = (position_between_turning_lines(self.sample_points, self.sample_normals)
                         if uses_between(settings) else None)
+        self.regions = facing_regions(self.sample_points, self.sample_normals) if checks_regions(settings) else None
+        self._plain_tree = None
         compared = self.between if with_between else None
         self.sample_features = point_features(self.sample_normals, settings, compared)
         if target_landmark_normals is not None:
@@ -201,16 +254,57 @@ class FeatureMatcher:
             return None
         return carry_positions(self.between, self.sample_points, self.sample_normals, points, normals)
 
-    def forward(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def regions_at(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray | None:
+        """The target's region (turning.facing_regions) at its surface points `points` (with
+        their normals), that of the nearest sample facing alike (NO_REGION when none of its
+        nearest does); None when not computed."""
+        if self.regions is None:
+            return None
+        index, distance = nearest_facing_alike(self.sample_points, self.sample_normals, points, normals,
+                                               np.cos(np.radians(MAX_ANGLE)))
+        return np.where(np.isfinite(distance), self.regions[index], NO_REGION)
+
+    def _plain(self) -> cKDTree:
+        """The samples in the plain joint space (position and the normal's columns), built
+        on first use."""
+        if self._plain_tree is None:
+            self._plain_tree = cKDTree(np.hstack([self.sample_points, self.sample_features[:, :NORMAL_COLUMNS]]))
+        return self._plain_tree
+
+    def forward(self, points: np.ndarray, features: np.ndarray,
+                plain: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """v_n(i): the closest point to every template point (`points`, its `features`)
         on the face of the target sample nearest to it in the joint space (the samples
-        choose the face, the face gives the exact point), and the distance to it."""
+        choose the face, the face gives the exact point), and the distance to it. The
+        points marked `plain` (L,) bool (`merged_regions`) are compared by position and
+        normal only."""
         _, nearest = self.tree.query(np.hstack([points, features]))
+        if plain is not None and plain.any():
+            _, nearest[plain] = self._plain().query(np.hstack([points[plain], features[plain, :NORMAL_COLUMNS]]))
         goals, _ = closest_points_on_triangles(points, self.triangles[self.sample_faces[nearest]])
         return goals, np.linalg.norm(goals - points, axis=1)
 
-    def backward(self, points: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def backward(self, points: np.ndarray, features: np.ndarray,
+                 plain: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """m(j): the template point nearest to every target landmark in the joint space,
-        and the positional distance between them."""
-        _, nearest = cKDTree(np.hstack([points, features])).query(np.hstack([self.landmarks, self.landmark_features]))
+        and the positional distance between them. With `plain` (L,) bool, the nearest of the
+        other template points in the joint space and the nearest plain one by position and
+        normal compete by position and normal."""
+        query = np.hstack([self.landmarks, self.landmark_features])
+        if plain is not None and plain.any():
+            return self._backward_with_plain(points, features, plain, query)
+        _, nearest = cKDTree(np.hstack([points, features])).query(query)
+        return nearest, np.linalg.norm(points[nearest] - self.landmarks, axis=1)
+
+    def _backward_with_plain(self, points, features, plain, query):
+        """`backward` when some template points are compared plainly."""
+        columns = 3 + NORMAL_COLUMNS  # position and normal
+        candidates = []
+        for members, width in ((np.flatnonzero(~plain), None), (np.flatnonzero(plain), columns)):
+            if len(members):
+                space = np.hstack([points[members], features[members]])[:, :width]
+                candidates.append(members[cKDTree(space).query(query[:, :width])[1]])
+        plain_space = np.hstack([points, features[:, :NORMAL_COLUMNS]])
+        gaps = [np.linalg.norm(plain_space[c] - query[:, :columns], axis=1) for c in candidates]
+        nearest = candidates[0] if len(candidates) == 1 else np.where(gaps[1] < gaps[0], candidates[1], candidates[0])
         return nearest, np.linalg.norm(points[nearest] - self.landmarks, axis=1)

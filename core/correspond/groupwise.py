@@ -22,7 +22,8 @@ from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .refine import refine_population
-from .features import agreement_weights, checks_fit, keeps_features, uses_between, worse_fits
+from .features import agreement_weights, checks_fit, checks_regions, keeps_features, merged_regions, uses_between, \
+    worse_fits
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
@@ -81,6 +82,7 @@ class _Rounds:
     scale: float = 1.0
     between_shares: np.ndarray | None = None  # (M,) each shape's share of feature_between (None: not compared)
     feature_fit_worse: np.ndarray | None = None  # (M,) bool: feature matches fitted worse (None: not checked)
+    plain_shares: np.ndarray | None = None  # (M,) share of template points matched plainly (None: not checked)
 
     @property
     def keep(self) -> np.ndarray:
@@ -193,6 +195,7 @@ def correspond(
         refinement_trace=trace,
         between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
         feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
+        plain_shares=np.zeros(0) if outcome.plain_shares is None else outcome.plain_shares,
     )
 
 
@@ -236,6 +239,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
     round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
+    plain = None  # per shape, the template points matched plainly (features.merged_regions), from round 2 on
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         round_report = sub_range(report, round_index / rounds, (round_index + 1) / rounds)
@@ -246,6 +250,10 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
                 current_between = _template_between(outcome, start)
                 shares = agreement_weights(current_between, [r.between for r in outcome.results])
                 message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
+            if plain is None and checks_regions(round_settings):
+                template_regions = outcome.results[start].regions
+                plain = [merged_regions(template_regions, template_normals, r.regions) for r in outcome.results]
+                message += f"; regions merged on {sum(int(p.any()) for p in plain)} of {len(names)} shapes"
             report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
         shape_settings = ([round_settings] * len(names) if shares is None else
@@ -254,7 +262,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         tasks = [
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
                              landmark_normals[i], template_in_frame, current_normals, edges, shape_settings[i], centre,
-                             scale, current_between)
+                             scale, current_between, None if plain is None else plain[i])
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         if round_index == 0 and checks_fit(settings):
@@ -266,7 +274,8 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
-                          round_index + 1, centre, scale, shares, worse)
+                          round_index + 1, centre, scale, shares, worse,
+                          None if plain is None else np.array([p.mean() for p in plain]))
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome

@@ -46,6 +46,7 @@ class RegistrationTask:
     centre: np.ndarray  # the registration frame
     scale: float
     template_between: np.ndarray | None = None  # positions between turning lines (features.py; None: not compared)
+    plain_points: np.ndarray | None = None  # (L,) bool: compared by position and normal only (features.merged_regions)
 
 
 # worker-process state set by _init_worker (spawned processes only)
@@ -63,7 +64,7 @@ def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None)
     surface = TargetSurface((task.vertices - task.centre) / task.scale, task.faces)
     return register(task.template, task.edges, surface, (task.landmarks - task.centre) / task.scale, task.settings,
                     task.template_normals, task.landmark_normals, on_iteration, should_cancel,
-                    template_between=task.template_between)
+                    template_between=task.template_between, plain_points=task.plain_points)
 
 
 def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:

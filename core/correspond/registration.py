@@ -39,6 +39,7 @@ class Registration:
     energies: np.ndarray  # objective after every iteration
     deformed_normals: np.ndarray | None = None  # (L, 3) template normals after the last step (None: no normals)
     between: np.ndarray | None = None  # (L,) the target's positions between turning lines at the placed points (features.py)
+    regions: np.ndarray | None = None  # (L,) the target's region at the placed points (features.merged_regions)
 
 
 def _distance_weights(distance: np.ndarray) -> np.ndarray:
@@ -123,6 +124,7 @@ def register(
     initial_points: np.ndarray | None = None,
     initial_normals: np.ndarray | None = None,
     template_between: np.ndarray | None = None,
+    plain_points: np.ndarray | None = None,
 ) -> Registration:
     """Iterative stiffness relaxation (Alg. 3) of `template` (L, 3) onto `target`.
 
@@ -138,7 +140,10 @@ def register(
     (L,): the template points' positions between turning lines (turning.py; groupwise: the
     template shape's own), compared by feature matches when `feature_between` > 0; with
     feature matches and `feature_between` > 0 the result reports the target's positions at
-    its placed points (`Registration.between`), given a template's or not. Raises Cancelled
+    its placed points (`Registration.between`), given a template's or not; with
+    `feature_merged_regions` it reports the target's regions there (`Registration.regions`).
+    `plain_points` (L,) bool: template points feature matches compare by position and
+    normal only (features.merged_regions). Raises Cancelled
     between iterations once `should_cancel` (None, a callable or an Event-like object;
     core/progress.py) says so."""
     base = np.asarray(template, dtype=np.float64)
@@ -176,6 +181,11 @@ def register(
             if between.shape != (n_points,) or not np.isfinite(between).all():
                 raise ValueError(f"template_between must be finite with one value per template point ({n_points}), "
                                  f"got {between.shape}")
+        if plain_points is not None:
+            plain_points = np.asarray(plain_points)
+            if plain_points.shape != (n_points,) or plain_points.dtype != bool:
+                raise ValueError(f"plain_points must be one bool per template point ({n_points}), got "
+                                 f"{plain_points.shape} {plain_points.dtype}")
         matcher = FeatureMatcher(target, target_landmarks, target_landmark_normals, n_points, settings,
                                  with_between=between is not None)
         features = point_features(normals, settings, between)
@@ -188,7 +198,7 @@ def register(
                 forward, weights = _forward_matches(target, points, normals, settings, finder)
                 goals = forward.points
             else:
-                goals, distance = matcher.forward(points, features)
+                goals, distance = matcher.forward(points, features, plain_points)
                 weights = _match_weights(distance, settings) * kept_matches(distance, settings.feature_trim)
             rows = np.arange(n_points)
             if lam > 0:
@@ -196,7 +206,7 @@ def register(
                     nearest, w_back = _backward_matches(points, normals, target_landmarks,
                                                         target_landmark_normals, settings)
                 else:
-                    nearest, distance = matcher.backward(points, features)
+                    nearest, distance = matcher.backward(points, features, plain_points)
                     w_back = _match_weights(distance, settings)
                 rows = np.r_[rows, nearest]
                 goals = np.vstack([goals, target_landmarks])
@@ -231,8 +241,9 @@ def register(
     residual = fit_residual(placed, target_landmarks)
     placed_normals = target.face_normals[placed.face_index]
     target_between = None if matcher is None else matcher.positions_at(placed.points, placed_normals)
+    target_regions = None if matcher is None else matcher.regions_at(placed.points, placed_normals)
     return Registration(placed, placed_normals, points, residual, iteration, np.asarray(energies), normals,
-                        target_between)
+                        target_between, target_regions)
 
 
 def _place(target: TargetSurface, points: np.ndarray, normals: np.ndarray | None,

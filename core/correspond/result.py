@@ -13,7 +13,8 @@ lines were not compared, and in files written before. Likewise the outcome of th
 feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted worse than
 closest points, groupwise.py `_checked_feature_fits`; `feature_matches_ran` says whether
 they then matched the collection): empty when they were not checked, and in files written
-before."""
+before. Likewise each shape's share of template points matched plainly because their
+regions merge on it (`plain_shares`, features.merged_regions): empty when not checked."""
 
 from __future__ import annotations
 
@@ -59,6 +60,7 @@ class Correspondence:
     refinement_trace: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) E, compactness, spread
     between_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not compared
     feature_fit_worse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (M,) or (0,): not checked
+    plain_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not checked
 
     def __len__(self) -> int:
         return len(self.names)
@@ -85,13 +87,16 @@ class Correspondence:
         if not uses_features(self.settings):
             return "closest points"
         worse = np.asarray(self.feature_fit_worse, dtype=bool)
-        if not len(worse):
-            return "feature matches"
         count = f"{int(worse.sum())} of {len(self)} shapes"
-        if self.feature_matches_ran:
-            return f"feature matches (they fitted {count} worse than closest points)"
-        return (f"closest points: feature matches fitted {count} worse "
-                f"(more than {self.settings.feature_fallback_share:.0%})")
+        if not self.feature_matches_ran:
+            return (f"closest points: feature matches fitted {count} worse "
+                    f"(more than {self.settings.feature_fallback_share:.0%})")
+        summary = "feature matches" + (f" (they fitted {count} worse than closest points)" if len(worse) else "")
+        merged = int(np.count_nonzero(self.plain_shares))
+        if merged:  # features.merged_regions
+            summary += (f"; template regions merged on {merged} of {len(self)} shapes, matched there by position "
+                        "and normal")
+        return summary
 
     def landmark_matrix(self) -> np.ndarray:
         """Y = N × 3L (method.md §4), rows in the normalised frame."""
@@ -118,6 +123,7 @@ class Correspondence:
             "refinement_trace": np.asarray(self.refinement_trace, dtype=np.float64).reshape(-1, 3),
             "between_shares": np.asarray(self.between_shares, dtype=np.float64).reshape(-1),
             "feature_fit_worse": np.asarray(self.feature_fit_worse, dtype=bool).reshape(-1),
+            "plain_shares": np.asarray(self.plain_shares, dtype=np.float64).reshape(-1),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -151,11 +157,7 @@ class Correspondence:
         validate_arrays({"refinement": np.asarray(refinement), "refinement_trace": trace}, _REFINEMENT_SPEC, label)
         if refinement not in REFINE_METHODS:
             raise ModelFileError(f"{label}: unknown refinement {refinement!r} (expected {' or '.join(REFINE_METHODS)})")
-        shares = np.asarray(a["between_shares"]) if "between_shares" in a else np.zeros(0)
-        validate_arrays({"between_shares": shares}, _SHARES_SPEC, label)
-        if len(shares) not in (0, len(a["names"])) or not np.all((shares >= 0) & (shares <= 1)):
-            raise ModelFileError(f"{label}: between_shares must be empty or one share in [0, 1] per shape "
-                                 f"({len(a['names'])}), got {len(shares)} values")
+        shares, plain = (_optional_shares(a, key, label) for key in ("between_shares", "plain_shares"))
         worse = np.asarray(a["feature_fit_worse"]) if "feature_fit_worse" in a else np.zeros(0, dtype=bool)
         validate_arrays({"feature_fit_worse": worse}, _FIT_CHECK_SPEC, label)
         if len(worse) not in (0, len(a["names"])):
@@ -170,8 +172,19 @@ class Correspondence:
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
             refinement=refinement, refinement_trace=trace, between_shares=shares,
-            feature_fit_worse=worse,
+            feature_fit_worse=worse, plain_shares=plain,
         )
+
+
+def _optional_shares(a: dict, key: str, label: str) -> np.ndarray:
+    """An optional per-shape share array of a correspondence file (`between_shares`,
+    `plain_shares`): empty when absent; else one share in [0, 1] per shape."""
+    shares = np.asarray(a[key]) if key in a else np.zeros(0)
+    validate_arrays({key: shares}, {key: ArraySpec("f", ("S",))}, label)
+    if len(shares) not in (0, len(a["names"])) or not np.all((shares >= 0) & (shares <= 1)):
+        raise ModelFileError(f"{label}: {key} must be empty or one share in [0, 1] per shape "
+                             f"({len(a['names'])}), got {len(shares)} values")
+    return shares
 
 
 def _json(settings) -> str:
@@ -198,7 +211,5 @@ CORRESPONDENCE_SPEC = {
 
 #: the optional refinement record (files before issue 13 lack it)
 _REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}
-#: the optional shares of feature_between (files before it lack them)
-_SHARES_SPEC = {"between_shares": ArraySpec("f", ("S",))}
 #: the optional outcome of the feature-match fit check (files before it lack it)
 _FIT_CHECK_SPEC = {"feature_fit_worse": ArraySpec("b", ("S",))}

@@ -130,6 +130,14 @@ class CorrespondenceSettings(Settings):
         1.885 → 1.852 and 2.056 → 2.024; PPCA held-out log-likelihood higher and completion
         lower on all four; PSB label transfer within 0.3 points. 10 of 3 / 4.5 / 6 / 10 /
         15 / 25 (procedural 1.194 / 1.170 / 1.149 / 1.135 / 1.137 / 1.150 %).
+      feature_merged_regions: with feature matches, after the first round, the template
+        points of two regions facing opposite ways (turning.facing_regions) whose matches
+        land in one region of a shape are matched on that shape by position and normal
+        only, without the up feature and the positions between turning lines
+        (features.merged_regions): a vase whose lip is narrower than its neck faces up
+        from belly to rim, where the template's neck splits that wall into one facing up
+        and one facing down, and matching sides there drags the template's neck onto the
+        shape's rim. Files written before it record False.
       feature_samples: area-uniform surface samples of the target per template point;
         they choose the face a match lies on (the match is the closest point of that
         face, and the final placement is the exact closest surface point as always).
@@ -231,7 +239,7 @@ class CorrespondenceSettings(Settings):
     #: files written before these fields existed ran with these values (settings.Settings);
     #: not annotated: a class attribute, not a field
     FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0,
-                          "feature_fit_check": False, "feature_tilt": 1.0}
+                          "feature_fit_check": False, "feature_tilt": 1.0, "feature_merged_regions": False}
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
@@ -255,6 +263,9 @@ class CorrespondenceSettings(Settings):
                                     "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
     feature_trim: float = option(10.0, "features: matches farther than this many times the median match distance "
                                  "are dropped in that iteration (0: none)", minimum=0)
+    feature_merged_regions: bool = option(True, "features: template points whose region merges with one facing "
+                                                "the other way on a shape are matched there by position and normal "
+                                                "only, from the groupwise round on")
     feature_samples: int = option(20, "features: target surface samples per template point", minimum=1)
     feature_fit_check: bool = option(True, "features: the first round also registers every shape by closest points; "
                                      "a collection feature matches fit badly is matched by closest points")

@@ -46,7 +46,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-__all__ = ["position_between_turning_lines"]
+__all__ = ["position_between_turning_lines", "facing_regions"]
 
 #: g of points in regions without a turning line (and of isolated points)
 NO_LINE = 0.5
@@ -67,26 +67,15 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
     (degrees) are cut. min_line_share: a turning line needs at least this share of its
     region's line points (and 3 points); smaller pieces are noise of a near-vertical wall."""
     points = np.asarray(points, dtype=np.float64)
-    unit = np.asarray(normals, dtype=np.float64)
-    unit = unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-300)
     count = len(points)
     position = np.full(count, NO_LINE)
-    k = min(neighbours, count - 1)
-    if k < 1:
+    if min(neighbours, count - 1) < 1:
         return position
-    distance, nearest = cKDTree(points).query(points, k + 1)
-    i, j, d = np.repeat(np.arange(count), k), nearest[:, 1:].ravel(), distance[:, 1:].ravel()
-    keep = np.einsum("ij,ij->i", unit[i], unit[j]) >= np.cos(np.radians(max_angle))
-    i, j, d = i[keep], j[keep], d[keep]
-    faces_up = unit[:, 2] > 0
-    same_side = faces_up[i] == faces_up[j]
+    unit, graph, region, (i, j, d, same_side, length) = _facing_graph(points, normals, neighbours, max_angle)
     on_line = np.zeros(count, dtype=bool)
     on_line[i[~same_side]] = on_line[j[~same_side]] = True
-    length = np.abs(points[i, 2] - points[j, 2]) + LENGTH_SHARE * d
-    graph = coo_matrix((length[same_side], (i[same_side], j[same_side])), shape=(count, count)).tocsr()
-    graph = graph.maximum(graph.T)
+    faces_up = unit[:, 2] > 0
     start = _distance_to_crossing(unit[:, 2], i[~same_side], j[~same_side], length[~same_side])
-    _, region = connected_components(graph, directed=False)
     line = _line_pieces(points, on_line, faces_up, 3 * float(np.median(d)) if len(d) else 0.0)
     low_lines, high_lines, one_line, two_lines = [], [], [], []
     for members in _groups(region):
@@ -116,6 +105,41 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
             reached = np.isfinite(lo) & np.isfinite(hi) & (lo + hi > 0)
             position[members[reached]] = lo[reached] / (lo[reached] + hi[reached])
     return position
+
+
+def facing_regions(points: np.ndarray, normals: np.ndarray, neighbours: int = 8,
+                   max_angle: float = MAX_ANGLE) -> np.ndarray:
+    """(n,) a label per point: its region, a connected part of the surface facing one way
+    (up or down), bounded by turning lines and by creases (graph edges between points whose
+    normals differ by more than `max_angle` degrees are cut): the regions whose positions
+    `position_between_turning_lines` measures. Labels are arbitrary integers; an isolated
+    point is a region of its own."""
+    points = np.asarray(points, dtype=np.float64)
+    if min(neighbours, len(points) - 1) < 1:
+        return np.arange(len(points))
+    return _facing_graph(points, normals, neighbours, max_angle)[2]
+
+
+def _facing_graph(points: np.ndarray, normals: np.ndarray, neighbours: int, max_angle: float):
+    """The k-nearest-neighbour graph of the module docstring: (unit normals, the graph of
+    edges between points facing the same way with their path lengths, the region label of
+    every point, and the kept edges (i, j, their lengths d, whether they join points facing
+    the same way, their path lengths)). Needs at least 2 points."""
+    unit = np.asarray(normals, dtype=np.float64)
+    unit = unit / np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-300)
+    count = len(points)
+    k = min(neighbours, count - 1)
+    distance, nearest = cKDTree(points).query(points, k + 1)
+    i, j, d = np.repeat(np.arange(count), k), nearest[:, 1:].ravel(), distance[:, 1:].ravel()
+    keep = np.einsum("ij,ij->i", unit[i], unit[j]) >= np.cos(np.radians(max_angle))
+    i, j, d = i[keep], j[keep], d[keep]
+    faces_up = unit[:, 2] > 0
+    same_side = faces_up[i] == faces_up[j]
+    length = np.abs(points[i, 2] - points[j, 2]) + LENGTH_SHARE * d
+    graph = coo_matrix((length[same_side], (i[same_side], j[same_side])), shape=(count, count)).tocsr()
+    graph = graph.maximum(graph.T)
+    _, region = connected_components(graph, directed=False)
+    return unit, graph, region, (i, j, d, same_side, length)
 
 
 def _distance_to_crossing(up: np.ndarray, i: np.ndarray, j: np.ndarray, length: np.ndarray) -> np.ndarray:
