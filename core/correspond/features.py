@@ -31,6 +31,11 @@ the final placement is the exact closest surface point as before (registration.p
 An iteration drops the matches farther than `feature_trim` × the median match distance
 (`kept_matches`): a part of the template with no counterpart on the target follows its
 neighbours instead of being dragged to the nearest surface facing its way.
+From the groupwise round on, template regions facing opposite ways whose first-round
+matches land in one region of a shape (`merged_regions`, turning.facing_regions) are
+compared on that shape by position and normal only (`FeatureMatcher.forward` /
+`backward` with `plain`): there up and down, and the positions between turning lines, name
+different parts on the two (a vase whose lip is narrower than its neck).
 
 With `feature_between` > 0 a fifth feature, w_b · g, compares where a point lies between
 the turning lines of its region (turning.py), from the groupwise round on. The first round
