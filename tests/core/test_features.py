@@ -235,10 +235,7 @@ def test_correspondence_files_record_each_shapes_share_of_the_positions(tmp_path
     arrays = result.to_arrays()
     del arrays["between_shares"]  # a file written before the shares
     assert Correspondence.from_arrays(arrays, "old").between_shares.shape == (0,)
-    for wrong in (np.full(2, 0.5), np.array([0.5, 1.5, 0.0]), np.array([0.5, np.nan, 0.0])):
-        arrays["between_shares"] = wrong
-        with pytest.raises(ModelFileError, match="between_shares"):
-            Correspondence.from_arrays(arrays, "bad")
+    _refused(arrays, "between_shares", (np.full(2, 0.5), np.array([0.5, 1.5, 0.0]), np.array([0.5, np.nan, 0.0])))
 
 
 def test_agreement_weights_give_the_full_weight_to_agreement_and_none_to_unrelated_lines():
@@ -355,14 +352,8 @@ def test_files_before_the_fit_check_load_and_bad_records_are_refused():
     del arrays["feature_fit_worse"]
     old = Correspondence.from_arrays(arrays, "old")
     assert old.feature_fit_worse.shape == (0,) and old.feature_matches_ran
-    for wrong in (np.zeros(2, bool), np.zeros(3)):
-        arrays["feature_fit_worse"] = wrong
-        with pytest.raises(ModelFileError, match="feature_fit_worse"):
-            Correspondence.from_arrays(arrays, "bad")
-    recorded = CorrespondenceSettings(matching="features").as_dict()
-    del recorded["feature_fit_check"]  # a file written before the check ran without it
-    assert not recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))},
-                                 "old.npz").feature_fit_check
+    _refused(arrays, "feature_fit_worse", (np.zeros(2, bool), np.zeros(3)))
+    assert not _recorded_without("feature_fit_check").feature_fit_check  # a file written before ran without it
 
 
 def test_merged_regions_mark_template_regions_facing_opposite_ways_that_land_in_one():
@@ -441,14 +432,23 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     arrays = checked.to_arrays()
     del arrays["plain_shares"]  # a file written before the check
     assert Correspondence.from_arrays(arrays, "old").plain_shares.shape == (0,)
-    for wrong in (np.full(5, 0.5), np.r_[np.zeros(5), 1.5]):
-        arrays["plain_shares"] = wrong
-        with pytest.raises(ModelFileError, match="plain_shares"):
+    _refused(arrays, "plain_shares", (np.full(5, 0.5), np.r_[np.zeros(5), 1.5]))
+    assert not _recorded_without("feature_merged_regions").feature_merged_regions  # files before ran without it
+
+
+def _refused(arrays: dict, key: str, wrong_values) -> None:
+    """Each of `wrong_values` in place of a correspondence file's `key` is refused, naming it."""
+    for wrong in wrong_values:
+        arrays[key] = wrong
+        with pytest.raises(ModelFileError, match=key):
             Correspondence.from_arrays(arrays, "bad")
+
+
+def _recorded_without(field: str) -> CorrespondenceSettings:
+    """The settings a file records when it was written before `field` existed."""
     recorded = CorrespondenceSettings(matching="features").as_dict()
-    del recorded["feature_merged_regions"]  # a file written before the check ran without it
-    assert not recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))},
-                                 "old.npz").feature_merged_regions
+    del recorded[field]
+    return recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))}, "old.npz")
 
 
 def _shape_error(shapes, prepared, result, m: int) -> float:
