@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 from ..geometry import TargetSurface, closest_points_on_triangles, nearest_facing_alike
 from ..mesh import Mesh
 from .settings import CorrespondenceSettings
-from .turning import MAX_ANGLE, NO_LINE, facing_regions, position_between_turning_lines
+from .turning import MAX_ANGLE, NO_LINE, facing_regions, position_between_turning_lines, positions_and_regions
 
 __all__ = ["point_features", "uses_between", "carry_positions", "uses_features", "agreement_weights",
            "checks_fit", "worse_fits", "keeps_features", "kept_matches", "checks_regions", "merged_regions",
@@ -218,6 +218,15 @@ def carry_positions(between: np.ndarray, points: np.ndarray, normals: np.ndarray
     return np.where(np.isfinite(distance), np.asarray(between)[index], NO_LINE)
 
 
+def _turning_structure(points: np.ndarray, normals: np.ndarray, between: bool, regions: bool):
+    """(positions between turning lines or None, facing regions or None) of the points, as
+    asked, from one graph when both are (turning.py)."""
+    if between and regions:
+        return positions_and_regions(points, normals)
+    return (position_between_turning_lines(points, normals) if between else None,
+            facing_regions(points, normals) if regions else None)
+
+
 class FeatureMatcher:
     """One target's side of the feature-aware data term: its surface samples and
     landmarks in the joint space of position and features (module docstring).
@@ -239,9 +248,8 @@ class FeatureMatcher:
             self.sample_normals = np.vstack([np.asarray(target_landmark_normals, dtype=np.float64), sample_normals])
         else:  # landmarks without normals: zero normal features, the nearest sample's position between lines
             self.sample_points, self.sample_faces, self.sample_normals = samples.points, samples.face_index, sample_normals
-        self.between = (position_between_turning_lines(self.sample_points, self.sample_normals)
-                        if uses_between(settings) else None)
-        self.regions = facing_regions(self.sample_points, self.sample_normals) if checks_regions(settings) else None
+        self.between, self.regions = _turning_structure(self.sample_points, self.sample_normals,
+                                                        uses_between(settings), checks_regions(settings))
         self._plain_tree = None
         compared = self.between if with_between else None
         self.sample_features = point_features(self.sample_normals, settings, compared)

@@ -46,7 +46,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
-__all__ = ["position_between_turning_lines", "facing_regions"]
+__all__ = ["position_between_turning_lines", "facing_regions", "positions_and_regions"]
 
 #: g of points in regions without a turning line (and of isolated points)
 NO_LINE = 0.5
@@ -66,11 +66,19 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
     neighbours: k of the graph. max_angle: edges between points whose normals differ by more
     (degrees) are cut. min_line_share: a turning line needs at least this share of its
     region's line points (and 3 points); smaller pieces are noise of a near-vertical wall."""
+    return positions_and_regions(points, normals, neighbours, max_angle, min_line_share)[0]
+
+
+def positions_and_regions(points: np.ndarray, normals: np.ndarray, neighbours: int = 8,
+                          max_angle: float = MAX_ANGLE, min_line_share: float = 0.02
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """`position_between_turning_lines` and `facing_regions` of the same points from one
+    graph: (g (n,), region labels (n,))."""
     points = np.asarray(points, dtype=np.float64)
     count = len(points)
     position = np.full(count, NO_LINE)
     if min(neighbours, count - 1) < 1:
-        return position
+        return position, np.arange(count)
     unit, graph, region, (i, j, d, same_side, length) = _facing_graph(points, normals, neighbours, max_angle)
     on_line = np.zeros(count, dtype=bool)
     on_line[i[~same_side]] = on_line[j[~same_side]] = True
@@ -90,7 +98,7 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
             two_lines.append(members)
             high_lines.append(ends[-1])
     if not low_lines:
-        return position
+        return position, region
     # regions are separate components of the graph, so one search serves all their lines
     low = _distance_from(graph, np.concatenate(low_lines), start)
     for members in one_line:
@@ -104,7 +112,7 @@ def position_between_turning_lines(points: np.ndarray, normals: np.ndarray, neig
             lo, hi = low[members], high[members]
             reached = np.isfinite(lo) & np.isfinite(hi) & (lo + hi > 0)
             position[members[reached]] = lo[reached] / (lo[reached] + hi[reached])
-    return position
+    return position, region
 
 
 def facing_regions(points: np.ndarray, normals: np.ndarray, neighbours: int = 8,
