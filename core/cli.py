@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from .cli_common import (add_keep_pose_option, add_settings_options, console_progress, correspond_on_console,
+from .cli_common import (turned_on_console, add_keep_pose_option, add_settings_options, console_progress, correspond_on_console,
                          flag_of, given_options, positive_int, prepare_source, read_source, settings_from_args)
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
@@ -29,6 +29,8 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     with SpillStore() as spill:  # dense meshes on disk until the file is written (core/spill.py)
         source = read_source(args.directory, args, accepts=("folder",), spill=spill)
         prepared = prepare_source(source)
+        if args.turn_flagged is not None:
+            prepared = turned_on_console(prepared, args.turn_flagged)
         prepared.save(args.output)
     counts = [len(l) for l in prepared.landmarks]
     print(
@@ -124,6 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
+    p.add_argument("--turn-flagged", nargs="*", metavar="NAME", default=None,
+                   help="turn the shapes Prepare flagged (all of them, or those named) as their flags suggest; "
+                        "Prepare itself never turns a shape over on doubtful evidence")
     p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser("correspond", help="dense corresponding landmarks by non-rigid ICP (folder or prepared .npz)")

@@ -9,11 +9,11 @@ import sys
 import types
 from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
-from typing import Union, get_args, get_origin, get_type_hints
+from typing import Sequence, Union, get_args, get_origin, get_type_hints
 
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
-from .errors import ShapeGenError
+from .errors import CollectionError, ShapeGenError
 from .io import read_folder
 from .mesh import Mesh
 from .npzfile import read_format
@@ -22,7 +22,7 @@ from .settings import SettingsError
 from .spill import SpillStore
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
-           "settings_from_args", "add_keep_pose_option", "read_source", "prepare_source", "pose_lines",
+           "settings_from_args", "add_keep_pose_option", "turned_on_console", "read_source", "prepare_source", "pose_lines",
            "correspond_on_console", "console_progress"]
 
 
@@ -181,6 +181,22 @@ def prepare_source(source: Source) -> PreparedCollection:
         for line in pose_lines(source.prepared):
             print(line, file=sys.stderr)
     return source.prepared
+
+
+def turned_on_console(prepared: PreparedCollection, names: Sequence[str]) -> PreparedCollection:
+    """`PreparedCollection.turn_flagged` for --turn-flagged (no names: every flagged shape),
+    one line per turned shape on stderr; a named shape without a suggested turn is an error."""
+    unturnable = [name for name in names if name in prepared.names and name not in prepared.flagged()]
+    if unturnable:
+        raise CommandError(f"--turn-flagged: {', '.join(unturnable)} not flagged with a turn to make")
+    try:
+        turned = prepared.turn_flagged(names or None)
+    except CollectionError as exc:
+        raise CommandError(f"--turn-flagged: {exc}") from None
+    for before, after in zip(prepared.shapes, turned.shapes):
+        if after.pose_change != before.pose_change:
+            print(f"{after.name}: {after.pose_change}", file=sys.stderr)
+    return turned
 
 
 def pose_lines(prepared: PreparedCollection) -> list[str]:

@@ -23,6 +23,7 @@ from . import meshset
 from .mesh import Mesh
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
+from .preprocess.prepare import turn_as_flagged
 from .progress import CancelCheck, Progress, sub_range
 from .settings import Settings, option, recorded_settings
 from .spill import REGISTRATION_PROXY, StoredMesh, loaded
@@ -69,6 +70,10 @@ _POSE_SPEC = {
     "pose_outlier": ArraySpec("U", ("M",)),
 }
 
+#: The turn each flag suggests (identity: none); files written before Turn Flagged have
+#: none (read as no suggestion).
+_FLAG_SPEC = {"flag_turn": ArraySpec("f", ("M", 3, 3))}
+
 
 @dataclass
 class PreparedCollection:
@@ -90,6 +95,28 @@ class PreparedCollection:
         """What Prepare did to the poses, one line per turned or flagged shape (`pose_notes`)."""
         return pose_notes(self.names, [s.pose_change for s in self.shapes], [s.pose_outlier for s in self.shapes])
 
+    def flagged(self) -> list[str]:
+        """Names of the shapes whose flag suggests a turn (what Turn Flagged turns)."""
+        return [s.name for s in self.shapes if s.flag_turn is not None]
+
+    def turn_flagged(self, names: Sequence[str] | None = None) -> "PreparedCollection":
+        """A copy with the named flagged shapes (None: every one) turned as their flags
+        suggest (`preprocess.turn_as_flagged`), their landmarks carried along; the user's
+        answer to a flag, the one way Prepare's doubt becomes a turn (issue 30)."""
+        wanted = set(self.flagged() if names is None else names)
+        unknown = wanted - set(self.names)
+        if unknown:
+            raise CollectionError(f"no shape named {', '.join(sorted(unknown))} in this collection")
+        centre = self.settings.centre if self.settings is not None else "centroid"
+        shapes, landmarks = [], []
+        for shape, marks in zip(self.shapes, self.landmarks):
+            if shape.name in wanted and shape.flag_turn is not None:
+                shape, step = turn_as_flagged(shape, centre)
+                marks = Landmarks(step.to_normalised(marks.points), marks.face_index, marks.barycentric, marks.radius)
+            shapes.append(shape)
+            landmarks.append(marks)
+        return PreparedCollection(shapes, landmarks, self.settings)
+
     def landmarks_input(self, index: int) -> np.ndarray:
         """Landmarks of shape `index` in that input mesh's own coordinates."""
         return self.shapes[index].transform.to_input(self.landmarks[index].points)
@@ -106,6 +133,7 @@ class PreparedCollection:
             "pose_change": np.asarray([s.pose_change for s in self.shapes], dtype=str),
             "pose_rotation": np.stack([s.pose_rotation for s in self.shapes]),
             "pose_outlier": np.asarray([s.pose_outlier for s in self.shapes], dtype=str),
+            "flag_turn": np.stack([np.eye(3) if s.flag_turn is None else s.flag_turn for s in self.shapes]),
             "landmarks": np.concatenate([l.points for l in self.landmarks]),
             "landmark_faces": np.concatenate([l.face_index for l in self.landmarks]),
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
@@ -127,6 +155,11 @@ class PreparedCollection:
         else:
             pose = {"pose_change": np.full(m, ""), "pose_rotation": np.tile(np.eye(3), (m, 1, 1)),
                     "pose_outlier": np.full(m, "")}
+        turns = a["flag_turn"] if "flag_turn" in a else np.tile(np.eye(3), (m, 1, 1))
+        if "flag_turn" in a:
+            validate_arrays(a, _SPEC | _FLAG_SPEC, str(path))
+            if not np.all(np.isfinite(turns)) or not np.allclose(turns @ np.swapaxes(turns, 1, 2), np.eye(3), atol=1e-6):
+                raise ModelFileError(f"{path}: array 'flag_turn' holds a matrix that is not a rotation")
         lo = a["landmark_offsets"]
         if len(lo) != m + 1 or lo[0] != 0 or lo[-1] != len(a["landmarks"]) or np.any(np.diff(lo) < 0):
             raise ModelFileError(f"{path}: array 'landmark_offsets' is inconsistent with the data it indexes")
@@ -138,8 +171,9 @@ class PreparedCollection:
                 transform = ShapeTransform.from_matrix(a["transforms"][i])
             except ValueError as exc:
                 raise ModelFileError(f"{path}: shape {name!r} is invalid: {exc}") from None
+            turn = None if np.allclose(turns[i], np.eye(3)) else turns[i]
             shapes.append(PreparedShape(mesh, transform, bool(a["orientation_changed"][i]), pose["pose_rotation"][i],
-                                        str(pose["pose_change"][i]), str(pose["pose_outlier"][i])))
+                                        str(pose["pose_change"][i]), str(pose["pose_outlier"][i]), turn))
             sl = slice(lo[i], lo[i + 1])
             faces = a["landmark_faces"][sl]
             if faces.size and (faces.min() < 0 or faces.max() >= mesh.n_faces):

@@ -13,7 +13,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["chamfer_distance", "chamfer_matrix"]
+__all__ = ["chamfer_distance", "chamfer_distances", "chamfer_matrix"]
 
 
 def chamfer_distance(a, b, rotation: np.ndarray | None = None,
@@ -34,6 +34,16 @@ def chamfer_distance(a, b, rotation: np.ndarray | None = None,
         a_to_b, _ = tree_b.query(a @ rotation.T)
         b_to_a, _ = tree_a.query(b @ rotation)
     return float(np.mean(a_to_b**2) + np.mean(b_to_a**2))
+
+
+def chamfer_distances(a: np.ndarray, b: np.ndarray, rotations: np.ndarray, tree_a: cKDTree,
+                      tree_b: cKDTree) -> np.ndarray:
+    """C(R A, B) for each rotation R of `rotations` (k, 3, 3), (k,): `chamfer_distance` with
+    one query of each tree for all the rotations."""
+    k = len(rotations)
+    a_to_b, _ = tree_b.query(np.einsum("kij,nj->kni", rotations, a).reshape(-1, 3))
+    b_to_a, _ = tree_a.query(np.einsum("kji,nj->kni", rotations, b).reshape(-1, 3))
+    return (a_to_b ** 2).reshape(k, -1).mean(axis=1) + (b_to_a ** 2).reshape(k, -1).mean(axis=1)
 
 
 def chamfer_matrix(point_sets: Sequence[np.ndarray]) -> np.ndarray:

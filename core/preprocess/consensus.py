@@ -1,123 +1,83 @@
 """Consensus orientation of a collection (thesis §3.4; step 3 of `prepare_collection`):
-a shape's pose changes only on evidence much stronger than sampling noise that the
-collection disagrees with it.
+a policy a user can predict. The given up axis and every shape's pose as given are
+trusted; Prepare turns a shape only
 
-Every shape starts in its base pose, its input pose with the given up axis turned to +z
-(no yaw: when the inputs already agree, nobody is turned, rotation exactly identity).
-Three stages decide:
+(a) by a file-convention turn: its own up is clearly another axis of its file (a quarter
+    turn about x or y; a half turn when its top and bottom are clearly the other way
+    round), or
+(b) about the up axis, to line its facing up with the collection's where the shapes
+    evidently face different ways,
 
-0. Up by symmetry (`up_by_symmetry`, `symmetry.AxisSymmetry`): the symmetries the
-   collection's shapes share about their up axes (rotational about up, mirror across
-   planes through or across it) are its up profile; a shape stands on its x or y axis,
-   or on a direction tilted 20-60° from its up, when that axis scores clearly more like
-   the profile than its up does (by `symmetry_gap` and the factor `symmetry_ratio`),
-   and its nearest shapes whose up already scores best fit it no worse that way. This
-   needs no nearest shape in the right pose: PSB cups lying on their side together (26,
-   27, 29) and teapots written z-up (367, 379) are stood up, a cup tilted in its file
-   (36) straightened. Calibration (bench/orientation.py): consistent procedural vases
-   and barrels and Blender mugs score their up at most 1.6 and other axes at least 2;
-   PSB cups on their side their up 1.8-2.3 and their own axis 0.5-1.5.
-A. Chamfer cost (`posesearch.PoseSearch`): a shape is turned when the best rotation (24
-   axis rotations, any turn about z) fits its nearest shapes more than `margin` times
-   better than its pose, f(I) / f(R) > margin, on average and for most of them one by
-   one; a change of the up direction must also beat the best upright pose by
-   `tilt_margin` and score no worse by symmetry (`AxisSymmetry.allows_tilt`: PSB bowls
-   among jugs fit them 2-4× better on their side, but their up is their axis of
-   symmetry). Calibration (600 samples, 3 neighbours): over upright procedural vases and
-   barrels at many seeds the ratio of a consistent shape stays below 1.07 (1.14 for a
-   single pair); a vase upside down or any shape on its side scores 1.6 to 10. The
-   Chamfer cost hardly sees a spout or a knob (a vase turned 180° about z: ratio
-   1.00-1.05), hence stage B.
-B. Signatures (`signature.Signatures`, exact odd surface moments): a shape is flipped
-   when its top-bottom signature anti-correlates with its nearest shapes' (correlation
-   < −`up_agreement`), and turned about z by the angle its facing signature differs by,
-   when the facing is shared (coherence > `coherence`) and the angle exceeds
-   `facing_angle` (`refine_angle` for a shape turned anyway). Calibration: consistent
-   vases and barrels differ in facing from their nearest shapes by up to 16° (coarse
-   vases, 20 seeds; coherence ≥ 0.95, top-bottom correlation ≥ 0.95); flipped ones
-   score ≤ −0.95, and a 37° turn is measured as 35-39°. The signatures decide only what
-   the cost cannot see: a turn they ask for is made only if it raises the cost by at
-   most `tolerance` (on PSB fish the top-bottom signature alone flipped upright fish).
-   Hollows (`hollow.Hollows`, inside/outside aware): a shape whose hollow opens the other
-   way up from every nearest shape's (each by more than `hollow_floor`) is flipped, unless
-   the flip costs more than `hollow_cost` times its pose (then `pose_outliers` flags it):
-   upside down, a mug tapering the other way looks like its upright neighbours to the
-   cost and the odd moments; only its open top and closed bottom tell.
+each on evidence that holds over the collection, never on a feature that itself varies
+across the class. A shape that may be upside down, on its side or facing away, but not
+clearly so, is flagged with its reason and a suggested turn (`PoseDecision.flag`,
+`flag_rotation`) and left as given; the user turns it with Turn Flagged
+(`collection.PreparedCollection.turn_flagged`). Kept shapes (`keep`) are never turned,
+only flagged.
 
-   Unshared facing (beyond the thesis, issue 13): inputs turned about up at random share
-   no facing for the majority to keep. When at most `shared_facing` of stage B's votes
-   agree (chance level for random turns: 1/6 of the pairs within ±30°; measured 0.09-0.27
-   on procedural vases and barrels in random poses, 0.52-1.0 on the PSB classes), the
-   medoid alone keeps its pose and every other shape is turned by the facing difference
-   its signature measures above `unshared_angle`, not `facing_angle`: shapes that happened
-   to lie within 30° of each other kept those differences (6 procedural vases, seed 1:
-   true turns 0, 6.8 and 15.8° apart, a rigid turn the correspondence then keeps; the
-   Chamfer cost is flat in yaw there, within 1-2 % over ±30°). The facing signature of
-   these vases, exact moments, measures their turn to 0.01°.
+Evidence over the collection (`CollectionEvidence`): every shape is compared with its
+`references` most similar shapes (all the others in a collection of up to
+`references` + 1), not with its three nearest: for each pair, the Chamfer cost of the
+shape standing on each of its six axis directions (its best turn about up on a 30° grid,
+coarse samples) against the other in its pose.
 
-   Unshared pose (the same for stage A; beyond the thesis): when at most `shared_pose` of
-   the Chamfer votes agree (PSB classes as filed 0.77-1.0; every file of PSB Airplane or
-   Fish turned about up at random 0.09-0.33), no input pose is shared. The search then
-   compares shapes at any turn about up (`PoseSearch.compare_turned`: at the 24 axis
-   rotations alone the nearest shapes of a turned airplane are chance ones, and fitted to
-   chance shapes 2-4 of 20 took a wrong turn, half a turn where the Chamfer cost of the
-   right shapes tells it 2-10× apart), the medoid keeps its pose, and every other shape,
-   nearest to the settled ones first, takes the rotation that fits its nearest settled
-   shapes best when it fits them `unshared_margin` times better; a shape settled so,
-   turned or not, is a reference for the next ones (no input pose is more to trust).
-   Near-round shapes (PSB cups and vases, procedural vases) fit each other as well at
-   any turn, agree in stage A whatever their turns, and are left to stage B.
+1. Up (`up_lines`): the shapes whose up line (z) fits most of their references best are
+   the upright majority. A shape outside it is stood on another axis of its file only
+   when at least `agreement` of its upright references fit it better standing on that
+   same axis line (by `margin`), the median improvement is at least `margin`, and
+   the new up has no worse symmetry than its own (`symmetry.AxisSymmetry`: a bowl
+   among jugs fits them better on its side, but its up is its axis of symmetry). Which
+   end of that line is up follows the costs when they tell the two ends apart by
+   `flip_margin`, else the other common file convention (a y-up file among z-up ones
+   stands on its +y; a z-up file among y-up ones on its +z); step 2 then checks it like
+   every shape. Weaker evidence (median improvement above `margin`): flagged "may be on
+   its side".
+2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
+   agrees on top and bottom and the shape clearly does not:
+   - its hollow (`hollow.Hollows`) opens the other way up from at least `agreement` of
+     the shapes whose hollows tell (at least three), and turning it costs at most
+     `hollow_cost` times its pose; or
+   - at least `agreement` of its references fit it better turned over (by `margin`), by
+     `flip_margin` at the median, while the collection's shapes agree with each other
+     (the median shape is asked to turn over by at most 1 − `agreement` of its
+     references). A taper, bulge or lean that varies across the class makes shapes ask
+     each other to turn over; then the costs decide nothing.
+   Weaker evidence is a flag "may be upside down": its hollow alone (the cost objecting),
+   its odd-moment signature (`signature.Signatures`: its top and bottom match the bottom
+   and top of at least `agreement` of its references, the collection's shapes agreeing
+   with each other), or at least half of its references asking for it by `margin`, 0.4
+   more than the collection's median shape does.
+3. Facing (`facings`): turns about up only, by the Chamfer cost (any turn about up fits
+   its nearest settled shapes `margin` times better) and by the facing signature
+   (`signature.Signatures`, exact odd moments: a shared facing differing by more than
+   `facing_angle`), with `_settle`'s majority: the poses most shapes share are the
+   collection's and are never changed. Inputs turned about up at random share no
+   facing (at most `shared_facing` of the votes agree): one shape's facing is then the
+   collection's, and the others are turned to it (beyond the thesis, issue 13).
+4. Last, a shape fitting its nearest shapes `outlier_factor` times worse than the median
+   shape does is flagged (an unusual shape, or a pose no turn fixes).
 
-Stages A and B each take the same three steps (`_settle`):
-
-1. Votes: every shape not turned by an earlier stage against each of its `neighbours`
-   nearest such shapes (smallest cost over the 24 axis rotations). The pair agrees when
-   the stage would not turn one to match the other.
-2. The collection's pose: shapes agreeing with more than half of their neighbours form
-   groups (connected by agreeing pairs); the largest group is the majority, whose poses
-   are the collection's (nobody in it is ever turned). Without any agreeing shape the
-   medoid is the majority of one, as it is in stage B when the facing is unshared
-   (above). A turned shape has no vote and is in no majority (it has no input pose to
-   keep).
-3. Everyone else, closest to the majority first, is decided against its nearest shapes
-   already settled and not turned (a turned shape's pose is a guess), then settled.
-   `keep` shapes are never turned and are no reference unless they are in the majority.
-
-Last, the pose check (`pose_checks`, the one `pose_outliers` flags with) of the settled
-poses against every shape's nearest shapes in their final poses: a shape not kept that a
-rotation fits them `margin` times better, or whose facing they share, is turned
-(`restore_flagged`). The stages decide a shape against references settled before it,
-and a shape in a wrong pose can be one: PSB cup 31 faces away from the cups (a weakly
-shared facing) but agreed with two neighbours one by one, so it kept its pose, and cup
-26, stood up by symmetry, took its facing from it; in their final poses both fit their
-nearest shapes 1.3× and 2.1× better turned 180°.
-
-Each pose change comes with its reason ("turned 180° about x: its 3 nearest shapes
-(a, b, c) fit 2.4× better"); a shape turned and turned back (to within 1°) keeps its
-input pose. Known limit: a group of shapes sharing one wrong facing that is as large as
-the majority, or that only has itself as nearest shapes, keeps that facing;
-`pose_outliers` flags shapes whose final pose still disagrees with their nearest shapes
-or the collection's up by symmetry, or fits them much worse than the collection's median.
+Each turn comes with its reason ("turned 90° about x: 9 of 10 shapes fit it 4.2× better
+standing on its y axis (a file-convention turn)"); each flag with its reason and the
+turn that would put it right.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..progress import Progress, no_progress, sub_range
 from .hollow import Hollows
-from .posesearch import Fit, NearestInPool, PoseSearch
-from .rotations import describe_rotation, yaw_rotation
+from .posesearch import NearestInPool, PoseSearch
+from .rotations import TILTS, describe_rotation, up_rotation, yaw_rotation
 from .signature import Signatures
 from .symmetry import AxisSymmetry
 
-__all__ = ["ConsensusSettings", "PoseCheck", "PoseDecision", "consensus_rotations", "pose_checks", "pose_outliers",
-           "restore_flagged"]
+__all__ = ["ConsensusSettings", "PoseDecision", "CollectionEvidence", "consensus_rotations", "convention_up"]
 
 
 @dataclass(frozen=True)
@@ -126,304 +86,377 @@ class ConsensusSettings:
 
     #: surface samples per shape for the Chamfer costs
     points: int = 600
-    #: nearest shapes a shape is compared with
-    neighbours: int = 3
-    #: cost ratio (base pose / best rotation) above which a pose is changed or flagged
+    #: shapes each shape is compared with for a turn of its up or its ends (all others
+    #: in a smaller collection)
+    references: int = 10
+    #: share of the references that must ask for a turn of up or ends
+    agreement: float = 0.8
+    #: cost ratio (its pose / the turned pose) a reference's vote for a turn needs
     margin: float = 1.5
-    #: cost ratio (best upright pose / best pose) above which the up direction is changed
-    tilt_margin: float = 2.5
+    #: median cost ratio a turn-over by the costs alone needs (and that tells the ends of
+    #: a shape stood on another axis apart)
+    flip_margin: float = 3.0
+    #: nearest settled shapes a shape's facing is compared with (step 3)
+    neighbours: int = 3
     #: grid step of the turn about z, degrees
     yaw_step: float = 15.0
-    #: up directions whose turns about z are searched on the grid
-    tilts: int = 2
     #: relative cost within which an exact axis rotation beats a refined turn
     snap: float = 0.03
-    #: relative Chamfer cost increase a turn by the signatures may cost at most
+    #: relative Chamfer cost increase a turn by the facing signature may cost at most
     tolerance: float = 0.1
-    #: signature coherence above which top/bottom and facing are compared (0..1)
+    #: signature coherence above which facings are compared (0..1)
     coherence: float = 0.5
-    #: top-bottom signature correlation below minus this flips a shape (0..1)
-    up_agreement: float = 0.9
     #: facing difference (degrees) above which a shape is turned about z
     facing_angle: float = 30.0
-    #: the same for a shape turned anyway (the signature's facing refines the cost's turn)
-    refine_angle: float = 5.0
-    #: share of the facing votes (pairs of nearest shapes whose facings agree to
-    #: `facing_angle`) at or below which the collection shares no input facing (random
-    #: turns about up agree by chance, 1/6 of the pairs: 0.09-0.27 measured on procedural
-    #: vases and barrels; PSB classes 0.52-1.0)
+    #: share of the facing votes at or below which the collection shares no input facing
     shared_facing: float = 0.4
-    #: facing difference (degrees) above which a shape is turned when the collection
-    #: shares no input facing (the facing of one shape is the collection's, to this angle)
+    #: facing difference (degrees) above which a shape is turned when no facing is shared
     unshared_angle: float = 0.5
-    #: share of the Chamfer votes (pairs of nearest shapes that fit each other within
-    #: `margin` as they are) at or below which the collection shares no input pose (PSB
-    #: classes as filed 0.77-1.0; every file turned about up at random: Airplane and Fish
-    #: 0.09-0.33, near-round Cup and Vase 0.6-0.8, whose turns stage B's facing then decides)
+    #: share of the Chamfer votes at or below which the collection shares no input pose
     shared_pose: float = 0.4
-    #: cost ratio (its pose / best rotation) above which a shape is turned when the
-    #: collection shares no input pose
+    #: cost ratio above which a shape is turned about up when no input pose is shared
     unshared_margin: float = 1.1
-    #: Chamfer improvement with which a weakly shared facing still flags a shape
-    facing_support: float = 1.2
     #: Legendre polynomials in height in the facing signature
     facing_order: int = 5
     #: a shape fitting its nearest shapes this many times worse than the median is flagged
     outlier_factor: float = 3.0
-    #: shapes needed for the symmetry stage (the collection's up profile is a median)
+    #: shapes needed for the symmetry test of a stand on another axis
     symmetry_shapes: int = 5
     #: lowest spread (log units) of a symmetry feature in the up profile
     symmetry_floor: float = 0.3
-    #: score difference (its up − another axis) above which a shape stands on that axis
-    symmetry_gap: float = 0.4
-    #: ... and the factor by which the other axis must score better
-    symmetry_ratio: float = 1.3
-    #: an up scoring above this is searched for a tilt (and flagged when tilted)
-    symmetry_flag: float = 2.0
-    #: a tilt (degrees) of the best-scoring up direction above which it is stood on or flagged
-    symmetry_tilt: float = 20.0
-    #: directions of the tilt search's grid (upper half sphere)
-    symmetry_directions: int = 40
     #: voxel grid cells along a shape's longest side for its hollows (`hollow.Hollows`)
     hollow_grid: int = 40
     #: up component of a hollow's opening vector above which it tells top from bottom
     hollow_floor: float = 0.1
-    #: cost ratio (flipped / its pose) up to which a shape whose hollow opens the other
-    #: way up from its nearest shapes' is flipped (above it: flagged only)
+    #: cost ratio (turned over / its pose) up to which a hollow turns a shape over
     hollow_cost: float = 1.5
 
 
 @dataclass(frozen=True)
 class PoseDecision:
-    """The rotation consensus applied to one shape (after its up rotation) and why."""
+    """The rotation consensus applied to one shape (after its up rotation) and why, and
+    why its pose may still be wrong with the rotation that would put it right."""
 
     rotation: np.ndarray
     reason: str = ""  # empty when the shape kept its base pose
-    #: the reasons of the single turns a combined decision is made of (`_combined`), so a
-    #: decision combined again lists its turns once instead of nesting "in all (...)"
+    #: the reasons of the single turns a combined decision is made of (`_combined`)
     steps: tuple[str, ...] = ()
+    #: why the pose may be wrong, empty when it looks right (the shape is left as it is)
+    flag: str = ""
+    #: the rotation (from the base pose) that Turn Flagged applies; None: no suggestion
+    flag_rotation: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def changed(self) -> bool:
         return bool(self.reason)
 
 
+_HALF_TURN_X = TILTS[1]
+_HALF_TURN_Y = np.diag([-1.0, 1.0, -1.0])
+#: the six axis directions a shape may stand on, as the index pairs of TILTS per line
+_LINES = {"z": (0, 1), "x": (2, 3), "y": (4, 5)}
+_YAWS = np.stack([yaw_rotation(a) for a in np.arange(0.0, 360.0, 30.0)])
+
+
+def convention_up(up_axis: str) -> np.ndarray | None:
+    """The base-frame direction a file written in the other common convention has as its
+    up (given z: a y-up file's +y; given y: a z-up file's +z; otherwise none)."""
+    other = {"z": np.array([0.0, 1.0, 0.0]), "y": np.array([0.0, 0.0, 1.0])}.get(up_axis)
+    return None if other is None else up_rotation(up_axis) @ other
+
+
+class CollectionEvidence:
+    """Pairwise standing costs of a collection (module docstring): for shape j in pose R_j
+    against shape i in pose R_i, the cost of j standing on each of its six axis
+    directions (TILTS, after R_j), each at its best turn about up on a 30° grid."""
+
+    def __init__(self, search: PoseSearch, settings: ConsensusSettings):
+        self.search, self.settings = search, settings
+        self.count = min(settings.references, len(search) - 1)
+        self._costs: dict[tuple[int, int, bytes], np.ndarray] = {}
+
+    def references(self, j: int, pool: Sequence[int]) -> list[int]:
+        """The shapes of `pool` (j excluded) most like shape j at any axis rotation."""
+        return self.search.nearest(j, pool, self.count)
+
+    def standing_costs(self, j: int, pose: np.ndarray, i: int, reference_pose: np.ndarray) -> np.ndarray:
+        """(6,): the cost of shape j standing on each axis direction of its `pose`, best
+        turn about up, against shape i in `reference_pose`."""
+        key = (j, i, (reference_pose.T @ pose).tobytes())
+        if key not in self._costs:
+            relative = reference_pose.T @ _YAWS[:, None] @ TILTS[None] @ pose  # (12, 6, 3, 3)
+            costs = self.search.coarse_pair_costs(j, i, relative.reshape(-1, 3, 3)).reshape(len(_YAWS), len(TILTS))
+            self._costs[key] = costs.min(axis=0)
+        return self._costs[key]
+
+
 def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
                         settings: ConsensusSettings, report: Callable[[float, str], None],
-                        symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None) -> list[PoseDecision]:
-    """The pose decision of every shape (the steps of the module docstring): first the up
-    axis by the collection's symmetries (`symmetry`, none: skipped), then by the Chamfer
-    cost (up direction, large turns), then by the signatures and the hollows (top and
-    bottom, facing at any angle; `hollows`, none: skipped)."""
+                        symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
+                        up_axis: str = "z", may_turn: bool = True) -> list[PoseDecision]:
+    """The pose decision of every shape (the steps of the module docstring). `may_turn`
+    False: nobody is turned (align "none" or "pca"), every step only flags."""
     n = len(search)
-    k = min(settings.neighbours, n - 1)
-    identity = np.eye(3)
-    stood = up_by_symmetry(search, symmetry, names, keep, settings, lambda f, m: report(0.2, m)) \
-        if symmetry is not None else [PoseDecision(identity)] * n
-    start = [d.rotation for d in stood]
-    report(0.2, "up axes by symmetry")
-
-    def by_cost_agree(j: int, i: int) -> bool:
-        reference = [(i, start[i])]
-        _, fit = search.best_rotation(j, reference, settings.yaw_step, settings.tilts, False, 0.0, _or_none(start[j]))
-        return search.cost(j, start[j], reference) <= settings.margin * fit.cost
-
-    def turned_by_cost(j: int, fit: Fit, ratio: float, references: list[tuple[int, np.ndarray]],
-                       why: str = "") -> PoseDecision:
-        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its {len(references)} "
-                                          f"nearest shapes ({_names(names, references)}) fit {ratio:.1f}× better"
-                                          + (f" ({why})" if why else ""))
-
-    def by_cost(j: int, references: list[tuple[int, np.ndarray]]) -> PoseDecision:
-        fit = _best_pose(search, symmetry, settings, j, references, start[j], refine=True)
-        ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
-        # most references must ask for the turn one by one (a bowl among jugs: the jugs
-        # prefer it on its side, the other bowls upright)
-        each = sum(search.cost(j, start[j], [r]) > settings.margin * search.cost(j, fit.rotation, [r])
-                   for r in references)
-        if ratio <= settings.margin or 2 * each <= len(references):
-            return PoseDecision(start[j])
-        return turned_by_cost(j, fit, ratio, references)
-
-    def by_cost_unshared(j: int, references: list[tuple[int, np.ndarray]], unshared: str) -> PoseDecision:
-        # no input pose to keep: the best fit to the shapes settled nearest, when it is
-        # worth a turn (a near-round shape fits its references as well at any turn)
-        fit = _best_pose(search, symmetry, settings, j, references, start[j], refine=True)
-        ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
-        if ratio <= settings.unshared_margin:
-            return PoseDecision(start[j])
-        return turned_by_cost(j, fit, ratio, references, unshared)
-
-    # inputs turned about up at random share no pose for a majority to keep: one shape's
-    # pose is the collection's and the others follow it shape by shape, nearest first
-    first = _settle(search, k, keep, start, by_cost_agree, by_cost, report, 0.2, [not d.changed for d in stood],
-                    by_cost_unshared, settings.shared_pose, "pose",
-                    unshared_search=lambda: search.compare_turned(settings.yaw_step))
-    turned = [d.rotation for d in first]
-
-    def by_signature_agree(j: int, i: int) -> bool:
-        return not by_signature(j, [(i, turned[i])], turned[j]).changed
-
-    def by_signature(j: int, references: list[tuple[int, np.ndarray]], start=None,
-                     unshared: str = "") -> PoseDecision:
-        start = turned[j] if start is None else start
-        rotation, why = start, []
-        cost = search.cost(j, start, references)
-
-        def cost_allows(turned_rotation: np.ndarray) -> bool:
-            # the signatures decide what the cost cannot see; they never overrule it
-            return search.cost(j, turned_rotation, references) <= (1.0 + settings.tolerance) * cost
-
-        if (signatures.up_agreement(j, rotation, references) < -settings.up_agreement
-                and cost_allows(_HALF_TURN_X @ rotation)
-                and not _opens_upside_down(hollows, j, _HALF_TURN_X @ rotation, references, settings)):
-            rotation = _HALF_TURN_X @ rotation
-            why.append("its top and bottom")
-        elif _opens_upside_down(hollows, j, rotation, references, settings):
-            # the hollow sees what the cost cannot (which end is open): it flips unless
-            # the cost objects as strongly as it would need to turn a shape itself
-            flipped = min((half @ rotation for half in _HALF_TURNS), key=lambda r: search.cost(j, r, references))
-            if search.cost(j, flipped, references) <= settings.hollow_cost * cost:
-                rotation = flipped
-                why.append("which way its hollow opens")
-        turning = bool(why) or first[j].changed or stood[j].changed
-        angle, coherence = signatures.facing_turn(j, rotation, references)
-        least = settings.unshared_angle if unshared else settings.refine_angle if turning else settings.facing_angle
-        if coherence > settings.coherence and abs(angle) > least and cost_allows(yaw_rotation(angle) @ rotation):
-            rotation = yaw_rotation(angle) @ rotation
-            why.append("its facing")
-        if not why:
-            return PoseDecision(start)
-        return PoseDecision(rotation, f"{describe_rotation(rotation @ start.T)}: {' and '.join(why)} like its "
-                                      f"{len(references)} nearest shapes ({_names(names, references)})"
-                                      + (f" ({unshared})" if unshared else ""))
-
-    # a shape the cost turned has no input facing to keep: it never joins the majority
-    # inputs turned about up at random share no facing: the one of a single shape is the
-    # collection's, and every other shape is turned to it by what its signature measures
-    second = _settle(search, k, keep, turned, by_signature_agree, by_signature, report, 0.5,
-                     [not (a.changed or b.changed) for a, b in zip(stood, first)],
-                     lambda j, references, why: by_signature(j, references, unshared=why), settings.shared_facing,
-                     "facing")
-    decisions = [_combined(*stages) for stages in zip(stood, first, second)]
-    report(0.85, "checking the poses")
-    return restore_flagged(search, signatures, names, keep, settings, decisions, symmetry, hollows,
-                           sub_range(report, 0.85, 0.88, "checking the poses: "))
+    frozen = [bool(k) or not may_turn for k in keep]
+    evidence = CollectionEvidence(search, settings)
+    stood = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis))
+    report(0.35, "up axes")
+    ends = tops_and_bottoms(evidence, signatures, hollows, names, frozen, settings, stood)
+    report(0.5, "tops and bottoms")
+    if may_turn:
+        # a flagged shape is left as given: no turn about up either
+        faced = facings(search, signatures, names, [f or bool(d.flag) for f, d in zip(frozen, ends)], settings, ends,
+                        report)
+    else:
+        faced = [PoseDecision(d.rotation) for d in ends]
+    decisions = [_combined(*stages) for stages in zip(stood, ends, faced)]
+    decisions = _outlier_flags(search, decisions, settings)
+    return [_noted_kept(d) if k else d for d, k in zip(decisions, keep)]
 
 
-_HALF_TURN_X = np.diag([1.0, -1.0, -1.0])
-_HALF_TURNS = (_HALF_TURN_X, np.diag([-1.0, 1.0, -1.0]))
+def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names: Sequence[str],
+             frozen: Sequence[bool], settings: ConsensusSettings,
+             convention: np.ndarray | None) -> list[PoseDecision]:
+    """Step 1: file-convention turns of the up axis (module docstring)."""
+    n, identity = len(evidence.search), np.eye(3)
+    everyone = list(range(n))
+    side_ratio, side_line, costs = {}, {}, {}
 
+    def compare(j: int, i: int) -> None:
+        if (j, i) not in costs:
+            c = costs[(j, i)] = evidence.standing_costs(j, identity, i, identity)
+            lines = {line: min(c[a], c[b]) for line, (a, b) in _LINES.items()}
+            side = min(("x", "y"), key=lambda line: lines[line])
+            side_ratio[(j, i)], side_line[(j, i)] = lines["z"] / max(lines[side], 1e-300), side
 
-def _opens_upside_down(hollows: Hollows | None, j: int, rotation: np.ndarray,
-                       references: list[tuple[int, np.ndarray]], settings: ConsensusSettings) -> bool:
-    """Whether shape j's hollow opens the other way up from every reference's (no hollows: no)."""
-    return hollows is not None and hollows.upside_down(j, rotation, references, settings.hollow_floor) is not None
-
-
-def _faces_away(turned_cost: float, cost: float, coherence: float, settings: ConsensusSettings) -> bool:
-    """Whether a shape whose facing signature differs from its nearest shapes' (by more
-    than facing_angle) is flagged: a shared facing (coherence above `coherence`) the turn
-    costs at most `tolerance` more, or a weaker one (above half of it) the turn fits
-    `facing_support` times better (PSB cup 31, handle 180° off: coherence 0.32, the turn
-    fits 1.3× better)."""
-    return ((coherence > settings.coherence and turned_cost <= (1.0 + settings.tolerance) * cost)
-            or (coherence > settings.coherence / 2 and settings.facing_support * turned_cost < cost))
-
-
-def _best_pose(search: PoseSearch, symmetry: AxisSymmetry | None, settings: ConsensusSettings, j: int,
-               references: list[tuple[int, np.ndarray]], start: np.ndarray, refine: bool) -> Fit:
-    """The rotation of shape j (now turned by `start`) that fits the references best
-    (`PoseSearch.best_rotation`, refined or on the grid), keeping its up unless a change
-    of up fits `tilt_margin` times better than the best upright pose and the new up has
-    no worse symmetry: a change of up needs its own evidence."""
-    upright, fit = search.best_rotation(j, references, settings.yaw_step, settings.tilts, refine,
-                                        settings.snap, _or_none(start))
-    if upright.cost <= settings.tilt_margin * fit.cost or not _symmetry_allows(symmetry, j, fit, start):
-        return upright
-    return fit
-
-
-def _symmetry_allows(symmetry: AxisSymmetry | None, j: int, fit: Fit, start: np.ndarray) -> bool:
-    """Whether the symmetry stage lets shape j turn from `start` to `fit` (no stage: yes)."""
-    return symmetry is None or symmetry.allows_tilt(j, fit.rotation, start)
-
-
-def _or_none(rotation: np.ndarray) -> np.ndarray | None:
-    """None for the base pose (the search's candidates unchanged), else the rotation."""
-    return None if np.array_equal(rotation, np.eye(3)) else rotation
-
-
-def up_by_symmetry(search: PoseSearch, symmetry: AxisSymmetry, names: Sequence[str], keep: Sequence[bool],
-                   settings: ConsensusSettings, report: Progress | None = None) -> list[PoseDecision]:
-    """Stage 0: the up axis of each shape by the symmetries its collection's shapes share
-    about their up axes (`symmetry`, `standing_pose`), against its nearest shapes whose
-    up already scores best of their axes. Fewer than `symmetry_shapes` shapes, or kept
-    ones: no change."""
-    n = len(search)
-    identity = np.eye(3)
-    if n < settings.symmetry_shapes:
-        return [PoseDecision(identity)] * n
-    symmetry.fit_profile([identity] * n, range(n))
-    scores = np.array([symmetry.axis_scores(j, identity) for j in range(n)])
-    trusted = [j for j in range(n) if np.argmin(scores[j]) == 0]
-    decisions, report = [], report or no_progress
-    for j in range(n):
-        report((j + 1) / n, f"up axes by symmetry: {j + 1} of {n}")
-        pool = [i for i in trusted if i != j]
-        references = [(i, identity) for i in search.nearest(j, pool or range(n), settings.neighbours)]
-        standing = None if keep[j] else standing_pose(search, symmetry, j, identity, references, settings)
-        if standing is None:
-            decisions.append(PoseDecision(identity))
+    upright = []
+    for j in everyone:
+        references = evidence.references(j, everyone)
+        for i in references:
+            compare(j, i)
+        if np.mean([side_ratio[(j, i)] <= settings.margin for i in references] or [1.0]) >= 0.5:
+            upright.append(j)
+    decisions = [PoseDecision(identity)] * n
+    if 2 * len(upright) <= n or len(upright) < 2:
+        return decisions  # no up shared by most shapes: nothing to line up with
+    profile = symmetry is not None and len(upright) >= settings.symmetry_shapes
+    if profile:
+        symmetry.fit_profile([identity] * n, upright)
+    for j in (j for j in everyone if j not in upright):
+        references = evidence.references(j, upright)
+        for i in references:
+            compare(j, i)
+        ratios = np.array([side_ratio[(j, i)] for i in references])
+        lines = [side_line[(j, i)] for i in references]
+        line = max(set(lines), key=lines.count)
+        votes = sum(r > settings.margin and ln == line for r, ln in zip(ratios, lines))
+        median = float(np.median(ratios))
+        if median <= settings.margin:
             continue
-        fit, where, _ = standing
-        decisions.append(PoseDecision(fit.rotation, (
-            f"{describe_rotation(fit.rotation)}: stood on {where}; end and turn as its {len(references)} nearest "
-            f"upright shapes ({_names(names, references)})")))
+        d = _standing_end(np.array([costs[(j, i)] for i in references]), line, settings, convention)
+        stand = TILTS[d]
+        words = (f"{votes} of {len(references)} shapes fit it better standing on its {line} axis "
+                 f"({median:.1f}× at the median)")
+        symmetric = not profile or symmetry.score(j, stand) <= symmetry.score(j, identity)
+        if votes >= settings.agreement * len(references) and median >= settings.margin and symmetric \
+                and not frozen[j]:
+            decisions[j] = PoseDecision(stand, f"{describe_rotation(stand)}: {words}, a file-convention turn")
+        else:
+            why = "" if symmetric else "; its own up has the collection's symmetry"
+            decisions[j] = PoseDecision(identity, flag=f"may be on its side: {words}{why}", flag_rotation=stand)
     return decisions
 
 
-def standing_pose(search: PoseSearch, symmetry: AxisSymmetry, j: int, rotation: np.ndarray,
-                  references: list[tuple[int, np.ndarray]],
-                  settings: ConsensusSettings) -> tuple[Fit, str, bool] | None:
-    """(pose, words, tilted) standing shape j, now turned by `rotation`, on another axis, when that
-    axis scores more like the collection's up than its up does, by `symmetry_gap` and
-    the factor `symmetry_ratio` (`AxisSymmetry.axis_scores`): its x or y axis, or, when
-    its up scores above `symmetry_flag` and is not clearly (`symmetry_ratio`) its best
-    axis, the best direction within 60° of its up
-    (`AxisSymmetry.best_up`) if more than `symmetry_tilt` degrees away (a shape tilted in
-    its file). Which end is up and the turn about it fit the references best (Chamfer
-    cost), and they must fit it no worse than its pose does. None: no such axis."""
-    scores = symmetry.axis_scores(j, rotation)
-    other = 1 + int(np.argmin(scores[1:]))
-
-    def clearly_better(score: float) -> bool:
-        return scores[0] - score > settings.symmetry_gap and scores[0] > settings.symmetry_ratio * score
-
-    if clearly_better(scores[other]):
-        axis, score, tilted = "xy"[other - 1], scores[other], False
-        where = f"its {axis} axis"
-        fits = [search.best_turn(j, references, d, settings.yaw_step, True, settings.snap, rotation)
-                for d in ((2, 3) if axis == "x" else (4, 5))]  # TILTS: ±x / ±y up
-    elif scores[0] > settings.symmetry_flag and scores[0] * settings.symmetry_ratio > scores[other]:
-        tilt, score = symmetry.best_up(j, rotation, settings.symmetry_directions)
-        degrees = float(np.degrees(np.arccos(np.clip(tilt[2, 2], -1.0, 1.0))))
-        if degrees <= settings.symmetry_tilt or not clearly_better(score):
-            return None
-        where, tilted = f"an axis {degrees:.0f}° from its up", True
-        fits = [search.best_yaw(j, references, end @ rotation, settings.yaw_step, True)
-                for end in (tilt, _HALF_TURN_X @ tilt)]
-    else:
-        return None
-    fit = min(fits, key=lambda f: f.cost)
-    if fit.cost > search.cost(j, rotation, references):
-        return None
-    return fit, (f"{where}, whose symmetries are those the collection's shapes have about their up axes "
-                 f"(score {score:.1f} against {scores[0]:.1f} for its up; 0 = the collection's typical up)"), tilted
+def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings, convention: np.ndarray | None) -> int:
+    """Which TILTS index of `line` a shape stands on: the end the references' median
+    costs (rows of `costs`) prefer by `flip_margin`, else the file convention's end when
+    it lies on the line, else the cheaper one."""
+    a, b = _LINES[line]
+    ca, cb = float(np.median(costs[:, a])), float(np.median(costs[:, b]))
+    if max(ca, cb) >= settings.flip_margin * min(ca, cb) or convention is None:
+        return a if ca <= cb else b
+    for d in (a, b):
+        if TILTS[d] @ convention @ np.array([0.0, 0.0, 1.0]) > 0.99:
+            return d
+    return a if ca <= cb else b
 
 
-def _way(vertical: float) -> str:
-    return "upwards" if vertical > 0 else "downwards"
+def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
+                     names: Sequence[str],
+                     frozen: Sequence[bool], settings: ConsensusSettings,
+                     stood: Sequence[PoseDecision]) -> list[PoseDecision]:
+    """Step 2: turn-overs on evidence that holds over the collection (module docstring)."""
+    n = len(evidence.search)
+    poses = [d.rotation for d in stood]
+    pool = [j for j in range(n) if not stood[j].flag]  # a shape maybe on its side is no reference
+    references, ratios, costs = {}, {}, {}
+    for j in range(n):
+        references[j] = evidence.references(j, pool)
+        costs[j] = np.array([evidence.standing_costs(j, poses[j], i, poses[i])
+                             for i in references[j]]).reshape(-1, 6)
+        ratios[j] = costs[j][:, 0] / np.maximum(costs[j][:, 1], 1e-300)
+    asked_votes = {j: ratios[j] > settings.margin for j in range(n)}
+    # the odd-moment signature's votes: a reference whose top and bottom match its bottom and top
+    opposed_votes = {j: np.array([signatures.up_agreement(j, poses[j], [(i, poses[i])]) < -settings.coherence
+                                  for i in references[j]], dtype=bool) for j in range(n)}
+    asked = np.array([np.mean(asked_votes[j]) if len(ratios[j]) else 0.0 for j in range(n)])
+    opposed = np.array([np.mean(opposed_votes[j]) if len(ratios[j]) else 0.0 for j in range(n)])
+    openings = np.array([hollows.vertical(j, poses[j]) for j in range(n)]) if hollows is not None else np.zeros(n)
+    decisions = []
+    for j in range(n):
+        if not len(ratios[j]):
+            decisions.append(PoseDecision(poses[j]))
+            continue
+        background = _background(asked_votes, references, j)
+        median = float(np.median(ratios[j]))
+        hollow = _hollow_disagrees(openings, j, settings)
+        signature = (opposed[j] >= settings.agreement
+                     and _background(opposed_votes, references, j) <= 1.0 - settings.agreement)
+        by_cost = (asked[j] >= settings.agreement and median >= settings.flip_margin
+                   and background <= 1.0 - settings.agreement and not _hollow_agrees(openings, j, settings))
+        posed = [(i, poses[i]) for i in references[j]]
+        # turned over about x or about y: the same up, facing the other way; the cheaper one
+        flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
+                      key=lambda r: evidence.search.cost(j, r, posed))
+        cost_allows = np.median(costs[j][:, 1]) <= settings.hollow_cost * np.median(costs[j][:, 0])
+        share = f"{int(round(asked[j] * len(ratios[j])))} of {len(ratios[j])} shapes fit it better turned over"
+        if (hollow and cost_allows or by_cost) and not frozen[j]:
+            why = hollow or f"{share} ({median:.1f}× at the median), the collection agreeing on top and bottom"
+            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}"))
+        elif hollow or by_cost or signature or (asked[j] >= 0.5 and median > settings.margin
+                                                and asked[j] - background >= 0.4):
+            why = hollow or (f"{share} ({median:.1f}× at the median)" if by_cost else
+                             f"its top and bottom match the bottom and top of {opposed[j]:.0%} of its "
+                             f"{len(ratios[j])} references" if signature else
+                             f"{share} ({median:.1f}× at the median), but top and bottom vary across the "
+                             f"collection (the median shape is asked to turn over by {background:.0%} of its "
+                             "references)")
+            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped))
+        else:
+            decisions.append(PoseDecision(poses[j]))
+    return decisions
+
+
+def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], j: int) -> float:
+    """How much the collection's shapes ask each other to turn over: among the shapes
+    other than j that most of their references do not ask (the collection's majority),
+    the median share of their references in that majority that ask them. Near 0 when
+    the majority agrees on top and bottom (a few shapes turned over do not raise it);
+    near a half when a feature that varies across the class (a taper) decides the votes."""
+    majority = {k for k in votes if k != j and len(votes[k]) and np.mean(votes[k]) <= 0.5}
+    shares = []
+    for k in majority:
+        inside = [v for i, v in zip(references[k], votes[k]) if i in majority]
+        if inside:
+            shares.append(np.mean(inside))
+    return float(np.median(shares)) if shares else 1.0
+
+
+def _hollow_signs(openings: np.ndarray, j: int, settings: ConsensusSettings) -> int:
+    """+1 / −1 when the hollows of the other shapes that tell (at least three) open that
+    way up in at least `agreement` of them; 0 when they do not agree."""
+    others = np.delete(openings, j)
+    telling = others[np.abs(others) > settings.hollow_floor]
+    if len(telling) < 3:
+        return 0
+    up = float(np.mean(telling > 0))
+    return 1 if up >= settings.agreement else -1 if 1.0 - up >= settings.agreement else 0
+
+
+def _hollow_disagrees(openings: np.ndarray, j: int, settings: ConsensusSettings) -> str:
+    """Why shape j's hollow says it is upside down ('' when it does not)."""
+    sign = _hollow_signs(openings, j, settings)
+    own = openings[j]
+    if sign == 0 or abs(own) <= settings.hollow_floor or np.sign(own) == sign:
+        return ""
+    return (f"its hollow opens {'upwards' if own > 0 else 'downwards'} ({own:+.2f}), the collection's "
+            f"{'upwards' if sign > 0 else 'downwards'}")
+
+
+def _hollow_agrees(openings: np.ndarray, j: int, settings: ConsensusSettings) -> bool:
+    sign = _hollow_signs(openings, j, settings)
+    return sign != 0 and abs(openings[j]) > settings.hollow_floor and np.sign(openings[j]) == sign
+
+
+def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], frozen: Sequence[bool],
+            settings: ConsensusSettings, ends: Sequence[PoseDecision],
+            report: Callable[[float, str], None]) -> list[PoseDecision]:
+    """Step 3: turns about up only (module docstring)."""
+    n = len(search)
+    k = min(settings.neighbours, n - 1)
+    start = [d.rotation for d in ends]
+    settled = [not d.flag for d in ends]
+
+    def upright_fit(j: int, references: list[tuple[int, np.ndarray]]):
+        upright, _ = search.best_rotation(j, references, settings.yaw_step, 0, True, settings.snap, start[j])
+        return upright
+
+    def by_cost_agree(j: int, i: int) -> bool:
+        reference = [(i, start[i])]
+        return search.cost(j, start[j], reference) <= settings.margin * upright_fit(j, reference).cost
+
+    def by_cost(j: int, references: list[tuple[int, np.ndarray]], least: float = settings.margin,
+                why: str = "") -> PoseDecision:
+        fit = upright_fit(j, references)
+        ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
+        each = sum(search.cost(j, start[j], [r]) > least * search.cost(j, fit.rotation, [r]) for r in references)
+        if ratio <= least or (not why and 2 * each <= len(references)):
+            return PoseDecision(start[j])
+        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its "
+                                          f"{len(references)} nearest shapes ({_names(names, references)}) fit "
+                                          f"{ratio:.1f}× better" + (f" ({why})" if why else ""))
+
+    first = _settle(search, k, frozen, start, by_cost_agree, by_cost, report, 0.5, settled,
+                    lambda j, references, why: by_cost(j, references, settings.unshared_margin, why),
+                    settings.shared_pose, "pose", unshared_search=lambda: search.compare_turned(settings.yaw_step))
+    turned = [d.rotation for d in first]
+
+    def by_signature(j: int, references: list[tuple[int, np.ndarray]], unshared: str = "") -> PoseDecision:
+        rotation = turned[j]
+        angle, coherence = signatures.facing_turn(j, rotation, references)
+        least = settings.unshared_angle if unshared else settings.facing_angle
+        cost = search.cost(j, rotation, references)
+        candidate = yaw_rotation(angle) @ rotation
+        if (coherence <= settings.coherence or abs(angle) <= least
+                or search.cost(j, candidate, references) > (1.0 + settings.tolerance) * cost):
+            return PoseDecision(rotation)
+        return PoseDecision(candidate, f"{describe_rotation(candidate @ rotation.T)}: its facing like its "
+                                       f"{len(references)} nearest shapes ({_names(names, references)})"
+                                       + (f" ({unshared})" if unshared else ""))
+
+    second = _settle(search, k, frozen, turned, lambda j, i: not by_signature(j, [(i, turned[i])]).changed,
+                     by_signature, report, 0.58, [s and not d.changed for s, d in zip(settled, first)],
+                     lambda j, references, why: by_signature(j, references, why), settings.shared_facing, "facing")
+    return [_combined(a, b) for a, b in zip(first, second)]
+
+
+def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: ConsensusSettings) -> list[PoseDecision]:
+    """Step 4: a shape not flagged yet that fits its nearest shapes (final poses) over
+    `outlier_factor` times worse than the median shape does is flagged, with no turn."""
+    n = len(search)
+    if n < 3:
+        return decisions
+    k = min(settings.neighbours, n - 1)
+    rotations = [d.rotation for d in decisions]
+    costs = np.array([search.cost(j, rotations[j], [(i, rotations[i]) for i in search.nearest(j, range(n), k)])
+                      for j in range(n)])
+    median = float(np.median(costs))
+    flagged = []
+    for d, cost in zip(decisions, costs):
+        if not d.flag and cost > settings.outlier_factor * median:
+            d = PoseDecision(d.rotation, d.reason, d.steps,
+                             f"fits its {k} nearest shapes {cost / median:.1f}× worse than the collection's median "
+                             "shape does (an unusual shape, or a pose no turn fixes)")
+        flagged.append(d)
+    return flagged
+
+
+def _noted_kept(decision: PoseDecision) -> PoseDecision:
+    """A kept shape's flag says its pose is kept by request."""
+    if not decision.flag:
+        return decision
+    return PoseDecision(decision.rotation, decision.reason, decision.steps,
+                        f"{decision.flag} (its pose is kept by request)", decision.flag_rotation)
 
 
 def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:
@@ -432,14 +465,21 @@ def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -
 
 def _combined(*stages: PoseDecision) -> PoseDecision:
     """One decision for the stages: the last one's rotation (each starts from the one
-    before), the reasons of those that turned the shape."""
+    before), the reasons of those that turned the shape, the first flag (its suggested
+    rotation followed by the later stages' turns)."""
     reasons = [step for d in stages if d.reason for step in (d.steps or (d.reason,))]
+    flagged = next((d for d in stages if d.flag), None)
+    flag, flag_rotation = "", None
+    if flagged is not None:  # its suggested turn, after what the later stages turned
+        flag = flagged.flag
+        if flagged.flag_rotation is not None:
+            flag_rotation = flagged.flag_rotation @ flagged.rotation.T @ stages[-1].rotation
     if reasons and np.trace(stages[-1].rotation) > 1.0 + 2.0 * np.cos(np.radians(1.0)):
-        return PoseDecision(np.eye(3))  # turned there and back (to within 1°): its input pose
+        return PoseDecision(np.eye(3), flag=flag, flag_rotation=flag_rotation)  # turned there and back
     reason = "; then ".join(reasons)
     if len(reasons) > 1:
         reason = f"{describe_rotation(stages[-1].rotation)} in all ({reason})"
-    return PoseDecision(stages[-1].rotation, reason, tuple(reasons))
+    return PoseDecision(stages[-1].rotation, reason, tuple(reasons), flag, flag_rotation)
 
 
 def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np.ndarray],
@@ -527,111 +567,3 @@ def _medoid(search: PoseSearch, pool: Sequence[int]) -> int:
     return int(pool[np.argmin(search.distance[pool].sum(axis=1))])
 
 
-@dataclass(frozen=True)
-class PoseCheck:
-    """What the pose check says of one shape: why its pose looks wrong ('' when it does
-    not) and, when the evidence is as strong as the stages ask for a turn (a rotation
-    fitting its nearest shapes `margin` times better, or its facing), the rotation that
-    puts it right, its evidence and those shapes."""
-
-    reason: str
-    rotation: np.ndarray | None = None
-    evidence: str = ""
-    references: tuple[int, ...] = ()
-
-
-def pose_outliers(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
-                  keep: Sequence[bool], settings: ConsensusSettings,
-                  symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
-                  report: Progress | None = None) -> list[str]:
-    """Why each shape's final pose looks wrong ('' when it does not): `pose_checks`."""
-    return [check.reason for check in pose_checks(search, signatures, rotations, keep, settings, symmetry, hollows,
-                                                  report)]
-
-
-def pose_checks(search: PoseSearch, signatures: Signatures, rotations: Sequence[np.ndarray],
-                keep: Sequence[bool], settings: ConsensusSettings,
-                symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
-                report: Progress | None = None) -> list[PoseCheck]:
-    """Each shape's final pose checked against its nearest shapes in their final poses
-    (rotations relative to the base pose): it looks wrong when a rotation would
-    fit them more than `margin` times better (a change of up: also `tilt_margin` times
-    better than keeping its up), its top and bottom, its hollow or its facing disagree with theirs
-    (signatures and hollows, the thresholds of the consensus; a weakly shared facing counts when the
-    turn also fits them `facing_support` times better, `_faces_away`), its up lacks the symmetry the
-    collection's up axes share (`symmetry`: scores above `symmetry_flag` and not clearly
-    best of its axes: tilted, or on its side with nobody to fit), or it fits them over
-    `outlier_factor` times worse than the collection's median shape does. The first and
-    the facing come with the rotation that puts the shape right (`restore_flagged`)."""
-    n = len(search)
-    k = min(settings.neighbours, n - 1)
-    trusted = [i for i in range(n) if not keep[i]] if sum(not x for x in keep) > k else list(range(n))
-    references = [[(i, rotations[i]) for i in search.nearest(j, trusted, k)] for j in range(n)]
-    costs = np.array([search.cost(j, rotations[j], references[j]) for j in range(n)])
-    median = float(np.median(costs))
-    kept = [" (its pose is kept by request)" if k_ else "" for k_ in keep]
-    symmetry_ready = symmetry is not None and n >= settings.symmetry_shapes
-    if symmetry_ready:
-        symmetry.fit_profile(rotations, range(n))
-    checks, report = [], report or no_progress
-    for j in range(n):
-        report((j + 1) / n, f"{j + 1} of {n}")
-        nearest = tuple(i for i, _ in references[j])
-        fit = _best_pose(search, symmetry, settings, j, references[j], rotations[j], refine=False)
-        ratio = costs[j] / max(fit.cost, 1e-300)
-        angle, coherence = signatures.facing_turn(j, rotations[j], references[j])
-        if ratio > settings.margin:
-            relative = fit.rotation @ rotations[j].T
-            pose = "upside down" if relative[2, 2] < -0.5 else "on its side" if relative[2, 2] < 0.5 else "turned"
-            checks.append(PoseCheck(f"{pose} relative to its {k} nearest shapes: {describe_rotation(relative)} it "
-                                    f"would fit them {ratio:.1f}× better{kept[j]}", fit.rotation,
-                                    f"fit {ratio:.1f}× better", nearest))
-        elif (signatures.up_agreement(j, rotations[j], references[j]) < -settings.up_agreement
-              and search.cost(j, _HALF_TURN_X @ rotations[j], references[j]) <= (1.0 + settings.tolerance) * costs[j]):
-            checks.append(PoseCheck(f"upside down relative to its {k} nearest shapes (its top and bottom "
-                                    f"match their bottom and top){kept[j]}"))
-        elif hollows is not None and (opening := hollows.upside_down(j, rotations[j], references[j],
-                                                                     settings.hollow_floor)) is not None:
-            own, theirs = opening
-            checks.append(PoseCheck(f"upside down relative to its {k} nearest shapes: its hollow opens "
-                                    f"{_way(own)} ({own:+.2f}), theirs {_way(theirs)} ({theirs:+.2f}; the up "
-                                    f"component of the hollow's opening, 1 = a hull all hollow open upwards)"
-                                    f"{kept[j]}"))
-        elif abs(angle) > settings.facing_angle and _faces_away(
-                search.cost(j, yaw_rotation(angle) @ rotations[j], references[j]), costs[j], coherence, settings):
-            checks.append(PoseCheck(f"faces {abs(angle):.0f}° away from its {k} nearest shapes{kept[j]}",
-                                    yaw_rotation(angle) @ rotations[j], "face that way", nearest))
-        elif symmetry_ready and (standing := standing_pose(search, symmetry, j, rotations[j], references[j],
-                                                            settings)) is not None:
-            fit, where, tilted = standing
-            checks.append(PoseCheck(f"{'tilted' if tilted else 'on its side'} relative to the collection's up axes: "
-                                    f"{describe_rotation(fit.rotation @ rotations[j].T)} it would stand on {where}"
-                                    f"{kept[j]}"))
-        elif costs[j] > settings.outlier_factor * median:
-            checks.append(PoseCheck(f"fits its {k} nearest shapes {costs[j] / median:.1f}× worse than the "
-                                    "collection's median shape does (an unusual shape, or a pose no turn fixes)"))
-        else:
-            checks.append(PoseCheck(""))
-    return checks
-
-
-def restore_flagged(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
-                    settings: ConsensusSettings, decisions: Sequence[PoseDecision],
-                    symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
-                    report: Progress | None = None) -> list[PoseDecision]:
-    """The last step of the consensus: the pose check (`pose_checks`) of the settled poses,
-    whose references are every shape's nearest shapes in their final poses, and the turn
-    it asks for made on a shape not kept (a shape that was decided against references
-    in a wrong pose themselves: PSB cup 31 faces away from its neighbours but agreed with
-    two of them one by one, so it kept its pose and was a reference for cup 26)."""
-    checks = pose_checks(search, signatures, [d.rotation for d in decisions], keep, settings, symmetry, hollows,
-                         report)
-    restored = list(decisions)
-    for j, check in enumerate(checks):
-        if check.rotation is None or keep[j]:
-            continue
-        relative = check.rotation @ decisions[j].rotation.T
-        restored[j] = _combined(decisions[j], PoseDecision(check.rotation, (
-            f"{describe_rotation(relative)}: its {len(check.references)} nearest shapes in their final poses "
-            f"({', '.join(names[i] for i in check.references)}) {check.evidence}")))
-    return restored

@@ -36,7 +36,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
-from ..geometry.chamfer import chamfer_distance
+from ..geometry.chamfer import chamfer_distance, chamfer_distances
 from ..mesh import Mesh
 from ..progress import Progress, no_progress, sub_range
 from .moments import surface_moments
@@ -156,6 +156,13 @@ class PoseSearch:
             value = self._pair_costs[key] = chamfer_distance(self.samples[j], self.samples[i], relative,
                                                              self.trees[j], self.trees[i])
         return value
+
+    def coarse_pair_costs(self, j: int, i: int, relatives: np.ndarray) -> np.ndarray:
+        """C(R P_j, P_i) for each R of `relatives` (k, 3, 3) on the coarse samples (a
+        quarter of them): the collection-wide comparisons of `consensus` ask it of many
+        pairs and turns at once."""
+        return chamfer_distances(self._coarse[j], self._coarse[i], relatives, self._coarse_trees[j],
+                                 self._coarse_trees[i])
 
     def best_rotation(self, j: int, references: Sequence[tuple[int, np.ndarray]], yaw_step: float,
                       tilts: int, refine: bool, snap: float, start: np.ndarray | None = None) -> tuple[Fit, Fit]:

@@ -12,7 +12,7 @@ from ..mesh import FACE_CHUNK, Mesh
 from ..progress import sub_range
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES
 from ..spill import loaded, proxy_of
-from .consensus import ConsensusSettings, PoseDecision, consensus_rotations, pose_outliers
+from .consensus import ConsensusSettings, PoseDecision, consensus_rotations
 from .hollow import Hollows
 from .moments import SCALE_MODES, scale_measure, surface_moments
 from .posesearch import PoseSearch
@@ -21,7 +21,7 @@ from .signature import Signatures
 from .symmetry import AxisSymmetry
 from .transform import PreparedShape, ShapeTransform
 
-__all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection"]
+__all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection", "turn_as_flagged"]
 
 ALIGN_MODES = ("consensus", "pca", "none")
 CENTRE_MODES = ("centroid", "highest", "none")
@@ -75,15 +75,18 @@ def prepare_collection(
         hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed, sub_range(report, 0.18, 0.2))
         del posed
     report(0.2, "surface samples")
+    names = [m.name for m in meshes]
     if align == "consensus" and search is not None:
-        decisions = consensus_rotations(search, signatures, [m.name for m in meshes], keep, consensus, report,
-                                        symmetry, hollows)
+        decisions = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
+                                        up_axis)
     else:
         decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
-    outliers = [""] * len(meshes)
-    if len(meshes) > 2:
-        outliers = pose_outliers(search, signatures, [d.rotation for d in decisions], keep, consensus, symmetry,
-                                 hollows, sub_range(report, 0.88, 0.9, "checking the poses: "))
+        if len(meshes) > 2:  # nobody is turned by the consensus, but a pose it doubts is flagged
+            checks = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
+                                         up_axis, may_turn=False)
+            decisions = [PoseDecision(d.rotation, d.reason, d.steps, c.flag,
+                                      None if c.flag_rotation is None else c.flag_rotation @ d.rotation)
+                         for d, c in zip(decisions, checks)]
     report(0.9, "floor, centre and scale")
 
     transforms, measures = [], []
@@ -94,10 +97,17 @@ def prepare_collection(
                 measures.append(_measure(full, transforms[-1], scale))
     if scale != "none":
         transforms = _equal_size(transforms, measures, scale)
-    prepared = [PreparedShape(_normalised(mesh, t), t, d.changed, d.rotation, d.reason, why)
-                for mesh, t, d, why in zip(meshes, transforms, decisions, outliers)]
+    prepared = [PreparedShape(_normalised(mesh, t), t, d.changed, d.rotation, d.reason, d.flag, _flag_turn(d))
+                for mesh, t, d in zip(meshes, transforms, decisions)]
     report(1.0, "prepared")
     return prepared
+
+
+def _flag_turn(decision: PoseDecision) -> np.ndarray | None:
+    """The turn (after the shape's pose) that its flag suggests, None: no suggestion."""
+    if decision.flag_rotation is None:
+        return None
+    return decision.flag_rotation @ decision.rotation.T
 
 
 def _normalised(mesh, transform: ShapeTransform):
@@ -156,3 +166,22 @@ def _equal_size(transforms: Sequence[ShapeTransform], measures: Sequence[float],
     target = float(np.exp(np.mean(np.log(measures))))
     power = 0.5 if scale == "variance" else 1.0 / 3.0
     return [t.then(scale=(target / m) ** power) for t, m in zip(transforms, measures)]
+
+
+def turn_as_flagged(shape: PreparedShape, centre: str = "centroid") -> tuple[PreparedShape, ShapeTransform]:
+    """Shape turned by the turn its flag suggests (`PreparedShape.flag_turn`), at the
+    user's request (Turn Flagged), floored and centred again (`centre`; the scale is
+    unchanged, a turn leaves the surface variance as it is), and the step from its
+    normalised frame to the new one (to carry its landmarks). Its pose report says so and
+    the flag is cleared. A shape without a suggested turn is returned as it is."""
+    if shape.flag_turn is None:
+        return shape, ShapeTransform.identity()
+    step = _floor_and_centre(shape.mesh, shape.flag_turn, centre)
+    transform = shape.transform.then(step.rotation, step.scale, step.translation)
+    rotation = shape.flag_turn @ shape.pose_rotation
+    reason = f"{describe_rotation(shape.flag_turn)} at the user's request (flagged: {shape.pose_outlier})"
+    if shape.pose_change:
+        reason = f"{describe_rotation(rotation)} in all ({shape.pose_change}; then {reason})"
+    turned = PreparedShape(shape.mesh.with_vertices(step.to_normalised(shape.mesh.vertices)), transform, True,
+                           rotation, reason, "", None)
+    return turned, step

@@ -79,8 +79,11 @@ class PreparedShape:
     #: why and how the pose was changed ("turned 180° about x: its 3 nearest shapes
     #: (a, b, c) fit 4.2× better"), empty when it was kept
     pose_change: str = ""
-    #: why the final pose looks wrong (see consensus.pose_outliers), empty when it does not
+    #: why the pose may be wrong (consensus: flagged and left as it is), empty when it looks right
     pose_outlier: str = ""
+    #: the turn (after `pose_rotation`, in the normalised frame) the flag suggests, applied by
+    #: `turn_flagged`; None: no suggestion
+    flag_turn: np.ndarray | None = None
 
     @property
     def name(self) -> str:
