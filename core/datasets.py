@@ -17,6 +17,10 @@ benchmarks: their third moments along the axis are small, so a sign rule is nois
 Cups (`make_cups`): thick-walled cups without handles whose straight walls lean in on some
 and out on others, the geometry that defeats feature matches (core/correspond/features.py).
 
+Mugs (`make_mugs`): mugs with a handle as a second part, walls tapering inward on some and
+outward on others, closed at both ends (as an artist models a mug as a solid) or open at
+the top; the orientation fixtures where a taper is all that tells top from bottom.
+
 Meshes are triangulated differently on purpose: ring and segment counts, ring offsets and
 quad diagonals vary per shape. Each shape is also placed in a random input pose (scale,
 yaw, translation), so alignment has work to do.
@@ -33,7 +37,7 @@ from scipy.interpolate import PchipInterpolator
 from .mesh import Mesh
 from .preprocess import ShapeTransform
 
-__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "make_barrels", "make_cups", "vase_surface",
+__all__ = ["VaseParameters", "ProceduralShape", "make_vases", "make_barrels", "make_cups", "make_mugs", "vase_surface",
            "write_collection", "PROFILE_BREAKS"]
 
 #: s-values where the profile changes part: base disk | outer wall | rim | inner wall | floor.
@@ -331,6 +335,61 @@ def make_cups(n: int = 12, seed: int = 0, taper: tuple[float, float] = (-0.2, 0.
         placement = _random_placement(rng) if pose else ShapeTransform.identity()
         shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"cup_{i:03d}"))
     return shapes
+
+
+def make_mugs(n: int = 10, seed: int = 0, closed: bool = True, taper: tuple[float, float] = (-0.25, 0.25),
+              handle_height: tuple[float, float] = (0.45, 0.6), pose: bool = True) -> list[Mesh]:
+    """`n` random mugs standing on +z, the handle towards +x: a body of revolution whose wall
+    tapers by t drawn from `taper` (inward on some, outward on others), closed by flat caps
+    at both ends (`closed`) or open at the top (inner wall and floor), and a handle as a
+    second part: a torus arc centred at a height drawn from `handle_height` (fraction of the
+    body's height), reaching into the wall. Before the optional random input pose."""
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for i in range(n):
+        radius, height = rng.uniform(0.8, 1.2), rng.uniform(1.4, 2.4)
+        lean, wall, floor = rng.uniform(*taper), rng.uniform(0.10, 0.14), rng.uniform(0.12, 0.2)
+        outer = lambda z: radius * (1.0 + lean * (z / height - 0.5))  # noqa: E731
+        up = np.linspace(0.0, height, 8)
+        if closed:
+            profile = np.concatenate([[[0.0, 0.0]], np.stack([outer(up), up], axis=1), [[0.0, height]]])
+        else:
+            down = np.linspace(height, floor, 8)
+            profile = np.concatenate([[[0.0, 0.0]], np.stack([outer(up), up], axis=1),
+                                      np.stack([outer(down) - wall, down], axis=1), [[0.0, floor]]])
+        body, body_faces = _revolved_mesh(profile, lambda theta, z: np.ones_like(theta), rng,
+                                          int(rng.integers(28, 40)))
+        handle, handle_faces = _handle(rng, outer, height * rng.uniform(*handle_height), height)
+        vertices = np.vstack([body, handle])
+        faces = np.vstack([body_faces, handle_faces + len(body)])
+        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"mug_{i:03d}"))
+    return shapes
+
+
+def _handle(rng: np.random.Generator, outer, centre: float, height: float,
+            around: int = 8, steps: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """A closed tube swept along a half circle in the xz plane at +x, its ends in the wall
+    (radius `outer(z)`) at `centre` ± its reach: the handle of `make_mugs`."""
+    tube, reach = rng.uniform(0.05, 0.07), rng.uniform(0.22, 0.3) * height
+    phis = 2 * np.pi * np.arange(around) / around
+    rings = []
+    for theta in np.linspace(-0.5 * np.pi, 0.5 * np.pi, steps + 1):
+        z = centre + reach * np.sin(theta)
+        point = np.array([outer(z) - 0.05 + 0.9 * reach * np.cos(theta), 0.0, z])
+        normal = np.array([np.cos(theta), 0.0, np.sin(theta)])
+        rings.append(point + tube * (np.cos(phis)[:, None] * normal + np.sin(phis)[:, None] * [0.0, 1.0, 0.0]))
+    vertices = np.vstack(rings + [rings[0].mean(axis=0), rings[-1].mean(axis=0)])
+    j = np.arange(around)
+    faces = []
+    for k in range(steps):
+        a, b = k * around + j, (k + 1) * around + (j)
+        a1, b1 = k * around + (j + 1) % around, (k + 1) * around + (j + 1) % around
+        faces += [np.stack([a, b, b1], axis=1), np.stack([a, b1, a1], axis=1)]
+    first, last = len(vertices) - 2, len(vertices) - 1
+    faces.append(np.stack([np.full(around, first), j, (j + 1) % around], axis=1))
+    faces.append(np.stack([np.full(around, last), steps * around + (j + 1) % around, steps * around + j], axis=1))
+    return vertices, np.concatenate(faces)[:, ::-1]  # outward
 
 
 def write_collection(shapes, folder: str | Path, file_format: str = "obj") -> list[Path]:

@@ -26,7 +26,11 @@ coarse samples) against the other in its pose.
    when at least `agreement` of its upright references fit it better standing on that
    same axis line (by `margin`), the median improvement is at least `margin`, and
    the new up has no worse symmetry than its own (`symmetry.AxisSymmetry`: a bowl
-   among jugs fits them better on its side, but its up is its axis of symmetry). Which
+   among jugs fits them better on its side, but its up is its axis of symmetry); or
+   when that axis has the symmetries the collection's shapes share about their up
+   clearly more than its up does (`symmetry_gap`, `symmetry_ratio`: a squat closed mug
+   on its side fits upright mugs about as well as standing, but its axis of revolution
+   lies flat) and the references fit it no worse standing on it. Which
    end of that line is up follows the costs when they tell the two ends apart by
    `flip_margin`, else the other common file convention (a y-up file among z-up ones
    stands on its +y; a z-up file among y-up ones on its +z); step 2 then checks it like
@@ -34,8 +38,8 @@ coarse samples) against the other in its pose.
    its side".
 2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
    agrees on top and bottom and the shape clearly does not:
-   - its hollow (`hollow.Hollows`) opens the other way up from at least `agreement` of
-     the shapes whose hollows tell (at least three), and turning it costs at most
+   - its hollow (`hollow.Hollows`) opens the other way up from at least
+     `hollow_agreement` of the shapes whose hollows tell (at least three), and turning it costs at most
      `hollow_cost` times its pose; or
    - at least `agreement` of its references fit it better turned over (by `margin`), by
      `flip_margin` at the median, while the collection's shapes agree with each other
@@ -124,12 +128,19 @@ class ConsensusSettings:
     symmetry_shapes: int = 5
     #: lowest spread (log units) of a symmetry feature in the up profile
     symmetry_floor: float = 0.3
+    #: score difference (its up − another axis) above which that axis has the collection's
+    #: up symmetry clearly more than its up
+    symmetry_gap: float = 0.4
+    #: ... and the factor by which the other axis must score better
+    symmetry_ratio: float = 1.3
     #: voxel grid cells along a shape's longest side for its hollows (`hollow.Hollows`)
     hollow_grid: int = 40
     #: up component of a hollow's opening vector above which it tells top from bottom
     hollow_floor: float = 0.1
     #: cost ratio (turned over / its pose) up to which a hollow turns a shape over
     hollow_cost: float = 1.5
+    #: share of the telling hollows that must open the same way for it to be the collection's
+    hollow_agreement: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -145,6 +156,8 @@ class PoseDecision:
     flag: str = ""
     #: the rotation (from the base pose) that Turn Flagged applies; None: no suggestion
     flag_rotation: np.ndarray | None = field(default=None, compare=False)
+    #: a stand on another axis whose end nothing told (step 2 confirms the end or flags it)
+    end_guessed: bool = False
 
     @property
     def changed(self) -> bool:
@@ -229,56 +242,79 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
             side = min(("x", "y"), key=lambda line: lines[line])
             side_ratio[(j, i)], side_line[(j, i)] = lines["z"] / max(lines[side], 1e-300), side
 
+    profile = symmetry is not None and n >= settings.symmetry_shapes
+    if profile:
+        symmetry.fit_profile([identity] * n, everyone)
+    by_symmetry = {j: _symmetric_side(symmetry, j, settings) if profile else None for j in everyone}
     upright = []
     for j in everyone:
         references = evidence.references(j, everyone)
         for i in references:
             compare(j, i)
-        if np.mean([side_ratio[(j, i)] <= settings.margin for i in references] or [1.0]) >= 0.5:
+        lying = np.mean([side_ratio[(j, i)] > settings.margin for i in references] or [0.0]) > 0.5
+        if not lying and by_symmetry[j] is None:
             upright.append(j)
     decisions = [PoseDecision(identity)] * n
     if 2 * len(upright) <= n or len(upright) < 2:
         return decisions  # no up shared by most shapes: nothing to line up with
-    profile = symmetry is not None and len(upright) >= settings.symmetry_shapes
-    if profile:
-        symmetry.fit_profile([identity] * n, upright)
     for j in (j for j in everyone if j not in upright):
         references = evidence.references(j, upright)
         for i in references:
             compare(j, i)
         ratios = np.array([side_ratio[(j, i)] for i in references])
         lines = [side_line[(j, i)] for i in references]
-        line = max(set(lines), key=lines.count)
+        line = by_symmetry[j][0] if by_symmetry[j] is not None else max(set(lines), key=lines.count)
         votes = sum(r > settings.margin and ln == line for r, ln in zip(ratios, lines))
         median = float(np.median(ratios))
-        if median <= settings.margin:
-            continue
-        d = _standing_end(np.array([costs[(j, i)] for i in references]), line, settings, convention)
+        d, told = _standing_end(np.array([costs[(j, i)] for i in references]), line, settings, convention)
         stand = TILTS[d]
-        words = (f"{votes} of {len(references)} shapes fit it better standing on its {line} axis "
-                 f"({median:.1f}× at the median)")
+        by_cost = votes >= settings.agreement * len(references) and median >= settings.margin
         symmetric = not profile or symmetry.score(j, stand) <= symmetry.score(j, identity)
-        if votes >= settings.agreement * len(references) and median >= settings.margin and symmetric \
-                and not frozen[j]:
-            decisions[j] = PoseDecision(stand, f"{describe_rotation(stand)}: {words}, a file-convention turn")
+        words = []
+        if by_cost or median > settings.margin:
+            words.append(f"{votes} of {len(references)} shapes fit it better standing on its {line} axis "
+                         f"({median:.1f}× at the median)")
+        if by_symmetry[j] is not None:
+            words.append(f"its {line} axis has the symmetry the collection's shapes have about their up "
+                         f"(score {by_symmetry[j][1]:.1f} against {by_symmetry[j][2]:.1f} for its up)")
+        clear = (by_cost and symmetric) or (by_symmetry[j] is not None and median >= 1.0)
+        if not words:
+            continue
+        if clear and not frozen[j]:
+            decisions[j] = PoseDecision(stand, f"{describe_rotation(stand)}: {' and '.join(words)}, "
+                                               "a file-convention turn", end_guessed=not told)
         else:
             why = "" if symmetric else "; its own up has the collection's symmetry"
-            decisions[j] = PoseDecision(identity, flag=f"may be on its side: {words}{why}", flag_rotation=stand)
+            decisions[j] = PoseDecision(identity, flag=f"may be on its side: {' and '.join(words)}{why}",
+                                        flag_rotation=stand)
     return decisions
 
 
-def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings, convention: np.ndarray | None) -> int:
-    """Which TILTS index of `line` a shape stands on: the end the references' median
-    costs (rows of `costs`) prefer by `flip_margin`, else the file convention's end when
-    it lies on the line, else the cheaper one."""
+def _symmetric_side(symmetry: AxisSymmetry, j: int, settings: ConsensusSettings) -> tuple[str, float, float] | None:
+    """(axis, its score, its up's score) when shape j's x or y axis has the symmetry of the
+    collection's up profile clearly more than its up (`symmetry_gap`, `symmetry_ratio`;
+    `AxisSymmetry.axis_scores`, 0 = the collection's typical up), else None."""
+    scores = symmetry.axis_scores(j, np.eye(3))
+    other = 1 + int(np.argmin(scores[1:]))
+    if scores[0] - scores[other] > settings.symmetry_gap and scores[0] > settings.symmetry_ratio * scores[other]:
+        return "xy"[other - 1], float(scores[other]), float(scores[0])
+    return None
+
+
+def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
+                  convention: np.ndarray | None) -> tuple[int, bool]:
+    """(TILTS index, told) of the end of `line` a shape stands on: the end the references'
+    median costs (rows of `costs`) prefer by `flip_margin` (told), else the file
+    convention's end when it lies on the line, else the cheaper one (both guesses)."""
     a, b = _LINES[line]
     ca, cb = float(np.median(costs[:, a])), float(np.median(costs[:, b]))
-    if max(ca, cb) >= settings.flip_margin * min(ca, cb) or convention is None:
-        return a if ca <= cb else b
+    cheaper = a if ca <= cb else b
+    if max(ca, cb) >= settings.flip_margin * min(ca, cb):
+        return cheaper, True
     for d in (a, b):
-        if TILTS[d] @ convention @ np.array([0.0, 0.0, 1.0]) > 0.99:
-            return d
-    return a if ca <= cb else b
+        if convention is not None and (TILTS[d] @ convention)[2] > 0.99:
+            return d, False
+    return cheaper, False
 
 
 def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
@@ -332,6 +368,13 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
                              f"collection (the median shape is asked to turn over by {background:.0%} of its "
                              "references)")
             decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped))
+        elif stood[j].end_guessed and not (
+                _hollow_agrees(openings, j, settings)
+                or (median <= 1.0 / settings.margin and background <= 1.0 - settings.agreement)):
+            decisions.append(PoseDecision(poses[j], flag="may be upside down: stood on another axis of its file, "
+                                                         "and nothing in the collection tells its top from its "
+                                                         "bottom (the end is the other file convention's)",
+                                          flag_rotation=flipped))
         else:
             decisions.append(PoseDecision(poses[j]))
     return decisions
@@ -354,13 +397,15 @@ def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], 
 
 def _hollow_signs(openings: np.ndarray, j: int, settings: ConsensusSettings) -> int:
     """+1 / −1 when the hollows of the other shapes that tell (at least three) open that
-    way up in at least `agreement` of them; 0 when they do not agree."""
+    way up in at least `hollow_agreement` of them; 0 when they do not agree. Which way a
+    hollow opens does not vary across a class as a taper does (a cup opens at its top), so
+    a clear majority is the collection's even with a third of its files upside down."""
     others = np.delete(openings, j)
     telling = others[np.abs(others) > settings.hollow_floor]
     if len(telling) < 3:
         return 0
     up = float(np.mean(telling > 0))
-    return 1 if up >= settings.agreement else -1 if 1.0 - up >= settings.agreement else 0
+    return 1 if up >= settings.hollow_agreement else -1 if 1.0 - up >= settings.hollow_agreement else 0
 
 
 def _hollow_disagrees(openings: np.ndarray, j: int, settings: ConsensusSettings) -> str:
