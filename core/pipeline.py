@@ -208,6 +208,14 @@ class GenerativeShapeModel:
         (among all when it flagged every one); a name is used as given."""
         return int(self.template_order(landmarks, template)[0])
 
+    def path_template(self, latent_a: np.ndarray, latent_b: np.ndarray, template: str | None) -> int:
+        """Index of the one template mesh of a path between two latents (a morph, Blender's
+        Interpolate): chosen (`choose_template`) for the shape at the path's midpoint, so every
+        step is the same mesh and moves only as its landmarks do. A template chosen per step
+        would switch mid-path: the mesh would jump and change its vertex count (§6.2.5)."""
+        midpoint = self.decode(0.5 * (np.asarray(latent_a, dtype=np.float64) + np.asarray(latent_b, dtype=np.float64)))
+        return self.choose_template(midpoint[0], template)
+
     def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
         """The templates for a landmark set, best first: a named template alone, else the
         candidates (`template_candidates`) nearest first, in data space (nearest-data) or

@@ -127,9 +127,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             model = store.require_model(scene)
             first, second = self._objects(context)
             z_a, z_b = object_latent(model, scene, first), object_latent(model, scene, second)
-            # one template for the whole path, so every shape has the same vertices
-            midpoint = model.decode(0.5 * (z_a + z_b))[0]
-            index = model.choose_template(midpoint, settings.sample_template)
+            index = model.path_template(z_a, z_b, settings.sample_template)  # one mesh along the path
             mesher = model.latent_mesher(index, dtype=np.float64)
             ts = np.linspace(0.0, 1.0, steps + 2)
             shapes = [mesher.vertices((1 - t) * z_a + t * z_b) for t in ts]
