@@ -364,7 +364,7 @@ def add_generate_commands(sub) -> None:
                    help="worker processes for 64+ samples (default: all cores)")
     add_settings_options(p, QualitySettings)
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs shapegen[dask])")
+                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs Dask: pip install dask[distributed])")
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 

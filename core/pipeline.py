@@ -78,7 +78,7 @@ class FitSettings(Settings):
     jobs: int | None = option(None, "worker processes reading files and registering shapes (default: all cores)",
                               flag="--jobs", minimum=1)
     scheduler: str | None = option(None, "run the per-shape registrations on Dask: tcp://host:8786 or local:N "
-                                   "(needs shapegen[dask])", flag="--scheduler")
+                                   "(needs Dask: pip install \"dask[distributed]\")", flag="--scheduler")
     mesh_template: str = option("nearest-data", "template mesh of generated shapes when none is asked for: "
                                 "nearest-data, nearest-latent or a training shape's name", flag="--mesh-template")
     correspondence: CorrespondenceSettings = option(default_factory=CorrespondenceSettings,
