@@ -66,7 +66,7 @@ class TemplateError(ShapeGenError, ValueError):
 
 @dataclass(frozen=True)
 class FitSettings(Settings):
-    """Everything a fit needs besides the meshes (defaults: thesis / method.md)."""
+    """Everything a fit needs besides the meshes (defaults: thesis / docs/method.md)."""
 
     prepare: PrepareSettings = option(default_factory=PrepareSettings,
                                       help="alignment, scaling and landmarks; prepare.seed also seeds the model")

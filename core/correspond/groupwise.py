@@ -98,7 +98,7 @@ def correspond(
     should_cancel=None,
     scheduler: str | None = None,
 ) -> Correspondence:
-    """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
+    """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, docs/method.md §3).
 
     template: a shape name, or None for the medoid by symmetric Chamfer distance. An
     outlier is never the medoid template: when a round flags the medoid (outliers.py;
