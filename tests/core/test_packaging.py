@@ -112,3 +112,14 @@ def test_every_method_section_the_code_cites_exists():
     assert cited, "no code cites docs/method.md"
     missing = {section: path for section, path in cited.items() if section not in headings}
     assert not missing, f"sections cited but missing from docs/method.md: {missing}"
+
+
+def test_readme_is_short_and_opens_with_the_two_set_up_commands():
+    """A newcomer finds set-up first and the whole page on a few screens (issue 33)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150
+    first_block = lines[lines.index("```sh") + 1:lines.index("```", lines.index("```sh") + 1)]
+    assert [line.split()[:2] for line in first_block] == [["make", "demo"], ["make", "test"]]
+    headings = [line for line in lines if line.startswith("## ")]
+    for wanted in ("Install into Blender", "The artist's path", "Pipelines", "Read more"):
+        assert any(wanted in heading for heading in headings), wanted
