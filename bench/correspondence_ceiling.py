@@ -15,8 +15,8 @@ Chamfer-medoid template): `features` (turning-line feature off), `features + bet
 (the computed feature, `feature_between=1`), and per W two truth rows. "template own" is
 what correspondence does with the feature: the first round compares sides only, later
 rounds give the template the feature of the shape it was made from, at its landmarks (here
-its true s). "template from population" is what it did before (docs/results.md "Fourth
-round, eighth part"): the population's mean feature at the first round's matches. With the
+its true s). "template from population" is what it did before (docs/results.md,
+Correspondence): the population's mean feature at the first round's matches. With the
 truth every shape compares the feature with the full weight (the agreement weights of
 features.py are set to 1). Columns: true error against the template's surface
 coordinates (% of the diagonal; bench/correspondence_seeds.py counts the template's own

@@ -298,7 +298,7 @@ def main(argv=None) -> int:
             q = min(ppca.latent_dim, n - 2)  # without shrinkage q = N - 1 leaves no noise variance
             a = models.PPCA(n_components=q, shrinkage=0).fit(Y).score(Y_test)
             b = PCA(n_components=q).fit(Y).score(Y_test)
-            line(f"full D, N < D, q = {q} (different sigma^2 conventions): ours / PCA", f"{a:.2f} / {b:.2f} (not comparable, see method.md)")
+            line(f"full D, N < D, q = {q} (different sigma^2 conventions): ours / PCA", f"{a:.2f} / {b:.2f} (not comparable, see docs/method.md)")
         times['PPCA'] = completion(ppca, "ours")
 
     use_gpy = not args.no_gpy

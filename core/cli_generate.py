@@ -317,13 +317,16 @@ def cmd_morph(args: argparse.Namespace) -> int:
     weights = np.linspace(0.0, 1.0, args.n)[:, None]
     line = (1 - weights) * latents[index_a] + weights * latents[index_b]
     landmarks = model.decode(line)
+    # one template along the whole line, so every step has the same mesh (pipeline.path_template)
+    template = model.names[model.path_template(latents[index_a], latents[index_b], args.template)]
     with _StagedOutput(args.output) as staging:
-        _write_meshes(model, landmarks, args.template, args.smooth, staging,
+        _write_meshes(model, landmarks, template, args.smooth, staging,
                       [f"morph_{k:03d}" for k in range(len(landmarks))], args.format)
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1,
                  {"landmarks": landmarks, "latents": line, "weights": weights[:, 0],
                   "ends": np.asarray([args.name_a, args.name_b])})
-    print(f"wrote {args.n} meshes on the latent line {args.name_a} -> {args.name_b} -> {args.output}")
+    print(f"wrote {args.n} meshes on the latent line {args.name_a} -> {args.name_b}, "
+          f"all on template {template} -> {args.output}")
     return 0
 
 
@@ -361,7 +364,7 @@ def add_generate_commands(sub) -> None:
                    help="worker processes for 64+ samples (default: all cores)")
     add_settings_options(p, QualitySettings)
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs shapegen[dask])")
+                   help="mesh the samples on Dask: tcp://host:8786 or local:N (needs Dask: pip install dask[distributed])")
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 

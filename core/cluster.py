@@ -2,7 +2,8 @@
 (issue 15): `tcp://host:8786` (a running scheduler) or `local:N` (a LocalCluster of N
 single-threaded worker processes on this machine, closed again afterwards).
 
-Dask is an optional extra (`pip install "shapegen[dask]"`), never a requirement of the
+Dask is an optional extra (`pip install ".[dask]"` in the checkout, or
+`pip install "dask[distributed]"` beside an installed core), never a requirement of the
 core or the Blender extension: it is imported here, and only when a scheduler is asked
 for. The workers must have the same version of this package installed (they unpickle
 its tasks).
@@ -16,7 +17,7 @@ from .errors import ShapeGenError
 
 __all__ = ["ClusterError", "INSTALL_HINT", "connect", "parse_scheduler"]
 
-INSTALL_HINT = 'pip install "shapegen[dask]"'
+INSTALL_HINT = 'pip install "dask[distributed]"'
 
 
 class ClusterError(ShapeGenError, ValueError):

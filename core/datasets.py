@@ -8,7 +8,7 @@ rim → inner wall down → inner floor centre) with the same breakpoints on eve
 the belly and neck at fixed s along each wall (`_wall_height`); θ is the angle around the
 axis measured from the lip. Equal (s, θ) on two vases is
 their true correspondence, so correspondence error can be measured exactly
-(method.md §5 **beyond**).
+(docs/method.md §5 **beyond**).
 
 Barrels (`make_barrels`): closed barrels nearly symmetric top-to-bottom (a bulging body, a
 small knob on the lid, a tap at mid height giving the facing), for orientation tests and

@@ -6,7 +6,7 @@ form: A_j [x; 1] is the new position of x) are fitted to target landmarks u_j:
 
     E(A) = Σ_j ‖A_j x̃_j − u_j‖²  +  α² Σ_{(i,j) ∈ edges} ‖(A_i − A_j) G‖²_F,   G = diag(1,1,1,γ)
 
-(eq. 6.3 + the stiffness of eq. 4.16, in the stacked form ‖B A − C‖² of method.md §3 with
+(eq. 6.3 + the stiffness of eq. 4.16, in the stacked form ‖B A − C‖² of docs/method.md §3 with
 B = [α (M⊗G); X], so α enters squared): the affine-graph problem of registration, solved
 by the same `AffineSolver` (core/geometry/affine_graph.py) in the same unit-RMS frame of
 the nodes. Every template vertex is then blended over its k
@@ -20,7 +20,7 @@ Two ways to fit the affines:
 * `schedule="single"` — one solve at the final α. For fixed template, graph and α the map
   landmarks → vertices is then LINEAR: `LinearMeshMap` solves once for all L unit
   landmark sets, after which each new landmark set costs a dense product and a sparse
-  product (method.md §6 **beyond**).
+  product (docs/method.md §6 **beyond**).
 
 Optional curvature-flow smoothing (§6.2.4, Desbrun et al. 1999): implicit steps
 (M − h L) V' = M V with the cotangent Laplacian L and lumped (barycentric) mass M,

@@ -4,7 +4,7 @@ Alg. 2: take a random point as a landmark, discard every point within radius r o
 repeat until no point is left. The result is roughly uniform over the surface and no two
 landmarks are closer than r.
 
-**beyond** (method.md §2): points come from a dense area-weighted surface sample, not the
+**beyond** (docs/method.md §2): points come from a dense area-weighted surface sample, not the
 mesh vertices (a coarse mesh has too few); r is found by bisection so the count is within
 a tolerance of the request; everything is seeded and deterministic.
 """

@@ -66,7 +66,7 @@ class TemplateError(ShapeGenError, ValueError):
 
 @dataclass(frozen=True)
 class FitSettings(Settings):
-    """Everything a fit needs besides the meshes (defaults: thesis / method.md)."""
+    """Everything a fit needs besides the meshes (defaults: thesis / docs/method.md)."""
 
     prepare: PrepareSettings = option(default_factory=PrepareSettings,
                                       help="alignment, scaling and landmarks; prepare.seed also seeds the model")
@@ -78,7 +78,7 @@ class FitSettings(Settings):
     jobs: int | None = option(None, "worker processes reading files and registering shapes (default: all cores)",
                               flag="--jobs", minimum=1)
     scheduler: str | None = option(None, "run the per-shape registrations on Dask: tcp://host:8786 or local:N "
-                                   "(needs shapegen[dask])", flag="--scheduler")
+                                   "(needs Dask: pip install \"dask[distributed]\")", flag="--scheduler")
     mesh_template: str = option("nearest-data", "template mesh of generated shapes when none is asked for: "
                                 "nearest-data, nearest-latent or a training shape's name", flag="--mesh-template")
     correspondence: CorrespondenceSettings = option(default_factory=CorrespondenceSettings,
@@ -207,6 +207,14 @@ class GenerativeShapeModel:
         nearest-latent choose among the shapes the correspondence did not flag as outliers
         (among all when it flagged every one); a name is used as given."""
         return int(self.template_order(landmarks, template)[0])
+
+    def path_template(self, latent_a: np.ndarray, latent_b: np.ndarray, template: str | None) -> int:
+        """Index of the one template mesh of a path between two latents (a morph, Blender's
+        Interpolate): chosen (`choose_template`) for the shape at the path's midpoint, so every
+        step is the same mesh and moves only as its landmarks do. A template chosen per step
+        would switch mid-path: the mesh would jump and change its vertex count (§6.2.5)."""
+        midpoint = self.decode(0.5 * (np.asarray(latent_a, dtype=np.float64) + np.asarray(latent_b, dtype=np.float64)))
+        return self.choose_template(midpoint[0], template)
 
     def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
         """The templates for a landmark set, best first: a named template alone, else the

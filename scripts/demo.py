@@ -197,11 +197,13 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     a, b = np.unravel_index(np.argmax(distance), distance.shape)
     line = np.linspace(0, 1, 8)[:, None] * (latents[b] - latents[a]) + latents[a]
     morph = model.decode(line)
+    # one template along the whole row (as Blender's Interpolate and `shapegen morph`): no jump mid-path
+    morph_template = model.names[model.path_template(latents[a], latents[b], None)]
     rows = {
         "training": [model.meshes[i] for i in range(min(8, len(model.meshes)))],
         "samples": [model.mesh_from_landmarks(lm, name=f"sample {i}") for i, lm in enumerate(samples)],
         f"morph {model.names[a]} to {model.names[b]}": [
-            model.mesh_from_landmarks(lm, name=f"morph {k}") for k, lm in enumerate(morph)],
+            model.mesh_from_landmarks(lm, template=morph_template, name=f"morph {k}") for k, lm in enumerate(morph)],
     }
     colours = {"training": (0.8, 0.82, 0.86, 1.0), "samples": (0.45, 0.65, 0.95, 1.0)}
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)

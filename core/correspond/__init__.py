@@ -1,4 +1,4 @@
-"""Dense landmark correspondence by non-rigid ICP (thesis §4.2, method.md §3).
+"""Dense landmark correspondence by non-rigid ICP (thesis §4.2, docs/method.md §3).
 
 A template landmark cloud X (L points) is deformed onto every shape of a prepared
 collection by one affine transform per landmark (Amberg et al. 2007):

@@ -66,16 +66,15 @@ SAMPLE_SEED = 0
 #: a shape whose positions between turning lines differ from the template's by at most
 #: this on average (at the first round's matches) compares them with the full weight w_b,
 #: by `NO_AGREEMENT` or more not at all, linearly between. Positions of unrelated structures
-#: differ by 1/3 on average (two independent uniform values). Measured after the first
-#: round: procedural vases 0.03-0.15 (the three without a neck 0.10-0.15), PSB shapes
-#: 0.10-0.57, three quarters of them above 0.2 (docs/results.md "Fourth round, eighth part").
+#: differ by 1/3 on average (two independent uniform values); after the first round shapes
+#: of one turned class stay below 0.15, most real-class shapes are above 0.2
+#: (docs/results.md, Correspondence).
 FULL_AGREEMENT = 0.1
 NO_AGREEMENT = 0.2
 #: feature matches fit a shape worse when their residual exceeds the closest-point fit's by
-#: more than this fraction (`worse_fits`). Lining features up costs some distance (first
-#: round, procedural vases of seeds 1-9: up to 1.21 ×, but one vase 1.33 ×); a template
-#: collapsed onto part of a shape costs more (Blender mugs 1.41-1.93 ×, PSB cups up to
-#: 1.42 ×; docs/results.md "Fourth round, twelfth part")
+#: more than this fraction (`worse_fits`). Lining features up costs some distance (about a
+#: fifth at most on the procedural vases); a template collapsed onto part of a shape costs
+#: more, from 1.4 × up (Blender mugs, PSB cups; docs/results.md, Correspondence)
 FIT_TOLERANCE = 0.25
 #: a template region counts in `merged_regions` when it holds at least this share of the
 #: template's points (smaller ones are noise of a near-vertical wall or a rim's edge)

@@ -98,7 +98,7 @@ def correspond(
     should_cancel=None,
     scheduler: str | None = None,
 ) -> Correspondence:
-    """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, method.md §3).
+    """Groupwise non-rigid ICP over a `PreparedCollection` (thesis §4.2, docs/method.md §3).
 
     template: a shape name, or None for the medoid by symmetric Chamfer distance. An
     outlier is never the medoid template: when a round flags the medoid (outliers.py;
@@ -351,7 +351,6 @@ def _template_between(outcome: _Rounds, start: int) -> np.ndarray:
     """(feature matches, **beyond** the thesis; features.py) the template's positions
     between turning lines from the groupwise round on: those of the shape it was made from,
     at its own landmarks (its registration onto itself in the first round). The population's
-    mean at the first round's matches, used before, carries that round's bias (it compares
-    sides only): procedural 1.265 -> 1.175 %, both with agreement weights
-    (docs/results.md "Fourth round, eighth part")."""
+    mean at the first round's matches carries that round's bias (it compares sides only),
+    and measured worse (docs/results.md, Correspondence)."""
     return outcome.results[start].between

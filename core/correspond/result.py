@@ -99,7 +99,7 @@ class Correspondence:
         return summary
 
     def landmark_matrix(self) -> np.ndarray:
-        """Y = N × 3L (method.md §4), rows in the normalised frame."""
+        """Y = N × 3L (docs/method.md §4), rows in the normalised frame."""
         return self.points.reshape(len(self.names), -1)
 
     def to_arrays(self) -> dict[str, np.ndarray]:

@@ -5,7 +5,7 @@ A turning line is where the surface turns from facing down to facing up (n_z = 0
 up after Prepare): the belly and the neck of a vase, a shoulder, the equator of a sphere.
 The saturated up-feature of features.py tells which side of such a line a point is on;
 it pulls only the points lying between the template's line and the target's, which pile
-up just beyond it (docs/results.md "Fourth round, fourth part"). This module gives every
+up just beyond it (docs/results.md, Correspondence). This module gives every
 point a position along its region instead, so points on both sides of a line are pulled
 in proportion:
 
@@ -19,15 +19,13 @@ length (|Δz| + 0.1 ‖Δx‖ per edge), so along a wall g is the point's height
 lines, not its arc length (a wall that slopes between belly and neck put its arc-length
 middle below its height middle, by a different amount on every vase). The line lies where
 the up-component of the normal crosses zero between two neighbouring points (interpolated
-along their edge), not at the points beside it: measured from those points the line sat
-up to half a spacing inside the region. Both together: on the wall between belly and neck
-of 27 prepared vases with a neck, mean |g - true height fraction| 0.027 -> 0.012 (the old
-error an S-shaped bias, -0.03 near the belly to +0.03 near the neck; docs/results.md
-"Fourth round, eighth part"). A line often comes in pieces (on a wide belly whose normals are
-nearly horizontal over a band, the sign change breaks into arcs): pieces at about the same
-height are one line (`SAME_LINE`); taking only the lowest piece measured g around the
-vase from one arc (g off by 0.12-0.23 on 4 of 30 prepared vases, 0.03-0.05 with the
-pieces joined). A region is a connected part of the surface facing one way (up or
+along their edge), not at the points beside it, which lie up to half a spacing inside the
+region by an amount that differs per shape. (Both choices removed an S-shaped bias of g
+against the true height fraction; figures in docs/results.md, Correspondence.) A line
+often comes in pieces (on a wide belly whose normals are nearly horizontal over a band,
+the sign change breaks into arcs): pieces at about the same height are one line
+(`SAME_LINE`), since taking only the lowest piece would measure g around the shape from
+one arc. A region is a connected part of the surface facing one way (up or
 down); graph edges between points whose normals differ by more than `max_angle` are cut,
 so the two faces of a thin wall, and a crease such as a vase's rim or base, are not
 joined. g lies in [0, 1]: 0 on the lower (or only) line. A region without a turning line

@@ -4,7 +4,7 @@ Every model is an estimator in the scikit-learn habit: the constructor takes hyp
 only, `fit(Y)` learns attributes whose names end in `_`, and all randomness comes from an
 explicit numpy Generator (never the global state).
 
-Data convention (method.md §4): Y is N x D (N shapes, D = 3L landmark coordinates), N << D.
+Data convention (docs/method.md §4): Y is N x D (N shapes, D = 3L landmark coordinates), N << D.
 Models work on Y centred by its mean shape `mean_`.
 """
 
@@ -166,7 +166,7 @@ def ledoit_wolf_shrinkage(Yc: np.ndarray) -> float:
 def shrunk_spectrum(eigvals: np.ndarray, n_features: int, shrinkage: float) -> tuple[np.ndarray, float]:
     """Eigenvalues of (1 - s) S + s (tr S / D) I in the data span, and the value off it.
 
-    Shrinkage towards a multiple of I keeps the eigenvectors (method.md §4).
+    Shrinkage towards a multiple of I keeps the eigenvectors (docs/method.md §4).
     """
     floor = shrinkage * eigvals.sum() / n_features
     return (1.0 - shrinkage) * eigvals + floor, floor

@@ -1,4 +1,4 @@
-"""Bayesian GP-LVM (thesis §5.3.4; Titsias & Lawrence 2010; method.md §4).
+"""Bayesian GP-LVM (thesis §5.3.4; Titsias & Lawrence 2010; docs/method.md §4).
 
 Prior p(X) = prod_n N(x_n | 0, I), variational q(X) = prod_n N(mu_n, diag S_n), ARD RBF kernel
 (kernels.py), M inducing inputs Z (default 20) and Gaussian noise beta^-1. The collapsed bound

@@ -1,4 +1,4 @@
-"""Gaussian process latent variable model (thesis §5.3.3, Lawrence 2005; method.md §4).
+"""Gaussian process latent variable model (thesis §5.3.3, Lawrence 2005; docs/method.md §4).
 
 Y (N x D, centred) = f(Z) + noise with independent GPs per coordinate:
   K = s_f^2 exp(-|z - z'|^2 / (2 l^2)) + beta^-1 I                       (eq. 5.38)

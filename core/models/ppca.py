@@ -1,4 +1,4 @@
-"""Probabilistic PCA with Ledoit-Wolf shrinkage (thesis §5.3.2, eqs. 5.14-5.19; method.md §4).
+"""Probabilistic PCA with Ledoit-Wolf shrinkage (thesis §5.3.2, eqs. 5.14-5.19; docs/method.md §4).
 
 Model: y = mu + W z + eps,  z ~ N(0, I_q),  eps ~ N(0, s^2 I_D)  =>  y ~ N(mu, C), C = W W^T + s^2 I.
 Fit (closed form, eq. 5.18-5.19) on the shrunk covariance S_s = (1 - d) S + d (tr S / D) I:
@@ -30,7 +30,7 @@ class PPCA(ShapeModel):
     n_components : int, None or "heldout"
         Latent dimension q; None = smallest q explaining `variance_fraction` of the data's
         (unshrunk) variance (thesis §5.4.1, 80 %); "heldout" = the q with the highest mean held-out
-        log-likelihood in K-fold cross-validation (method.md §4 **beyond**; K = min(5, N) folds
+        log-likelihood in K-fold cross-validation (docs/method.md §4 **beyond**; K = min(5, N) folds
         of a fixed shuffle, q from 1 to the smallest training fold size - 1, the same shrinkage
         setting in every fold). The per-q scores are kept in `heldout_scores_` (q -> mean
         log-likelihood per held-out shape).

@@ -56,7 +56,8 @@ def _check_correspondence_settings(options: dict) -> None:
 
 
 class SHAPEGEN_OT_find_correspondences(JobOperator, bpy.types.Operator):
-    """Find dense corresponding landmarks across the prepared collection (non-rigid ICP, in the background)"""
+    """Place every prepared shape's landmarks on the same parts of every shape, in the background
+    (optional: Fit does it too); coloured markers show the result"""
 
     bl_idname = "shapegen.find_correspondences"
     bl_label = "Find Correspondences"

@@ -55,7 +55,7 @@ def _run(operator, function) -> set[str]:
 
 
 class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
-    """Create the live object (a template mesh driven by the latent sliders), or rebuild it"""
+    """Make the live object, a shape you change with the sliders below (or rebuild it)"""
 
     bl_idname = "shapegen.explore"
     bl_label = "Explore"
@@ -74,8 +74,7 @@ class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
-    """Draw a latent vector from the model's latent distribution, within ±3 on every slider,
-    and show it"""
+    """Set the sliders to a random plausible shape (within ±3 on every slider)"""
 
     bl_idname = "shapegen.explore_randomise"
     bl_label = "Randomise"
@@ -97,7 +96,7 @@ class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_explore_reset(_NeedsLive, bpy.types.Operator):
-    """Move every slider back to the training mean"""
+    """Move every slider back to the middle: the collection's average shape"""
 
     bl_idname = "shapegen.explore_reset"
     bl_label = "Reset"
@@ -112,7 +111,7 @@ class SHAPEGEN_OT_explore_reset(_NeedsLive, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_explore_snap(_NeedsLive, bpy.types.Operator):
-    """Move the sliders to the nearest training shape's latent vector"""
+    """Move the sliders to the training shape nearest to the live shape"""
 
     bl_idname = "shapegen.explore_snap"
     bl_label = "Snap to Nearest Training Shape"
@@ -149,8 +148,8 @@ class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
-    """Draw the training shapes' latent vectors as a 2-D map (image "ShapeGen Latent Map"):
-    training shapes blue, outliers red, ShapeGen samples green, the live object white"""
+    """Draw a map of where the shapes lie on the first two sliders (image "ShapeGen Latent
+    Map"): training shapes blue, outliers red, ShapeGen samples green, the live object white"""
 
     bl_idname = "shapegen.latent_map"
     bl_label = "Latent Map"

@@ -92,8 +92,8 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
 
 
 class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
-    """In-between shapes of two objects (training shapes or samples), linear in the latent
-    space: K new objects in a row, or one object with a shape-key animation"""
+    """In-between shapes of two objects (training shapes or samples): new objects in a row, or
+    one object with a shape-key animation; all on one mesh"""
 
     bl_idname = "shapegen.interpolate"
     bl_label = "Interpolate"
@@ -127,9 +127,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             model = store.require_model(scene)
             first, second = self._objects(context)
             z_a, z_b = object_latent(model, scene, first), object_latent(model, scene, second)
-            # one template for the whole path, so every shape has the same vertices
-            midpoint = model.decode(0.5 * (z_a + z_b))[0]
-            index = model.choose_template(midpoint, settings.sample_template)
+            index = model.path_template(z_a, z_b, settings.sample_template)  # one mesh along the path
             mesher = model.latent_mesher(index, dtype=np.float64)
             ts = np.linspace(0.0, 1.0, steps + 2)
             shapes = [mesher.vertices((1 - t) * z_a + t * z_b) for t in ts]
@@ -199,8 +197,8 @@ def _fcurves(id_data) -> list:
 
 
 class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
-    """PPCA modes as native shape keys on the template mesh (key k = mean shape + mode k,
-    range ±3): plain Blender data that keeps working without the add-on"""
+    """The average shape with one shape key per way the shapes vary (PPCA models; range ±3):
+    plain Blender data that keeps working without the extension"""
 
     bl_idname = "shapegen.modes_to_shape_keys"
     bl_label = "Modes to Shape Keys"

@@ -1,7 +1,9 @@
 """The sidebar panel: View3D › Sidebar › ShapeGen, one sub-panel per stage:
-Data, Correspondence, Model, Generate, Explore. The Data, Correspondence and Model panels
-show their background job's progress and Cancel while it runs (the Model panel shows any
-job, and the last job's outcome).
+Data, Correspondence, Model, Generate, Explore. Each stage shows one button and the few
+settings an artist changes; the rarely needed ones sit in that stage's Advanced
+sub-panel, closed by default. The Data, Correspondence and Model panels show their
+background job's progress and Cancel while it runs (the Model panel shows any job, and
+the last job's outcome).
 
 Panels only draw: they read `scene.shapegen`, the model's summary properties on its Text
 datablock (no model decoding while drawing) and the job manager's runtime status.
@@ -90,24 +92,43 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         settings = context.scene.shapegen
         layout.operator("shapegen.import_collection", icon="IMPORT")
         layout.prop(settings, "source_collection")
-        column = layout.column(align=True)
-        column.prop(settings, "n_landmarks")
-        column.prop(settings, "up_axis")
-        column.prop(settings, "align")
-        column.prop(settings, "scale")
-        column.prop(settings, "centre")
-        column.prop(settings, "seed")
-        column.prop(settings, "preview_spacing")
-        active = context.active_object
-        if active is not None and active.type == "MESH":
-            layout.operator("shapegen.toggle_keep_pose", text=f"Keep Pose: {active.name}", icon="PINNED",
-                            depress=bool(active.get(KEEP_POSE_KEY, False)))
-        row = layout.row(align=True)
-        row.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
-        row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
-        if MANAGER.task == "prepare":
-            _draw_progress(layout, settings)
-        _draw_pose_notes(layout, prepared_collection_for(settings.source_collection))
+        layout.prop(settings, "up_axis")
+        _draw_prepare(layout, context)
+
+
+def _draw_prepare(layout, context) -> None:
+    """Prepare: Keep Pose for the active object, the button, its progress and the poses it
+    turned or flagged."""
+    settings = context.scene.shapegen
+    active = context.active_object
+    if active is not None and active.type == "MESH":
+        layout.operator("shapegen.toggle_keep_pose", text=f"Keep Pose: {active.name}", icon="PINNED",
+                        depress=bool(active.get(KEEP_POSE_KEY, False)))
+    row = layout.row(align=True)
+    row.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
+    row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
+    if MANAGER.task == "prepare":
+        _draw_progress(layout, settings)
+    _draw_pose_notes(layout, prepared_collection_for(settings.source_collection))
+
+
+class _AdvancedPanel(_SubPanel):
+    """A stage's rarely needed settings, closed until opened."""
+
+    bl_label = "Advanced"
+    bl_options = {"DEFAULT_CLOSED"}
+    properties: tuple[str, ...] = ()
+
+    def draw(self, context):
+        column = self.layout.column(align=True)
+        for name in self.properties:
+            column.prop(context.scene.shapegen, name)
+
+
+class SHAPEGEN_PT_data_advanced(_AdvancedPanel, bpy.types.Panel):
+    bl_idname = "SHAPEGEN_PT_data_advanced"
+    bl_parent_id = "SHAPEGEN_PT_data"
+    properties = ("n_landmarks", "align", "scale", "centre", "seed", "preview_spacing")
 
 
 def _draw_pose_notes(layout, collection, shown: int = 8) -> None:
@@ -133,12 +154,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.shapegen
-        column = layout.column(align=True)
-        column.prop(settings, "n_landmarks")
-        column.prop(settings, "stiffness")
-        column.prop(settings, "matching")
-        column.prop(settings, "refine")
-        column.prop(settings, "mesh_stiffness")
+        layout.label(text="Optional: Fit finds them too", icon="INFO")
         layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")
         if MANAGER.task == "correspond":
             _draw_progress(layout, settings)
@@ -165,6 +181,12 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
                 box.label(text=line)
         elif not model_outliers:
             box.label(text="No outliers", icon="CHECKMARK")
+
+
+class SHAPEGEN_PT_correspondence_advanced(_AdvancedPanel, bpy.types.Panel):
+    bl_idname = "SHAPEGEN_PT_correspondence_advanced"
+    bl_parent_id = "SHAPEGEN_PT_correspondence"
+    properties = ("stiffness", "matching", "refine")
 
 
 class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
@@ -196,6 +218,12 @@ class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
         row.operator("shapegen.export_model", icon="EXPORT")
 
 
+class SHAPEGEN_PT_model_advanced(_AdvancedPanel, bpy.types.Panel):
+    bl_idname = "SHAPEGEN_PT_model_advanced"
+    bl_parent_id = "SHAPEGEN_PT_model"
+    properties = ("mesh_stiffness",)
+
+
 class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
     bl_label = "Generate"
     bl_idname = "SHAPEGEN_PT_generate"
@@ -205,8 +233,6 @@ class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
         settings = context.scene.shapegen
         column = layout.column(align=True)
         column.prop(settings, "sample_count")
-        column.prop(settings, "seed")
-        column.prop(settings, "sample_template")
         layout.operator("shapegen.sample", icon="MOD_ARRAY")
         layout.separator()
         column = layout.column(align=True)
@@ -222,6 +248,12 @@ class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
         text = _model_text(context)
         row.enabled = text is not None and text.get(MODEL_TYPE_KEY) == "ppca"
         row.operator("shapegen.modes_to_shape_keys", icon="SHAPEKEY_DATA")
+
+
+class SHAPEGEN_PT_generate_advanced(_AdvancedPanel, bpy.types.Panel):
+    bl_idname = "SHAPEGEN_PT_generate_advanced"
+    bl_parent_id = "SHAPEGEN_PT_generate"
+    properties = ("sample_template", "seed")
 
 
 class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
@@ -262,5 +294,7 @@ class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
             layout.label(text=f"Image '{image.name}': open it in an Image Editor", icon="IMAGE")
 
 
-CLASSES = (SHAPEGEN_PT_main, SHAPEGEN_PT_data, SHAPEGEN_PT_correspondence, SHAPEGEN_PT_model,
-           SHAPEGEN_PT_generate, SHAPEGEN_PT_explore)
+# parents before their children (Blender registers a sub-panel after its parent)
+CLASSES = (SHAPEGEN_PT_main, SHAPEGEN_PT_data, SHAPEGEN_PT_data_advanced, SHAPEGEN_PT_correspondence,
+           SHAPEGEN_PT_correspondence_advanced, SHAPEGEN_PT_model, SHAPEGEN_PT_model_advanced,
+           SHAPEGEN_PT_generate, SHAPEGEN_PT_generate_advanced, SHAPEGEN_PT_explore)

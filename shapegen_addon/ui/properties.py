@@ -13,9 +13,12 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
-from ...core.landmarks import DEFAULT_LANDMARKS
+from ...core.pipeline import FitSettings
 from ..latent import on_slider_changed
 from ..prepared import PREPARE_SETTINGS
+
+#: the core's defaults, the one source of every default below: Blender and `shapegen` agree
+CORE_DEFAULTS = FitSettings()
 
 UP_AXIS_ITEMS = [
     ("z", "Z", "The input's +Z points up (Blender's convention)"),
@@ -26,41 +29,40 @@ UP_AXIS_ITEMS = [
     ("-x", "-X", "The input's -X points up"),
 ]
 ALIGN_ITEMS = [
-    ("consensus", "Consensus", "Principal axes, then every shape turned to agree with the collection's medoid"),
-    ("pca", "PCA", "Principal axis of the horizontal spread on X, sign by third moment"),
-    ("none", "None", "Only floor, centre and scale"),
+    ("consensus", "Collection", "Keep each shape's pose; turn a shape only when the whole collection clearly "
+                                "says it lies on another axis or faces another way"),
+    ("pca", "Own Axes", "Turn every shape to its own longest horizontal spread (ignores the other shapes)"),
+    ("none", "None", "Never turn: only set on the floor, centre and scale"),
 ]
 SCALE_ITEMS = [
-    ("variance", "Equal Variance", "Same total surface variance for every shape"),
-    ("bbox", "Equal Box Volume", "Same bounding-box volume for every shape"),
-    ("none", "None", "Keep sizes"),
+    ("variance", "Equal Spread", "Scale every shape to the same overall spread of its surface"),
+    ("bbox", "Equal Box Volume", "Scale every shape to the same bounding-box volume"),
+    ("none", "None", "Keep each shape's size (the model then learns size too)"),
 ]
 CENTRE_ITEMS = [
-    ("centroid", "Centroid", "Horizontal centre of the surface at the origin"),
-    ("highest", "Highest Point", "Highest vertex above the origin (teapots)"),
-    ("none", "None", "Keep the horizontal position"),
+    ("centroid", "Centre of Surface", "Put the middle of each shape's surface over the origin"),
+    ("highest", "Highest Point", "Put each shape's highest point over the origin (e.g. teapots, whose spouts "
+                                 "and handles pull the middle sideways)"),
+    ("none", "None", "Keep each shape where it is horizontally"),
 ]
 MATCHING_ITEMS = [
-    ("closest", "Closest Points", "Each landmark is pulled to the closest surface point facing its way (the thesis)"),
-    ("features", "Features", "Beyond the thesis: to the nearest surface point in position, surface normal and "
-                             "height between the turning lines, so bellies and necks line up; lower "
-                             "correspondence error on vases, but models fitted on it were less compact on real "
-                             "classes. Where it fits more than a tenth of the shapes clearly worse than closest "
-                             "points (walls leaning in on some shapes and out on others, as mugs can), the "
-                             "collection is matched by closest points; the Correspondence panel says which "
-                             "(docs/results.md)"),
+    ("closest", "Closest Points", "Each landmark slides to the nearest part of the surface that faces its way "
+                                  "(recommended)"),
+    ("features", "Features", "Experimental: landmarks also match by which way the surface faces and by height "
+                             "between a shape's bellies and necks. Better on vases, less compact models on "
+                             "other classes; falls back to Closest Points where it fits badly"),
 ]
 REFINE_ITEMS = [
-    ("none", "None", "Non-rigid ICP's landmarks as they are (the thesis)"),
-    ("population", "Population", "Beyond the thesis: landmarks then slide on their surfaces to make the "
-                                 "collection's landmark model compact while staying spread"),
+    ("none", "None", "Use the landmarks as matched (recommended)"),
+    ("population", "Population", "Experimental: afterwards slide the landmarks over the surfaces to make the "
+                                 "collection more alike; slower, not measured better"),
 ]
 
 
 MODEL_ITEMS = [
-    ("ppca", "PPCA", "Probabilistic PCA: linear, fast; its modes can become native shape keys"),
-    ("gplvm", "GP-LVM", "Gaussian-process latent variable model: non-linear"),
-    ("bgplvm", "Bayesian GP-LVM", "Variational Bayesian GP-LVM: non-linear, picks its dimensions (ARD)"),
+    ("ppca", "PPCA", "Linear and fast; its modes can become ordinary shape keys"),
+    ("gplvm", "GP-LVM", "Non-linear: follows curved variation (slower)"),
+    ("bgplvm", "Bayesian GP-LVM", "Non-linear and picks how many sliders it needs (recommended)"),
 ]
 JOB_STATE_ITEMS = [
     ("IDLE", "Idle", "No background job has run"),
@@ -70,8 +72,9 @@ JOB_STATE_ITEMS = [
     ("CANCELLED", "Cancelled", "The last job was cancelled; the scene (and any earlier model) is as it was"),
 ]
 TEMPLATE_ITEMS = [
-    ("nearest-data", "Nearest Shape", "Deform the training mesh nearest to the sample's landmarks"),
-    ("nearest-latent", "Nearest in Latent Space", "Deform the training mesh nearest in latent space"),
+    ("nearest-data", "Nearest Shape", "Build each new shape from the training object it most resembles"),
+    ("nearest-latent", "Nearest on the Sliders", "Build each new shape from the training object nearest to it "
+                                                 "on the sliders"),
 ]
 INTERPOLATION_ITEMS = [
     ("OBJECTS", "Objects", "K in-between objects in a row"),
@@ -89,7 +92,7 @@ class ShapeGenLatent(bpy.types.PropertyGroup):
 
     value: FloatProperty(
         name="Value", default=0.0, soft_min=-3.0, soft_max=3.0, precision=3,
-        description="Position along this latent dimension, in training standard deviations",
+        description="Move to change the shape; ±3 reaches every training shape",
         update=_on_latent_changed,
     )
     centre: FloatProperty(name="Centre", default=0.0, options={"HIDDEN"})
@@ -97,79 +100,89 @@ class ShapeGenLatent(bpy.types.PropertyGroup):
 
 
 class ShapeGenSettings(bpy.types.PropertyGroup):
+    """The panel's settings. Every default that the core also has is read from the core's
+    settings (`CORE_DEFAULTS`), so Blender and `shapegen` start from the same values."""
+
     source_collection: PointerProperty(
         name="Collection", type=bpy.types.Collection,
-        description="Training collection of mesh objects (one shape class)",
+        description="The collection of example objects to learn from, all of one kind (vases, mugs, cars, ...)",
     )
     n_landmarks: IntProperty(
-        name="Landmarks", default=DEFAULT_LANDMARKS, min=16, max=5000,
-        description="Landmarks per shape (thesis: 700-800)",
+        name="Landmarks", default=CORE_DEFAULTS.prepare.n_landmarks, min=16, max=5000,
+        description="Points placed on every shape to compare them. More follow finer detail and take longer",
     )
-    up_axis: EnumProperty(name="Up Axis", items=UP_AXIS_ITEMS, default="z",
-                          description="Which axis of the inputs points up")
-    align: EnumProperty(name="Align", items=ALIGN_ITEMS, default="consensus")
-    scale: EnumProperty(name="Scale", items=SCALE_ITEMS, default="variance")
-    centre: EnumProperty(name="Centre", items=CENTRE_ITEMS, default="centroid")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Random seed (results are deterministic)")
+    up_axis: EnumProperty(name="Up Axis", items=UP_AXIS_ITEMS, default=CORE_DEFAULTS.prepare.up_axis,
+                          description="Which axis points up in your objects (Z in Blender; Y in many OBJ files)")
+    align: EnumProperty(name="Align", items=ALIGN_ITEMS, default=CORE_DEFAULTS.prepare.align,
+                        description="How Prepare turns the shapes to face alike")
+    scale: EnumProperty(name="Scale", items=SCALE_ITEMS, default=CORE_DEFAULTS.prepare.scale,
+                        description="How Prepare makes the shapes one size")
+    centre: EnumProperty(name="Centre", items=CENTRE_ITEMS, default=CORE_DEFAULTS.prepare.centre,
+                         description="Which point of each shape Prepare puts over the origin")
+    seed: IntProperty(name="Seed", default=CORE_DEFAULTS.prepare.seed, min=0,
+                      description="Change it for different random landmarks and samples; the same seed gives "
+                                  "the same result")
     preview_spacing: FloatProperty(name="Spacing", default=1.5, min=0.0,
-                                   description="Grid spacing of prepared shapes, in shape sizes")
+                                   description="Gap between the prepared shapes and between new shapes, in shape sizes")
     use_base_mesh: BoolProperty(
         name="Base Mesh", default=False,
-        description="Read each object's own mesh, ignoring its modifiers (default: the mesh as the viewport "
-                    "shows it, modifiers applied). Prepare and Fit read the same way",
+        description="Read each object without its modifiers (off: as the viewport shows it, modifiers applied)",
     )
     last_import_directory: StringProperty(name="Last Folder", subtype="DIR_PATH")
 
-    # --- fit (Correspondence + Model sub-panels)
+    # --- fit (Correspondence and Model sub-panels)
     stiffness: FloatProperty(
-        name="Stiffness", default=5.0, min=0.01, soft_max=100.0,
-        description="Final stiffness of the correspondence (thesis: 5 vases and teapots, 10 cars; feature "
-                    "matches end at 0.4 of it); higher keeps the template's shape, lower follows each shape closely",
+        name="Stiffness", default=CORE_DEFAULTS.correspondence.alpha_end, min=0.01, soft_max=100.0,
+        description="How stiffly the landmarks move when matched to each shape: higher keeps them evenly "
+                    "spread, lower follows each shape's details closely (5 suits vases and mugs, 10 cars)",
     )
-    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default="closest",
-                           description="What non-rigid ICP pulls each landmark to (CorrespondenceSettings.matching)")
-    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default="none",
-                         description="Groupwise refinement after non-rigid ICP (CorrespondenceSettings.refine)")
+    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default=CORE_DEFAULTS.correspondence.matching,
+                           description="What each landmark is matched to on every shape")
+    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refine,
+                         description="An extra pass after matching")
     mesh_stiffness: FloatProperty(
-        name="Meshing Stiffness", default=2.0, min=0.01, soft_max=100.0,
-        description="Stiffness of the embedded deformation that meshes generated landmarks: low follows "
-                    "the landmarks closely, high keeps the template's mesh quality (2: under 0.1 % "
-                    "flipped triangles on PSB airplanes)",
+        name="Meshing Stiffness", default=CORE_DEFAULTS.deform.final_alpha, min=0.01, soft_max=100.0,
+        description="How stiffly new shapes are bent out of a training object: higher keeps its surface smooth "
+                    "and unbroken, lower follows the new shape more closely",
     )
-    fit_model: EnumProperty(name="Model", items=MODEL_ITEMS, default="bgplvm")
+    fit_model: EnumProperty(name="Model", items=MODEL_ITEMS, default=CORE_DEFAULTS.model,
+                            description="The kind of model that learns the shapes")
     latent_dim: IntProperty(
-        name="Latent Dimension", default=0, min=0, soft_max=20,
-        description="Dimensions of the latent space (0: automatic, 80 % of the variance)",
+        name="Latent Dimension", default=CORE_DEFAULTS.latent_dim or 0, min=0, soft_max=20,
+        description="How many ways the shapes may vary (one slider each). 0: as many as the collection needs",
     )
 
     # --- the fitted model (packed in a Text datablock, see store.py) and the last job
     model_text: PointerProperty(
         name="Model", type=bpy.types.Text,
-        description="Text datablock holding the fitted model (the model .npz byte for byte, in its custom "
-                    "property 'shapegen_model_npz')",
+        description="The text block that keeps the fitted model inside this .blend file",
     )
     job_state: EnumProperty(name="Job State", items=JOB_STATE_ITEMS, default="IDLE")
     job_fraction: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
     job_stage: StringProperty(name="Stage")
-    job_message: StringProperty(name="Message", description="Outcome of the last job (why it failed, ...)")
+    job_message: StringProperty(name="Message", description="What the last job did, or why it stopped")
 
     # --- generate
-    sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="Shapes to sample")
-    sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, default="nearest-data")
+    sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="How many new shapes to make")
+    sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, default=CORE_DEFAULTS.mesh_template,
+                                  description="Which training object a new shape's mesh is made from")
     interpolate_a: PointerProperty(name="From", type=bpy.types.Object,
-                                   description="First shape (a training shape or a ShapeGen sample)")
+                                   description="The first shape: a training object or a ShapeGen sample")
     interpolate_b: PointerProperty(name="To", type=bpy.types.Object,
-                                   description="Second shape (a training shape or a ShapeGen sample)")
+                                   description="The last shape: a training object or a ShapeGen sample")
     interpolate_steps: IntProperty(name="Steps", default=5, min=1, soft_max=50,
-                                   description="In-between shapes")
-    interpolate_mode: EnumProperty(name="Output", items=INTERPOLATION_ITEMS, default="OBJECTS")
-    interpolate_frames: IntProperty(name="Frames per Step", default=10, min=1, soft_max=100)
+                                   description="How many shapes in between")
+    interpolate_mode: EnumProperty(name="Output", items=INTERPOLATION_ITEMS, default="OBJECTS",
+                                   description="Separate objects, or one object animated with shape keys")
+    interpolate_frames: IntProperty(name="Frames per Step", default=10, min=1, soft_max=100,
+                                    description="Animation frames from one in-between shape to the next")
 
     # --- explore
     latents: CollectionProperty(type=ShapeGenLatent)
     live_object: PointerProperty(name="Live Object", type=bpy.types.Object)
-    explore_seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the next Randomise")
-    map_size: IntProperty(name="Map Size", default=256, min=64, max=2048, description="Latent map size in pixels")
+    explore_seed: IntProperty(name="Seed", default=0, min=0, description="Change it for another random shape")
+    map_size: IntProperty(name="Map Size", default=256, min=64, max=2048,
+                          description="Size of the latent map picture, in pixels")
 
     # --- the panel's settings as the core's options (the worker tasks' JSON)
     def prepare_options(self) -> dict:

@@ -15,7 +15,8 @@ OPERATORS = ("import_collection", "prepare", "find_correspondences", "fit", "fit
              "interpolate", "modes_to_shape_keys", "explore", "explore_randomise", "explore_reset",
              "explore_snap", "explore_bake", "latent_map")
 PANELS = ("SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model", "SHAPEGEN_PT_generate",
-          "SHAPEGEN_PT_explore")
+          "SHAPEGEN_PT_explore", "SHAPEGEN_PT_data_advanced", "SHAPEGEN_PT_correspondence_advanced",
+          "SHAPEGEN_PT_model_advanced", "SHAPEGEN_PT_generate_advanced")
 
 
 def test_manifest_validates_with_blenders_own_builder():

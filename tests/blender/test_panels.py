@@ -4,6 +4,7 @@ recording layout that checks every property, operator and icon it names exists."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -11,8 +12,14 @@ import bpy
 import pytest
 from conftest import FAST_FIT, add_vase_collection, addon_module, load_model
 
-PANELS = ("SHAPEGEN_PT_main", "SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model",
+STAGES = ("SHAPEGEN_PT_main", "SHAPEGEN_PT_data", "SHAPEGEN_PT_correspondence", "SHAPEGEN_PT_model",
           "SHAPEGEN_PT_generate", "SHAPEGEN_PT_explore")
+ADVANCED = ("SHAPEGEN_PT_data_advanced", "SHAPEGEN_PT_correspondence_advanced", "SHAPEGEN_PT_model_advanced",
+            "SHAPEGEN_PT_generate_advanced")
+PANELS = STAGES + ADVANCED
+#: research and rarely needed settings: only in a stage's Advanced sub-panel
+RARELY_NEEDED = ("n_landmarks", "align", "scale", "centre", "seed", "preview_spacing", "stiffness", "matching",
+                 "refine", "mesh_stiffness", "sample_template")
 ICONS = set(bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items.keys())
 
 
@@ -67,7 +74,8 @@ def _draw_all(panels=PANELS) -> list:
     calls = []
     for name in panels:
         panel = getattr(bpy.types, name)
-        panel.draw(type("Fake", (), {"layout": RecordingLayout(calls)})(), Context())
+        fake = type("Fake", (), {"layout": RecordingLayout(calls), "properties": getattr(panel, "properties", ())})
+        panel.draw(fake(), Context())
     return calls
 
 
@@ -131,3 +139,49 @@ def test_correspondence_panel_shows_its_jobs_stage_and_percentage(extension):
 def test_every_operator_has_a_description(name):
     cls = getattr(bpy.types, f"SHAPEGEN_OT_{name}")
     assert cls.bl_idname == f"shapegen.{name}" and (cls.__doc__ or "").strip()
+
+
+def test_rarely_needed_settings_sit_in_closed_advanced_sub_panels():
+    shown = {name for kind, name in _draw_all(STAGES) if kind == "prop"}
+    assert not shown & set(RARELY_NEEDED), sorted(shown & set(RARELY_NEEDED))
+    advanced = {name for kind, name in _draw_all(ADVANCED) if kind == "prop"}
+    assert set(RARELY_NEEDED) <= advanced
+    for name in ADVANCED:
+        assert "DEFAULT_CLOSED" in getattr(bpy.types, name).bl_options
+
+
+def test_tooltips_speak_to_artists_not_programmers():
+    settings = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type
+    texts = []
+    for prop in settings.properties:
+        texts.append(prop.description)
+        if prop.type == "ENUM":
+            texts += [item.description for item in prop.enum_items]
+    for text in texts:
+        assert "Settings." not in text and "core." not in text and "thesis" not in text, text
+
+
+def test_every_blender_default_is_the_core_and_cli_default(extension):
+    """The panel's defaults, as the worker receives them, are the core's default FitSettings,
+    which are the `shapegen` defaults too (its options are built from the same classes)."""
+    pipeline = addon_module(extension, "core.pipeline")
+    core_settings = addon_module(extension, "core.settings")
+    scene = bpy.data.scenes.new("fresh defaults")
+    try:
+        panel = scene.shapegen
+        received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
+        assert received == pipeline.FitSettings()
+        assert panel.sample_template == pipeline.FitSettings().mesh_template
+        assert panel.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
+    finally:
+        bpy.data.scenes.remove(scene)
+    # every choice the panel offers is one the core knows, and the other way round
+    defaults = pipeline.FitSettings()
+    choices = {"up_axis": (defaults.prepare, "up_axis"), "align": (defaults.prepare, "align"),
+               "scale": (defaults.prepare, "scale"), "centre": (defaults.prepare, "centre"),
+               "matching": (defaults.correspondence, "matching"), "refine": (defaults.correspondence, "refine"),
+               "fit_model": (defaults, "model")}
+    rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
+    for name, (owner, field_name) in choices.items():
+        core_field = next(f for f in dataclasses.fields(owner) if f.name == field_name)
+        assert set(rna[name].enum_items.keys()) == set(core_field.metadata["choices"]), name

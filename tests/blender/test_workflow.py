@@ -205,8 +205,8 @@ def test_fit_refuses_bad_input_before_starting_a_worker(extension, jobs):
 
 
 def test_the_polling_function_the_readme_names_exists(extension, jobs):
-    """Scripts (timers never fire there) poll through the function the README names."""
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    """Scripts (timers never fire there) poll through the function the user guide names."""
+    readme = (Path(__file__).resolve().parents[2] / "docs" / "user-guide.md").read_text()
     paths = re.findall(r"`(bl_ext\.user_default\.shapegen\.[\w.]+)\(\)`", readme)
     assert paths
     for path in paths:

@@ -109,6 +109,46 @@ def test_morph_ends_at_the_two_training_shapes(model_file, tmp_path):
     np.testing.assert_allclose(landmarks[[0, -1]], ends, atol=1e-9)
 
 
+def _morph_meshes(folder: Path, steps: int):
+    return [trimesh.load(folder / f"morph_{k:03d}.obj", process=False, force="mesh") for k in range(steps)]
+
+
+def test_a_morph_keeps_one_mesh_and_moves_evenly(model_file, tmp_path):
+    """Every step of a morph is one template's mesh (one face list), so the path has no jump:
+    no step moves more than 2.5x the median step. The ends are the two training shapes
+    farthest apart in latent space, whose nearest templates differ."""
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    model = GenerativeShapeModel.load(model_file)
+    latents = model.training_latents()
+    distance = ((latents[:, None] - latents[None]) ** 2).sum(axis=2)
+    a, b = np.unravel_index(np.argmax(distance), distance.shape)
+    ends = model.decode(latents[[a, b]])
+    assert model.choose_template(ends[0], None) != model.choose_template(ends[1], None)
+    steps = 8
+    result = run("morph", model_file, model.names[a], model.names[b], "-n", steps, "-o", tmp_path / "morph")
+    assert result.returncode == 0, result.stderr
+    meshes = _morph_meshes(tmp_path / "morph", steps)
+    for mesh in meshes[1:]:
+        np.testing.assert_array_equal(mesh.faces, meshes[0].faces)
+    moves = [np.sqrt(((later.vertices - earlier.vertices) ** 2).sum(axis=1).mean())
+             for earlier, later in zip(meshes, meshes[1:])]
+    assert max(moves) <= 2.5 * np.median(moves), moves
+    template = model.names[model.path_template(latents[a], latents[b], None)]
+    assert f"all on template {template}" in result.stdout
+
+
+def test_a_morph_on_a_named_template_uses_its_mesh(model_file, tmp_path):
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    model = GenerativeShapeModel.load(model_file)
+    result = run("morph", model_file, model.names[0], model.names[1], "-n", 3, "--template", model.names[5],
+                 "-o", tmp_path / "morph")
+    assert result.returncode == 0, result.stderr
+    for mesh in _morph_meshes(tmp_path / "morph", 3):
+        assert len(mesh.faces) == len(model.meshes[5].faces)
+
+
 def test_a_corrupt_model_file_is_one_line_naming_it(tmp_path):
     bad = tmp_path / "model.npz"
     bad.write_bytes(b"not a zip")

@@ -93,7 +93,7 @@ def test_core_imports_and_runs_without_dask():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert 'pip install "shapegen[dask]"' in done.stdout
+    assert 'pip install "dask[distributed]"' in done.stdout
 
 
 def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):

@@ -411,7 +411,7 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     # seed 1: the template (vase 2) has a neck; vases 1 and 4 have none, so belly to rim
     # faces up on them in one piece where the template's neck splits it. Measured true
     # error here (400 landmarks): vase 1 3.34 -> 1.52 %, vase 4 3.13 -> 2.15 %, the others
-    # unchanged; 800 landmarks: docs/results.md "Fourth round, fourteenth part"
+    # unchanged; 800 landmarks: docs/results.md, Correspondence
     shapes = make_vases(6, seed=1, resolution=(65, 130))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=400, seed=0))
     neckless = [i for i, s in enumerate(shapes) if s.params.lip_radius < s.params.neck_radius]

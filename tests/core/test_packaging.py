@@ -7,6 +7,7 @@ work in the editable checkout and be missing from a real install. This builds th
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -62,11 +63,15 @@ def test_built_wheel_holds_every_core_module(tmp_path):
     assert expected <= shipped, f"modules missing from the wheel: {sorted(expected - shipped)}"
 
 
-def test_readme_layout_names_every_module():
-    """The README's layout table is the map of the tree: every module and package of core/
-    and shapegen_addon/ is named there (in backticks), so a new file cannot hide."""
-    readme = (ROOT / "README.md").read_text()
-    layout = readme[readme.index("## Layout"):readme.index("## Environments")]
+def _architecture_modules() -> str:
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    return text[text.index("## Modules"):]
+
+
+def test_architecture_names_every_module():
+    """docs/architecture.md's module table is the map of the tree: every module and package
+    of core/ and shapegen_addon/ is named there (in backticks), so a new file cannot hide."""
+    layout = _architecture_modules()
     missing = []
     for top in ("core", "shapegen_addon"):
         for path in (ROOT / top).rglob("*.py"):
@@ -77,4 +82,44 @@ def test_readme_layout_names_every_module():
                 continue
             if f"`{name}`" not in layout and f"{name}/`" not in layout and f"/{name}.py`" not in layout:
                 missing.append(str(path.relative_to(ROOT)))
-    assert not missing, f"README layout table does not name: {missing}"
+    assert not missing, f"docs/architecture.md does not name: {missing}"
+
+
+def test_every_path_the_docs_name_exists():
+    """Every repository path the README and docs/ name in backticks or links exists: the
+    docs point at nothing outside the repository and at nothing that was removed."""
+    pattern = re.compile(r"`((?:core|shapegen_addon|tests|bench|scripts|docs|requirements)/[\w./-]*)`"
+                         r"|\]\(((?!https?:)[^)#]+)\)")
+    missing = []
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for match in pattern.finditer(page.read_text()):
+            path = match.group(1) or match.group(2)
+            base = ROOT if match.group(1) else page.parent
+            if not (base / path).exists():
+                missing.append(f"{page.name}: {path}")
+    assert not missing, missing
+
+
+def test_every_method_section_the_code_cites_exists():
+    """Code cites docs/method.md by its numbered sections ("docs/method.md §3"); each
+    exists there as a heading "## 3. ..."."""
+    headings = set(re.findall(r"^## (\d+)\. ", (ROOT / "docs" / "method.md").read_text(), flags=re.MULTILINE))
+    cited = {}
+    for top in ("core", "shapegen_addon", "bench", "scripts"):
+        for path in (ROOT / top).rglob("*.py"):
+            for section in re.findall(r"method\.md §(\d+)", path.read_text()):
+                cited.setdefault(section, path.relative_to(ROOT).as_posix())
+    assert cited, "no code cites docs/method.md"
+    missing = {section: path for section, path in cited.items() if section not in headings}
+    assert not missing, f"sections cited but missing from docs/method.md: {missing}"
+
+
+def test_readme_is_short_and_opens_with_the_two_set_up_commands():
+    """A newcomer finds set-up first and the whole page on a few screens (issue 33)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150
+    first_block = lines[lines.index("```sh") + 1:lines.index("```", lines.index("```sh") + 1)]
+    assert [line.split()[:2] for line in first_block] == [["make", "demo"], ["make", "test"]]
+    headings = [line for line in lines if line.startswith("## ")]
+    for wanted in ("Install into Blender", "The artist's path", "Pipelines", "Read more"):
+        assert any(wanted in heading for heading in headings), wanted
