@@ -74,8 +74,10 @@ def _bridge(bm, low: list, high: list) -> None:
         bm.faces.new((low[k], low[(k + 1) % n], high[(k + 1) % n], high[k]))
 
 
-def mug_data(name: str, rng: np.random.Generator, material):
-    """Mesh data of one mug in its own frame (module docstring), with UVs and `material`."""
+def mug_data(name: str, rng: np.random.Generator, material, closed: bool = False):
+    """Mesh data of one mug in its own frame (module docstring), with UVs and `material`;
+    `closed`: a solid mug, its body a tube of quads closed by n-gon caps at both ends (as an
+    artist often models one), the handle at 45-60 % of its height."""
     import bmesh
     import bpy
 
@@ -88,12 +90,13 @@ def mug_data(name: str, rng: np.random.Generator, material):
 
     bm = bmesh.new()
     outside = [_ring(bm, outer(z), z) for z in np.linspace(0.0, height, 6)]
-    inside = [_ring(bm, outer(z) - wall, z) for z in np.linspace(height, bottom, 6)]
+    inside = [] if closed else [_ring(bm, outer(z) - wall, z) for z in np.linspace(height, bottom, 6)]
     rings = outside + inside
     for low, high in zip(rings, rings[1:]):
         _bridge(bm, low, high)
     bm.faces.new(list(reversed(outside[0])))  # 32-gon under the mug, facing down
-    bm.faces.new(list(reversed(inside[-1])))  # 32-gon inside, facing up into the cup
+    # 32-gon inside facing up into the cup, or the lid of a closed mug
+    bm.faces.new(list(outside[-1]) if closed else list(reversed(inside[-1])))
 
     tube = rng.uniform(0.05, 0.07)
     reach, centre = rng.uniform(0.22, 0.32) * height, rng.uniform(0.45, 0.55) * height

@@ -37,7 +37,7 @@ import numpy as np
 from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
-from .errors import ModelFileError, ShapeGenError
+from .errors import CollectionError, ModelFileError, ShapeGenError
 from .latent_units import LatentUnits
 from . import meshset
 from .layout import pack_layouts, unpack_layouts
@@ -467,12 +467,36 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
         prepared = prepare_meshes(meshes, settings.prepare, progress=sub_range(progress, 0.0, 0.15, "prepare: "),
                                   should_cancel=cancel)
     cancel()
+    _check_variation([s.mesh for s in prepared.shapes])  # before the correspondence's work
     corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=settings.jobs,
                       progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel,
                       scheduler=settings.scheduler)
     cancel()
     return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings,
                            progress=sub_range(progress, 0.75, 1.0), should_cancel=cancel, started=start)
+
+
+#: largest vertex difference between prepared shapes, as a share of their size, below
+#: which they are copies of one mesh
+IDENTICAL_SPREAD = 1e-6
+
+
+def _check_variation(meshes: list[Mesh]) -> None:
+    """A collection whose prepared shapes are all copies of one mesh (same faces, same
+    vertices in the normalised frame) has no variation to learn: a model would invent
+    latent dimensions from registration noise. Refused, saying so."""
+    if len(meshes) < 2 or not all(isinstance(m, Mesh) for m in meshes):
+        return
+    first = meshes[0]
+    size = float(np.ptp(first.vertices, axis=0).max())
+    for other in meshes[1:]:
+        if other.faces.shape != first.faces.shape or other.vertices.shape != first.vertices.shape \
+                or not np.array_equal(other.faces, first.faces) \
+                or np.abs(other.vertices - first.vertices).max() > IDENTICAL_SPREAD * size:
+            return
+    names = ", ".join(m.name for m in meshes[:4]) + (", …" if len(meshes) > 4 else "")
+    raise CollectionError(f"the {len(meshes)} shapes ({names}) are copies of one mesh after alignment: there is no "
+                          "variation to learn; add shapes that differ")
 
 
 def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSettings = FitSettings(),
@@ -488,6 +512,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     start = time.perf_counter() if started is None else started
 
     _check_mesh_template(settings, list(corr.names))
+    _check_variation(meshes)
     note = size_note(settings.model, len(corr.names))
     if note is not None:  # an N³ fit of many shapes: say so (issue 15)
         warnings.warn(note, ScaleWarning, stacklevel=2)

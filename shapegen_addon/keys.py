@@ -47,6 +47,7 @@ LANDMARK_FACES_KEY = "shapegen_landmark_faces"  # loop-triangle index of each la
 LANDMARK_BARYCENTRIC_KEY = "shapegen_landmark_barycentric"  # flat (L*3) barycentrics in that triangle
 LANDMARK_RADIUS_KEY = "shapegen_landmark_radius"  # exclusion radius of the landmark selection
 POSE_CHANGE_KEY = "shapegen_pose_change"  # how and why Prepare turned it ("turned 180° about x: ..."); "": kept
+FLAG_TURN_KEY = "shapegen_flag_turn"  # 9 floats, row-major: the turn its pose flag suggests (Turn Flagged); absent: none
 POSE_ROTATION_KEY = "shapegen_pose_rotation"  # 9 floats, row-major: the turn Prepare applied after the up axis
 POSE_OUTLIER_KEY = "shapegen_pose_outlier"  # why its pose looks wrong ("upside down relative to ..."); "": fine
 CORRESPONDENCE_KEY = "shapegen_correspondence"  # flat (L*3) corresponded landmarks, object-local

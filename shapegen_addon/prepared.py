@@ -25,7 +25,8 @@ from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.settings import SettingsError
 from .convert import object_to_mesh, object_triangles
-from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, KEEP_POSE_KEY,
+from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,
+                   KEEP_POSE_KEY,
                    LANDMARK_BARYCENTRIC_KEY, LANDMARK_FACES_KEY, LANDMARK_RADIUS_KEY, LANDMARKS_KEY, MESH_SOURCE_KEY,
                    POSE_CHANGE_KEY, POSE_OUTLIER_KEY, POSE_ROTATION_KEY, PREPARE_SETTINGS_KEY, PREPARED_KEY,
                    SOURCE_COLLECTION_KEY, SOURCE_KEY, TRANSFORM_KEY, mesh_source)
@@ -34,7 +35,7 @@ from .preview import add_correspondence_markers, add_landmark_markers, landmark_
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects", "prepared_collection_for",
            "recorded_prepare_settings", "to_prepared_collection", "reusable_prepared", "apply_correspondence",
-           "prepared_pose_notes"]
+           "prepared_pose_notes", "turn_flagged_copies", "has_correspondence", "flagged_copies"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
 PREPARE_SETTINGS = tuple(f.name for f in fields(PrepareSettings))
@@ -71,6 +72,8 @@ def build_prepared_collection(scene: bpy.types.Scene, source: bpy.types.Collecti
         copy[POSE_CHANGE_KEY] = shape.pose_change
         copy[POSE_ROTATION_KEY] = np.asarray(shape.pose_rotation).ravel().tolist()
         copy[POSE_OUTLIER_KEY] = shape.pose_outlier
+        if shape.flag_turn is not None:
+            copy[FLAG_TURN_KEY] = np.asarray(shape.flag_turn).ravel().tolist()
         copy[LANDMARKS_KEY] = landmarks.points.ravel().tolist()
         # where each landmark lies on the (loop-triangulated) mesh, for correspondence
         copy[LANDMARK_FACES_KEY] = landmarks.face_index.tolist()
@@ -150,10 +153,17 @@ def to_prepared_collection(objects) -> PreparedCollection:
         transform = ShapeTransform.from_matrix(np.asarray(obj[TRANSFORM_KEY], dtype=np.float64).reshape(4, 4))
         change = str(obj.get(POSE_CHANGE_KEY, ""))
         rotation = np.asarray(obj.get(POSE_ROTATION_KEY, np.eye(3).ravel().tolist()), dtype=np.float64).reshape(3, 3)
+        turn = obj.get(FLAG_TURN_KEY)
+        turn = None if turn is None else np.asarray(turn, dtype=np.float64).reshape(3, 3)
         shapes.append(PreparedShape(mesh, transform, bool(change), rotation, change,
-                                    str(obj.get(POSE_OUTLIER_KEY, ""))))
+                                    str(obj.get(POSE_OUTLIER_KEY, "")), turn))
         landmarks.append(Landmarks(points, faces, bary, float(obj.get(LANDMARK_RADIUS_KEY, 0.0))))
     return PreparedCollection(shapes, landmarks)
+
+
+def flagged_copies(collection: bpy.types.Collection | None) -> list[bpy.types.Object]:
+    """The prepared copies of `collection` whose pose flag suggests a turn (Turn Flagged)."""
+    return [] if collection is None else [o for o in prepared_objects(collection) if FLAG_TURN_KEY in o]
 
 
 def prepared_pose_notes(objects) -> list[str]:
@@ -185,6 +195,41 @@ def reusable_prepared(collection, objects, options: dict, evaluated: bool = True
         if all(_unchanged(source, copy, evaluated, depsgraph) for source, copy in zip(objects, ordered)):
             return prepared, ordered
     return None
+
+
+def turn_flagged_copies(collection: bpy.types.Collection) -> list[str]:
+    """Turn the prepared copies of `collection` whose pose flag suggests a turn, as the
+    core turns them (`PreparedCollection.turn_flagged`): each copy's mesh and its landmark
+    markers are moved by the same exact similarity (topology, UVs and materials kept),
+    its transform, pose report and landmarks updated, its flag cleared. Returns the source
+    names turned. The user's own objects are not touched."""
+    copies = prepared_objects(collection)
+    flagged = [o for o in copies if FLAG_TURN_KEY in o]
+    if not flagged:
+        return []
+    before = to_prepared_collection(flagged)
+    settings = recorded_prepare_settings(collection)
+    before.settings = settings
+    after = before.turn_flagged()
+    for copy, old, new, marks in zip(flagged, before.shapes, after.shapes, after.landmarks):
+        step = Matrix((new.transform.matrix @ np.linalg.inv(old.transform.matrix)).tolist())
+        copy.data.transform(step)
+        for child in copy.children:  # its landmark markers, in the copy's frame
+            if child.type == "MESH":
+                child.data.transform(step)
+        copy.data.update()
+        copy[TRANSFORM_KEY] = new.transform.matrix.ravel().tolist()
+        copy[POSE_CHANGE_KEY] = new.pose_change
+        copy[POSE_ROTATION_KEY] = np.asarray(new.pose_rotation).ravel().tolist()
+        copy[POSE_OUTLIER_KEY] = ""
+        del copy[FLAG_TURN_KEY]
+        copy[LANDMARKS_KEY] = marks.points.ravel().tolist()
+    return [o.get(SOURCE_KEY, o.name) for o in flagged]
+
+
+def has_correspondence(collection: bpy.types.Collection) -> bool:
+    """Whether Find Correspondences ran on the prepared `collection`."""
+    return any(CORRESPONDENCE_KEY in o for o in prepared_objects(collection))
 
 
 def _unchanged(source, copy, evaluated: bool, depsgraph) -> bool:

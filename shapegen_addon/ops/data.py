@@ -12,6 +12,8 @@ into scene data; they hold no algorithm.
   Keep Pose (keys.KEEP_POSE_KEY) are never turned; the message names the turned and the
   flagged shapes.
 * `SHAPEGEN_OT_toggle_keep_pose` — flip the active object's Keep Pose flag.
+* `SHAPEGEN_OT_turn_flagged` — turn the prepared copies Prepare flagged (it never turns a
+  shape on doubtful evidence) as their flags suggest, in one undo step (issue 30).
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
 from ..keys import KEEP_POSE_KEY
-from ..prepared import PREPARE_SETTINGS, build_prepared_collection
+from ..prepared import (PREPARE_SETTINGS, build_prepared_collection, flagged_copies, has_correspondence,
+                        prepared_collection_for, turn_flagged_copies)
 from ..preview import new_collection
 
 __all__ = ["CLASSES"]
@@ -291,4 +294,32 @@ class SHAPEGEN_OT_toggle_keep_pose(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare, SHAPEGEN_OT_toggle_keep_pose)
+class SHAPEGEN_OT_turn_flagged(bpy.types.Operator):
+    """Turn the prepared shapes whose pose Prepare doubted (upside down, on a side) as the
+    flag suggests. Your own objects are not changed"""
+
+    bl_idname = "shapegen.turn_flagged"
+    bl_label = "Turn Flagged"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return bool(flagged_copies(prepared_collection_for(context.scene.shapegen.source_collection)))
+
+    def execute(self, context):
+        collection = prepared_collection_for(context.scene.shapegen.source_collection)
+        if has_correspondence(collection):
+            self.report({"ERROR"}, f"'{collection.name}' already has correspondences: Prepare again, then Turn "
+                                   "Flagged before Find Correspondences")
+            return {"CANCELLED"}
+        try:
+            turned = turn_flagged_copies(collection)
+        except ShapeGenError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Turned {len(turned)} flagged shape(s) of '{collection.name}': {', '.join(turned)}")
+        return {"FINISHED"}
+
+
+CLASSES = (SHAPEGEN_OT_import_collection, SHAPEGEN_OT_prepare, SHAPEGEN_OT_toggle_keep_pose,
+           SHAPEGEN_OT_turn_flagged)

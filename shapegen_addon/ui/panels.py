@@ -17,7 +17,7 @@ from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
 from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MATCHING_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
                    N_LANDMARKS_KEY, N_SHAPES_KEY, OUTLIERS_KEY, QUALITY_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
-from ..prepared import prepared_collection_for, prepared_objects, prepared_pose_notes
+from ..prepared import flagged_copies, prepared_collection_for, prepared_objects, prepared_pose_notes
 
 __all__ = ["CLASSES"]
 
@@ -109,7 +109,11 @@ def _draw_prepare(layout, context) -> None:
     row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
     if MANAGER.task == "prepare":
         _draw_progress(layout, settings)
-    _draw_pose_notes(layout, prepared_collection_for(settings.source_collection))
+    prepared = prepared_collection_for(settings.source_collection)
+    _draw_pose_notes(layout, prepared)
+    flagged = flagged_copies(prepared)
+    if flagged:
+        layout.operator("shapegen.turn_flagged", text=f"Turn Flagged ({len(flagged)})", icon="FILE_REFRESH")
 
 
 class _AdvancedPanel(_SubPanel):
