@@ -75,6 +75,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..progress import Progress, no_progress
 from .hollow import Hollows
 from .posesearch import NearestInPool, PoseSearch
 from .rotations import TILTS, describe_rotation, up_rotation, yaw_rotation
@@ -212,24 +213,26 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
     n = len(search)
     frozen = [bool(k) or not may_turn for k in keep]
     evidence = CollectionEvidence(search, settings)
-    stood = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis))
-    report(0.35, "up axes")
-    ends = tops_and_bottoms(evidence, signatures, hollows, names, frozen, settings, stood)
-    report(0.5, "tops and bottoms")
+    stood = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis),
+                     lambda f, m: report(0.2 + 0.15 * f, f"up axes: {m}"))
+    ends = tops_and_bottoms(evidence, signatures, hollows, names, frozen, settings, stood,
+                            lambda f, m: report(0.35 + 0.15 * f, f"tops and bottoms: {m}"))
     if may_turn:
-        # a flagged shape is left as given: no turn about up either
-        faced = facings(search, signatures, names, [f or bool(d.flag) for f, d in zip(frozen, ends)], settings, ends,
-                        report)
+        # a shape that may lie on its side is left as given (a turn about its up means
+        # nothing); one that may be upside down still lines its facing up (rule b)
+        faced = facings(search, signatures, names, [f or bool(d.flag) for f, d in zip(frozen, stood)], settings,
+                        ends, report)
     else:
         faced = [PoseDecision(d.rotation) for d in ends]
     decisions = [_combined(*stages) for stages in zip(stood, ends, faced)]
-    decisions = _outlier_flags(search, decisions, settings)
+    decisions = _outlier_flags(search, decisions, settings, lambda f, m: report(0.86 + 0.02 * f,
+                                                                                f"checking the poses: {m}"))
     return [_noted_kept(d) if k else d for d, k in zip(decisions, keep)]
 
 
 def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names: Sequence[str],
              frozen: Sequence[bool], settings: ConsensusSettings,
-             convention: np.ndarray | None) -> list[PoseDecision]:
+             convention: np.ndarray | None, report: Progress = no_progress) -> list[PoseDecision]:
     """Step 1: file-convention turns of the up axis (module docstring)."""
     n, identity = len(evidence.search), np.eye(3)
     everyone = list(range(n))
@@ -248,6 +251,7 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
     by_symmetry = {j: _symmetric_side(symmetry, j, settings) if profile else None for j in everyone}
     upright = []
     for j in everyone:
+        report((j + 1) / (2 * n), f"{j + 1} of {n}")
         references = evidence.references(j, everyone)
         for i in references:
             compare(j, i)
@@ -258,6 +262,7 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
     if 2 * len(upright) <= n or len(upright) < 2:
         return decisions  # no up shared by most shapes: nothing to line up with
     for j in (j for j in everyone if j not in upright):
+        report(0.5 + (j + 1) / (2 * n), f"standing {names[j]}")
         references = evidence.references(j, upright)
         for i in references:
             compare(j, i)
@@ -320,13 +325,14 @@ def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
 def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
                      names: Sequence[str],
                      frozen: Sequence[bool], settings: ConsensusSettings,
-                     stood: Sequence[PoseDecision]) -> list[PoseDecision]:
+                     stood: Sequence[PoseDecision], report: Progress = no_progress) -> list[PoseDecision]:
     """Step 2: turn-overs on evidence that holds over the collection (module docstring)."""
     n = len(evidence.search)
     poses = [d.rotation for d in stood]
     pool = [j for j in range(n) if not stood[j].flag]  # a shape maybe on its side is no reference
     references, ratios, costs = {}, {}, {}
     for j in range(n):
+        report((j + 1) / n, f"{j + 1} of {n}")
         references[j] = evidence.references(j, pool)
         costs[j] = np.array([evidence.standing_costs(j, poses[j], i, poses[i])
                              for i in references[j]]).reshape(-1, 6)
@@ -451,7 +457,7 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
                                           f"{len(references)} nearest shapes ({_names(names, references)}) fit "
                                           f"{ratio:.1f}× better" + (f" ({why})" if why else ""))
 
-    first = _settle(search, k, frozen, start, by_cost_agree, by_cost, report, 0.5, settled,
+    first = _settle(search, k, frozen, start, by_cost_agree, by_cost, report, 0.5, 0.18, settled,
                     lambda j, references, why: by_cost(j, references, settings.unshared_margin, why),
                     settings.shared_pose, "pose", unshared_search=lambda: search.compare_turned(settings.yaw_step))
     turned = [d.rotation for d in first]
@@ -470,12 +476,13 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
                                        + (f" ({unshared})" if unshared else ""))
 
     second = _settle(search, k, frozen, turned, lambda j, i: not by_signature(j, [(i, turned[i])]).changed,
-                     by_signature, report, 0.58, [s and not d.changed for s, d in zip(settled, first)],
+                     by_signature, report, 0.68, 0.18, [s and not d.changed for s, d in zip(settled, first)],
                      lambda j, references, why: by_signature(j, references, why), settings.shared_facing, "facing")
     return [_combined(a, b) for a, b in zip(first, second)]
 
 
-def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: ConsensusSettings) -> list[PoseDecision]:
+def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: ConsensusSettings,
+                   report: Progress = no_progress) -> list[PoseDecision]:
     """Step 4: a shape not flagged yet that fits its nearest shapes (final poses) over
     `outlier_factor` times worse than the median shape does is flagged, with no turn."""
     n = len(search)
@@ -483,8 +490,11 @@ def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: 
         return decisions
     k = min(settings.neighbours, n - 1)
     rotations = [d.rotation for d in decisions]
-    costs = np.array([search.cost(j, rotations[j], [(i, rotations[i]) for i in search.nearest(j, range(n), k)])
-                      for j in range(n)])
+    costs = []
+    for j in range(n):
+        report((j + 1) / n, f"{j + 1} of {n}")
+        costs.append(search.cost(j, rotations[j], [(i, rotations[i]) for i in search.nearest(j, range(n), k)]))
+    costs = np.array(costs)
     median = float(np.median(costs))
     flagged = []
     for d, cost in zip(decisions, costs):
@@ -529,7 +539,7 @@ def _combined(*stages: PoseDecision) -> PoseDecision:
 
 def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np.ndarray],
             agree: Callable[[int, int], bool], decide: Callable[[int, list], PoseDecision],
-            report: Callable[[float, str], None], progress: float, eligible: Sequence[bool],
+            report: Callable[[float, str], None], progress: float, span: float, eligible: Sequence[bool],
             decide_unshared: Callable[[int, list, str], PoseDecision] | None = None,
             shared_votes: float = 0.0, what: str = "pose",
             unshared_search: Callable[[], None] | None = None) -> list[PoseDecision]:
@@ -556,7 +566,7 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
             pair = (min(i, j), max(i, j))
             if pair not in votes:
                 votes[pair] = agree(*pair)
-        report(progress + 0.15 * (j + 1) / n, f"comparing {j + 1} of {n}")
+        report(progress + 0.5 * span * (j + 1) / n, f"comparing {j + 1} of {n}")
     majority = _majority(search, votes, nearest, voters)
     agreeing = sum(votes.values())
     unshared = decide_unshared is not None and bool(votes) and agreeing <= shared_votes * len(votes)
@@ -582,7 +592,7 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
             waiting.join(j)
         else:
             waiting.leave(j)
-        report(progress + 0.15 + 0.15 * len(decisions) / n, f"orienting {len(decisions)} of {n}")
+        report(progress + 0.5 * span + 0.5 * span * len(decisions) / n, f"orienting {len(decisions)} of {n}")
     return [decisions[j] for j in range(n)]
 
 

@@ -211,7 +211,9 @@ def _check_prepare_options(options: dict) -> None:
 
 class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
     """Align, scale and landmark the chosen collection into a new "Prepared" collection, in
-    the background (originals untouched; progress and Cancel in the panel)"""
+    the background (originals untouched; progress and Cancel in the panel). Your up axis and
+    poses are trusted: a shape is turned only when it clearly lies on another axis of its
+    file or faces another way; a doubtful one is flagged and left as it is"""
 
     bl_idname = "shapegen.prepare"
     bl_label = "Prepare"

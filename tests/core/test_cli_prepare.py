@@ -297,9 +297,9 @@ def test_cli_prints_pose_lines_and_keeps_poses_by_name(upright_folder, tmp_path)
     assert "poses: 7 kept, 1 turned, 0 flagged" in result.stderr
     result = _run("prepare", upright_folder, "-o", tmp_path / "b.npz", "--landmarks", "30", "--keep-pose", "vase_003")
     assert result.returncode == 0, result.stderr
-    assert "vase_003: pose looks wrong: upside down" in result.stderr
+    assert "vase_003: pose looks wrong: may be upside down" in result.stderr
     assert "poses: 8 kept, 0 turned, 1 flagged" in result.stderr
-    assert PreparedCollection.load(tmp_path / "b.npz").shapes[3].pose_outlier.startswith("upside down")
+    assert PreparedCollection.load(tmp_path / "b.npz").shapes[3].pose_outlier.startswith("may be upside down")
 
 
 def test_cli_keep_pose_unknown_name_or_file_source_exits_2(upright_folder, saved, tmp_path):

@@ -167,7 +167,7 @@ def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
 
 #: the start of the first message of each of Prepare's loops over the shapes (align consensus)
 PREPARE_LOOPS = ["pose search: sampling shape 1 of", "pose search: comparing shape 1 of", "signatures of shape 1 of",
-                 "sampling noise of shape 1 of", "hollows of shape 1 of", "up axes by symmetry: 1 of",
+                 "sampling noise of shape 1 of", "hollows of shape 1 of", "up axes: 1 of", "tops and bottoms: 1 of",
                  "comparing 1 of", "orienting ", "checking the poses: 1 of", "landmarks on "]
 
 
