@@ -39,6 +39,7 @@ import numpy as np
 
 from .child_process import exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
+from .file_checks import check_coordinates, check_declared, check_not_repeated
 from .intake import clean_mesh
 from .layout import FaceLayout
 from .mesh import Mesh
@@ -67,6 +68,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     if path.stat().st_size == 0:
         raise MeshFileError(f"{label}: file is empty")
     file_faces = None
+    check_declared(path)  # counts and structure the file declares against what it holds (core/file_checks.py)
     try:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
@@ -74,18 +76,24 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         else:
             with open(path, "rb") as handle:
                 loaded = _load_geometry(trimesh, handle, suffix[1:])
+        vertices = np.asarray(loaded.get("vertices", np.empty((0, 3))), dtype=np.float64)
+        faces = np.asarray(loaded.get("faces", np.empty((0, 3))))
+        if faces.size and (faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer)):
+            raise ValueError(f"faces of shape {faces.shape} and type {faces.dtype} are not triangles")
     except IndexError as exc:
         raise MeshFileError(f"{label}: a face refers to a vertex that does not exist ({exc})") from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshFileError(f"{label}: not a readable {suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})") from None
-    vertices = np.asarray(loaded.get("vertices", np.empty((0, 3))), dtype=np.float64)
-    faces = np.asarray(loaded.get("faces", np.empty((0, 3))))
+    check_coordinates(label, vertices)  # before any geometry: squared distances must not overflow
     if vertices.shape[0] == 0:
         if _holds_points_only(trimesh, path, suffix):
             raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
         raise MeshFileError(f"{label}: contains no mesh geometry (not a mesh file, or no vertices)")
     if faces.size == 0:
         raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshFileError(f"{label}: a face refers to a vertex that does not exist (indices {int(faces.min())} to "
+                            f"{int(faces.max())}, {len(vertices)} vertices)")
     try:
         mesh = clean_mesh(vertices, faces, name=name)
     except MeshError as exc:
@@ -94,8 +102,12 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         if message.startswith(f"{name}: "):
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
+    check_not_repeated(label, mesh.faces)
     if file_faces is None:
-        file_faces = _loaded_faces(loaded, faces, len(vertices))
+        try:
+            file_faces = _loaded_faces(loaded, faces, len(vertices))
+        except (ValueError, TypeError) as exc:  # face lists trimesh kept but cannot be polygons
+            raise MeshFileError(f"{label}: its face lists are not polygons ({exc})") from None
     return _with_layout(mesh, file_faces, len(vertices))
 
 

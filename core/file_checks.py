@@ -1,0 +1,278 @@
+"""What a mesh file declares, checked against what it holds (issue 32).
+
+trimesh parses the files (core/io.py); it trusts their declarations: an OFF whose header
+counts more faces than the file holds, an ASCII PLY cut short, a glTF accessor counting
+fewer indices than its buffer holds, an OBJ cut in the middle of a line all come back as
+a mesh with faces missing. These checks read only the declarations (OFF and PLY headers,
+glTF accessors, the OBJ's last line) and the shape of the content, and refuse a file whose
+content disagrees with them, with a MeshFileError starting with the file's path. The
+coordinates trimesh read are checked once more (`check_coordinates`): every later stage
+squares distances in float64, which overflows beyond about 1e154.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from .errors import MeshFileError
+
+__all__ = ["MAX_COORDINATE", "check_declared", "check_coordinates", "check_not_repeated"]
+
+#: the largest coordinate magnitude read (1e12: a kilometre-wide scene in nanometres). Far
+#: below the float64 overflow of squared distances (~1e154), far above any real model.
+MAX_COORDINATE = 1e12
+
+
+def check_declared(path: Path) -> None:
+    """Refuse (MeshFileError) a file whose content disagrees with what it declares. Binary
+    files are read only as far as their declarations (PLY header, GLB JSON chunk)."""
+    suffix = path.suffix.lower()
+    if suffix == ".off":
+        _check_off(path, path.read_bytes())
+    elif suffix == ".ply" and _is_ascii_ply(path):
+        _check_ply_ascii(path, path.read_bytes())
+    elif suffix == ".obj":
+        _check_obj_end(path)
+    elif suffix == ".stl" and not _is_binary_stl(path):
+        _check_stl_ascii(path, path.read_bytes())
+    elif suffix in (".glb", ".gltf"):
+        _check_gltf_counts(path, _gltf_document(path))
+
+
+def check_coordinates(label: str, vertices: np.ndarray) -> None:
+    """Refuse coordinates that are not finite or beyond `MAX_COORDINATE` (module docstring)."""
+    finite = np.isfinite(vertices)
+    if not finite.all():
+        rows = np.flatnonzero(~finite.all(axis=1))
+        raise MeshFileError(f"{label}: {len(rows)} vertex coordinate(s) are not finite numbers (NaN or infinite; "
+                            f"first: vertex {int(rows[0])})")
+    largest = float(np.abs(vertices).max()) if vertices.size else 0.0
+    if largest > MAX_COORDINATE:
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        raise MeshFileError(f"{label}: coordinates range from {_triple(low)} to {_triple(high)}, beyond "
+                            f"±{MAX_COORDINATE:g}: too large to compute with (damaged values, or rescale the model)")
+
+
+def check_not_repeated(label: str, faces: np.ndarray) -> None:
+    """Refuse a mesh in which every face appears twice or more (its content repeated, as a
+    file appended to itself). Some faces repeated (double-sided faces) are left to intake."""
+    if len(faces) < 2:
+        return
+    _, counts = np.unique(np.sort(np.asarray(faces), axis=1), axis=0, return_counts=True)
+    if counts.min() >= 2:
+        raise MeshFileError(f"{label}: every face appears {int(counts.min())} times or more "
+                            "(the file's content is repeated)")
+
+
+def _triple(values: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v:.3g}" for v in values) + ")"
+
+
+# ---------------------------------------------------------------------------- OFF
+def _check_off(path: Path, data: bytes) -> None:
+    """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 numbers, F face
+    lines `k i1 .. ik` with indices below V, nothing after them."""
+    text = _decoded(path, data, "OFF")
+    lines = [line.split("#", 1)[0].split() for line in text.splitlines()]
+    lines = [line for line in lines if line]
+    if not lines or not re.fullmatch(r"C?N?OFF", lines[0][0]):
+        return  # not recognisable as OFF: trimesh's refusal says so
+    counts = lines[0][1:] or (lines[1] if len(lines) > 1 else [])
+    body = lines[1:] if lines[0][1:] else lines[2:]
+    try:
+        n_vertices, n_faces = int(counts[0]), int(counts[1])
+    except (IndexError, ValueError):
+        raise MeshFileError(f"{path}: the OFF header has no vertex and face counts") from None
+    if len(body) != n_vertices + n_faces:
+        raise MeshFileError(f"{path}: the OFF header declares {n_vertices} vertices and {n_faces} faces "
+                            f"({n_vertices + n_faces} lines) but the file holds {len(body)} lines of data")
+    for number, line in enumerate(body[:n_vertices]):
+        if len(line) < 3 or not all(_is_number(value) for value in line[:3]):
+            raise MeshFileError(f"{path}: OFF vertex {number} is not three numbers: {' '.join(line)[:60]!r}")
+    for number, line in enumerate(body[n_vertices:]):
+        try:
+            size = int(line[0])
+            indices = [int(value) for value in line[1:size + 1]]
+        except ValueError:
+            indices, size = [], -1
+        if size < 3 or len(indices) != size or min(indices) < 0 or max(indices) >= n_vertices:
+            raise MeshFileError(f"{path}: OFF face {number} is not a corner count and that many vertex indices "
+                                f"below {n_vertices}: {' '.join(line)[:60]!r}")
+
+
+# ---------------------------------------------------------------------------- PLY
+_PLY_SCALARS = {"char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int16",
+                "uint16", "int32", "uint32", "float32", "float64"}
+
+
+def _is_ascii_ply(path: Path) -> bool:
+    with open(path, "rb") as handle:
+        return [line.strip() for line in handle.read(4096).splitlines()[:2]] == [b"ply", b"format ascii 1.0"]
+
+
+def _check_ply_ascii(path: Path, data: bytes) -> None:
+    """An ASCII PLY: as many data lines as its elements declare records, each with the
+    numbers its properties declare (a list: its count, then that many)."""
+    end = data.find(b"end_header")
+    if end < 0:
+        return  # trimesh refuses a header with no end
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    elements: list[tuple[str, int, list]] = []
+    for line in header:
+        words = line.split()
+        if words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[:1] == ["property"] and elements:
+            elements[-1][2].append("list" if words[1:2] == ["list"] else "scalar")
+    rows = [line.split() for line in _decoded(path, data[end + len(b"end_header"):], "PLY").splitlines()]
+    rows = [row for row in rows if row]
+    declared = sum(count for _, count, _ in elements)
+    if len(rows) != declared:
+        raise MeshFileError(f"{path}: the PLY header declares {declared} records "
+                            f"({', '.join(f'{n} {name}' for name, n, _ in elements)}) but the file holds "
+                            f"{len(rows)} lines of data")
+    start = 0
+    for name, count, properties in elements:
+        for number, row in enumerate(rows[start:start + count]):
+            if not _ply_row_fits(row, properties):
+                raise MeshFileError(f"{path}: PLY {name} {number} does not hold the values its header declares: "
+                                    f"{' '.join(row)[:60]!r}")
+        start += count
+
+
+def _ply_row_fits(row: list[str], properties: list[str]) -> bool:
+    if not all(_is_number(value) for value in row):
+        return False
+    position = 0
+    for kind in properties:
+        if position >= len(row):
+            return False
+        position += 1 + (int(float(row[position])) if kind == "list" else 0)
+    return position == len(row)
+
+
+# ---------------------------------------------------------------------------- OBJ
+def _check_obj_end(path: Path) -> None:
+    """An OBJ whose last line is a vertex or face cut off before its line end: the file was
+    cut short (a file written whole ends its last line, or it is not geometry)."""
+    with open(path, "rb") as handle:
+        handle.seek(max(0, path.stat().st_size - 4096))
+        stripped = handle.read().rstrip(b" \t")
+    if not stripped or stripped.endswith((b"\n", b"\r")):
+        return
+    last = stripped.rsplit(b"\n", 1)[-1].split()
+    if last and last[0] in (b"v", b"f", b"vt", b"vn"):
+        raise MeshFileError(f"{path}: ends in the middle of a line ({last[0].decode()} ...): the file looks cut short")
+
+
+# ---------------------------------------------------------------------------- STL
+def _is_binary_stl(path: Path) -> bool:
+    """A binary STL: 80 header bytes, a triangle count, 50 bytes per triangle (the test
+    trimesh makes too: an ASCII STL never has exactly that size by chance)."""
+    with open(path, "rb") as handle:
+        start = handle.read(84)
+    return len(start) == 84 and path.stat().st_size == 84 + 50 * struct.unpack("<I", start[80:84])[0]
+
+
+_STL_WORDS = {"solid": None, "facet": None, "outer": None, "vertex": 3, "endloop": 0, "endfacet": 0,
+              "endsolid": None}
+
+
+def _check_stl_ascii(path: Path, data: bytes) -> None:
+    """An ASCII STL (or a binary one whose size disagrees with its triangle count): lines of
+    the STL words only, `vertex` with three numbers, three vertices per facet."""
+    if not data.lstrip().lower().startswith(b"solid"):
+        with open(path, "rb") as handle:
+            handle.seek(80)
+            count = struct.unpack("<I", handle.read(4).ljust(4, b"\0"))[0]
+        raise MeshFileError(f"{path}: a binary STL of {path.stat().st_size} bytes, but its header counts {count} "
+                            f"triangles ({84 + 50 * count} bytes)")
+    words = {word: 0 for word in _STL_WORDS}
+    for number, line in enumerate(_decoded(path, data, "STL").splitlines()):
+        parts = line.split()
+        if not parts:
+            continue
+        arity = _STL_WORDS.get(parts[0].lower(), -1)
+        if arity == -1 or (arity is not None and (len(parts) != 1 + arity
+                                                  or not all(_is_number(value) for value in parts[1:]))):
+            raise MeshFileError(f"{path}: line {number + 1} is not an STL line: {line.strip()[:60]!r}")
+        words[parts[0].lower()] += 1
+    if not (words["facet"] == words["endfacet"] == words["outer"] == words["endloop"]
+            and words["vertex"] == 3 * words["facet"]):
+        raise MeshFileError(f"{path}: {words['facet']} facets, {words['endfacet']} ended, with {words['vertex']} "
+                            "vertices: not three vertices per facet (damaged or cut short)")
+
+
+# ---------------------------------------------------------------------------- glTF
+def _check_gltf_counts(path: Path, document) -> None:
+    """glTF / GLB: every accessor that has a buffer view to itself (no stride, no other
+    accessor in it) must fill that view; one counting fewer elements than the view holds
+    was damaged (trimesh reads only what the accessor counts)."""
+    if not isinstance(document, dict):
+        return  # not parseable: trimesh's refusal says why
+    try:
+        accessors, views = document.get("accessors", []), document.get("bufferViews", [])
+        users: dict[int, int] = {}
+        for accessor in accessors:
+            if "bufferView" in accessor:
+                users[accessor["bufferView"]] = users.get(accessor["bufferView"], 0) + 1
+        for number, accessor in enumerate(accessors):
+            view_index = accessor.get("bufferView")
+            if view_index is None or users[view_index] != 1 or "byteStride" in views[view_index]:
+                continue
+            size = _COMPONENT_BYTES[accessor["componentType"]] * _TYPE_COMPONENTS[accessor["type"]]
+            held = views[view_index]["byteLength"] - accessor.get("byteOffset", 0)
+            if held // size != accessor["count"]:
+                raise MeshFileError(f"{path}: glTF accessor {number} declares {accessor['count']} elements but its "
+                                    f"buffer view holds {held // size}")
+    except (KeyError, IndexError, TypeError, AttributeError):
+        return  # malformed in a way trimesh refuses itself
+
+
+_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+_TYPE_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def _gltf_document(path: Path):
+    """The JSON document of a glTF file or of a GLB's first chunk (None: not parseable)."""
+    try:
+        with open(path, "rb") as handle:
+            start = handle.read(20)
+            if start[:4] == b"glTF":
+                return json.loads(handle.read(struct.unpack("<I", start[12:16])[0]))
+            return json.loads(start + handle.read())
+    except (ValueError, struct.error, UnicodeDecodeError):
+        return None
+
+
+# ---------------------------------------------------------------------------- shared
+def _decoded(path: Path, data: bytes, kind: str) -> str:
+    """The text of a text format: UTF-8 (ASCII) only, so UTF-16 or binary damage is refused
+    by name instead of being read as something else."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MeshFileError(f"{path}: not {kind} text (byte {exc.start} is not UTF-8: a binary, UTF-16 or damaged "
+                            "file)") from None
+    control = _CONTROL.search(text)
+    if control:
+        raise MeshFileError(f"{path}: not {kind} text (a control character, {control.group()!r}, at character "
+                            f"{control.start()}: a damaged file)")
+    return text
+
+
+#: characters no text mesh file holds (whitespace other than tab, line ends and space)
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x0c\x0e-\x1f\x7f]")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
