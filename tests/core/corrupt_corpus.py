@@ -29,6 +29,11 @@ def file_bytes(file_format: str, vertices: np.ndarray, faces: np.ndarray) -> byt
     import trimesh
 
     shape = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces), process=False)
+    with np.errstate(all="ignore"):  # the normals of extreme or non-finite coordinates
+        return _exported(shape, file_format)
+
+
+def _exported(shape, file_format: str) -> bytes:
     if file_format in ("ply_ascii", "ply_binary"):
         return shape.export(file_type="ply", encoding=file_format[4:])
     if file_format == "stl_ascii":
