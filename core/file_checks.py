@@ -49,8 +49,8 @@ def check_coordinates(label: str, vertices: np.ndarray) -> None:
     finite = np.isfinite(vertices)
     if not finite.all():
         rows = np.flatnonzero(~finite.all(axis=1))
-        raise MeshFileError(f"{label}: {len(rows)} vertex coordinate(s) are not finite numbers (NaN or infinite; "
-                            f"first: vertex {int(rows[0])})")
+        more = f" ({len(rows)} vertices have one)" if len(rows) > 1 else ""
+        raise MeshFileError(f"{label}: vertex {int(rows[0])} has a NaN or infinite coordinate{more}")
     largest = float(np.abs(vertices).max()) if vertices.size else 0.0
     if largest > MAX_COORDINATE:
         low, high = vertices.min(axis=0), vertices.max(axis=0)
@@ -76,7 +76,7 @@ def _triple(values: np.ndarray) -> str:
 # ---------------------------------------------------------------------------- OFF
 def _check_off(path: Path, data: bytes) -> None:
     """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 numbers, F face
-    lines `k i1 .. ik` with indices below V, nothing after them."""
+    lines `k i1 .. ik` (and colours), nothing after them."""
     text = _decoded(path, data, "OFF")
     lines = [line.split("#", 1)[0].split() for line in text.splitlines()]
     lines = [line for line in lines if line]
@@ -100,9 +100,9 @@ def _check_off(path: Path, data: bytes) -> None:
             indices = [int(value) for value in line[1:size + 1]]
         except ValueError:
             indices, size = [], -1
-        if size < 3 or len(indices) != size or min(indices) < 0 or max(indices) >= n_vertices:
-            raise MeshFileError(f"{path}: OFF face {number} is not a corner count and that many vertex indices "
-                                f"below {n_vertices}: {' '.join(line)[:60]!r}")
+        if size < 3 or len(indices) != size:  # indices out of range: intake names them
+            raise MeshFileError(f"{path}: OFF face {number} is not a corner count and that many vertex indices: "
+                                f"{' '.join(line)[:60]!r}")
 
 
 # ---------------------------------------------------------------------------- PLY

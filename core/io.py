@@ -91,9 +91,6 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         raise MeshFileError(f"{label}: contains no mesh geometry (not a mesh file, or no vertices)")
     if faces.size == 0:
         raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise MeshFileError(f"{label}: a face refers to a vertex that does not exist (indices {int(faces.min())} to "
-                            f"{int(faces.max())}, {len(vertices)} vertices)")
     try:
         mesh = clean_mesh(vertices, faces, name=name)
     except MeshError as exc:
