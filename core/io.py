@@ -37,8 +37,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .child_process import exit_with_parent
-from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
+from .child_process import MEMORY_ADVICE, exit_with_parent
+from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
 from .file_checks import check_coordinates, check_declared, check_not_repeated
 from .intake import clean_mesh
 from .layout import FaceLayout
@@ -258,9 +258,15 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
         import concurrent.futures as futures
         import multiprocessing
 
-        with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=exit_with_parent) as pool:
-            outcomes = list(pool.map(_read_or_error, files, [target] * len(files)))
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=exit_with_parent) as pool:
+                outcomes = list(pool.map(_read_or_error, files, [target] * len(files)))
+        except BrokenProcessPool:
+            raise WorkerDied(f"{folder}: a worker process reading its files ended without a result, {MEMORY_ADVICE}; "
+                             f"this run used {jobs}") from None
     else:
         outcomes = [_read_or_error(path, target) for path in files]
     meshes = [m for m in outcomes if not isinstance(m, str)]

@@ -19,7 +19,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..child_process import exit_with_parent
+from ..child_process import MEMORY_ADVICE, exit_with_parent, how_it_ended
 from ..errors import WorkerDied
 from ..geometry import TargetSurface
 from ..progress import CancelCheck, Progress
@@ -169,15 +169,7 @@ def _item_name(item, index: int) -> str:
 def worker_death_message(name: str, exitcode: int | None, jobs: int) -> str:
     """One line: which shape a dead worker was working on, how it ended, the likely cause
     and what to try."""
-    if exitcode is not None and exitcode < 0:
-        try:
-            how = f"was killed by signal {-exitcode} ({signal.Signals(-exitcode).name})"
-        except ValueError:
-            how = f"was killed by signal {-exitcode}"
-    else:
-        how = "ended without a result" + ("" if exitcode is None else f" (exit status {exitcode})")
-    return (f"{name}: the worker process working on it {how}, most likely because the machine ran out of memory; "
-            f"try fewer parallel jobs (--jobs, or Jobs in the panel; this run used {jobs})")
+    return f"{name}: the worker process working on it {how_it_ended(exitcode)}, {MEMORY_ADVICE}; this run used {jobs}"
 
 
 class RegistrationRunner:
@@ -288,8 +280,7 @@ class RegistrationRunner:
         started = sorted(self._started.items(), key=lambda item: (ended.get(item[1]) is None or ended[item[1]] >= 0,
                                                                    item[0]))
         if not started:
-            return WorkerDied(f"a worker process ended without a result; try fewer parallel jobs (--jobs, or Jobs in "
-                              f"the panel; this run used {self.jobs})")
+            return WorkerDied(f"a worker process ended without a result, {MEMORY_ADVICE}; this run used {self.jobs}")
         index, pid = started[0]
         return WorkerDied(worker_death_message(names[index], ended.get(pid), self.jobs))
 
