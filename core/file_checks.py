@@ -15,22 +15,25 @@ from __future__ import annotations
 import json
 import re
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .errors import MeshFileError
 
-__all__ = ["MAX_COORDINATE", "check_declared", "check_coordinates", "check_not_repeated"]
+__all__ = ["MAX_COORDINATE", "check_declared", "check_read_faces", "check_coordinates", "check_not_repeated"]
 
 #: the largest coordinate magnitude read (1e12: a kilometre-wide scene in nanometres). Far
 #: below the float64 overflow of squared distances (~1e154), far above any real model.
 MAX_COORDINATE = 1e12
 
 
-def check_declared(path: Path) -> None:
+def check_declared(path: Path) -> int | None:
     """Refuse (MeshFileError) a file whose content disagrees with what it declares. Binary
-    files are read only as far as their declarations (PLY header, GLB JSON chunk)."""
+    files are read only as far as their declarations (PLY header, GLB JSON chunk). Returns
+    the number of triangles the file declares where the reader must be checked against it
+    (an ASCII STL's facets; `check_read_faces`), else None."""
     suffix = path.suffix.lower()
     if suffix == ".off":
         _check_off(path, path.read_bytes())
@@ -38,10 +41,18 @@ def check_declared(path: Path) -> None:
         _check_ply_ascii(path, path.read_bytes())
     elif suffix == ".obj":
         _check_obj_end(path)
-    elif suffix == ".stl" and not _is_binary_stl(path):
-        _check_stl_ascii(path, path.read_bytes())
     elif suffix in (".glb", ".gltf"):
         _check_gltf_counts(path, _gltf_document(path))
+    elif suffix == ".stl" and not _is_binary_stl(path):
+        return _check_stl_ascii(path, path.read_bytes())
+    return None
+
+
+def check_read_faces(label: str, declared: int | None, faces: np.ndarray) -> None:
+    """Refuse a read that kept fewer or more triangles than the file declares."""
+    if declared is not None and len(faces) != declared:
+        raise MeshFileError(f"{label}: the file holds {declared} facets but only {len(faces)} could be read "
+                            "(a damaged value or line)")
 
 
 def check_coordinates(label: str, vertices: np.ndarray) -> None:
@@ -75,15 +86,14 @@ def _triple(values: np.ndarray) -> str:
 
 # ---------------------------------------------------------------------------- OFF
 def _check_off(path: Path, data: bytes) -> None:
-    """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 numbers, F face
-    lines `k i1 .. ik` (and colours), nothing after them."""
-    text = _decoded(path, data, "OFF")
-    lines = [line.split("#", 1)[0].split() for line in text.splitlines()]
-    lines = [line for line in lines if line]
-    if not lines or not re.fullmatch(r"C?N?OFF", lines[0][0]):
+    """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 values, F face
+    lines `k i1 .. ik` (and colours), nothing after them. (trimesh parses the values and
+    refuses ones that are not numbers.)"""
+    rows = _data_rows(_decoded(path, data, "OFF"))
+    if not rows or not re.fullmatch(r"C?N?OFF", rows[0][0]):
         return  # not recognisable as OFF: trimesh's refusal says so
-    counts = lines[0][1:] or (lines[1] if len(lines) > 1 else [])
-    body = lines[1:] if lines[0][1:] else lines[2:]
+    counts = rows[0][1:] or (rows[1] if len(rows) > 1 else [])
+    body = rows[1:] if rows[0][1:] else rows[2:]
     try:
         n_vertices, n_faces = int(counts[0]), int(counts[1])
     except (IndexError, ValueError):
@@ -91,25 +101,21 @@ def _check_off(path: Path, data: bytes) -> None:
     if len(body) != n_vertices + n_faces:
         raise MeshFileError(f"{path}: the OFF header declares {n_vertices} vertices and {n_faces} faces "
                             f"({n_vertices + n_faces} lines) but the file holds {len(body)} lines of data")
-    for number, line in enumerate(body[:n_vertices]):
-        if len(line) < 3 or not all(_is_number(value) for value in line[:3]):
-            raise MeshFileError(f"{path}: OFF vertex {number} is not three numbers: {' '.join(line)[:60]!r}")
-    for number, line in enumerate(body[n_vertices:]):
-        try:
-            size = int(line[0])
-            indices = [int(value) for value in line[1:size + 1]]
-        except ValueError:
-            indices, size = [], -1
-        if size < 3 or len(indices) != size:  # indices out of range: intake names them
-            raise MeshFileError(f"{path}: OFF face {number} is not a corner count and that many vertex indices: "
-                                f"{' '.join(line)[:60]!r}")
+    short = np.flatnonzero(_lengths(body[:n_vertices]) < 3)
+    if len(short):
+        raise MeshFileError(f"{path}: OFF vertex {short[0]} is not three numbers: {' '.join(body[short[0]])[:60]!r}")
+    faces = body[n_vertices:]
+    try:
+        sizes = np.array([row[0] for row in faces], dtype=np.int64)
+    except ValueError:
+        sizes = np.array([int(row[0]) if row[0].isdigit() else -1 for row in faces], dtype=np.int64)
+    bad = np.flatnonzero((sizes < 3) | (_lengths(faces) < 1 + sizes))  # indices out of range: intake names them
+    if len(bad):
+        raise MeshFileError(f"{path}: OFF face {bad[0]} is not a corner count and that many vertex indices: "
+                            f"{' '.join(faces[bad[0]])[:60]!r}")
 
 
 # ---------------------------------------------------------------------------- PLY
-_PLY_SCALARS = {"char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int16",
-                "uint16", "int32", "uint32", "float32", "float64"}
-
-
 def _is_ascii_ply(path: Path) -> bool:
     with open(path, "rb") as handle:
         return [line.strip() for line in handle.read(4096).splitlines()[:2]] == [b"ply", b"format ascii 1.0"]
@@ -117,20 +123,22 @@ def _is_ascii_ply(path: Path) -> bool:
 
 def _check_ply_ascii(path: Path, data: bytes) -> None:
     """An ASCII PLY: as many data lines as its elements declare records, each with the
-    numbers its properties declare (a list: its count, then that many)."""
+    numbers its properties declare (a list: its count, then that many). trimesh reads a
+    line up to its first value that is not a number, so the values are checked here."""
     end = data.find(b"end_header")
     if end < 0:
         return  # trimesh refuses a header with no end
-    header = data[:end].decode("ascii", errors="replace").splitlines()
     elements: list[tuple[str, int, list]] = []
-    for line in header:
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
         words = line.split()
         if words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[:1] == ["property"] and elements:
             elements[-1][2].append("list" if words[1:2] == ["list"] else "scalar")
-    rows = [line.split() for line in _decoded(path, data[end + len(b"end_header"):], "PLY").splitlines()]
-    rows = [row for row in rows if row]
+    body = _decoded(path, data[end + len(b"end_header"):], "PLY")
+    if not _all_numbers(body):
+        raise MeshFileError(f"{path}: the PLY data holds a value that is not a number (a damaged file)")
+    rows = _data_rows(body)
     declared = sum(count for _, count, _ in elements)
     if len(rows) != declared:
         raise MeshFileError(f"{path}: the PLY header declares {declared} records "
@@ -138,22 +146,33 @@ def _check_ply_ascii(path: Path, data: bytes) -> None:
                             f"{len(rows)} lines of data")
     start = 0
     for name, count, properties in elements:
-        for number, row in enumerate(rows[start:start + count]):
-            if not _ply_row_fits(row, properties):
-                raise MeshFileError(f"{path}: PLY {name} {number} does not hold the values its header declares: "
-                                    f"{' '.join(row)[:60]!r}")
+        block = rows[start:start + count]
+        bad = np.flatnonzero(_lengths(block) != _ply_lengths(block, properties))
+        if len(bad):
+            raise MeshFileError(f"{path}: PLY {name} {bad[0]} does not hold the values its header declares: "
+                                f"{' '.join(block[bad[0]])[:60]!r}")
         start += count
 
 
-def _ply_row_fits(row: list[str], properties: list[str]) -> bool:
-    if not all(_is_number(value) for value in row):
-        return False
+def _ply_lengths(rows: list[list[str]], properties: list[str]) -> np.ndarray:
+    """The number of values each row must have for these properties (-1: cannot tell)."""
+    lists = [i for i, kind in enumerate(properties) if kind == "list"]
+    if not lists:
+        return np.full(len(rows), len(properties))
+    if len(lists) == 1:  # the usual face element: one list, its count at a fixed place
+        at = lists[0]
+        counts = np.array([row[at] if len(row) > at else "-1" for row in rows], dtype=np.float64).astype(np.int64)
+        return len(properties) + counts
+    return np.array([_ply_row_length(row, properties) for row in rows], dtype=np.int64)
+
+
+def _ply_row_length(row: list[str], properties: list[str]) -> int:
     position = 0
     for kind in properties:
         if position >= len(row):
-            return False
+            return -1
         position += 1 + (int(float(row[position])) if kind == "list" else 0)
-    return position == len(row)
+    return position
 
 
 # ---------------------------------------------------------------------------- OBJ
@@ -179,33 +198,23 @@ def _is_binary_stl(path: Path) -> bool:
     return len(start) == 84 and path.stat().st_size == 84 + 50 * struct.unpack("<I", start[80:84])[0]
 
 
-_STL_WORDS = {"solid": None, "facet": None, "outer": None, "vertex": 3, "endloop": 0, "endfacet": 0,
-              "endsolid": None}
-
-
-def _check_stl_ascii(path: Path, data: bytes) -> None:
-    """An ASCII STL (or a binary one whose size disagrees with its triangle count): lines of
-    the STL words only, `vertex` with three numbers, three vertices per facet."""
+def _check_stl_ascii(path: Path, data: bytes) -> int:
+    """An ASCII STL (or a binary one whose size disagrees with its triangle count): every
+    facet opened and closed, three `vertex` lines each. Returns the number of facets, which
+    the triangles trimesh read must match (it reads by position and drops what it cannot)."""
     if not data.lstrip().lower().startswith(b"solid"):
         with open(path, "rb") as handle:
             handle.seek(80)
             count = struct.unpack("<I", handle.read(4).ljust(4, b"\0"))[0]
         raise MeshFileError(f"{path}: a binary STL of {path.stat().st_size} bytes, but its header counts {count} "
                             f"triangles ({84 + 50 * count} bytes)")
-    words = {word: 0 for word in _STL_WORDS}
-    for number, line in enumerate(_decoded(path, data, "STL").splitlines()):
-        parts = line.split()
-        if not parts:
-            continue
-        arity = _STL_WORDS.get(parts[0].lower(), -1)
-        if arity == -1 or (arity is not None and (len(parts) != 1 + arity
-                                                  or not all(_is_number(value) for value in parts[1:]))):
-            raise MeshFileError(f"{path}: line {number + 1} is not an STL line: {line.strip()[:60]!r}")
-        words[parts[0].lower()] += 1
-    if not (words["facet"] == words["endfacet"] == words["outer"] == words["endloop"]
-            and words["vertex"] == 3 * words["facet"]):
-        raise MeshFileError(f"{path}: {words['facet']} facets, {words['endfacet']} ended, with {words['vertex']} "
-                            "vertices: not three vertices per facet (damaged or cut short)")
+    text = _decoded(path, data, "STL").lower()
+    ended, closed = text.count("endfacet"), text.count("endloop")
+    facets, loops, vertices = text.count("facet") - ended, text.count("loop") - closed, text.count("vertex")
+    if not (facets == ended == loops == closed and vertices == 3 * facets):
+        raise MeshFileError(f"{path}: {facets} facets, {ended} ended, with {vertices} vertex lines: not an ASCII STL "
+                            "of whole facets (damaged or cut short)")
+    return facets
 
 
 # ---------------------------------------------------------------------------- glTF
@@ -259,7 +268,7 @@ def _decoded(path: Path, data: bytes, kind: str) -> str:
     except UnicodeDecodeError as exc:
         raise MeshFileError(f"{path}: not {kind} text (byte {exc.start} is not UTF-8: a binary, UTF-16 or damaged "
                             "file)") from None
-    control = _CONTROL.search(text)
+    control = _CONTROL.search(text) if len(data.translate(None, _CONTROL_BYTES)) != len(data) else None
     if control:
         raise MeshFileError(f"{path}: not {kind} text (a control character, {control.group()!r}, at character "
                             f"{control.start()}: a damaged file)")
@@ -268,11 +277,25 @@ def _decoded(path: Path, data: bytes, kind: str) -> str:
 
 #: characters no text mesh file holds (whitespace other than tab, line ends and space)
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x0c\x0e-\x1f\x7f]")
+_CONTROL_BYTES = bytes([*range(0x00, 0x09), 0x0b, 0x0c, *range(0x0e, 0x20), 0x7f])
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+def _data_rows(text: str) -> list[list[str]]:
+    """The words of each line that has any, `#` comments left out."""
+    lines = text.splitlines()
+    if "#" in text:
+        lines = [line.split("#", 1)[0] for line in lines]
+    return [words for words in map(str.split, lines) if words]
+
+
+def _lengths(rows: list[list[str]]) -> np.ndarray:
+    return np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
+
+
+def _all_numbers(text: str) -> bool:
+    """Every whitespace-separated word of `text` is a number (numpy parses them in C and
+    stops at the first that is not)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # numpy warns when it stops early: the count says so
+        values = np.fromstring(text, sep=" ")
+    return len(values) == len(text.split())

@@ -39,7 +39,7 @@ import numpy as np
 
 from .child_process import MEMORY_ADVICE, exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
-from .file_checks import check_coordinates, check_declared, check_not_repeated
+from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces
 from .intake import clean_mesh
 from .layout import FaceLayout
 from .mesh import Mesh
@@ -68,7 +68,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     if path.stat().st_size == 0:
         raise MeshFileError(f"{label}: file is empty")
     file_faces = None
-    check_declared(path)  # counts and structure the file declares against what it holds (core/file_checks.py)
+    declared = check_declared(path)  # what the file declares against what it holds (core/file_checks.py)
     try:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
@@ -84,6 +84,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         raise MeshFileError(f"{label}: a face refers to a vertex that does not exist ({exc})") from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshFileError(f"{label}: not a readable {suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})") from None
+    check_read_faces(label, declared, faces)
     check_coordinates(label, vertices)  # before any geometry: squared distances must not overflow
     if vertices.shape[0] == 0:
         if _holds_points_only(trimesh, path, suffix):
