@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import tempfile
 import warnings
 
 import numpy as np
@@ -46,8 +47,11 @@ def _prepare(folder, output) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("file_format", list(FORMATS))
-def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, three_vases, tmp_path):
+def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, three_vases, tmp_path, monkeypatch):
     suffix = FORMATS[file_format]
+    private_temp = tmp_path / "temp"  # the runs' temporary folder (other runs share the system's)
+    private_temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(private_temp))
     damaged_mesh, *good_meshes = three_vases
     folder = tmp_path / "shapes"
     folder.mkdir()
@@ -87,5 +91,6 @@ def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, th
         assert name.startswith("flipped") and file_format in ("ply_binary", "stl_binary", "glb", "gltf"), name
         assert mesh.n_faces == expected.n_faces, (name, mesh.n_faces, expected.n_faces)
         outcomes["values changed"].append(name)
+    assert list(private_temp.iterdir()) == []  # every run's spill store removed, refused or not
     print(f"{file_format}: {len(cases)} cases: " + ", ".join(f"{k} {len(v)}" for k, v in outcomes.items()))
     assert outcomes["refused"], "the corpus must hold damage the readers refuse"
