@@ -7,6 +7,11 @@ Supported: OBJ, PLY, STL, OFF, GLB/GLTF. Files are read with `process=False` and
 Mesh. Polygons are fan-triangulated by trimesh's readers. Every error message starts with
 the file's path.
 
+Damaged files (issue 32): trimesh trusts what a file declares, so before and after it reads
+one, core/file_checks.py compares the declarations (OFF and ASCII PLY counts, ASCII STL facets,
+glTF accessor counts, an OBJ's last line) with the content, and refuses coordinates that are
+not finite or too large to square in float64, before any geometry runs.
+
 OBJ: trimesh splits a vertex for every distinct (v, vt, vn) corner it meets and repeats
 the whole vertex list once per material / object group, which breaks "vertex i of the
 file is vertex i of the Mesh" for ordinary exports (and needs PIL as soon as `vt` is

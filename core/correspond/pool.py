@@ -188,7 +188,8 @@ class RegistrationRunner:
         self.cancel = CancelCheck(should_cancel, "correspondence")
         self.pool = None
         self._runs = 0
-        self._started: dict[int, int] = {}  # task index -> pid of the worker that took it (this run)
+        self._started: dict[int, int] = {}  # task index -> pid of the worker that took it (this run), in order
+        self._finished: set[int] = set()  # task indices of this run with a result
         self._workers: dict = {}  # pid -> the pool's worker processes seen (their exit codes tell how they ended)
         self._set_blas_threads = False
         if jobs > 1:
@@ -246,7 +247,7 @@ class RegistrationRunner:
         `finished(index, result)`; cancel stops the workers at their next check. A worker
         that dies (BrokenProcessPool) ends the run with `WorkerDied` naming the shape it
         had started (`names[index]`) and its signal."""
-        self._started = {}
+        self._started, self._finished = {}, set()
 
         def wait_some(pending):
             self._workers.update(getattr(self.pool, "_processes", None) or {})
@@ -260,7 +261,7 @@ class RegistrationRunner:
                 future.cancel()
 
         def finished_here(index: int, result) -> None:
-            self._started.pop(index, None)
+            self._finished.add(index)
             finished(index, result)
 
         try:
@@ -270,18 +271,18 @@ class RegistrationRunner:
             raise self._death(names) from None
 
     def _death(self, names: list[str]) -> WorkerDied:
-        """The error of a broken pool: the shape whose worker died (of the tasks started and
-        not finished, the one whose worker ended by a signal, else the first) and how."""
+        """The error of a broken pool: the shape a dead worker was working on (the last task
+        it started and did not finish; a worker ended by a signal first) and how it ended."""
         self._drain(None)
         ended = {}
         for pid, process in self._workers.items():
             process.join(timeout=1.0)
             ended[pid] = process.exitcode
-        started = sorted(self._started.items(), key=lambda item: (ended.get(item[1]) is None or ended[item[1]] >= 0,
-                                                                   item[0]))
-        if not started:
+        unfinished = [(index, pid) for index, pid in self._started.items() if index not in self._finished]
+        killed = [(index, pid) for index, pid in unfinished if (ended.get(pid) or 0) < 0]
+        if not unfinished:
             return WorkerDied(f"a worker process ended without a result, {MEMORY_ADVICE}; this run used {self.jobs}")
-        index, pid = started[0]
+        index, pid = (killed or unfinished)[-1]  # a worker runs its tasks one after another
         return WorkerDied(worker_death_message(names[index], ended.get(pid), self.jobs))
 
     def _drain(self, tracker: _RunProgress | None) -> None:
