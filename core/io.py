@@ -106,6 +106,9 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
     check_not_repeated(label, mesh.faces)
+    unused = mesh.n_vertices - len(np.unique(mesh.faces))
+    if unused:  # reported: a file cut between its faces leaves vertices no face uses (issue 32)
+        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, vertices_unused=unused))
     if file_faces is None:
         try:
             file_faces = _loaded_faces(loaded, faces, len(vertices))

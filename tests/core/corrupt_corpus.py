@@ -92,7 +92,10 @@ def _structure_cases(file_format: str, good: bytes, vertices: np.ndarray, faces:
     elif file_format == "obj":
         lines = good.decode().splitlines()
         v_lines = [i for i, line in enumerate(lines) if line.startswith("v ")]
+        f_lines = [i for i, line in enumerate(lines) if line.startswith("f ")]
         cases = [("vertex_line_dropped", "\n".join(lines[:v_lines[-1]] + lines[v_lines[-1] + 1:]).encode()),
+                 # cut at a line end: nothing in OBJ says faces are missing (read, and reported)
+                 ("faces_cut_at_line_end", ("\n".join(lines[:f_lines[len(f_lines) * 4 // 5]]) + "\n").encode()),
                  ("vertex_lines_halved", "\n".join(lines[:v_lines[len(v_lines) // 2]]
                                                     + [line for line in lines if line.startswith("f ")]).encode()),
                  ("text_in_coordinates", good.replace(b"v ", b"v abc ", 1))]
