@@ -4,9 +4,11 @@ trimesh parses the files (core/io.py); it trusts their declarations: an OFF whos
 counts more faces than the file holds, an ASCII PLY cut short, a glTF accessor counting
 fewer indices than its buffer holds, an OBJ cut in the middle of a line all come back as
 a mesh with faces missing. These checks read only the declarations (OFF and PLY headers,
-glTF accessors, the OBJ's last line) and the shape of the content, and refuse a file whose
-content disagrees with them, with a MeshFileError starting with the file's path. The
-coordinates trimesh read are checked once more (`check_coordinates`): every later stage
+glTF accessors, an ASCII STL's facets, the OBJ's last line) and the shape of the content
+(lines and values per record, no control characters in text), and refuse a file whose
+content disagrees with them, with a MeshFileError starting with the file's path. What
+trimesh read is checked once more: an ASCII STL's triangles against its facets, a file
+whose every face is repeated, and the coordinates (`check_coordinates`): every later stage
 squares distances in float64, which overflows beyond about 1e154.
 """
 
@@ -51,8 +53,8 @@ def check_declared(path: Path) -> int | None:
 def check_read_faces(label: str, declared: int | None, faces: np.ndarray) -> None:
     """Refuse a read that kept fewer or more triangles than the file declares."""
     if declared is not None and len(faces) != declared:
-        raise MeshFileError(f"{label}: the file holds {declared} facets but only {len(faces)} could be read "
-                            "(a damaged value or line)")
+        raise MeshFileError(f"{label}: the file holds {declared} facets but {len(faces)} triangles were read from "
+                            "them (a damaged value or line)")
 
 
 def check_coordinates(label: str, vertices: np.ndarray) -> None:
@@ -70,11 +72,16 @@ def check_coordinates(label: str, vertices: np.ndarray) -> None:
 
 
 def check_not_repeated(label: str, faces: np.ndarray) -> None:
-    """Refuse a mesh in which every face appears twice or more (its content repeated, as a
-    file appended to itself). Some faces repeated (double-sided faces) are left to intake."""
+    """Refuse a mesh in which every face appears twice or more with the same winding (the
+    file's content repeated, as a file appended to itself). `faces`: the file's triangles
+    on welded vertices. Faces repeated with opposite winding (double-sided surfaces) and
+    some faces repeated are left to intake."""
     if len(faces) < 2:
         return
-    _, counts = np.unique(np.sort(np.asarray(faces), axis=1), axis=0, return_counts=True)
+    faces = np.asarray(faces)
+    first = np.argmin(faces, axis=1)[:, None]  # each triangle from its lowest vertex: the same winding, one form
+    rotated = np.take_along_axis(faces, (first + np.arange(3)) % 3, axis=1)
+    _, counts = np.unique(rotated, axis=0, return_counts=True)
     if counts.min() >= 2:
         raise MeshFileError(f"{label}: every face appears {int(counts.min())} times or more "
                             "(the file's content is repeated)")

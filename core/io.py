@@ -105,7 +105,8 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         if message.startswith(f"{name}: "):
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
-    check_not_repeated(label, mesh.faces)
+    welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
+    check_not_repeated(label, welded)
     unused = mesh.n_vertices - len(np.unique(mesh.faces))
     if unused:  # reported: a file cut between its faces leaves vertices no face uses (issue 32)
         mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, vertices_unused=unused))

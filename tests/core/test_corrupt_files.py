@@ -102,3 +102,21 @@ def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, th
     assert list(private_temp.iterdir()) == []  # every run's spill store removed, refused or not
     print(f"{file_format}: {len(cases)} cases: " + ", ".join(f"{k} {len(v)}" for k, v in outcomes.items()))
     assert outcomes["refused"], "the corpus must hold damage the readers refuse"
+
+
+def test_a_repeated_file_is_refused_but_double_sided_faces_are_left_to_intake(tmp_path):
+    """Every face twice with the same winding (a file appended to itself) is refused; every
+    face twice with opposite windings (a double-sided surface) is read (intake's business)."""
+    import trimesh
+
+    from shapegen_core.errors import MeshFileError
+    from shapegen_core.io import read_mesh
+
+    sphere = trimesh.creation.icosphere(1)
+    repeated, double_sided = tmp_path / "repeated.obj", tmp_path / "double_sided.obj"
+    trimesh.Trimesh(sphere.vertices, np.vstack([sphere.faces, np.roll(sphere.faces, 1, axis=1)]),
+                    process=False).export(repeated)
+    trimesh.Trimesh(sphere.vertices, np.vstack([sphere.faces, sphere.faces[:, ::-1]]), process=False).export(double_sided)
+    with pytest.raises(MeshFileError, match=f"^{repeated}: every face appears 2 times"):
+        read_mesh(repeated)
+    assert read_mesh(double_sided).n_faces == 2 * len(sphere.faces)
