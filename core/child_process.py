@@ -11,9 +11,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import threading
 
-__all__ = ["exit_with_parent"]
+__all__ = ["exit_with_parent", "how_it_ended", "MEMORY_ADVICE"]
+
+#: what a worker that died of a signal most likely met, and what to try (issue 32)
+MEMORY_ADVICE = ("most likely because the machine ran out of memory; try fewer parallel jobs (--jobs, or Jobs in "
+                 "the panel)")
 
 #: exit status of a worker ended because its parent went away
 ORPHAN_EXIT_CODE = 70
@@ -31,3 +36,14 @@ def exit_with_parent() -> None:
         os._exit(ORPHAN_EXIT_CODE)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def how_it_ended(exitcode: int | None) -> str:
+    """How a process with this exit code ended, for a message: "was killed by signal 9
+    (SIGKILL)" for a negative code (POSIX: the signal), else its exit status."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"was killed by signal {-exitcode} ({signal.Signals(-exitcode).name})"
+        except ValueError:
+            return f"was killed by signal {-exitcode}"
+    return "ended without a result" + ("" if exitcode is None else f" (exit status {exitcode})")

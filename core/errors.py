@@ -27,3 +27,8 @@ class ModelFileError(ShapeGenError, ValueError):
 
 class Cancelled(ShapeGenError):
     """Raised inside long computations when the caller asked to cancel."""
+
+
+class WorkerDied(ShapeGenError):
+    """A worker process ended without a result (killed by a signal, e.g. the out-of-memory
+    killer, or crashed); the message names the shape it was working on and what to try."""

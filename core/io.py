@@ -7,6 +7,11 @@ Supported: OBJ, PLY, STL, OFF, GLB/GLTF. Files are read with `process=False` and
 Mesh. Polygons are fan-triangulated by trimesh's readers. Every error message starts with
 the file's path.
 
+Damaged files (issue 32): trimesh trusts what a file declares, so before and after it reads
+one, core/file_checks.py compares the declarations (OFF and ASCII PLY counts, ASCII STL facets,
+glTF accessor counts, an OBJ's last line) with the content, and refuses coordinates that are
+not finite or too large to square in float64, before any geometry runs.
+
 OBJ: trimesh splits a vertex for every distinct (v, vt, vn) corner it meets and repeats
 the whole vertex list once per material / object group, which breaks "vertex i of the
 file is vertex i of the Mesh" for ordinary exports (and needs PIL as soon as `vt` is
@@ -37,8 +42,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .child_process import exit_with_parent
-from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError
+from .child_process import MEMORY_ADVICE, exit_with_parent
+from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
+from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces
 from .intake import clean_mesh
 from .layout import FaceLayout
 from .mesh import Mesh
@@ -67,6 +73,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     if path.stat().st_size == 0:
         raise MeshFileError(f"{label}: file is empty")
     file_faces = None
+    declared = check_declared(path)  # what the file declares against what it holds (core/file_checks.py)
     try:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
@@ -74,12 +81,16 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         else:
             with open(path, "rb") as handle:
                 loaded = _load_geometry(trimesh, handle, suffix[1:])
+        vertices = np.asarray(loaded.get("vertices", np.empty((0, 3))), dtype=np.float64)
+        faces = np.asarray(loaded.get("faces", np.empty((0, 3))))
+        if faces.size and (faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer)):
+            raise ValueError(f"faces of shape {faces.shape} and type {faces.dtype} are not triangles")
     except IndexError as exc:
         raise MeshFileError(f"{label}: a face refers to a vertex that does not exist ({exc})") from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshFileError(f"{label}: not a readable {suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})") from None
-    vertices = np.asarray(loaded.get("vertices", np.empty((0, 3))), dtype=np.float64)
-    faces = np.asarray(loaded.get("faces", np.empty((0, 3))))
+    check_read_faces(label, declared, faces)
+    check_coordinates(label, vertices)  # before any geometry: squared distances must not overflow
     if vertices.shape[0] == 0:
         if _holds_points_only(trimesh, path, suffix):
             raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
@@ -94,8 +105,16 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         if message.startswith(f"{name}: "):
             message = message[len(name) + 2:]
         raise MeshFileError(f"{label}: {message}") from None
+    welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
+    check_not_repeated(label, welded)
+    unused = mesh.n_vertices - len(np.unique(mesh.faces))
+    if unused:  # reported: a file cut between its faces leaves vertices no face uses (issue 32)
+        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, vertices_unused=unused))
     if file_faces is None:
-        file_faces = _loaded_faces(loaded, faces, len(vertices))
+        try:
+            file_faces = _loaded_faces(loaded, faces, len(vertices))
+        except (ValueError, TypeError) as exc:  # face lists trimesh kept but cannot be polygons
+            raise MeshFileError(f"{label}: its face lists are not polygons ({exc})") from None
     return _with_layout(mesh, file_faces, len(vertices))
 
 
@@ -249,9 +268,15 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
         import concurrent.futures as futures
         import multiprocessing
 
-        with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=exit_with_parent) as pool:
-            outcomes = list(pool.map(_read_or_error, files, [target] * len(files)))
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            with futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=exit_with_parent) as pool:
+                outcomes = list(pool.map(_read_or_error, files, [target] * len(files)))
+        except BrokenProcessPool:
+            raise WorkerDied(f"{folder}: a worker process reading its files ended without a result, {MEMORY_ADVICE}; "
+                             f"this run used {jobs}") from None
     else:
         outcomes = [_read_or_error(path, target) for path in files]
     meshes = [m for m in outcomes if not isinstance(m, str)]

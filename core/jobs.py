@@ -14,19 +14,25 @@ its stdout, one JSON object per line (progress as in core/progress.py):
 and listens on its stdin for the line "cancel" (cooperative cancel, checked between
 iterations). If it does not stop within `cancel_grace` seconds after a cancel it is
 terminated. Results are files written atomically by the worker; a cancelled or failed job
-leaves no output file behind.
+leaves no output file behind. The worker's temporary folder (TMPDIR) is one the job makes
+and removes once the worker has ended, so a killed worker leaves no temporary files.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from .child_process import MEMORY_ADVICE, how_it_ended
 
 __all__ = ["BackgroundJob", "JobStatus", "JOB_STATES"]
 
@@ -67,6 +73,7 @@ class BackgroundJob:
         self._reader: threading.Thread | None = None
         self._cancel_requested_at: float | None = None
         self._stderr_tail: list[str] = []
+        self._remove_temporary = lambda: None  # set by `start`: removes the worker's temporary folder
 
     # ------------------------------------------------------------------ control
     def start(self) -> "BackgroundJob":
@@ -76,6 +83,11 @@ class BackgroundJob:
         paths = [str(WORKER_SCRIPT.parent.parent)] + [p for p in sys.path if p]
         env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
         env.setdefault("OPENBLAS_NUM_THREADS", "1")
+        # the worker's temporary files (its spill store, core/spill.py) go into a folder this
+        # process removes when the job ends, however the worker ended (a killed worker cannot)
+        self.temporary_folder = tempfile.mkdtemp(prefix=f"shapegen-job-{self.task}-")
+        self._remove_temporary = weakref.finalize(self, shutil.rmtree, self.temporary_folder, True)
+        env.update(TMPDIR=self.temporary_folder, TEMP=self.temporary_folder, TMP=self.temporary_folder)
         self._process = subprocess.Popen(
             [self.python, "-u", str(WORKER_SCRIPT), self.task, json.dumps(self.arguments)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
@@ -112,15 +124,16 @@ class BackgroundJob:
                         self._status.state = "cancelled"
                     else:
                         self._status.state = "failed"
-                        tail = " | ".join(self._stderr_tail[-3:])
-                        self._status.error = (f"worker exited with code {process.returncode}"
-                                              + (f": {tail}" if tail else ""))
+                        self._status.error = self._ended_message(process.returncode)
         elif (process is not None and self._cancel_requested_at is not None
               and time.monotonic() - self._cancel_requested_at > self.cancel_grace):
             process.terminate()
         with self._lock:
-            return JobStatus(self._status.state, self._status.fraction, self._status.stage,
-                             self._status.error, self._status.output, list(self._status.log))
+            status = JobStatus(self._status.state, self._status.fraction, self._status.stage,
+                               self._status.error, self._status.output, list(self._status.log))
+        if status.finished and process is not None and process.poll() is not None:
+            self._remove_temporary()
+        return status
 
     def wait(self, timeout: float | None = None, interval: float = 0.05) -> JobStatus:
         """Poll until finished (for scripts and tests; the UI polls from a timer instead)."""
@@ -137,8 +150,19 @@ class BackgroundJob:
         if self._process is not None and self._process.poll() is None:
             self._process.kill()
             self._process.wait()
+        self._remove_temporary()
 
     # ------------------------------------------------------------------ internals
+    def _ended_message(self, returncode: int) -> str:
+        """One line for a worker that ended without saying so: killed by a signal (the
+        out-of-memory killer sends SIGKILL), with the stage it was in; else its exit code
+        and the last lines it wrote on stderr."""
+        if returncode < 0:
+            stage = f" during '{self._status.stage}'" if self._status.stage else ""
+            return f"the {self.task} worker {how_it_ended(returncode)}{stage}, {MEMORY_ADVICE}"
+        tail = " | ".join(self._stderr_tail[-3:])
+        return f"worker exited with code {returncode}" + (f": {tail}" if tail else "")
+
     def _read_stdout(self) -> None:
         for line in self._process.stdout:
             line = line.strip()

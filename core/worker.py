@@ -147,15 +147,26 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
 
 
 def task_selftest(arguments: dict, progress, should_cancel) -> str:
-    """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash or run a
-    step that never checks cancel (`busy_at`, for `busy` seconds)."""
-    import time
-
-    from .errors import ShapeGenError
+    """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash, be
+    killed (`kill_at`: SIGKILL) or run a step that never checks cancel (`busy_at`, for
+    `busy` seconds)."""
     from .progress import CancelCheck
+    from .spill import SpillStore
 
     cancel = CancelCheck(should_cancel, "selftest")
     steps = int(arguments.get("steps", 10))
+    with SpillStore():  # a temporary folder for the task's duration, as the real tasks have
+        _selftest_steps(arguments, steps, progress, cancel)
+    output = Path(arguments["output"])
+    output.write_text("ok")
+    return str(output)
+
+
+def _selftest_steps(arguments: dict, steps: int, progress, cancel) -> None:
+    import time
+
+    from .errors import ShapeGenError
+
     for i in range(steps):
         if arguments.get("busy_at") == i:  # a long step that never checks cancel
             end = time.monotonic() + float(arguments.get("busy", 30.0))
@@ -170,9 +181,11 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
             import os
 
             os._exit(3)  # a hard crash: no message, non-zero exit
-    output = Path(arguments["output"])
-    output.write_text("ok")
-    return str(output)
+        if arguments.get("kill_at") == i:  # killed as the out-of-memory killer would
+            import os
+            import signal
+
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 TASKS = {"prepare": task_prepare, "fit": task_fit, "correspond": task_correspond, "selftest": task_selftest}

@@ -15,10 +15,12 @@
 from __future__ import annotations
 
 import argparse
+import atexit
 import glob
 import importlib
 import os
 import platform
+import shutil
 import sys
 import tempfile
 import time
@@ -115,6 +117,9 @@ def main(argv=None) -> int:
     output.mkdir(parents=True, exist_ok=True)
 
     os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="shapegen-demo-user-")
+    # registered before bpy is imported, so it runs after bpy's own exit handlers (atexit
+    # runs last-registered first): the throwaway user folder goes on every exit
+    atexit.register(shutil.rmtree, os.environ["BLENDER_USER_RESOURCES"], True)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import bpy
 

@@ -250,12 +250,15 @@ def import_mesh_file(path: Path, collection: bpy.types.Collection) -> bpy.types.
 
     Raises MeshFileError naming the file when the importer fails or yields no mesh.
     """
+    from ..core.io import read_mesh
+
     path = Path(path)
     suffix = path.suffix.lower()
+    # the core reads the file first: a file whose content disagrees with what it declares,
+    # or with coordinates no stage can compute with, is refused here as `shapegen prepare`
+    # refuses it (issue 32), before Blender's importer (which trusts the file) runs
+    mesh = read_mesh(path)
     if suffix == ".off" or suffix not in BLENDER_IMPORTERS:
-        from ..core.io import read_mesh
-
-        mesh = read_mesh(path)
         obj = bpy.data.objects.new(path.stem, mesh_data_from_arrays(path.stem, mesh.vertices, mesh.faces))
         collection.objects.link(obj)
         return obj
@@ -263,8 +266,10 @@ def import_mesh_file(path: Path, collection: bpy.types.Collection) -> bpy.types.
     before = set(bpy.data.objects)
     try:
         BLENDER_IMPORTERS[suffix](str(path))
-    except RuntimeError as exc:
-        raise MeshFileError(f"{path}: Blender's importer failed ({str(exc).strip()})") from None
+    except Exception as exc:  # importers raise RuntimeError, and others on damage the core let through
+        for o in [o for o in bpy.data.objects if o not in before]:
+            bpy.data.objects.remove(o)
+        raise MeshFileError(f"{path}: Blender's importer failed ({type(exc).__name__}: {str(exc).strip()})") from None
     new_objects = [o for o in bpy.data.objects if o not in before]
     meshes = [o for o in new_objects if o.type == "MESH"]
     others = [o for o in new_objects if o.type != "MESH"]

@@ -12,12 +12,15 @@ import concurrent.futures as futures
 import multiprocessing
 import os
 import queue as queue_module
+import signal
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..child_process import exit_with_parent
+from ..child_process import MEMORY_ADVICE, exit_with_parent, how_it_ended
+from ..errors import WorkerDied
 from ..geometry import TargetSurface
 from ..progress import CancelCheck, Progress
 from .registration import Registration, register
@@ -59,6 +62,22 @@ def _init_worker(progress_queue, cancel_event) -> None:
     _WORKER["cancel"] = cancel_event
 
 
+#: test hook (issue 32): a worker given a task of this shape name kills itself with SIGKILL,
+#: as the out-of-memory killer would
+KILL_ON_SHAPE_VARIABLE = "SHAPEGEN_TEST_KILL_WORKER_ON"
+
+
+def _started(run: int, index: int, name: str) -> None:
+    """Tell the parent this worker took task `index` of `run` (so a worker that dies is
+    known by its shape); the test hook `KILL_ON_SHAPE_VARIABLE` acts here."""
+    _WORKER["queue"].put((run, index, ("started", os.getpid())))
+    if name and os.environ.get(KILL_ON_SHAPE_VARIABLE) == name:
+        import time
+
+        time.sleep(0.5)  # let the queue's feeder thread deliver "started" first
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None) -> Registration:
     """Register the template to one shape (in this process or any worker)."""
     surface = TargetSurface((task.vertices - task.centre) / task.scale, task.faces)
@@ -70,15 +89,17 @@ def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None)
 def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:
     """A pool worker's task: iterations go to the parent's queue as (run, index, iteration)."""
     progress_queue = _WORKER["queue"]
+    _started(run, task.index, task.name)
     result = register_task(task, lambda iteration: progress_queue.put((run, task.index, iteration)),
                            _WORKER["cancel"])
     return task.index, result
 
 
-def _call_in_worker(function: Callable, item, index: int):
+def _call_in_worker(function: Callable, item, index: int, run: int):
     """A pool worker's call of `function(item)` (`RegistrationRunner.map`); skipped once
     cancel was asked."""
     CancelCheck(_WORKER["cancel"], "correspondence")()
+    _started(run, index, _item_name(item, index))
     return index, function(item)
 
 
@@ -140,6 +161,17 @@ class _RunProgress:
         self.progress(sum(self.shares) / len(self.shares), message)
 
 
+def _item_name(item, index: int) -> str:
+    """The shape a task or mapped item is about (its `name`, or its place)."""
+    return str(getattr(item, "name", None) or f"item {index + 1}")
+
+
+def worker_death_message(name: str, exitcode: int | None, jobs: int) -> str:
+    """One line: which shape a dead worker was working on, how it ended, the likely cause
+    and what to try."""
+    return f"{name}: the worker process working on it {how_it_ended(exitcode)}, {MEMORY_ADVICE}; this run used {jobs}"
+
+
 class RegistrationRunner:
     """Runs registration tasks in-process (jobs = 1) or in a pool of spawned processes,
     with progress per ICP iteration and cooperative cancel (`should_cancel`: None, a
@@ -156,6 +188,9 @@ class RegistrationRunner:
         self.cancel = CancelCheck(should_cancel, "correspondence")
         self.pool = None
         self._runs = 0
+        self._started: dict[int, int] = {}  # task index -> pid of the worker that took it (this run), in order
+        self._finished: set[int] = set()  # task indices of this run with a result
+        self._workers: dict = {}  # pid -> the pool's worker processes seen (their exit codes tell how they ended)
         self._set_blas_threads = False
         if jobs > 1:
             self._set_blas_threads = "OPENBLAS_NUM_THREADS" not in os.environ
@@ -185,7 +220,8 @@ class RegistrationRunner:
             results[index] = result
             tracker.finished(index, result.iterations)
 
-        self._submit_bounded([(_run_in_worker, task, self._runs) for task in tasks], finished, tracker)
+        self._submit_bounded([(_run_in_worker, task, self._runs) for task in tasks], finished, tracker,
+                             [task.name for task in tasks])
         return results
 
     def map(self, function: Callable, items: Sequence, progress: Progress, message: Callable[[int], str]) -> list:
@@ -198,16 +234,23 @@ class RegistrationRunner:
                 self.cancel()
                 finished(index, function(item))
             return results
-        self._submit_bounded([(_call_in_worker, function, item, index) for index, item in enumerate(items)],
-                             finished, None)
+        self._runs += 1
+        self._submit_bounded([(_call_in_worker, function, item, index, self._runs) for index, item in enumerate(items)],
+                             finished, None, [_item_name(item, index) for index, item in enumerate(items)])
         return results
 
-    def _submit_bounded(self, calls: list[tuple], finished: Callable, tracker: "_RunProgress | None") -> None:
+    def _submit_bounded(self, calls: list[tuple], finished: Callable, tracker: "_RunProgress | None",
+                        names: list[str]) -> None:
         """Run the calls (function, *arguments; each returns (index, result)) in the pool
         with at most 2 · jobs submitted at a time (a submitted call holds its pickled shape
         in the pool's queue), passing progress events to `tracker` and results to
-        `finished(index, result)`; cancel stops the workers at their next check."""
+        `finished(index, result)`; cancel stops the workers at their next check. A worker
+        that dies (BrokenProcessPool) ends the run with `WorkerDied` naming the shape it
+        had started (`names[index]`) and its signal."""
+        self._started, self._finished = {}, set()
+
         def wait_some(pending):
+            self._workers.update(getattr(self.pool, "_processes", None) or {})
             done, _ = futures.wait(pending, timeout=0.1, return_when=futures.FIRST_COMPLETED)
             self._drain(tracker)
             return done
@@ -217,8 +260,30 @@ class RegistrationRunner:
             for future in pending:
                 future.cancel()
 
-        submit_bounded(calls, lambda call: self.pool.submit(*call), wait_some, 2 * self.jobs, self.cancel, finished,
-                       stop)
+        def finished_here(index: int, result) -> None:
+            self._finished.add(index)
+            finished(index, result)
+
+        try:
+            submit_bounded(calls, lambda call: self.pool.submit(*call), wait_some, 2 * self.jobs, self.cancel,
+                           finished_here, stop)
+        except BrokenProcessPool:
+            raise self._death(names) from None
+
+    def _death(self, names: list[str]) -> WorkerDied:
+        """The error of a broken pool: the shape a dead worker was working on (the last task
+        it started and did not finish; a worker ended by a signal first) and how it ended."""
+        self._drain(None)
+        ended = {}
+        for pid, process in self._workers.items():
+            process.join(timeout=1.0)
+            ended[pid] = process.exitcode
+        unfinished = [(index, pid) for index, pid in self._started.items() if index not in self._finished]
+        killed = [(index, pid) for index, pid in unfinished if (ended.get(pid) or 0) < 0]
+        if not unfinished:
+            return WorkerDied(f"a worker process ended without a result, {MEMORY_ADVICE}; this run used {self.jobs}")
+        index, pid = (killed or unfinished)[-1]  # a worker runs its tasks one after another
+        return WorkerDied(worker_death_message(names[index], ended.get(pid), self.jobs))
 
     def _drain(self, tracker: _RunProgress | None) -> None:
         """Pass the queued iteration events of the current run to `tracker` (None: drop them)."""
@@ -227,7 +292,11 @@ class RegistrationRunner:
                 run, index, iteration = self.queue.get_nowait()
             except queue_module.Empty:
                 return
-            if tracker is not None and run == self._runs:
+            if run != self._runs:
+                continue
+            if isinstance(iteration, tuple):  # ("started", pid): a worker took the task
+                self._started[index] = iteration[1]
+            elif tracker is not None:
                 tracker.iteration(index, iteration)
 
     def close(self) -> None:

@@ -7,9 +7,11 @@ import time. Every test starts from an empty factory scene (`clean_scene`, autou
 
 from __future__ import annotations
 
+import atexit
 import glob
 import os
 import platform
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -21,6 +23,9 @@ DIST = ROOT / "dist"
 MODULE = "bl_ext.user_default.shapegen"
 
 _USER_RESOURCES = tempfile.mkdtemp(prefix="shapegen-blender-user-")
+# registered before bpy is imported, so it runs after bpy's own exit handlers (atexit runs
+# last-registered first): the folder (~74 MB once the extension is installed) goes at exit
+atexit.register(shutil.rmtree, _USER_RESOURCES, True)
 os.environ["BLENDER_USER_RESOURCES"] = _USER_RESOURCES
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 

@@ -13,8 +13,9 @@ import numpy as np
 from conftest import _platform_zip, addon_module, load_model, vertices
 
 REOPEN = textwrap.dedent("""
-    import importlib, json, os, sys, tempfile
+    import atexit, importlib, json, os, shutil, sys, tempfile
     os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="shapegen-reopen-")
+    atexit.register(shutil.rmtree, os.environ["BLENDER_USER_RESOURCES"], True)  # before bpy: runs after its exit
     import bpy
     import numpy as np
 

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import re
+import signal
 import time
 from pathlib import Path
 
@@ -157,18 +159,42 @@ def test_cancel_mid_fit_keeps_the_scene_and_the_earlier_model(extension, jobs, m
     assert not bpy.ops.shapegen.fit_cancel.poll() and bpy.ops.shapegen.fit.poll()
 
 
-def test_a_worker_crash_becomes_a_report(extension, jobs):
+def test_a_killed_worker_becomes_a_one_line_report_and_the_scene_is_intact(extension, jobs):
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
     manager = addon_module(extension, "shapegen_addon.jobs").MANAGER
+    objects_before = {o.name for o in bpy.data.objects}
     assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
     _pump(jobs, lambda s: s is not None and s.fraction > 0.0)
-    manager.job.kill()  # the worker dies without a word (as a segfault or the OOM killer would)
+    temporary = Path(manager.job.temporary_folder)
+    os.kill(manager.job._process.pid, signal.SIGKILL)  # from outside, as the out-of-memory killer would
     statuses, _ = _pump(jobs, lambda s: s is not None and s.finished, timeout=30)
     assert statuses[-1].state == "failed"
-    assert settings.job_state == "FAILED"
-    assert "worker exited with code" in settings.job_message and "no model was made" in settings.job_message
+    assert settings.job_state == "FAILED" and "\n" not in settings.job_message
+    assert "the fit worker was killed by signal 9 (SIGKILL) during '" in settings.job_message
+    assert "out of memory" in settings.job_message and "fewer parallel jobs" in settings.job_message
+    assert "no model was made" in settings.job_message
     assert settings.model_text is None and len(bpy.data.texts) == 0
+    assert {o.name for o in bpy.data.objects} == objects_before
+    assert not temporary.exists()  # the worker's temporary folder (its spill store) went with it
+
+
+def test_a_killed_registration_worker_names_its_shape(extension, jobs, monkeypatch):
+    """A worker of the fit's registration pool killed (the test hook makes it SIGKILL itself
+    on one shape): the job's message names the shape, the signal and fewer jobs."""
+    pool = addon_module(extension, "core.correspond.pool")
+    add_vase_collection(extension, n=3)
+    settings = bpy.context.scene.shapegen
+    victim = sorted(o.name for o in settings.source_collection.objects)[1]
+    monkeypatch.setenv(pool.KILL_ON_SHAPE_VARIABLE, victim)  # inherited by the job's worker and its pool
+    objects_before = {o.name for o in bpy.data.objects}
+    assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json(jobs=2)) == {"FINISHED"}
+    statuses, _ = _pump(jobs, lambda s: s is not None and s.finished, timeout=120)
+    assert statuses[-1].state == "failed" and settings.job_state == "FAILED"
+    message = settings.job_message
+    assert f"{victim}: the worker process working on it was killed by signal 9 (SIGKILL)" in message, message
+    assert "out of memory" in message and "this run used 2" in message and "\n" not in message
+    assert settings.model_text is None and {o.name for o in bpy.data.objects} == objects_before
 
 
 def test_a_failing_fit_reports_the_workers_reason(extension, jobs):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +29,20 @@ def test_a_task_error_becomes_a_message(tmp_path):
 def test_a_hard_crash_is_reported_with_the_exit_code(tmp_path):
     status = BackgroundJob("selftest", {"steps": 5, "crash_at": 1, "output": str(tmp_path / "x")}).start().wait(60)
     assert status.state == "failed" and "exited with code 3" in status.error
+
+
+def test_a_killed_worker_is_one_line_with_the_signal_its_stage_and_what_to_try(tmp_path):
+    job = BackgroundJob("selftest", {"steps": 5, "kill_at": 2, "sleep": 0.3, "output": str(tmp_path / "x")}).start()
+    deadline = time.monotonic() + 30
+    while job.poll().fraction == 0.0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert [p.name[:15] for p in Path(job.temporary_folder).iterdir()] == ["shapegen-spill-"]  # the task's
+    status = job.wait(60)
+    assert not Path(job.temporary_folder).exists()  # the worker's TMPDIR, removed by the parent
+    assert status.state == "failed" and "\n" not in status.error
+    assert status.error.startswith("the selftest worker was killed by signal 9 (SIGKILL) during 'step 3 of 5'")
+    assert "out of memory" in status.error and "fewer parallel jobs" in status.error
+    assert not (tmp_path / "x").exists()
 
 
 def test_cancel_stops_the_worker_and_writes_nothing(tmp_path):
