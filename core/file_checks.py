@@ -183,16 +183,36 @@ def _ply_row_length(row: list[str], properties: list[str]) -> int:
 
 
 # ---------------------------------------------------------------------------- OBJ
-def _check_obj_end(path: Path) -> None:
-    """An OBJ whose last line is a vertex or face cut off before its line end: the file was
-    cut short (a file written whole ends its last line, or it is not geometry)."""
+def _last_obj_line(path: Path) -> list[bytes] | None:
+    """The words of an OBJ's last line when it has no line end, else None."""
     with open(path, "rb") as handle:
         handle.seek(max(0, path.stat().st_size - 4096))
         stripped = handle.read().rstrip(b" \t")
     if not stripped or stripped.endswith((b"\n", b"\r")):
+        return None
+    return stripped.rsplit(b"\n", 1)[-1].split()
+
+
+def obj_unterminated(path: Path) -> bool:
+    """Whether an OBJ's last line is a vertex or face without a line end: valid OBJ (many
+    hand-written files end so), but also what a file cut short between two numbers looks
+    like, so the reader reports it (`MeshReport.unterminated`)."""
+    last = _last_obj_line(path)
+    return bool(last) and last[0] in (b"v", b"f", b"vt", b"vn")
+
+
+def _check_obj_end(path: Path) -> None:
+    """An OBJ whose last line, without its line end, is visibly incomplete (a vertex with
+    fewer than three coordinates, a face with fewer than three corners, a number or index
+    cut after its sign, exponent or slash): the file was cut short. A complete last line
+    without a line end is read, and reported (`obj_unterminated`)."""
+    last = _last_obj_line(path)
+    if last is None:
         return
-    last = stripped.rsplit(b"\n", 1)[-1].split()
-    if last and last[0] in (b"v", b"f", b"vt", b"vn"):
+    least = {b"v": 4, b"vn": 4, b"vt": 2, b"f": 4}.get(last[0] if last else b"")
+    if least is None:
+        return
+    if len(last) < least or last[-1].endswith((b"/", b"e", b"E", b"-", b"+", b".")):
         raise MeshFileError(f"{path}: ends in the middle of a line ({last[0].decode()} ...): the file looks cut short")
 
 

@@ -44,7 +44,7 @@ import numpy as np
 
 from .child_process import MEMORY_ADVICE, exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
-from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces
+from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces, obj_unterminated
 from .intake import clean_mesh
 from .layout import FaceLayout
 from .mesh import Mesh
@@ -108,8 +108,10 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
     check_not_repeated(label, welded)
     unused = mesh.n_vertices - len(np.unique(mesh.faces))
-    if unused:  # reported: a file cut between its faces leaves vertices no face uses (issue 32)
-        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, vertices_unused=unused))
+    unterminated = suffix == ".obj" and obj_unterminated(path)
+    if unused or unterminated:  # reported: a file cut short may still read as a mesh (issue 32)
+        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name,
+                    report=replace(mesh.report, vertices_unused=unused, unterminated=unterminated))
     if file_faces is None:
         try:
             file_faces = _loaded_faces(loaded, faces, len(vertices))

@@ -64,6 +64,7 @@ class MeshReport:
     parts_turned_outward: int = 0  # connected parts that faced inwards, reversed whole
     parts_without_inside: int = 0  # open, nearly flat parts: no side is outside, winding kept
     vertices_unused: int = 0  # vertices of the file no face uses (a file cut short between faces?)
+    unterminated: bool = False  # the file's last line has no line end (valid OBJ, or a file cut short)
     vertex_map: np.ndarray | None = field(default=None, repr=False)
     face_source: np.ndarray | None = field(default=None, repr=False)
     face_reversed: np.ndarray | None = field(default=None, repr=False)
@@ -90,6 +91,8 @@ class MeshReport:
             parts.append(f"{self.parts_without_inside} open flat part(s) with no outside: winding kept")
         if self.vertices_unused:
             parts.append(f"{self.vertices_unused} vertices used by no face (kept; is the file cut short?)")
+        if self.unterminated:
+            parts.append("its last line has no line end (read as it is; is the file cut short?)")
         return "; ".join(parts) if parts else "clean"
 
 
