@@ -60,7 +60,7 @@ QUARTERS = [np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([[0, 0, 1.0
 HALVES = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])]
 HAND = {"upside down": HALVES[0], "on its side": QUARTERS[0], "120° about up": yaw_rotation(120.0)}
 SAME_DEGREES = 5.0
-VISIBLE_CHAMFER = 0.01  # self-Chamfer (unit RMS radius) below which a turn leaves the surface in place
+VISIBLE = 0.01  # RMS surface distance (share of the RMS radius) below which a turn leaves the surface in place
 PROCEDURAL = ("closed mugs", "open mugs", "cups", "vases", "barrels", "bottles", "teddies")
 REAL = ("PSB Vase", "PSB Cup", "PSB Fish", "PSB Airplane", "TOSCA cat", "TOSCA dog", "TOSCA horse",
         "TOSCA centaur")
@@ -109,18 +109,19 @@ def up_angle(rotation: np.ndarray) -> float:
 
 def same_pose(mesh, relative: np.ndarray) -> bool:
     """Whether the relative rotation (prepared frame) leaves the prepared surface in place:
-    within SAME_DEGREES, or a turn about up whose self-Chamfer distance is invisible."""
+    within SAME_DEGREES, or a turn about up after which the surface's samples lie on the
+    surface as it was (RMS distance below VISIBLE of its RMS radius: a round cup at any turn)."""
     if angle(relative) <= SAME_DEGREES:
         return True
     if up_angle(relative) > SAME_DEGREES:
         return False
-    from scipy.spatial import cKDTree
+    from shapegen_core.geometry import TargetSurface
     points = mesh.sample_surface(800, np.random.default_rng(0)).points
-    points = (points - points.mean(axis=0)) / np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))
-    turned = points @ relative.T
-    d1, _ = cKDTree(points).query(turned)
-    d2, _ = cKDTree(turned).query(points)
-    return float(np.mean(d1 ** 2) + np.mean(d2 ** 2)) < VISIBLE_CHAMFER
+    centre = mesh.vertices.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+    turned = (points - centre) @ relative.T + centre
+    distance = np.linalg.norm(TargetSurface(mesh.vertices, mesh.faces).closest(turned).points - turned, axis=1)
+    return float(np.sqrt(np.mean(distance ** 2))) < VISIBLE * radius
 
 
 def run(prepare, meshes, up: str, turns: dict[int, np.ndarray]):
@@ -165,8 +166,7 @@ def measure(name: str, prepare, meshes, up: str) -> dict:
             total += 1
             back += same[i]
             detected += same[i] or flagged(prepared[i])
-            wrong += (not same[i]) and angle(prepared[i].transform.rotation @ turn @ given[i].transform.rotation.T
-                                              @ np.eye(3)) > SAME_DEGREES and bool(prepared[i].pose_change)
+            wrong += (not same[i]) and bool(prepared[i].pose_change)
             moved += sum(not same[k] for k in range(n) if k != i)
     row.update({"hand detected": f"{detected}/{total}", "hand back": f"{back}/{total}", "hand wrong": wrong,
                 "hand moved": moved})

@@ -42,15 +42,18 @@ coarse samples) against the other in its pose.
      `hollow_agreement` of the shapes whose hollows tell (at least three), and turning it costs at most
      `hollow_cost` times its pose; or
    - at least `agreement` of its references fit it better turned over (by `margin`), by
-     `flip_margin` at the median, while the collection's shapes agree with each other
-     (the median shape is asked to turn over by at most 1 − `agreement` of its
-     references). A taper, bulge or lean that varies across the class makes shapes ask
-     each other to turn over; then the costs decide nothing.
+     `flip_margin` at the median (`flip_support` when its odd moments say the same as
+     strongly), while the collection's shapes agree with each other (the median shape is
+     asked to turn over by at most 1 − `agreement` of its references). A taper, bulge or
+     lean that varies across the class makes shapes ask each other to turn over; then
+     the costs decide nothing.
    Weaker evidence is a flag "may be upside down": its hollow alone (the cost objecting),
    its odd-moment signature (`signature.Signatures`: its top and bottom match the bottom
-   and top of at least `agreement` of its references, the collection's shapes agreeing
-   with each other), or at least half of its references asking for it by `margin`, 0.4
-   more than the collection's median shape does.
+   and top of most of its references, the collection's shapes agreeing with each other),
+   or at least half of its references asking for it by `margin`, 0.4 more than the
+   collection's median shape does. A shape stood on another axis in step 1 whose end
+   nothing told there takes its end from this evidence, weak or not; with none either way
+   it keeps the file convention's end and is flagged.
 3. Facing (`facings`): turns about up only, by the Chamfer cost (any turn about up fits
    its nearest settled shapes `margin` times better) and by the facing signature
    (`signature.Signatures`, exact odd moments: a shared facing differing by more than
@@ -101,6 +104,8 @@ class ConsensusSettings:
     #: median cost ratio a turn-over by the costs alone needs (and that tells the ends of
     #: a shape stood on another axis apart)
     flip_margin: float = 3.0
+    #: ... or with the odd moments agreeing (as strongly, over the collection) this one
+    flip_support: float = 2.0
     #: nearest settled shapes a shape's facing is compared with (step 3)
     neighbours: int = 3
     #: grid step of the turn about z, degrees
@@ -341,42 +346,27 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
     # the odd-moment signature's votes: a reference whose top and bottom match its bottom and top
     opposed_votes = {j: np.array([signatures.up_agreement(j, poses[j], [(i, poses[i])]) < -settings.coherence
                                   for i in references[j]], dtype=bool) for j in range(n)}
-    asked = np.array([np.mean(asked_votes[j]) if len(ratios[j]) else 0.0 for j in range(n)])
-    opposed = np.array([np.mean(opposed_votes[j]) if len(ratios[j]) else 0.0 for j in range(n)])
     openings = np.array([hollows.vertical(j, poses[j]) for j in range(n)]) if hollows is not None else np.zeros(n)
     decisions = []
     for j in range(n):
         if not len(ratios[j]):
             decisions.append(PoseDecision(poses[j]))
             continue
-        background = _background(asked_votes, references, j)
-        median = float(np.median(ratios[j]))
-        hollow = _hollow_disagrees(openings, j, settings)
-        signature = (opposed[j] >= settings.agreement
-                     and _background(opposed_votes, references, j) <= 1.0 - settings.agreement)
-        by_cost = (asked[j] >= settings.agreement and median >= settings.flip_margin
-                   and background <= 1.0 - settings.agreement and not _hollow_agrees(openings, j, settings))
         posed = [(i, poses[i]) for i in references[j]]
         # turned over about x or about y: the same up, facing the other way; the cheaper one
         flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
                       key=lambda r: evidence.search.cost(j, r, posed))
-        cost_allows = np.median(costs[j][:, 1]) <= settings.hollow_cost * np.median(costs[j][:, 0])
-        share = f"{int(round(asked[j] * len(ratios[j])))} of {len(ratios[j])} shapes fit it better turned over"
-        if (hollow and cost_allows or by_cost) and not frozen[j]:
-            why = hollow or f"{share} ({median:.1f}× at the median), the collection agreeing on top and bottom"
-            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}"))
-        elif hollow or by_cost or signature or (asked[j] >= 0.5 and median > settings.margin
-                                                and asked[j] - background >= 0.4):
-            why = hollow or (f"{share} ({median:.1f}× at the median)" if by_cost else
-                             f"its top and bottom match the bottom and top of {opposed[j]:.0%} of its "
-                             f"{len(ratios[j])} references" if signature else
-                             f"{share} ({median:.1f}× at the median), but top and bottom vary across the "
-                             f"collection (the median shape is asked to turn over by {background:.0%} of its "
-                             "references)")
-            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped))
-        elif stood[j].end_guessed and not (
-                _hollow_agrees(openings, j, settings)
-                or (median <= 1.0 / settings.margin and background <= 1.0 - settings.agreement)):
+        ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
+        if ends.clear_flip and not frozen[j]:
+            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {ends.flip_reason}"))
+        elif stood[j].end_guessed and ends.some_flip and not ends.some_keep:
+            # its end was a guess: the evidence, weak as it is, decides it
+            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: its other end is "
+                                                   f"up ({ends.flip_reason})"))
+        elif ends.some_flip:
+            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {ends.flip_reason}",
+                                          flag_rotation=flipped))
+        elif stood[j].end_guessed and not ends.some_keep:
             decisions.append(PoseDecision(poses[j], flag="may be upside down: stood on another axis of its file, "
                                                          "and nothing in the collection tells its top from its "
                                                          "bottom (the end is the other file convention's)",
@@ -384,6 +374,52 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
         else:
             decisions.append(PoseDecision(poses[j]))
     return decisions
+
+
+@dataclass(frozen=True)
+class _EndEvidence:
+    """What the collection says of one shape's top and bottom (step 2 of the module
+    docstring): whether it clearly is upside down (`clear_flip`), whether anything says it
+    may be (`some_flip`) or that it is not (`some_keep`), and the words for it."""
+
+    clear_flip: bool
+    some_flip: bool
+    some_keep: bool
+    flip_reason: str
+
+    @classmethod
+    def of(cls, j: int, ratios: np.ndarray, asked_votes: dict, opposed_votes: dict, references: dict,
+           openings: np.ndarray, costs: np.ndarray, settings: ConsensusSettings) -> "_EndEvidence":
+        agreeing = 1.0 - settings.agreement  # the most a collection agreeing with itself asks
+        asked, opposed = float(np.mean(asked_votes[j])), float(np.mean(opposed_votes[j]))
+        cost_background = _background(asked_votes, references, j)
+        moment_background = _background(opposed_votes, references, j)
+        median = float(np.median(ratios))
+        hollow = _hollow_disagrees(openings, j, settings)
+        hollow_keeps = _hollow_agrees(openings, j, settings)
+        moments_flip = opposed > 0.5 and moment_background <= agreeing
+        moments_strong = opposed >= settings.agreement and moment_background <= agreeing
+        cost_strong = (asked >= settings.agreement and cost_background <= agreeing and not hollow_keeps
+                       and (median >= settings.flip_margin or (moments_strong and median >= settings.flip_support)))
+        cost_flip = asked >= 0.5 and median > settings.margin and asked - cost_background >= 0.4
+        cost_allows = np.median(costs[:, 1]) <= settings.hollow_cost * np.median(costs[:, 0])
+        share = f"{int(round(asked * len(ratios)))} of {len(ratios)} shapes fit it better turned over"
+        moments = f"its top and bottom match the bottom and top of {opposed:.0%} of its {len(ratios)} references"
+        if hollow:
+            reason = hollow
+        elif cost_strong:
+            reason = f"{share} ({median:.1f}× at the median), the collection agreeing on top and bottom" + (
+                f", and {moments}" if moments_strong else "")
+        elif moments_flip:
+            reason = moments
+        elif cost_flip:
+            reason = (f"{share} ({median:.1f}× at the median), but top and bottom vary across the collection (the "
+                      f"median shape is asked to turn over by {cost_background:.0%} of its references)")
+        else:
+            reason = ""
+        keeps = hollow_keeps or (opposed < 0.5 and moment_background <= agreeing and not cost_flip) or (
+            median <= 1.0 / settings.margin and cost_background <= agreeing)
+        return cls(bool(hollow and cost_allows) or cost_strong, bool(reason), keeps and not hollow, reason)
 
 
 def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], j: int) -> float:
