@@ -5,8 +5,16 @@ io.read_mesh; Blender: convert.object_to_mesh, and meshset.load_mesh_set in the 
 2. `weld_vertices`: merge coincident vertices. STL files and other triangle soups give
    every triangle its own three corners; welded, smoothing, the closedness test and the
    written files see one connected surface instead of loose triangles;
-3. `orient_faces`: wind every face like its neighbours and every connected part outwards
+3. `drop_twin_faces`: a face on the same three (welded) vertices as an earlier one is the
+   other side of a double-sided surface (CAD files store every sheet twice, wound opposite
+   ways) or a plain duplicate; one surface is kept, so every edge of a double-sided sheet
+   has two faces again instead of four, and the dropped sides are recorded (`twin_source`,
+   `twin_of`) so a caller can map them back to the file's faces (issue 31);
+4. `orient_faces`: wind every face like its neighbours and every connected part outwards
    (files wound inwards or inconsistently); a non-orientable part is refused.
+5. `separate_parts`: the surface's connected parts are counted and the largest one's share
+   of the area recorded (labels, decals, a bouquet in a vase): they stay in the mesh and
+   are deformed with it; the report names them.
 
 Each step counts what it changed in `Mesh.report`, which also keeps the maps back to the
 input (`vertex_map`, `face_source`, `face_reversed`). A clean input comes out as it went
@@ -25,7 +33,7 @@ from scipy.spatial import cKDTree
 from .errors import MeshError
 from .mesh import FACE_CHUNK, Mesh, triangle_cross
 
-__all__ = ["clean_mesh", "weld_vertices", "orient_faces", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
+__all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "orient_faces", "shared_edges", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
 
 #: Vertices closer than this fraction of the bounding-box diagonal are one vertex. The
 #: corners a soup repeats are bitwise equal (STL stores float32 and every writer prints the
@@ -68,14 +76,23 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
         if collapsed.any():
             source = np.arange(mesh.n_faces) if source is None else source
             faces, source = faces[~collapsed], source[~collapsed]
+    kept, twin_of = drop_twin_faces(faces)
+    twin_source = None
+    if len(twin_of):
+        source = np.arange(len(faces)) if source is None else source
+        dropped = np.setdiff1d(np.arange(len(faces)), kept)
+        twin_source, faces, source = source[dropped], faces[kept], source[kept]
     faces, reversed_faces, counts = orient_faces(welded, faces, label)
+    n_parts, largest_share = separate_parts(welded, faces)
     report = replace(
         mesh.report,
         degenerate_faces_dropped=mesh.report.degenerate_faces_dropped + int(collapsed.sum()),
         vertices_welded=welded_away, mirrored=bool(mirrored), **counts,
+        twin_faces_dropped=len(twin_of), separate_parts=n_parts, largest_part_share=largest_share,
         vertex_map=vertex_map if welded_away else None,
         face_source=source,
         face_reversed=reversed_faces if reversed_faces.any() else None,
+        twin_source=twin_source, twin_of=twin_of if len(twin_of) else None,
     )
     return Mesh(welded, faces, name=name, report=report)
 
@@ -102,6 +119,39 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     return vertices[first[order]], rank[group]
 
 
+def drop_twin_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces to keep when faces on the same three vertices are one surface: (kept (K,)
+    increasing indices of the first face on each vertex triple, twin_of (F − K,) the
+    position in `kept` of the face each dropped face repeats, dropped faces in increasing
+    order). Either winding repeats: the opposite one is the back of a double-sided sheet,
+    the same one a plain duplicate; both would z-fight with the kept face when drawn."""
+    faces = np.asarray(faces)
+    _, first, group = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_inverse=True)
+    group = np.asarray(group).ravel()
+    if len(first) == len(faces):
+        return np.arange(len(faces)), np.empty(0, dtype=np.int64)
+    kept = np.sort(first)
+    position = np.empty(len(faces), dtype=np.int64)
+    position[kept] = np.arange(len(kept))
+    is_kept = np.zeros(len(faces), dtype=bool)
+    is_kept[kept] = True
+    return kept, position[first[group[~is_kept]]]
+
+
+def separate_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, float]:
+    """(number of connected parts of the surface (faces sharing a vertex), the largest
+    part's share of the area)."""
+    faces = np.asarray(faces)
+    n = len(vertices)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    graph = sp.coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    _, part = np.unique(label[faces[:, 0]], return_inverse=True)
+    part = np.asarray(part).ravel()
+    area = np.bincount(part, np.linalg.norm(triangle_cross(vertices, faces), axis=1))
+    return len(area), float(area.max() / max(area.sum(), np.finfo(float).tiny))
+
+
 def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -> tuple[np.ndarray, np.ndarray, dict]:
     """Wind every face like its neighbours, then every connected part outwards.
 
@@ -119,7 +169,7 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -
     """
     faces = np.asarray(faces)
     n = len(faces)
-    first, second, same_direction, border = _shared_edges(faces)
+    first, second, same_direction, border = shared_edges(faces)
     if same_direction.any():
         rows = np.concatenate([first, first + n])
         cols = np.concatenate([np.where(same_direction, second + n, second),
@@ -201,7 +251,7 @@ def _face_terms(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, start
     return part[start:start + FACE_CHUNK], cross, np.linalg.norm(cross, axis=1), centroid
 
 
-def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
     second (E,), and whether both faces run along the edge in the same direction (E,);
     plus the faces with a border or non-manifold edge (a face per such half-edge).
