@@ -33,7 +33,8 @@ from scipy.spatial import cKDTree
 from .errors import MeshError
 from .mesh import FACE_CHUNK, Mesh, triangle_cross
 
-__all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "orient_faces", "shared_edges", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
+__all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "orient_faces", "shared_edges",
+           "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
 
 #: Vertices closer than this fraction of the bounding-box diagonal are one vertex. The
 #: corners a soup repeats are bitwise equal (STL stores float32 and every writer prints the
@@ -54,13 +55,16 @@ OPEN_PART_MIN_OUTWARDNESS = 0.05
 CLOSED_PART_MIN_OUTWARDNESS = 1e-9
 
 
-def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = False) -> Mesh:
+def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = False,
+               polygon_of: np.ndarray | None = None) -> Mesh:
     """A valid, welded, outward-wound Mesh from raw vertices and polygons (module docstring).
 
     `mirrored` records that the caller already reversed every polygon because it read them
     through a mirroring transform (a Blender object with negative scale); the report says
-    so. Raises MeshError naming `name` when nothing usable remains or a part of the
-    surface is non-orientable.
+    so. `polygon_of` (T,), when the input triangles were cut from polygons (Blender's
+    n-gons), is the polygon of each: a polygon on the vertices of an earlier one is a twin
+    however the two were triangulated. Raises MeshError naming `name` when nothing usable
+    remains or a part of the surface is non-orientable.
     """
     label = name or "mesh"
     mesh = Mesh.from_polygons(vertices, polygons, name=name)
@@ -76,7 +80,8 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
         if collapsed.any():
             source = np.arange(mesh.n_faces) if source is None else source
             faces, source = faces[~collapsed], source[~collapsed]
-    kept, twin_of = drop_twin_faces(faces)
+    kept, twin_of = drop_twin_faces(faces, None if polygon_of is None else np.asarray(polygon_of)[
+        np.arange(len(faces)) if source is None else source])
     twin_source = None
     if len(twin_of):
         source = np.arange(len(faces)) if source is None else source
@@ -119,14 +124,21 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     return vertices[first[order]], rank[group]
 
 
-def drop_twin_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def drop_twin_faces(faces: np.ndarray, polygon_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The faces to keep when faces on the same three vertices are one surface: (kept (K,)
     increasing indices of the first face on each vertex triple, twin_of (F − K,) the
     position in `kept` of the face each dropped face repeats, dropped faces in increasing
     order). Either winding repeats: the opposite one is the back of a double-sided sheet,
-    the same one a plain duplicate; both would z-fight with the kept face when drawn."""
+    the same one a plain duplicate; both would z-fight with the kept face when drawn.
+    With `polygon_of` (F,) the faces of a polygon on the same vertices as an earlier
+    polygon are twins too, of that polygon's first face (a polygon and its reverse may be
+    cut into different triangles)."""
     faces = np.asarray(faces)
-    _, first, group = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_inverse=True)
+    key = np.sort(faces, axis=1)
+    if polygon_of is not None:
+        twin_face = _repeated_polygon_first_face(faces, polygon_of)
+        key = np.where(twin_face[:, None] >= 0, key[np.maximum(twin_face, 0)], key)
+    _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
     group = np.asarray(group).ravel()
     if len(first) == len(faces):
         return np.arange(len(faces)), np.empty(0, dtype=np.int64)
@@ -136,6 +148,25 @@ def drop_twin_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     is_kept = np.zeros(len(faces), dtype=bool)
     is_kept[kept] = True
     return kept, position[first[group[~is_kept]]]
+
+
+def _repeated_polygon_first_face(faces: np.ndarray, polygon_of: np.ndarray) -> np.ndarray:
+    """(F,): for a face of a polygon on the same vertex set as an earlier polygon, the
+    first face of that earlier polygon; −1 for every other face."""
+    polygon_of = np.asarray(polygon_of, dtype=np.int64)
+    members = np.unique(np.stack([np.repeat(polygon_of, 3), faces.ravel()], axis=1), axis=0)  # (polygon, vertex)
+    polygons, start, size = np.unique(members[:, 0], return_index=True, return_counts=True)
+    first_face = np.full(int(polygon_of.max()) + 1, len(faces))
+    np.minimum.at(first_face, polygon_of, np.arange(len(faces)))
+    twin_face = np.full(int(polygon_of.max()) + 1, -1)
+    for n in np.unique(size):
+        group = np.flatnonzero(size == n)
+        rows = members[(start[group][:, None] + np.arange(n)).ravel(), 1].reshape(-1, n)  # sorted vertex sets
+        _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        earliest = polygons[group[first[np.asarray(inverse).ravel()]]]
+        repeat = earliest != polygons[group]
+        twin_face[polygons[group[repeat]]] = first_face[earliest[repeat]]
+    return twin_face[polygon_of]
 
 
 def separate_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, float]:

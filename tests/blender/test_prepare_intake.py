@@ -120,7 +120,7 @@ def test_fit_reads_like_prepare_and_a_modifier_change_makes_prepare_stale(extens
     assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
     assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=False) is None  # read otherwise
 
-    gathered = {name: (v, f) for name, v, f in fitting.gather_meshes(objects, evaluated=True)}
+    gathered = {name: (v, f) for name, v, f, _ in fitting.gather_meshes(objects, evaluated=True)}
     subdivided = shapes.objects["subdivided"]
     assert len(gathered["subdivided"][0]) == len(vertices(subdivided, evaluated=True))
     assert len(fitting.gather_meshes([subdivided], evaluated=False)[0][1]) == len(subdivided.data.vertices)
