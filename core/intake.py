@@ -134,11 +134,16 @@ def drop_twin_faces(faces: np.ndarray, polygon_of: np.ndarray | None = None) -> 
     polygon are twins too, of that polygon's first face (a polygon and its reverse may be
     cut into different triangles)."""
     faces = np.asarray(faces)
-    key = np.sort(faces, axis=1)
+    key = np.sort(faces, axis=1).astype(np.int64)
     if polygon_of is not None:
         twin_face = _repeated_polygon_first_face(faces, polygon_of)
         key = np.where(twin_face[:, None] >= 0, key[np.maximum(twin_face, 0)], key)
-    _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    n = int(faces.max()) + 1 if len(faces) else 1
+    if n <= 2_000_000:  # one int64 per triple (n³ < 2⁶³): a flat sort, several times faster than rows
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+        _, first, group = np.unique(key, return_index=True, return_inverse=True)
+    else:
+        _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
     group = np.asarray(group).ravel()
     if len(first) == len(faces):
         return np.arange(len(faces)), np.empty(0, dtype=np.int64)
