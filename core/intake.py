@@ -5,8 +5,16 @@ io.read_mesh; Blender: convert.object_to_mesh, and meshset.load_mesh_set in the 
 2. `weld_vertices`: merge coincident vertices. STL files and other triangle soups give
    every triangle its own three corners; welded, smoothing, the closedness test and the
    written files see one connected surface instead of loose triangles;
-3. `orient_faces`: wind every face like its neighbours and every connected part outwards
+3. `drop_twin_faces`: a face on the same three (welded) vertices as an earlier one is the
+   other side of a double-sided surface (CAD files store every sheet twice, wound opposite
+   ways) or a plain duplicate; one surface is kept, so every edge of a double-sided sheet
+   has two faces again instead of four, and the dropped sides are recorded (`twin_source`,
+   `twin_of`) so a caller can map them back to the file's faces (issue 31);
+4. `orient_faces`: wind every face like its neighbours and every connected part outwards
    (files wound inwards or inconsistently); a non-orientable part is refused.
+5. `separate_parts`: the surface's connected parts are counted and the largest one's share
+   of the area recorded (labels, decals, a bouquet in a vase): they stay in the mesh and
+   are deformed with it; the report names them.
 
 Each step counts what it changed in `Mesh.report`, which also keeps the maps back to the
 input (`vertex_map`, `face_source`, `face_reversed`). A clean input comes out as it went
@@ -25,7 +33,8 @@ from scipy.spatial import cKDTree
 from .errors import MeshError
 from .mesh import FACE_CHUNK, Mesh, triangle_cross
 
-__all__ = ["clean_mesh", "weld_vertices", "orient_faces", "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
+__all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "orient_faces", "shared_edges",
+           "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
 
 #: Vertices closer than this fraction of the bounding-box diagonal are one vertex. The
 #: corners a soup repeats are bitwise equal (STL stores float32 and every writer prints the
@@ -46,13 +55,16 @@ OPEN_PART_MIN_OUTWARDNESS = 0.05
 CLOSED_PART_MIN_OUTWARDNESS = 1e-9
 
 
-def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = False) -> Mesh:
+def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = False,
+               polygon_of: np.ndarray | None = None) -> Mesh:
     """A valid, welded, outward-wound Mesh from raw vertices and polygons (module docstring).
 
     `mirrored` records that the caller already reversed every polygon because it read them
     through a mirroring transform (a Blender object with negative scale); the report says
-    so. Raises MeshError naming `name` when nothing usable remains or a part of the
-    surface is non-orientable.
+    so. `polygon_of` (T,), when the input triangles were cut from polygons (Blender's
+    n-gons), is the polygon of each: a polygon on the vertices of an earlier one is a twin
+    however the two were triangulated. Raises MeshError naming `name` when nothing usable
+    remains or a part of the surface is non-orientable.
     """
     label = name or "mesh"
     mesh = Mesh.from_polygons(vertices, polygons, name=name)
@@ -68,14 +80,24 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
         if collapsed.any():
             source = np.arange(mesh.n_faces) if source is None else source
             faces, source = faces[~collapsed], source[~collapsed]
+    kept, twin_of = drop_twin_faces(faces, None if polygon_of is None else np.asarray(polygon_of)[
+        np.arange(len(faces)) if source is None else source])
+    twin_source = None
+    if len(twin_of):
+        source = np.arange(len(faces)) if source is None else source
+        dropped = np.setdiff1d(np.arange(len(faces)), kept)
+        twin_source, faces, source = source[dropped], faces[kept], source[kept]
     faces, reversed_faces, counts = orient_faces(welded, faces, label)
+    n_parts, largest_share = separate_parts(welded, faces)
     report = replace(
         mesh.report,
         degenerate_faces_dropped=mesh.report.degenerate_faces_dropped + int(collapsed.sum()),
         vertices_welded=welded_away, mirrored=bool(mirrored), **counts,
+        twin_faces_dropped=len(twin_of), separate_parts=n_parts, largest_part_share=largest_share,
         vertex_map=vertex_map if welded_away else None,
         face_source=source,
         face_reversed=reversed_faces if reversed_faces.any() else None,
+        twin_source=twin_source, twin_of=twin_of if len(twin_of) else None,
     )
     return Mesh(welded, faces, name=name, report=report)
 
@@ -102,6 +124,70 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     return vertices[first[order]], rank[group]
 
 
+def drop_twin_faces(faces: np.ndarray, polygon_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The faces to keep when faces on the same three vertices are one surface: (kept (K,)
+    increasing indices of the first face on each vertex triple, twin_of (F − K,) the
+    position in `kept` of the face each dropped face repeats, dropped faces in increasing
+    order). Either winding repeats: the opposite one is the back of a double-sided sheet,
+    the same one a plain duplicate; both would z-fight with the kept face when drawn.
+    With `polygon_of` (F,) the faces of a polygon on the same vertices as an earlier
+    polygon are twins too, of that polygon's first face (a polygon and its reverse may be
+    cut into different triangles)."""
+    faces = np.asarray(faces)
+    key = np.sort(faces, axis=1).astype(np.int64)
+    if polygon_of is not None:
+        twin_face = _repeated_polygon_first_face(faces, polygon_of)
+        key = np.where(twin_face[:, None] >= 0, key[np.maximum(twin_face, 0)], key)
+    n = int(faces.max()) + 1 if len(faces) else 1
+    if n <= 2_000_000:  # one int64 per triple (n³ < 2⁶³): a flat sort, several times faster than rows
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+        _, first, group = np.unique(key, return_index=True, return_inverse=True)
+    else:
+        _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    group = np.asarray(group).ravel()
+    if len(first) == len(faces):
+        return np.arange(len(faces)), np.empty(0, dtype=np.int64)
+    kept = np.sort(first)
+    position = np.empty(len(faces), dtype=np.int64)
+    position[kept] = np.arange(len(kept))
+    is_kept = np.zeros(len(faces), dtype=bool)
+    is_kept[kept] = True
+    return kept, position[first[group[~is_kept]]]
+
+
+def _repeated_polygon_first_face(faces: np.ndarray, polygon_of: np.ndarray) -> np.ndarray:
+    """(F,): for a face of a polygon on the same vertex set as an earlier polygon, the
+    first face of that earlier polygon; −1 for every other face."""
+    polygon_of = np.asarray(polygon_of, dtype=np.int64)
+    members = np.unique(np.stack([np.repeat(polygon_of, 3), faces.ravel()], axis=1), axis=0)  # (polygon, vertex)
+    polygons, start, size = np.unique(members[:, 0], return_index=True, return_counts=True)
+    first_face = np.full(int(polygon_of.max()) + 1, len(faces))
+    np.minimum.at(first_face, polygon_of, np.arange(len(faces)))
+    twin_face = np.full(int(polygon_of.max()) + 1, -1)
+    for n in np.unique(size):
+        group = np.flatnonzero(size == n)
+        rows = members[(start[group][:, None] + np.arange(n)).ravel(), 1].reshape(-1, n)  # sorted vertex sets
+        _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        earliest = polygons[group[first[np.asarray(inverse).ravel()]]]
+        repeat = earliest != polygons[group]
+        twin_face[polygons[group[repeat]]] = first_face[earliest[repeat]]
+    return twin_face[polygon_of]
+
+
+def separate_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, float]:
+    """(number of connected parts of the surface (faces sharing a vertex), the largest
+    part's share of the area)."""
+    faces = np.asarray(faces)
+    n = len(vertices)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    graph = sp.coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    _, part = np.unique(label[faces[:, 0]], return_inverse=True)
+    part = np.asarray(part).ravel()
+    area = np.bincount(part, np.linalg.norm(triangle_cross(vertices, faces), axis=1))
+    return len(area), float(area.max() / max(area.sum(), np.finfo(float).tiny))
+
+
 def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -> tuple[np.ndarray, np.ndarray, dict]:
     """Wind every face like its neighbours, then every connected part outwards.
 
@@ -119,7 +205,7 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -
     """
     faces = np.asarray(faces)
     n = len(faces)
-    first, second, same_direction, border = _shared_edges(faces)
+    first, second, same_direction, border = shared_edges(faces)
     if same_direction.any():
         rows = np.concatenate([first, first + n])
         cols = np.concatenate([np.where(same_direction, second + n, second),
@@ -201,7 +287,7 @@ def _face_terms(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, start
     return part[start:start + FACE_CHUNK], cross, np.linalg.norm(cross, axis=1), centroid
 
 
-def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
     second (E,), and whether both faces run along the edge in the same direction (E,);
     plus the faces with a border or non-manifold edge (a face per such half-edge).

@@ -183,7 +183,7 @@ def _with_layout(mesh: Mesh, file_faces, n_file_vertices: int) -> Mesh:
     if len(vertex_map) != n_file_vertices:
         return mesh
     try:
-        layout = FaceLayout.wound_like(vertex_map, sizes, corners, uv, mesh.faces)
+        layout = FaceLayout.wound_like(vertex_map, sizes, corners, uv, mesh.faces).one_sided()
     except ShapeGenError:
         return mesh
     return Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(mesh.report, layout=layout))

@@ -12,7 +12,8 @@ same surface out, so a deformed copy is written with the file's own faces and UV
 
 A deformed copy with mesh vertices X is the file's vertices at X[vertex_map] with the same
 polygons and UVs (`positions`). Arrays of many layouts pack into one model file
-(`pack_layouts` / `unpack_layouts`).
+(`pack_layouts` / `unpack_layouts`). A double-sided surface is laid out one-sided
+(`one_sided`): the mesh has one surface there, and written files have no coincident twins.
 """
 
 from __future__ import annotations
@@ -78,6 +79,25 @@ class FaceLayout:
         vote = np.bincount(polygon, own_side(end * n + start).astype(np.int64)
                            - own_side(start * n + end).astype(np.int64), len(layout.sizes))
         return layout.reversed(vote > 0) if (vote > 0).any() else layout
+
+    def one_sided(self) -> "FaceLayout":
+        """The layout without the polygons on the same mesh vertices as an earlier one (the
+        back of a double-sided sheet, or a repeat): written, the two would be coincident
+        faces that z-fight (issue 31). The first polygon of each vertex set is kept."""
+        on_mesh = self.vertex_map[self.corners]
+        polygon = np.repeat(np.arange(len(self.sizes)), self.sizes)
+        repeat = np.zeros(len(self.sizes), dtype=bool)
+        for size in np.unique(self.sizes):
+            members = np.flatnonzero(self.sizes == size)
+            rows = np.sort(on_mesh[np.isin(polygon, members)].reshape(-1, size), axis=1)
+            _, first = np.unique(rows, axis=0, return_index=True)
+            repeat[members] = True
+            repeat[members[first]] = False
+        if not repeat.any():
+            return self
+        keep_corner = ~repeat[polygon]
+        return FaceLayout(self.vertex_map, self.sizes[~repeat], self.corners[keep_corner],
+                          None if self.uv is None else self.uv[keep_corner])
 
     def _first_corner(self) -> np.ndarray:
         return np.cumsum(self.sizes) - self.sizes

@@ -51,6 +51,9 @@ class MeshReport:
     `face_source[f]` the input triangle (after fan triangulation) that face f comes from;
     `face_reversed[f]` is True when face f's winding is the reverse of that triangle's
     (corners 1 and 2 swapped), not counting the reversal of a mirrored read (`mirrored`).
+    A double-sided surface is one surface in the mesh: `twin_source[k]` is the input
+    triangle of the k-th dropped side and `twin_of[k]` the mesh face it lay on, so the
+    file's faces all map to a mesh face (issue 31). Written files have one side.
     `layout` keeps the file's polygons and UVs (io.read_mesh) so deformed copies, which
     keep the report (`Mesh.with_vertices`), are written with them.
     """
@@ -65,9 +68,14 @@ class MeshReport:
     parts_without_inside: int = 0  # open, nearly flat parts: no side is outside, winding kept
     vertices_unused: int = 0  # vertices of the file no face uses (a file cut short between faces?)
     unterminated: bool = False  # the file's last line has no line end (valid OBJ, or a file cut short)
+    twin_faces_dropped: int = 0  # faces on the vertices of a kept face (a double-sided sheet's back)
+    separate_parts: int = 1  # connected parts of the surface (handles, labels, decals)
+    largest_part_share: float = 1.0  # the largest part's share of the surface area
     vertex_map: np.ndarray | None = field(default=None, repr=False)
     face_source: np.ndarray | None = field(default=None, repr=False)
     face_reversed: np.ndarray | None = field(default=None, repr=False)
+    twin_source: np.ndarray | None = field(default=None, repr=False)  # input triangle of each dropped twin
+    twin_of: np.ndarray | None = field(default=None, repr=False)  # the mesh face each dropped twin repeats
     layout: "FaceLayout | None" = field(default=None, repr=False)  # the file's polygons and UVs (core/layout.py)
 
     def summary(self) -> str:
@@ -93,6 +101,12 @@ class MeshReport:
             parts.append(f"{self.vertices_unused} vertices used by no face (kept; is the file cut short?)")
         if self.unterminated:
             parts.append("its last line has no line end (read as it is; is the file cut short?)")
+        if self.twin_faces_dropped:
+            parts.append(f"{self.twin_faces_dropped} double-sided or repeated face(s) read as one surface "
+                         "(samples are written one-sided)")
+        if self.separate_parts > 1:
+            parts.append(f"{self.separate_parts} separate parts (the largest {100 * self.largest_part_share:.1f} % "
+                         "of the area; the others, e.g. labels or handles, are deformed with it)")
         return "; ".join(parts) if parts else "clean"
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from .errors import ModelFileError, ShapeGenError
 from .intake import clean_mesh
 from .mesh import Mesh
-from .npzfile import ArraySpec, Concatenation, load_npz, save_npz
+from .npzfile import ArraySpec, Concatenation, load_npz, save_npz, validate_arrays
 
 __all__ = ["pack", "stored", "unpack", "save_mesh_set", "load_mesh_set", "MESHES_FORMAT", "MESHES_VERSION"]
 
@@ -76,15 +76,34 @@ def stored(prefix: str = "") -> tuple[str, ...]:
 
 
 def save_mesh_set(path: str | os.PathLike, names: Sequence[str], vertices: Sequence[np.ndarray],
-                  faces: Sequence[np.ndarray], compress: bool = True) -> Path:
-    """A "shapegen.meshes" file: names plus `pack`'s arrays."""
+                  faces: Sequence[np.ndarray], compress: bool = True,
+                  face_polygons: Sequence[np.ndarray] | None = None) -> Path:
+    """A "shapegen.meshes" file: names plus `pack`'s arrays, and optionally the polygon
+    each triangle was cut from (`face_polygons`, one (F,) array per mesh: Blender's
+    n-gons, so a double-sided polygon is recognised however its two sides were cut;
+    intake.clean_mesh `polygon_of`)."""
     arrays = {"names": np.asarray(list(names), dtype=str), **pack(vertices, faces)}
+    if face_polygons is not None:
+        arrays["face_polygons"] = np.concatenate([np.asarray(p, dtype=np.int64) for p in face_polygons])
     return save_npz(path, MESHES_FORMAT, MESHES_VERSION, arrays, compress=compress)
 
 
 def load_mesh_set(path: str | os.PathLike) -> list[Mesh]:
     """The meshes of a "shapegen.meshes" file, cleaned like a file's (triangles as read from
     Blender: degenerate ones dropped, duplicates welded, faces wound outwards; see
-    intake.clean_mesh)."""
-    arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, {"names": ArraySpec("U", ("M",)), **spec(finite=False)})
-    return unpack(arrays, arrays["names"].tolist(), str(path), build=clean_mesh)
+    intake.clean_mesh), with their polygons when the file records them."""
+    specs = {"names": ArraySpec("U", ("M",)), **spec(finite=False)}
+    arrays = load_npz(path, MESHES_FORMAT, MESHES_VERSION, specs)
+    if "face_polygons" not in arrays:
+        return unpack(arrays, arrays["names"].tolist(), str(path), build=clean_mesh)
+    validate_arrays(arrays, {"faces": specs["faces"], "face_polygons": ArraySpec("i", ("F",))}, str(path))
+    if len(arrays["face_polygons"]) != len(arrays["faces"]):
+        raise ModelFileError(f"{path}: face_polygons does not match the faces")
+    offsets = arrays["face_offsets"]
+    mesh_index = iter(range(len(offsets) - 1))
+
+    def with_polygons(vertices, faces, name):
+        i = next(mesh_index)
+        return clean_mesh(vertices, faces, name=name, polygon_of=arrays["face_polygons"][offsets[i]:offsets[i + 1]])
+
+    return unpack(arrays, arrays["names"].tolist(), str(path), build=with_polygons)

@@ -14,7 +14,11 @@ positions, §6), so it is judged against that template and against the training 
   along them the crossing moves; within one part, crossings near (within two rings of)
   the template's own crossings do not count either. Any other crossing is a fold;
 * extent: the sample's bounding-box extents per axis and its diagonal against the
-  smallest and largest of the training shapes' (all in the model's normalised frame).
+  smallest and largest of the training shapes' (all in the model's normalised frame);
+* roughness: the mean angle between the normals of faces sharing an edge, the sample's
+  over the template's (a crumpled shoulder renders as dark creases, issue 31);
+* coincident faces: pairs of faces lying on top of each other (every corner of one within
+  1e-6 of the bounding-box diagonal of a corner of the other), which z-fight when drawn.
 
 `QualityGate.check(mesh, template_index)` returns a `MeshQuality` with these numbers and
 its reasons for failing (empty: it passes). The template's own intersections, normals and
@@ -32,7 +36,10 @@ from scipy.sparse.csgraph import connected_components
 
 from .errors import ShapeGenError
 from .geometry.intersections import intersecting_pairs, pair_keys
-from .mesh import Mesh
+from scipy.spatial import cKDTree
+
+from .intake import shared_edges
+from .mesh import Mesh, triangle_cross
 from .settings import Settings, option
 
 __all__ = ["QualitySettings", "MeshQuality", "QualityGate", "training_extents"]
@@ -63,6 +70,11 @@ class QualitySettings(Settings):
         PSB Cup at α 5, 23 of 24 draws that failed on 3 templates pass at α 10, which keeps
         the draw (the sample's distribution) and costs landmark fidelity only where the
         soft mesh folds. 1 skips it.
+    max_roughness_ratio: the sample's roughness (mean angle between the normals of
+        edge-adjacent faces) over its template's. 1.5 (docs/results.md: clean classes'
+        samples stay below it).
+    max_coincident_faces: face pairs on top of each other a sample may have. 0: each pair
+        z-fights (a checkerboard of dark triangles in a viewport).
     max_redraws: draws of one sample after its first before giving up on the gate (the
         last draw is kept and reported as failing).
     """
@@ -78,6 +90,9 @@ class QualitySettings(Settings):
                                      minimum=0)
     stiffer_remesh: float = option(2.0, "factor on the meshing stiffness (final α) for a last re-mesh of a "
                                    "failing draw before it is redrawn (1: none)", minimum=1)
+    max_roughness_ratio: float = option(1.5, "largest roughness (mean angle between adjacent face normals) "
+                                        "over the template's", above=0)
+    max_coincident_faces: int = option(0, "face pairs on top of each other (z-fighting)", minimum=0)
     max_redraws: int = option(20, "redraws of one failing sample before keeping it with a warning",
                               flag="--max-redraws", minimum=0)
 
@@ -94,6 +109,8 @@ class MeshQuality:
     extent_ratio: float  # largest extent (axis or diagonal) over the training maximum
     extent_shrink: float  # smallest extent over the training minimum
     reasons: tuple[str, ...] = field(default=())
+    roughness_ratio: float = 1.0  # mean adjacent-normal angle over the template's
+    coincident_faces: int = 0  # face pairs on top of each other
 
     @property
     def ok(self) -> bool:
@@ -106,11 +123,40 @@ class MeshQuality:
         return {"flipped": self.flipped, "flipped_fraction": self.flipped_fraction, "edge_stretch": self.edge_stretch,
                 "edge_stretch_p99": self.edge_stretch_p99, "self_intersections": self.self_intersections,
                 "extent_ratio": self.extent_ratio, "extent_shrink": self.extent_shrink,
+                "roughness_ratio": self.roughness_ratio, "coincident_faces": self.coincident_faces,
                 "reasons": list(self.reasons)}
 
 
 #: Short names of the criteria, as reasons start (counted by `shapegen sample`).
-CRITERIA = ("flipped", "edge stretch", "self-intersections", "extent")
+CRITERIA = ("flipped", "edge stretch", "self-intersections", "extent", "roughness", "coincident")
+
+#: Faces are coincident when every corner of one lies within this fraction of the bounding-box
+#: diagonal of a corner of the other (exact copies in practice: float32 resolves ~6e-8).
+COINCIDENT_RTOL = 1e-6
+
+
+def roughness(vertices: np.ndarray, faces: np.ndarray, first: np.ndarray, second: np.ndarray) -> float:
+    """Mean angle (radians) between the unit normals of face pairs (first[k], second[k])
+    sharing an edge; 0 for a plane, larger the more crumpled the surface."""
+    if len(first) == 0:
+        return 0.0
+    normals = triangle_cross(vertices, faces)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), np.finfo(float).tiny)
+    cosine = np.clip(np.einsum("ij,ij->i", normals[first], normals[second]), -1.0, 1.0)
+    return float(np.mean(np.arccos(cosine)))
+
+
+def coincident_faces(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """Pairs of distinct faces on top of each other (module docstring): candidates by
+    centroid (a k-d tree), confirmed corner by corner."""
+    corners = vertices[faces]
+    tolerance = COINCIDENT_RTOL * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    pairs = cKDTree(corners.mean(axis=1)).query_pairs(tolerance, output_type="ndarray")
+    if len(pairs) == 0:
+        return 0
+    a, b = corners[pairs[:, 0]], corners[pairs[:, 1]]
+    distance = np.linalg.norm(a[:, :, None, :] - b[:, None, :, :], axis=3)  # (pairs, 3, 3)
+    return int(np.count_nonzero(distance.min(axis=2).max(axis=1) <= tolerance))
 
 
 def training_extents(meshes: Sequence[Mesh]) -> np.ndarray:
@@ -128,6 +174,8 @@ class _TemplateFacts:
         self.normals = template.face_normals_unnormalised()
         self.edges = template.edges_unique()
         self.lengths = _edge_lengths(template.vertices, self.edges)
+        self.adjacent_first, self.adjacent_second, _, _ = shared_edges(template.faces)
+        self.roughness = roughness(template.vertices, template.faces, self.adjacent_first, self.adjacent_second)
         if check_self_intersections:
             self._own_crossings(template)
 
@@ -230,5 +278,13 @@ class QualityGate:
         if grow > limit or shrink < 1.0 / limit:
             reasons.append(f"extent: {grow:.2f}× the largest training shape's, {shrink:.2f}× the smallest's "
                            f"(allowed {1 / limit:.2f}-{limit:.2f})")
+        rough = roughness(vertices, facts.faces, facts.adjacent_first, facts.adjacent_second)
+        rough_ratio = rough / facts.roughness if facts.roughness > 0 else (1.0 if rough == 0 else np.inf)
+        if rough_ratio > settings.max_roughness_ratio:
+            reasons.append(f"roughness: {rough_ratio:.2f}× the template's mean angle between adjacent faces "
+                           f"(limit {settings.max_roughness_ratio:.2f}×)")
+        coincident = coincident_faces(vertices, facts.faces)
+        if coincident > settings.max_coincident_faces:
+            reasons.append(f"coincident: {coincident} face pair(s) on top of each other (they z-fight when drawn)")
         return MeshQuality(flipped, flipped / len(facts.faces), stretch_max, stretch_p99, crossings, grow, shrink,
-                           tuple(reasons))
+                           tuple(reasons), rough_ratio, coincident)

@@ -134,18 +134,26 @@ def object_triangles(obj: bpy.types.Object, world: bool = True, evaluated: bool 
 def read_object(obj: bpy.types.Object, world: bool = True, evaluated: bool = True, depsgraph=None) -> ObjectReading:
     """A mesh object as a core Mesh named after it (`object_triangles` read through
     `intake.clean_mesh`: degenerate triangles dropped, duplicates welded, faces wound
-    outwards, a mirrored read said so), and the polygons whose winding the core reversed."""
+    outwards, a mirrored read said so), and the polygons whose winding the core reversed.
+    The back of a double-sided sheet (a face the core dropped as its kept face's twin) is
+    reversed with its kept face, so a copy keeps the object's two sides facing apart."""
     read = object_triangles(obj, world, evaluated, depsgraph)
-    mesh = clean_mesh(read.vertices, read.triangles, name=obj.name, mirrored=read.mirrored)
+    mesh = clean_mesh(read.vertices, read.triangles, name=obj.name, mirrored=read.mirrored,
+                      polygon_of=read.triangle_polygon)
     split = read.polygon_sizes > 3
     if split.any():
         mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=replace(
             mesh.report, polygons_triangulated=int(split.sum()),
             triangles_from_polygons=int((read.polygon_sizes[split] - 2).sum())))
     reversed_polygons = np.empty(0, dtype=np.int64)
-    if mesh.report.face_reversed is not None:
-        source = mesh.report.face_source if mesh.report.face_source is not None else np.arange(mesh.n_faces)
-        reversed_polygons = np.unique(read.triangle_polygon[source[mesh.report.face_reversed]])
+    report = mesh.report
+    if report.face_reversed is not None:
+        source = report.face_source if report.face_source is not None else np.arange(mesh.n_faces)
+        reversed_triangles = source[report.face_reversed]
+        if report.twin_of is not None:  # the other side of a double-sided sheet turns with its kept side
+            back_sides = report.twin_source[report.face_reversed[report.twin_of]]
+            reversed_triangles = np.concatenate([reversed_triangles, back_sides])
+        reversed_polygons = np.unique(read.triangle_polygon[reversed_triangles])
     return ObjectReading(mesh, reversed_polygons, len(read.vertices))
 
 

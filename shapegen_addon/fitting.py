@@ -66,23 +66,23 @@ def check_fit_settings(options: dict) -> None:
     FitSettings.from_dict(options)
 
 
-def gather_meshes(objects, evaluated: bool = True) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, vertices, triangles) of each object, world coordinates, read as Prepare reads
+def gather_meshes(objects, evaluated: bool = True) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """(name, vertices, triangles, the polygon of each triangle) of each object, world coordinates, read as Prepare reads
     them (`evaluated`: modifiers applied, else the base mesh; a mirrored object's winding
     reversed): bulk reads only (convert.object_triangles, ~4 ms per 100k vertices). The
     core's intake (welding, winding, validation) runs in the worker, whose error names the
     object."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
     read = [object_triangles(o, evaluated=evaluated, depsgraph=depsgraph) for o in objects]
-    return [(o.name, r.vertices, r.triangles) for o, r in zip(objects, read)]
+    return [(o.name, r.vertices, r.triangles, r.triangle_polygon) for o, r in zip(objects, read)]
 
 
-def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:
+def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: Path) -> Path:
     """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshset). No bpy: runs
     on the job's setup thread. Uncompressed: it is a throwaway hand-off; compressing
     6 × 100k-vertex meshes took 1.5 s, this ~0.1 s."""
-    return save_mesh_set(path, [name for name, _, _ in meshes], [v for _, v, _ in meshes],
-                         [f for _, _, f in meshes], compress=False)
+    return save_mesh_set(path, [m[0] for m in meshes], [m[1] for m in meshes], [m[2] for m in meshes],
+                         compress=False, face_polygons=[m[3] for m in meshes])
 
 
 def install_model(scene: bpy.types.Scene, path: str | Path, name: str, loaded=None):

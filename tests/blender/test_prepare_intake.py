@@ -120,7 +120,7 @@ def test_fit_reads_like_prepare_and_a_modifier_change_makes_prepare_stale(extens
     assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
     assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=False) is None  # read otherwise
 
-    gathered = {name: (v, f) for name, v, f in fitting.gather_meshes(objects, evaluated=True)}
+    gathered = {name: (v, f) for name, v, f, _ in fitting.gather_meshes(objects, evaluated=True)}
     subdivided = shapes.objects["subdivided"]
     assert len(gathered["subdivided"][0]) == len(vertices(subdivided, evaluated=True))
     assert len(fitting.gather_meshes([subdivided], evaluated=False)[0][1]) == len(subdivided.data.vertices)
@@ -157,3 +157,46 @@ def test_objects_of_a_scene_the_context_does_not_show_are_read_evaluated(extensi
     local = np.empty(len(copy.vertices) * 3)
     copy.vertices.foreach_get("co", local)
     assert trimesh.Trimesh(local.reshape(-1, 3), _triangles(copy), process=False).volume > 0
+
+
+def _double_sided_cad_scene(path, rng) -> None:
+    """A CAD-like file (issue 31): a sphere and a small label box, every face twice (the
+    copy wound the other way), each triangle on its own vertices with its own UVs (OBJ or
+    glTF binary by the suffix)."""
+    body = trimesh.creation.icosphere(2)
+    label = trimesh.creation.box(extents=(0.1, 0.1, 0.02))
+    vertices = np.concatenate([body.vertices, label.vertices + [0, 0, 1.1]])
+    faces = np.concatenate([body.faces, label.faces + len(body.vertices)])
+    faces = np.concatenate([faces, faces[:, [0, 2, 1]]])
+    corners = vertices[faces.ravel()]
+    uv = rng.random((len(corners), 2))
+    if path.suffix == ".glb":
+        soup = trimesh.Trimesh(corners, np.arange(len(corners)).reshape(-1, 3), process=False,
+                               visual=trimesh.visual.TextureVisuals(uv=uv))
+        path.write_bytes(soup.export(file_type="glb"))
+        return
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in corners.tolist()]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in uv]
+    lines += [f"f {3 * i + 1}/{3 * i + 1} {3 * i + 2}/{3 * i + 2} {3 * i + 3}/{3 * i + 3}" for i in range(len(faces))]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("suffix", ["obj", "glb"])
+def test_a_double_sided_cad_file_reads_alike_through_blenders_importer_and_the_core(extension, tmp_path, suffix):
+    """Blender's OBJ and glTF importers keep the soup's vertices; read as Prepare reads the
+    object, it is the same one surface as the core's reader makes of the file: the same
+    faces, twins, parts and one-line message (issue 31)."""
+    convert = addon_module(extension, "shapegen_addon.convert")
+    io = addon_module(extension, "core.io")
+    path = tmp_path / f"cad.{suffix}"
+    _double_sided_cad_scene(path, np.random.default_rng(0))
+    from_file = io.read_mesh(path)
+    importer = bpy.ops.wm.obj_import if suffix == "obj" else bpy.ops.import_scene.gltf
+    assert importer(filepath=str(path)) == {"FINISHED"}
+    obj = next(o for o in bpy.context.selected_objects if o.type == "MESH")  # glTF adds an empty too
+    from_blender = convert.read_object(obj).mesh
+    assert from_blender.n_faces == from_file.n_faces == 320 + 12
+    assert from_blender.report.twin_faces_dropped == from_file.report.twin_faces_dropped == 332
+    assert from_blender.report.separate_parts == from_file.report.separate_parts == 2
+    assert from_blender.report.summary() == from_file.report.summary()
+    assert from_blender.is_closed() and from_file.is_closed()

@@ -300,3 +300,47 @@ def test_the_live_object_on_a_welded_template_keeps_updating_after_reopening(ext
     z = np.asarray(live["shapegen_latent"])
     expected = _expected(intake, bpy.data.objects["vessel 1"], mesher.flat_vertices(z))
     np.testing.assert_allclose(moved, expected, atol=1e-4)
+
+
+def make_double_sided(obj, inside_out: bool = False) -> int:
+    """Every polygon of `obj` repeated on its own copies of the vertices and wound the other
+    way (the back of a CAD sheet), the copies after the originals; `inside_out`: the front
+    wound inwards first. Returns the number of front polygons."""
+    editable = bmesh.new()
+    editable.from_mesh(obj.data)
+    front = editable.faces[:]
+    if inside_out:
+        bmesh.ops.reverse_faces(editable, faces=front)
+    copied = bmesh.ops.duplicate(editable, geom=editable.verts[:] + editable.edges[:] + front)
+    bmesh.ops.reverse_faces(editable, faces=[g for g in copied["geom"] if isinstance(g, bmesh.types.BMFace)])
+    editable.to_mesh(obj.data)
+    editable.free()
+    return len(front)
+
+
+def side_volumes(obj, n_front: int) -> tuple[float, float]:
+    """Signed volumes enclosed by the front polygons and by their backs."""
+    mesh = obj.data
+    mesh.calc_loop_triangles()
+    tris = np.array([t.vertices[:] for t in mesh.loop_triangles])
+    polygon = np.array([t.polygon_index for t in mesh.loop_triangles])
+    co = vertices_of(mesh)[tris]
+    volume = np.einsum("ij,ij->i", co[:, 0], np.cross(co[:, 1], co[:, 2])) / 6.0
+    return float(volume[polygon < n_front].sum()), float(volume[polygon >= n_front].sum())
+
+
+def test_a_double_sided_template_keeps_its_two_sides_facing_apart(extension, jobs):
+    """Double-sided vessels (one wound inwards): the core reads each as one surface, and the
+    live object on every template keeps both sides as the object had them, the front facing
+    out and the back in (issue 31)."""
+    found = add_vessels("sheets")
+    fronts = {name: make_double_sided(obj, inside_out=name == "vessel 2") for name, obj in found.items()}
+    fit()
+    read_object = addon_module(extension, "shapegen_addon.convert").read_object
+    for name, obj in found.items():
+        mesh = read_object(obj).mesh
+        assert mesh.report.twin_faces_dropped == mesh.n_faces and mesh.is_closed()  # the back of every face
+        assert "double-sided" in mesh.report.summary() and "no outside" not in mesh.report.summary()
+        assert bpy.ops.shapegen.explore(template=name) == {"FINISHED"}
+        front, back = side_volumes(bpy.context.scene.shapegen.live_object, fronts[name])
+        assert front > 0 and back == pytest.approx(-front, rel=2e-2), name  # caps: cut differently per side

@@ -237,3 +237,91 @@ def test_smoothed_samples_of_an_stl_class_have_no_cracks_and_are_written_connect
             written = trimesh.load(write_mesh(mesh, tmp_path / f"sample_{k}.{suffix}"), process=False)
             assert written.body_count == 1 and len(written.vertices) == template.n_vertices
         assert read_mesh(write_mesh(mesh, tmp_path / f"sample_{k}.stl")).is_closed()
+
+
+# ---------------------------------------------------------------------------- CAD files (issue 31)
+def _double_sided(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every face twice, the copy wound the other way (how CAD files store sheets)."""
+    return vertices, np.concatenate([faces, faces[:, [0, 2, 1]]])
+
+
+def _label(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """A small closed box (a label) standing off the side of `mesh`."""
+    lo, hi = mesh.bounds()
+    box = trimesh.creation.box(extents=0.05 * (hi - lo))
+    return box.vertices + [hi[0] + 0.05 * (hi[0] - lo[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])], box.faces
+
+
+def _cad_obj(mesh: Mesh, path, rng) -> None:
+    """`mesh` with a label, double-sided, as a soup with one UV per corner (an OBJ file)."""
+    label_vertices, label_faces = _label(mesh)
+    vertices = np.concatenate([mesh.vertices, label_vertices])
+    vertices, faces = _double_sided(vertices, np.concatenate([mesh.faces, label_faces + mesh.n_vertices]))
+    corners = vertices[faces.ravel()]
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in corners.tolist()]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in rng.random((len(corners), 2))]
+    lines += [f"f {3 * i + 1}/{3 * i + 1} {3 * i + 2}/{3 * i + 2} {3 * i + 3}/{3 * i + 3}" for i in range(len(faces))]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_a_double_sided_soup_is_one_outward_surface_with_a_map_back_to_the_file(vase, rng):
+    vertices, faces = _soup(*_double_sided(vase.mesh.vertices, rng.permutation(vase.mesh.faces)))
+    mesh = clean_mesh(vertices, faces, name="cad")
+    assert mesh.n_faces == vase.mesh.n_faces and mesh.n_vertices == vase.mesh.n_vertices
+    assert mesh.is_closed() and enclosed_volume(mesh) > 0
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert tm.is_winding_consistent and tm.body_count == 1
+    report = mesh.report
+    assert report.twin_faces_dropped == vase.mesh.n_faces
+    # every file triangle maps to one mesh face: kept ones through face_source, the other
+    # sides through twin_source/twin_of, onto the same three vertices
+    source = np.arange(mesh.n_faces) if report.face_source is None else report.face_source
+    assert sorted(np.concatenate([source, report.twin_source]).tolist()) == list(range(len(faces)))
+    welded = report.vertex_map[faces]
+    np.testing.assert_array_equal(np.sort(welded[report.twin_source], axis=1),
+                                  np.sort(mesh.faces[report.twin_of], axis=1))
+    # one sensible line: no per-triangle parts turned or left without an outside
+    summary = report.summary()
+    assert "inside-out" not in summary and "no outside" not in summary and "\n" not in summary
+    assert f"{vase.mesh.n_faces} double-sided" in summary
+
+
+def test_a_small_separate_part_is_kept_and_named(vase):
+    label_vertices, label_faces = _label(vase.mesh)
+    vertices = np.concatenate([vase.mesh.vertices, label_vertices])
+    faces = np.concatenate([vase.mesh.faces, label_faces + vase.mesh.n_vertices])
+    mesh = clean_mesh(vertices, faces, name="labelled")
+    assert mesh.n_faces == len(faces) and mesh.report.separate_parts == 2
+    assert "2 separate parts" in mesh.report.summary()
+
+
+@pytest.fixture(scope="module")
+def cad_model(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cad")
+    rng = np.random.default_rng(3)
+    for shape in make_vases(4, seed=2, resolution=(12, 16)):
+        _cad_obj(shape.mesh, folder / f"{shape.name}.obj", rng)
+    meshes = read_folder(folder)
+    return meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", jobs=1))
+
+
+def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_their_label(cad_model, tmp_path):
+    """Written as the CLI writes them (the template's file layout: its soup and UVs), a
+    sample has no coincident faces, its body is consistently wound and encloses a positive
+    volume, and the label is a second body of the file."""
+    from shapegen_core.io import MeshWriters
+    from shapegen_core.quality import coincident_faces
+
+    meshes, model = cad_model
+    assert all(m.report.layout is not None and m.report.separate_parts == 2 for m in meshes)
+    writers = MeshWriters(model.meshes)
+    samples, _ = model.sample(2, np.random.default_rng(0))
+    for k, landmarks in enumerate(samples):
+        index = model.choose_template(landmarks, "nearest-data")
+        mesh = model.mesh_from_landmarks(landmarks, template=model.names[index])
+        written = trimesh.load(writers.write(mesh, index, tmp_path / f"sample_{k}.obj"), process=False, force="mesh")
+        assert len(written.faces) == model.meshes[index].n_faces  # one side: half the file's faces
+        assert coincident_faces(np.asarray(written.vertices), np.asarray(written.faces)) == 0
+        welded = trimesh.Trimesh(written.vertices, written.faces)  # merged vertices: the connected surface
+        assert welded.body_count == 2 and welded.is_winding_consistent
+        assert all(body.volume > 0 for body in welded.split(only_watertight=False))

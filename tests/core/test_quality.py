@@ -144,3 +144,39 @@ def test_settings_are_checked():
     with pytest.raises(Exception, match="max_edge_stretch"):
         QualitySettings(max_edge_stretch=0.0)
     assert QualitySettings.from_json(QualitySettings(max_redraws=3).to_json()).max_redraws == 3
+
+
+# ---------------------------------------------------------------------------- renders like its template (issue 31)
+def test_a_crumpled_mesh_fails_on_roughness(vases, gate):
+    mesh = vases[1]
+    assert gate.check(mesh, 1).roughness_ratio == pytest.approx(1.0)
+    bumps = np.random.default_rng(0).normal(0.0, 0.15 * mesh.mean_edge_length(), mesh.n_vertices)
+    quality = gate.check(mesh.vertices + bumps[:, None] * mesh.vertex_normals(), 1)
+    assert quality.roughness_ratio > QualitySettings().max_roughness_ratio
+    assert any(reason.startswith("roughness:") for reason in quality.reasons), quality.reasons
+
+
+def test_roughness_is_the_mean_angle_between_adjacent_normals():
+    """Two triangles folded by a known angle: the one adjacent pair's angle."""
+    from shapegen_core.quality import roughness
+
+    angle = 0.7
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -np.cos(angle), np.sin(angle)]])
+    faces = np.array([[0, 1, 2], [1, 0, 3]])
+    assert roughness(vertices, faces, np.array([0]), np.array([1])) == pytest.approx(angle)
+
+
+def test_a_z_fighting_mesh_fails_on_coincident_faces():
+    """A second box moved onto the first: every face of one lies on a face of the other."""
+    box = trimesh.creation.box(extents=(1, 1, 1))
+
+    def boxes(gap: float) -> Mesh:
+        return Mesh(np.vstack([box.vertices, box.vertices + [gap, 0, 0]]),
+                    np.vstack([box.faces, box.faces + len(box.vertices)]))
+
+    template = boxes(2.0)
+    gate = QualityGate([template], training_extents([template, boxes(0.0)]))
+    assert gate.check(template, 0).coincident_faces == 0 and gate.check(template, 0).ok
+    quality = gate.check(boxes(0.0).vertices, 0)
+    assert quality.coincident_faces == len(box.faces)
+    assert any(reason.startswith("coincident:") for reason in quality.reasons), quality.reasons
