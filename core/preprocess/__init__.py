@@ -12,22 +12,18 @@ Steps, in order (`prepare_collection`):
    becomes x, sign by the rule "the heavier third moment goes to +x" (skewness of x
    positive). It turns every shape, also shapes whose inputs already agree, and its sign
    is noise for near-symmetric shapes; consensus no longer starts from it (issue 12).
-3. Consensus (`align="consensus"`, default): a shape's pose changes only when the
-   collection visibly disagrees with it. Every shape starts in its input pose with the
-   given up axis (no yaw), and is turned only on evidence much stronger than sampling
-   noise: first its up, by the symmetries the collection's shapes share about their up
-   axes (an axis of it, or one tilted 20-60°, looking clearly more like their up than
-   its own up does), then against its nearest shapes, a rotation (24 axis rotations,
-   then any turn about up) fits `margin` times better (Chamfer cost), or its top and
-   bottom or its facing disagree with theirs (exact odd-moment signatures, any angle).
-   The majority's poses are the collection's and are never changed (inputs turned
-   about up at random share no facing: then one shape's facing is the collection's and
-   every other shape is turned to it as closely as its signature measures; issue 13,
-   beyond the thesis); shapes with
-   `keep_pose` are never turned. Each change is reported (`PreparedShape.pose_change`,
-   `pose_rotation`), and a pose that still looks wrong is flagged with its reason
-   (`PreparedShape.pose_outlier`, in every align mode). Details and the calibration in
-   `consensus`.
+3. Consensus (`align="consensus"`, default): the given up axis and every shape's pose
+   are trusted (issue 30). A shape is turned only by a file-convention turn (its own up
+   is clearly another axis of its file: a quarter turn, or a half turn when its top and
+   bottom are clearly the other way round) or about up to line its facing up with the
+   collection's, each on evidence that holds over the collection (every shape against
+   its ten most similar shapes; a feature that varies across the class, such as a taper,
+   decides nothing). A shape that may be upside down, on its side or facing away, but
+   not clearly so, is flagged with its reason and a suggested turn
+   (`PreparedShape.pose_outlier`, `flag_turn`, in every align mode) and left as given;
+   `turn_as_flagged` makes that turn at the user's request. Shapes with `keep_pose` are
+   never turned. Each change is reported (`PreparedShape.pose_change`, `pose_rotation`).
+   Details in `consensus`.
 4. Floor at z = 0 and centring (`centre`: "centroid" of the x–y surface spread,
    "highest" vertex, or "none").
 5. Scale (`scale`): "variance" — every shape gets the same total surface variance
@@ -36,7 +32,7 @@ Steps, in order (`prepare_collection`):
    collection's measures, so units stay those of the inputs.
 
 Moments are exact surface integrals (uniform density over the surface), so neither mesh
-resolution nor interior vertices bias them (method.md §1 **beyond**).
+resolution nor interior vertices bias them (docs/method.md §1 **beyond**).
 
 Modules: `transform` (ShapeTransform, PreparedShape), `moments` (exact surface moments,
 scale measures), `rotations` (up axis, horizontal PCA, axis rotations, turns about z and

@@ -1,5 +1,5 @@
 """Exact surface moments (uniform density over the surface, so neither mesh resolution nor
-interior vertices bias them; method.md §1) and the size a scaling mode equalises."""
+interior vertices bias them; docs/method.md §1) and the size a scaling mode equalises."""
 
 from __future__ import annotations
 
