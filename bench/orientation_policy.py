@@ -185,8 +185,9 @@ def main(argv=None) -> int:
     parser.add_argument("--blender", action="store_true", help="also the mugs modelled in Blender (needs bpy)")
     parser.add_argument("--revisions", nargs="*", default=[], metavar="NAME=REV",
                         help="other versions of the core to run beside the working tree")
+    parser.add_argument("--without-now", action="store_true", help="only the revisions given, not the working tree")
     args = parser.parse_args(argv)
-    methods = {"now": prepare_collection}
+    methods = {} if args.without_now else {"now": prepare_collection}
     for item in args.revisions:
         name, revision = item.split("=", 1)
         methods[name] = load_revision(name, revision)

@@ -359,7 +359,7 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
         ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
         if ends.clear_flip and not frozen[j]:
             decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {ends.flip_reason}"))
-        elif stood[j].end_guessed and ends.some_flip and not ends.some_keep:
+        elif stood[j].end_guessed and ends.weak_flip and not ends.some_keep:
             # its end was a guess: the evidence, weak as it is, decides it
             decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: its other end is "
                                                    f"up ({ends.flip_reason})"))
@@ -379,11 +379,14 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
 @dataclass(frozen=True)
 class _EndEvidence:
     """What the collection says of one shape's top and bottom (step 2 of the module
-    docstring): whether it clearly is upside down (`clear_flip`), whether anything says it
-    may be (`some_flip`) or that it is not (`some_keep`), and the words for it."""
+    docstring): whether it clearly is upside down (`clear_flip`), whether the evidence
+    says it may be (`some_flip`: a flag), whether anything at all leans that way
+    (`weak_flip`: enough to choose the end of a shape stood up anyway) or says it is not
+    (`some_keep`), and the words for it."""
 
     clear_flip: bool
     some_flip: bool
+    weak_flip: bool
     some_keep: bool
     flip_reason: str
 
@@ -410,16 +413,19 @@ class _EndEvidence:
         elif cost_strong:
             reason = f"{share} ({median:.1f}× at the median), the collection agreeing on top and bottom" + (
                 f", and {moments}" if moments_strong else "")
-        elif moments_flip:
-            reason = moments
         elif cost_flip:
             reason = (f"{share} ({median:.1f}× at the median), but top and bottom vary across the collection (the "
                       f"median shape is asked to turn over by {cost_background:.0%} of its references)")
+        elif moments_flip:
+            reason = moments
         else:
             reason = ""
+        # a flag needs most references (the odd moments: a minority of the other taper is
+        # as opposed as a third of the files upside down, so only a clear majority flags)
+        flags = bool(hollow) or cost_strong or cost_flip or moments_strong
         keeps = hollow_keeps or (opposed < 0.5 and moment_background <= agreeing and not cost_flip) or (
             median <= 1.0 / settings.margin and cost_background <= agreeing)
-        return cls(bool(hollow and cost_allows) or cost_strong, bool(reason), keeps and not hollow, reason)
+        return cls(bool(hollow and cost_allows) or cost_strong, flags, bool(reason), keeps and not hollow, reason)
 
 
 def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], j: int) -> float:
