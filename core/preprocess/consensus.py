@@ -52,8 +52,8 @@ coarse samples) against the other in its pose.
    and top of most of its references, the collection's shapes agreeing with each other),
    or at least half of its references asking for it by `margin`, 0.4 more than the
    collection's median shape does. A shape stood on another axis in step 1 whose end
-   nothing told there takes its end from this evidence, weak or not; with none either way
-   it keeps the file convention's end and is flagged.
+   nothing told there and nothing tells clearly here takes the end weak evidence leans
+   to (else the file convention's) and is flagged, the other end suggested.
 3. Facing (`facings`): turns about up only, by the Chamfer cost (any turn about up fits
    its nearest settled shapes `margin` times better) and by the facing signature
    (`signature.Signatures`, exact odd moments: a shared facing differing by more than
@@ -359,21 +359,27 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
         ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
         if ends.clear_flip and not frozen[j]:
             decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {ends.flip_reason}"))
-        elif stood[j].end_guessed and ends.weak_flip and not ends.some_keep:
-            # its end was a guess: the evidence, weak as it is, decides it
-            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: its other end is "
-                                                   f"up ({ends.flip_reason})"))
+        elif stood[j].end_guessed and not ends.clear_keep:
+            decisions.append(_guessed_end(poses[j], flipped, ends))
         elif ends.some_flip:
             decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {ends.flip_reason}",
-                                          flag_rotation=flipped))
-        elif stood[j].end_guessed and not ends.some_keep:
-            decisions.append(PoseDecision(poses[j], flag="may be upside down: stood on another axis of its file, "
-                                                         "and nothing in the collection tells its top from its "
-                                                         "bottom (the end is the other file convention's)",
                                           flag_rotation=flipped))
         else:
             decisions.append(PoseDecision(poses[j]))
     return decisions
+
+
+def _guessed_end(pose: np.ndarray, flipped: np.ndarray, ends: "_EndEvidence") -> PoseDecision:
+    """A shape stood on another axis whose end nothing clearly tells: the end weak evidence
+    leans to (else the file convention's), flagged with the other end as the suggestion."""
+    if ends.weak_flip and not ends.some_keep:
+        return PoseDecision(flipped, f"{describe_rotation(flipped @ pose.T)}: its other end up, on weak evidence "
+                                     f"({ends.flip_reason})", flag="may be upside down: stood on another axis of its "
+                                     f"file, its end chosen on weak evidence ({ends.flip_reason})", flag_rotation=pose)
+    why = ("on weak evidence (its top and bottom match most of its references')" if ends.some_keep else
+           "by the other file convention: nothing in the collection tells its top from its bottom")
+    return PoseDecision(pose, flag=f"may be upside down: stood on another axis of its file, its end chosen {why}",
+                        flag_rotation=flipped)
 
 
 @dataclass(frozen=True)
@@ -388,6 +394,7 @@ class _EndEvidence:
     some_flip: bool
     weak_flip: bool
     some_keep: bool
+    clear_keep: bool
     flip_reason: str
 
     @classmethod
@@ -423,9 +430,10 @@ class _EndEvidence:
         # a flag needs most references (the odd moments: a minority of the other taper is
         # as opposed as a third of the files upside down, so only a clear majority flags)
         flags = bool(hollow) or cost_strong or cost_flip or moments_strong
-        keeps = hollow_keeps or (opposed < 0.5 and moment_background <= agreeing and not cost_flip) or (
-            median <= 1.0 / settings.margin and cost_background <= agreeing)
-        return cls(bool(hollow and cost_allows) or cost_strong, flags, bool(reason), keeps and not hollow, reason)
+        clear_keep = hollow_keeps or (median <= 1.0 / settings.margin and cost_background <= agreeing)
+        keeps = clear_keep or (opposed < 0.5 and moment_background <= agreeing and not cost_flip)
+        return cls(bool(hollow and cost_allows) or cost_strong, flags, bool(reason), keeps and not hollow,
+                   clear_keep and not hollow, reason)
 
 
 def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], j: int) -> float:

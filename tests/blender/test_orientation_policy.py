@@ -4,9 +4,10 @@ others, a handle as a second part: bench/blender_mugs.py `mug_data(closed=True)`
 with a Subdivision modifier, one parented to a turned, scaled empty, one with an
 unapplied rotation and one with an unapplied non-uniform scale, all upright in the world.
 The real Prepare operator turns none of them; a mug laid on its side by hand is stood on
-its axis and flagged (which end is up, nothing in a class of tapers both ways tells), and
-Turn Flagged turns it as the flag suggests, in one undoable step; the artist's objects
-are never changed."""
+its axis and flagged (which end is up, nothing in a class of tapers both ways tells
+clearly); with open mugs, one turned over by hand and kept is flagged (its hollow opens
+downwards) and Turn Flagged stands it up in one undoable step; the artist's objects are
+never changed."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import math
 
 import bpy
 import numpy as np
+import pytest
 from conftest import ROOT, addon_module, vertices
 
 KINDS = ("plain", "subdivided", "parented", "rotated", "scaled")
@@ -27,15 +29,16 @@ def _mug_builder():
     return module
 
 
-def _solid_mugs(count: int = 10) -> bpy.types.Collection:
-    """The scene: `count` solid mugs upright in the world, the kinds of KINDS in turn."""
+def _solid_mugs(count: int = 10, closed: bool = True) -> bpy.types.Collection:
+    """The scene: `count` mugs upright in the world (solid, or open at the top), the kinds
+    of KINDS in turn."""
     builder = _mug_builder()
     rng = np.random.default_rng(11)
     material = bpy.data.materials.new("Ceramic")
     collection = bpy.data.collections.new("mugs")
     bpy.context.scene.collection.children.link(collection)
     for i in range(count):
-        data = builder.mug_data(f"mug_{i}", rng, material, closed=True)
+        data = builder.mug_data(f"mug_{i}", rng, material, closed=closed)
         obj = bpy.data.objects.new(f"mug_{i}", data)
         collection.objects.link(obj)
         kind = KINDS[i % len(KINDS)]
@@ -105,11 +108,14 @@ def test_upright_solid_mugs_are_not_turned_and_stay_as_made(extension):
     _assert_untouched(collection, before)
 
 
-def test_a_mug_laid_on_its_side_is_stood_up_flagged_and_turned_on_request(extension):
+def test_a_mug_laid_on_its_side_is_stood_up_and_flagged_for_its_end(extension):
+    """Laid on its side by hand: stood on its axis (a file-convention turn); which end is
+    up, nothing in a class of tapers both ways tells clearly, so it is flagged with the
+    other end suggested, and Turn Flagged turns it over as suggested, in one step."""
     keys = addon_module(extension, "shapegen_addon.keys")
     collection = _solid_mugs()
     laid = bpy.data.objects["mug_5"]  # a plain object
-    laid.rotation_euler = (math.pi / 2, 0.0, 0.0)  # laid on its side by hand: its own up along world -y
+    laid.rotation_euler = (math.pi / 2, 0.0, 0.0)  # its own up now along world -y
     bpy.context.view_layer.update()
     own_up = np.array(laid.matrix_world.to_3x3().normalized()) @ [0.0, 0.0, 1.0]
     before = _snapshot(collection)
@@ -117,32 +123,56 @@ def test_a_mug_laid_on_its_side_is_stood_up_flagged_and_turned_on_request(extens
     copies = _copies(extension)
     copy = copies["mug_5"]
     assert "file-convention turn" in copy[keys.POSE_CHANGE_KEY], copy[keys.POSE_CHANGE_KEY]
-    # its axis is up; which end, nothing in the collection tells: flagged with a turn to make
-    assert abs((_rotation(copy, keys) @ own_up)[2]) > math.cos(math.radians(3.0))
-    assert copy[keys.POSE_OUTLIER_KEY].startswith("may be upside down"), copy[keys.POSE_OUTLIER_KEY]
-    assert keys.FLAG_TURN_KEY in copy
+    up_before = (_rotation(copy, keys) @ own_up)[2]
+    assert abs(up_before) > math.cos(math.radians(3.0))  # its axis is up
+    assert copy[keys.POSE_OUTLIER_KEY].startswith("may be upside down: stood on another axis"), \
+        copy[keys.POSE_OUTLIER_KEY]
     for name, other in copies.items():
         if name != "mug_5":
             assert other[keys.POSE_CHANGE_KEY] == "" and keys.FLAG_TURN_KEY not in other, name
+    assert bpy.ops.shapegen.turn_flagged() == {"FINISHED"}
+    copy = _copies(extension)["mug_5"]
+    assert (_rotation(copy, keys) @ own_up)[2] == pytest.approx(-up_before, abs=1e-6)  # the other end up
+    assert "at the user's request" in copy[keys.POSE_CHANGE_KEY] and copy[keys.POSE_OUTLIER_KEY] == ""
+    _assert_untouched(collection, before)
+
+
+def test_a_mug_turned_over_by_hand_is_flagged_and_turn_flagged_stands_it_up(extension):
+    """Open mugs: a mug turned over by hand and kept (Keep Pose) is flagged, its hollow
+    opening downwards; Turn Flagged stands it up in one undoable step, its prepared copy,
+    landmarks and markers moving together, the artist's objects unchanged."""
+    keys = addon_module(extension, "shapegen_addon.keys")
+    collection = _solid_mugs(closed=False)
+    turned = bpy.data.objects["mug_5"]
+    turned.rotation_euler = (math.pi, 0.0, 0.0)
+    turned[keys.KEEP_POSE_KEY] = True
+    bpy.context.view_layer.update()
+    own_up = np.array(turned.matrix_world.to_3x3().normalized()) @ [0.0, 0.0, 1.0]
+    before = _snapshot(collection)
+    assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
+    copy = _copies(extension)["mug_5"]
+    assert copy[keys.POSE_CHANGE_KEY] == ""
+    assert copy[keys.POSE_OUTLIER_KEY].startswith("may be upside down: its hollow opens downwards"), \
+        copy[keys.POSE_OUTLIER_KEY]
+    assert (_rotation(copy, keys) @ own_up)[2] < -math.cos(math.radians(1.0))
     landmarks = np.array(copy[keys.LANDMARKS_KEY], dtype=np.float64).reshape(-1, 3)
     markers = next(c for c in copy.children if c.type == "MESH")
     marker_centre = vertices(markers).mean(axis=0)
 
+    assert "UNDO" in bpy.types.SHAPEGEN_OT_turn_flagged.bl_options
     assert bpy.ops.shapegen.turn_flagged() == {"FINISHED"}
-    assert "SHAPEGEN_OT_turn_flagged" in dir(bpy.types) and "UNDO" in bpy.types.SHAPEGEN_OT_turn_flagged.bl_options
     copy = _copies(extension)["mug_5"]
     assert (_rotation(copy, keys) @ own_up)[2] > math.cos(math.radians(3.0))  # its own up is world +Z
     assert "at the user's request" in copy[keys.POSE_CHANGE_KEY] and copy[keys.POSE_OUTLIER_KEY] == ""
     assert keys.FLAG_TURN_KEY not in copy
-    # mesh, landmarks and markers moved together: the copy still equals its source under its transform
+    # mesh and landmarks moved together: the copy still equals its source under its transform
     transform = np.reshape(copy[keys.TRANSFORM_KEY], (4, 4))
-    source = vertices(laid, evaluated=True)
-    world = source @ np.array(laid.matrix_world)[:3, :3].T + np.array(laid.matrix_world)[:3, 3]
+    world = vertices(turned, evaluated=True) @ np.array(turned.matrix_world)[:3, :3].T \
+        + np.array(turned.matrix_world)[:3, 3]
     mapped = world @ transform[:3, :3].T + transform[:3, 3]
     np.testing.assert_allclose(np.sort(mapped, axis=0), np.sort(vertices(copy), axis=0), atol=1e-4)
-    turned_landmarks = np.reshape(copy[keys.LANDMARKS_KEY], (-1, 3))
-    assert not np.allclose(turned_landmarks, landmarks)
-    assert np.linalg.norm(vertices(markers).mean(axis=0) - marker_centre) > 1e-3
-    assert turned_landmarks[:, 2].min() >= -1e-6  # floored again
+    turned_landmarks = np.array(copy[keys.LANDMARKS_KEY], dtype=np.float64).reshape(-1, 3)
+    assert not np.allclose(turned_landmarks, landmarks) and turned_landmarks[:, 2].min() >= -1e-6
+    assert np.linalg.norm(vertices(markers).mean(axis=0) - marker_centre) > 1e-3  # the markers came along
     assert not bpy.ops.shapegen.turn_flagged.poll()  # nothing left to turn
     _assert_untouched(collection, before)
