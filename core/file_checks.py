@@ -94,8 +94,10 @@ def _triple(values: np.ndarray) -> str:
 # ---------------------------------------------------------------------------- OFF
 def _check_off(path: Path, data: bytes) -> None:
     """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 values, F face
-    lines `k i1 .. ik` (and colours), nothing after them. (trimesh parses the values and
-    refuses ones that are not numbers.)"""
+    lines `k i1 .. ik` (and colours). Fewer lines than declared, or more lines of numbers:
+    refused. Text after them is not the mesh's and is ignored, as readers do (PSB Vase 361
+    ends with the settings of the tool that wrote it). (trimesh parses the values and refuses ones that
+    are not numbers.)"""
     rows = _data_rows(_decoded(path, data, "OFF"))
     if not rows or not re.fullmatch(r"C?N?OFF", rows[0][0]):
         return  # not recognisable as OFF: trimesh's refusal says so
@@ -105,9 +107,12 @@ def _check_off(path: Path, data: bytes) -> None:
         n_vertices, n_faces = int(counts[0]), int(counts[1])
     except (IndexError, ValueError):
         raise MeshFileError(f"{path}: the OFF header has no vertex and face counts") from None
-    if len(body) != n_vertices + n_faces:
+    after = [row for row in body[n_vertices + n_faces:] if _all_numbers(" ".join(row))]
+    if len(body) < n_vertices + n_faces or after:
+        held = n_vertices + n_faces + len(after) if after else len(body)
         raise MeshFileError(f"{path}: the OFF header declares {n_vertices} vertices and {n_faces} faces "
-                            f"({n_vertices + n_faces} lines) but the file holds {len(body)} lines of data")
+                            f"({n_vertices + n_faces} lines) but the file holds {held} lines of data")
+    body = body[:n_vertices + n_faces]
     short = np.flatnonzero(_lengths(body[:n_vertices]) < 3)
     if len(short):
         raise MeshFileError(f"{path}: OFF vertex {short[0]} is not three numbers: {' '.join(body[short[0]])[:60]!r}")
