@@ -13,6 +13,7 @@ import multiprocessing
 import os
 import queue as queue_module
 import signal
+import time
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -264,9 +265,15 @@ class RegistrationRunner:
             self._finished.add(index)
             finished(index, result)
 
+        def submit(call):
+            future = self.pool.submit(*call)
+            # the pool starts its workers on a submit: known at once, so a worker killed before
+            # the first wait is still named with its signal
+            self._workers.update(getattr(self.pool, "_processes", None) or {})
+            return future
+
         try:
-            submit_bounded(calls, lambda call: self.pool.submit(*call), wait_some, 2 * self.jobs, self.cancel,
-                           finished_here, stop)
+            submit_bounded(calls, submit, wait_some, 2 * self.jobs, self.cancel, finished_here, stop)
         except BrokenProcessPool:
             raise self._death(names) from None
 
@@ -277,6 +284,11 @@ class RegistrationRunner:
         ended = {}
         for pid, process in self._workers.items():
             process.join(timeout=1.0)
+            # the pool's own thread may be reaping it at the same moment: ask again briefly
+            for _ in range(40):
+                if process.exitcode is not None:
+                    break
+                time.sleep(0.05)
             ended[pid] = process.exitcode
         unfinished = [(index, pid) for index, pid in self._started.items() if index not in self._finished]
         killed = [(index, pid) for index, pid in unfinished if (ended.get(pid) or 0) < 0]
