@@ -190,7 +190,7 @@ class CollectionEvidence:
     directions (TILTS, after R_j), each at its best turn about up on a 30° grid."""
 
     def __init__(self, search: PoseSearch, settings: ConsensusSettings):
-        self.search, self.settings = search, settings
+        self.search = search
         self.count = min(settings.references, len(search) - 1)
         self._costs: dict[tuple[int, int, bytes], np.ndarray] = {}
 
@@ -220,7 +220,7 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
     evidence = CollectionEvidence(search, settings)
     stood = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis),
                      lambda f, m: report(0.2 + 0.15 * f, f"up axes: {m}"))
-    ends = tops_and_bottoms(evidence, signatures, hollows, names, frozen, settings, stood,
+    ends = tops_and_bottoms(evidence, signatures, hollows, frozen, settings, stood,
                             lambda f, m: report(0.35 + 0.15 * f, f"tops and bottoms: {m}"))
     if may_turn:
         # a shape that may lie on its side is left as given (a turn about its up means
@@ -241,11 +241,11 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
     """Step 1: file-convention turns of the up axis (module docstring)."""
     n, identity = len(evidence.search), np.eye(3)
     everyone = list(range(n))
-    side_ratio, side_line, costs = {}, {}, {}
+    side_ratio, side_line = {}, {}
 
     def compare(j: int, i: int) -> None:
-        if (j, i) not in costs:
-            c = costs[(j, i)] = evidence.standing_costs(j, identity, i, identity)
+        if (j, i) not in side_ratio:
+            c = evidence.standing_costs(j, identity, i, identity)
             lines = {line: min(c[a], c[b]) for line, (a, b) in _LINES.items()}
             side = min(("x", "y"), key=lambda line: lines[line])
             side_ratio[(j, i)], side_line[(j, i)] = lines["z"] / max(lines[side], 1e-300), side
@@ -276,7 +276,8 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
         line = by_symmetry[j][0] if by_symmetry[j] is not None else max(set(lines), key=lines.count)
         votes = sum(r > settings.margin and ln == line for r, ln in zip(ratios, lines))
         median = float(np.median(ratios))
-        d, told = _standing_end(np.array([costs[(j, i)] for i in references]), line, settings, convention)
+        d, told = _standing_end(np.array([evidence.standing_costs(j, identity, i, identity) for i in references]),
+                                line, settings, convention)
         stand = TILTS[d]
         by_cost = votes >= settings.agreement * len(references) and median >= settings.margin
         symmetric = not profile or symmetry.score(j, stand) <= symmetry.score(j, identity)
@@ -328,7 +329,6 @@ def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
 
 
 def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
-                     names: Sequence[str],
                      frozen: Sequence[bool], settings: ConsensusSettings,
                      stood: Sequence[PoseDecision], report: Progress = no_progress) -> list[PoseDecision]:
     """Step 2: turn-overs on evidence that holds over the collection (module docstring)."""
@@ -352,20 +352,23 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
         if not len(ratios[j]):
             decisions.append(PoseDecision(poses[j]))
             continue
+        ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
+        turning = (ends.clear_flip and not frozen[j]) or (stood[j].end_guessed and not ends.clear_keep)
+        if not (turning or ends.some_flip):
+            decisions.append(PoseDecision(poses[j]))
+            continue
         posed = [(i, poses[i]) for i in references[j]]
         # turned over about x or about y: the same up, facing the other way; the cheaper one
+        # (full-sample costs, asked only of a shape that is turned or flagged)
         flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
                       key=lambda r: evidence.search.cost(j, r, posed))
-        ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
         if ends.clear_flip and not frozen[j]:
             decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {ends.flip_reason}"))
         elif stood[j].end_guessed and not ends.clear_keep:
             decisions.append(_guessed_end(poses[j], flipped, ends))
-        elif ends.some_flip:
+        else:
             decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {ends.flip_reason}",
                                           flag_rotation=flipped))
-        else:
-            decisions.append(PoseDecision(poses[j]))
     return decisions
 
 
