@@ -36,6 +36,12 @@ coarse samples) against the other in its pose.
    stands on its +y; a z-up file among y-up ones on its +z); step 2 then checks it like
    every shape. Weaker evidence (median improvement above `margin`): flagged "may be on
    its side".
+   The floor (`floors.FileFloors`): when most upright shapes' files put their lowest
+   point at one height, a shape resting there as given is where its author put it:
+   flagged, never stood on another axis (a rearing cat among standing ones fits them
+   better lying); a shape resting there only after one quarter turn of its file about
+   its origin (and no other turn) was saved turned: stood so, the costs asked only not
+   to object clearly (by `margin`; else flagged).
 2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
    agrees on top and bottom and the shape clearly does not:
    - its hollow (`hollow.Hollows`) opens the other way up from at least
@@ -53,9 +59,14 @@ coarse samples) against the other in its pose.
    or at least half of its references asking for it by `margin`, 0.4 more than the
    collection's median shape does. A shape stood on another axis in step 1 whose end
    nothing told there and nothing tells clearly here takes the end weak evidence leans
-   to (else the file convention's) and is flagged, the other end suggested.
-3. Facing (`facings`): turns about up only, by the Chamfer cost (any turn about up fits
-   its nearest settled shapes `margin` times better) and by the facing signature
+   to (else the file convention's) and is flagged, the other end suggested. The floor
+   as in step 1: a shape resting on it as given is flagged, not turned over; one resting
+   on it only after a half turn about its origin is turned over unless the costs
+   clearly keep it (then flagged).
+3. Facing (`facings`): turns about up only, by the Chamfer cost (where the inputs share
+   a facing: a turn of more than `facing_angle` that at least `agreement` of its
+   `references` settled shapes fit `margin` times better; half of them: a flag "may face
+   another way") and by the facing signature
    (`signature.Signatures`, exact odd moments: a shared facing differing by more than
    `facing_angle`), with `_settle`'s majority: the poses most shapes share are the
    collection's and are never changed. Inputs turned about up at random share no
@@ -83,6 +94,7 @@ from .hollow import Hollows
 from .posesearch import NearestInPool, PoseSearch
 from .rotations import TILTS, describe_rotation, up_rotation, yaw_rotation
 from .signature import Signatures
+from .floors import FileFloors, Floor
 from .symmetry import AxisSymmetry
 
 __all__ = ["ConsensusSettings", "PoseDecision", "CollectionEvidence", "consensus_rotations", "convention_up"]
@@ -147,6 +159,9 @@ class ConsensusSettings:
     hollow_cost: float = 1.5
     #: share of the telling hollows that must open the same way for it to be the collection's
     hollow_agreement: float = 0.6
+    #: a shape's lowest point within this many times the median size (RMS radius) of the
+    #: upright shapes' shared floor rests on it (`floors.FileFloors`)
+    floor_tolerance: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -174,6 +189,8 @@ _HALF_TURN_X = TILTS[1]
 _HALF_TURN_Y = np.diag([-1.0, 1.0, -1.0])
 #: the six axis directions a shape may stand on, as the index pairs of TILTS per line
 _LINES = {"z": (0, 1), "x": (2, 3), "y": (4, 5)}
+RESTING = "left as given: it rests on the floor the collection's files share, where its author put it"
+LANDS = "it rests on the floor the collection's files share only once turned so"
 _YAWS = np.stack([yaw_rotation(a) for a in np.arange(0.0, 360.0, 30.0)])
 
 
@@ -212,16 +229,19 @@ class CollectionEvidence:
 def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
                         settings: ConsensusSettings, report: Callable[[float, str], None],
                         symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
-                        up_axis: str = "z", may_turn: bool = True) -> list[PoseDecision]:
+                        up_axis: str = "z", may_turn: bool = True,
+                        floors: FileFloors | None = None) -> list[PoseDecision]:
     """The pose decision of every shape (the steps of the module docstring). `may_turn`
-    False: nobody is turned (align "none" or "pca"), every step only flags."""
+    False: nobody is turned (align "none" or "pca"), every step only flags. `floors`:
+    where the files put their lowest points (a shape resting on the collection's floor
+    as given is flagged, never turned over or onto a side)."""
     n = len(search)
     frozen = [bool(k) or not may_turn for k in keep]
     evidence = CollectionEvidence(search, settings)
-    stood = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis),
-                     lambda f, m: report(0.2 + 0.15 * f, f"up axes: {m}"))
+    stood, floor = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis),
+                            lambda f, m: report(0.2 + 0.15 * f, f"up axes: {m}"), floors)
     ends = tops_and_bottoms(evidence, signatures, hollows, frozen, settings, stood,
-                            lambda f, m: report(0.35 + 0.15 * f, f"tops and bottoms: {m}"))
+                            lambda f, m: report(0.35 + 0.15 * f, f"tops and bottoms: {m}"), floors, floor)
     if may_turn:
         # a shape that may lie on its side is left as given (a turn about its up means
         # nothing); one that may be upside down still lines its facing up (rule b)
@@ -237,8 +257,10 @@ def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Seque
 
 def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names: Sequence[str],
              frozen: Sequence[bool], settings: ConsensusSettings,
-             convention: np.ndarray | None, report: Progress = no_progress) -> list[PoseDecision]:
-    """Step 1: file-convention turns of the up axis (module docstring)."""
+             convention: np.ndarray | None, report: Progress = no_progress,
+             floors: FileFloors | None = None) -> tuple[list[PoseDecision], Floor | None]:
+    """Step 1: file-convention turns of the up axis (module docstring). Also the floor
+    the upright shapes' files share, if any (`floors.FileFloors`)."""
     n, identity = len(evidence.search), np.eye(3)
     everyone = list(range(n))
     side_ratio, side_line = {}, {}
@@ -265,8 +287,14 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
             upright.append(j)
     decisions = [PoseDecision(identity)] * n
     if 2 * len(upright) <= n or len(upright) < 2:
-        return decisions  # no up shared by most shapes: nothing to line up with
-    for j in (j for j in everyone if j not in upright):
+        return decisions, None  # no up shared by most shapes: nothing to line up with
+    floor = None if floors is None else floors.shared(upright, settings.floor_tolerance)
+    floor_sides = {j: _side(_floor_turn(floors, j, floor)) for j in everyone}
+    upright = [j for j in upright if floor_sides[j] is None]
+    for j, side in floor_sides.items():
+        if side is not None:
+            decisions[j] = _floor_stand(evidence, j, evidence.references(j, upright), side, frozen[j], settings)
+    for j in (j for j in everyone if j not in upright and floor_sides[j] is None):
         report(0.5 + (j + 1) / (2 * n), f"standing {names[j]}")
         references = evidence.references(j, upright)
         for i in references:
@@ -291,14 +319,54 @@ def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names:
         clear = (by_cost and symmetric) or (by_symmetry[j] is not None and median >= 1.0)
         if not words:
             continue
-        if clear and not frozen[j]:
+        resting = floors is not None and floors.keeps(j, floor)
+        if clear and not frozen[j] and not resting:
             decisions[j] = PoseDecision(stand, f"{describe_rotation(stand)}: {' and '.join(words)}, "
                                                "a file-convention turn", end_guessed=not told)
         else:
             why = "" if symmetric else "; its own up has the collection's symmetry"
+            if resting:
+                why += f"; {RESTING}"
             decisions[j] = PoseDecision(identity, flag=f"may be on its side: {' and '.join(words)}{why}",
                                         flag_rotation=stand)
-    return decisions
+    return decisions, floor
+
+
+def _floor_turn(floors: FileFloors | None, j: int, floor: Floor | None) -> int | None:
+    """The TILTS index of the turn of shape j's file (about its origin) after which it
+    rests on the collection's floor while it does not as given (`FileFloors.lands`),
+    when exactly one turn does (two: a coincidence of where its origin is); else None.
+    1 is the half turn (step 2's), 2-5 the quarter turns onto a side (step 1's)."""
+    if floors is None or floor is None:
+        return None
+    turns = [d for d in range(1, len(TILTS)) if floors.lands(j, TILTS[d], floor)]
+    return turns[0] if len(turns) == 1 else None
+
+
+def _side(turn: int | None) -> int | None:
+    """A floor turn onto a side (step 1), not over (step 2)."""
+    return turn if turn is not None and turn >= 2 else None
+
+
+def _floor_stand(evidence: CollectionEvidence, j: int, references: Sequence[int], side: int,
+                 frozen: bool, settings: ConsensusSettings) -> PoseDecision:
+    """Shape j stood on the side its file's floor is on (`_floor_side`) unless its
+    upright references fit it clearly better as given (by `margin`; in a class that
+    varies in pose they may: a rearing cat fits standing cats better lying). Evidence
+    that disagrees so is flagged, the floor's stand suggested."""
+    identity = np.eye(3)
+    line = next(ln for ln, ends in _LINES.items() if side in ends)
+    a, b = _LINES[line]
+    costs = np.array([evidence.standing_costs(j, identity, i, identity) for i in references]).reshape(-1, 6)
+    ratio = float(np.median(np.minimum(costs[:, 0], costs[:, 1])
+                            / np.maximum(np.minimum(costs[:, a], costs[:, b]), 1e-300))) if len(costs) else 0.0
+    stand = TILTS[side]
+    words = f"{LANDS}, standing on its {line} axis"
+    if ratio * settings.margin >= 1.0 and not frozen:
+        return PoseDecision(stand, f"{describe_rotation(stand)}: {words}, a file-convention turn")
+    if ratio * settings.margin < 1.0:
+        words += f", but its upright references fit it {1.0 / max(ratio, 1e-300):.1f}× better as given (median)"
+    return PoseDecision(identity, flag=f"may be on its side: {words}", flag_rotation=stand)
 
 
 def _symmetric_side(symmetry: AxisSymmetry, j: int, settings: ConsensusSettings) -> tuple[str, float, float] | None:
@@ -330,8 +398,11 @@ def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
 
 def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
                      frozen: Sequence[bool], settings: ConsensusSettings,
-                     stood: Sequence[PoseDecision], report: Progress = no_progress) -> list[PoseDecision]:
-    """Step 2: turn-overs on evidence that holds over the collection (module docstring)."""
+                     stood: Sequence[PoseDecision], report: Progress = no_progress,
+                     floors: FileFloors | None = None, floor: Floor | None = None) -> list[PoseDecision]:
+    """Step 2: turn-overs on evidence that holds over the collection (module docstring).
+    A shape resting as given on the `floor` its collection's files share (`floors`) is
+    flagged, not turned over, unless step 1 stood it on another axis."""
     n = len(evidence.search)
     poses = [d.rotation for d in stood]
     pool = [j for j in range(n) if not stood[j].flag]  # a shape maybe on its side is no reference
@@ -353,8 +424,12 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
             decisions.append(PoseDecision(poses[j]))
             continue
         ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
-        turning = (ends.clear_flip and not frozen[j]) or (stood[j].end_guessed and not ends.clear_keep)
-        if not (turning or ends.some_flip):
+        # a file saved upside down: its floor is its other end (not a shape stood up in step 1:
+        # its end was chosen there, by the floor where the floor tells)
+        lands = not stood[j].changed and _floor_turn(floors, j, floor) == 1
+        landing = lands and not ends.clear_keep  # the costs clearly keeping it: a flag
+        turning = ((ends.clear_flip or landing) and not frozen[j]) or (stood[j].end_guessed and not ends.clear_keep)
+        if not (turning or ends.some_flip or lands):
             decisions.append(PoseDecision(poses[j]))
             continue
         posed = [(i, poses[i]) for i in references[j]]
@@ -362,13 +437,18 @@ def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollo
         # (full-sample costs, asked only of a shape that is turned or flagged)
         flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
                       key=lambda r: evidence.search.cost(j, r, posed))
-        if ends.clear_flip and not frozen[j]:
-            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {ends.flip_reason}"))
+        resting = (ends.clear_flip and not stood[j].changed and floors is not None
+                   and floors.keeps(j, floor))
+        if (ends.clear_flip or landing) and not frozen[j] and not resting:
+            why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else "") if w)
+            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}"))
         elif stood[j].end_guessed and not ends.clear_keep:
             decisions.append(_guessed_end(poses[j], flipped, ends))
         else:
-            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {ends.flip_reason}",
-                                          flag_rotation=flipped))
+            doubted = f"{LANDS}, but its references fit it better as given" if lands and not landing else ""
+            why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else doubted, RESTING if resting else "")
+                            if w)
+            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped))
     return decisions
 
 
@@ -501,14 +581,24 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
 
     def by_cost(j: int, references: list[tuple[int, np.ndarray]], least: float = settings.margin,
                 why: str = "") -> PoseDecision:
+        if not why:  # the inputs share a facing: a turn needs the collection, not three nearest shapes
+            references = [(i, start[i]) for i in search.nearest(j, [i for i in range(n) if settled[i]],
+                                                                 settings.references)]
         fit = upright_fit(j, references)
         ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
         each = sum(search.cost(j, start[j], [r]) > least * search.cost(j, fit.rotation, [r]) for r in references)
-        if ratio <= least or (not why and 2 * each <= len(references)):
+        turn = fit.rotation @ start[j].T
+        if why:
+            if ratio <= least:
+                return PoseDecision(start[j])
+            return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: its {len(references)} nearest shapes "
+                                              f"({_names(names, references)}) fit {ratio:.1f}× better ({why})")
+        share = f"{each} of {len(references)} shapes fit it {ratio:.1f}× better turned about up"
+        if ratio <= least or 2 * each <= len(references) or _angle(turn) <= settings.facing_angle:
             return PoseDecision(start[j])
-        return PoseDecision(fit.rotation, f"{describe_rotation(fit.rotation @ start[j].T)}: its "
-                                          f"{len(references)} nearest shapes ({_names(names, references)}) fit "
-                                          f"{ratio:.1f}× better" + (f" ({why})" if why else ""))
+        if each >= settings.agreement * len(references):
+            return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: {share}, the collection facing one way")
+        return PoseDecision(start[j], flag=f"may face another way: {share}", flag_rotation=fit.rotation)
 
     first = _settle(search, k, frozen, start, by_cost_agree, by_cost, report, 0.5, 0.18, settled,
                     lambda j, references, why: by_cost(j, references, settings.unshared_margin, why),
@@ -565,6 +655,11 @@ def _noted_kept(decision: PoseDecision) -> PoseDecision:
         return decision
     return PoseDecision(decision.rotation, decision.reason, decision.steps,
                         f"{decision.flag} (its pose is kept by request)", decision.flag_rotation)
+
+
+def _angle(rotation: np.ndarray) -> float:
+    """The angle of a rotation, degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:

@@ -13,6 +13,7 @@ from ..progress import sub_range
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES
 from ..spill import loaded, proxy_of
 from .consensus import ConsensusSettings, PoseDecision, consensus_rotations
+from .floors import FileFloors
 from .hollow import Hollows
 from .moments import SCALE_MODES, scale_measure, surface_moments
 from .posesearch import PoseSearch
@@ -64,7 +65,7 @@ def prepare_collection(
     report = progress or (lambda fraction, message: None)
 
     up = up_rotation(up_axis)
-    search = signatures = symmetry = hollows = None
+    search = signatures = symmetry = hollows = floors = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         posed = [proxy_of(mesh, POSE_PROXY_FACES, dense_faces).mesh for mesh in meshes]
         search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
@@ -73,17 +74,18 @@ def prepare_collection(
         symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor,
                                    sub_range(report, 0.17, 0.18))
         hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed, sub_range(report, 0.18, 0.2))
+        floors = FileFloors.of(posed, up)
         del posed
     report(0.2, "surface samples")
     names = [m.name for m in meshes]
     if align == "consensus" and search is not None:
         decisions = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
-                                        up_axis)
+                                        up_axis, floors=floors)
     else:
         decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
         if len(meshes) > 2:  # nobody is turned by the consensus, but a pose it doubts is flagged
             checks = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
-                                         up_axis, may_turn=False)
+                                         up_axis, may_turn=False, floors=floors)
             decisions = [PoseDecision(d.rotation, d.reason, d.steps, c.flag,
                                       None if c.flag_rotation is None else c.flag_rotation @ d.rotation)
                          for d, c in zip(decisions, checks)]

@@ -3,9 +3,9 @@ mugs (quad walls, n-gon caps at both ends, walls tapering inward on some and out
 others, a handle as a second part: bench/blender_mugs.py `mug_data(closed=True)`), one
 with a Subdivision modifier, one parented to a turned, scaled empty, one with an
 unapplied rotation and one with an unapplied non-uniform scale, all upright in the world.
-The real Prepare operator turns none of them; a mug laid on its side by hand is stood on
-its axis and flagged (which end is up, nothing in a class of tapers both ways tells
-clearly); with open mugs, one turned over by hand and kept is flagged (its hollow opens
+The real Prepare operator turns none of them; a mug laid on its side on the floor by hand
+is flagged and left as given (it rests where its author put it), and Turn Flagged stands
+it on its axis; with open mugs, one turned over by hand and kept is flagged (its hollow opens
 downwards) and Turn Flagged stands it up in one undoable step; the artist's objects are
 never changed."""
 
@@ -108,31 +108,34 @@ def test_upright_solid_mugs_are_not_turned_and_stay_as_made(extension):
     _assert_untouched(collection, before)
 
 
-def test_a_mug_laid_on_its_side_is_stood_up_and_flagged_for_its_end(extension):
-    """Laid on its side by hand: stood on its axis (a file-convention turn); which end is
-    up, nothing in a class of tapers both ways tells clearly, so it is flagged with the
-    other end suggested, and Turn Flagged turns it over as suggested, in one step."""
+def test_a_mug_laid_on_its_side_on_the_floor_is_flagged_and_turn_flagged_stands_it(extension):
+    """Laid on its side on the ground plane by hand, where the other mugs stand: the
+    costs ask to stand it, but it rests on the floor the collection shares, where its
+    author put it, so it is flagged and left as given; Turn Flagged stands it on its
+    axis in one step. The other mugs are neither turned nor flagged."""
     keys = addon_module(extension, "shapegen_addon.keys")
     collection = _solid_mugs()
     laid = bpy.data.objects["mug_5"]  # a plain object
     laid.rotation_euler = (math.pi / 2, 0.0, 0.0)  # its own up now along world -y
+    bpy.context.view_layer.update()
+    world = vertices(laid) @ np.array(laid.matrix_world)[:3, :3].T + np.array(laid.matrix_world)[:3, 3]
+    laid.location.z -= world[:, 2].min()  # lying on the floor
     bpy.context.view_layer.update()
     own_up = np.array(laid.matrix_world.to_3x3().normalized()) @ [0.0, 0.0, 1.0]
     before = _snapshot(collection)
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     copies = _copies(extension)
     copy = copies["mug_5"]
-    assert "file-convention turn" in copy[keys.POSE_CHANGE_KEY], copy[keys.POSE_CHANGE_KEY]
-    up_before = (_rotation(copy, keys) @ own_up)[2]
-    assert abs(up_before) > math.cos(math.radians(3.0))  # its axis is up
-    assert copy[keys.POSE_OUTLIER_KEY].startswith("may be upside down: stood on another axis"), \
-        copy[keys.POSE_OUTLIER_KEY]
+    assert copy[keys.POSE_CHANGE_KEY] == "", copy[keys.POSE_CHANGE_KEY]
+    assert copy[keys.POSE_OUTLIER_KEY].startswith("may be on its side") and "where its author put it" in \
+        copy[keys.POSE_OUTLIER_KEY], copy[keys.POSE_OUTLIER_KEY]
+    assert abs((_rotation(copy, keys) @ own_up)[2]) < 1e-6  # left lying
     for name, other in copies.items():
         if name != "mug_5":
-            assert other[keys.POSE_CHANGE_KEY] == "" and keys.FLAG_TURN_KEY not in other, name
+            assert other[keys.POSE_CHANGE_KEY] == "" and other.get(keys.POSE_OUTLIER_KEY, "") == "", name
     assert bpy.ops.shapegen.turn_flagged() == {"FINISHED"}
     copy = _copies(extension)["mug_5"]
-    assert (_rotation(copy, keys) @ own_up)[2] == pytest.approx(-up_before, abs=1e-6)  # the other end up
+    assert abs((_rotation(copy, keys) @ own_up)[2]) > math.cos(math.radians(3.0))  # its axis is up
     assert "at the user's request" in copy[keys.POSE_CHANGE_KEY] and copy[keys.POSE_OUTLIER_KEY] == ""
     _assert_untouched(collection, before)
 

@@ -22,6 +22,7 @@ from shapegen_core.geometry import TargetSurface
 from shapegen_core.mesh import Mesh
 from shapegen_core.pipeline import FitSettings, fit_meshes
 from shapegen_core.preprocess import ShapeTransform, prepare_collection
+from shapegen_core.preprocess.floors import FileFloors, Floor
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
@@ -130,3 +131,51 @@ def test_copies_of_one_shape_have_no_variation_to_learn():
     copies = [m.with_vertices(m.vertices, name=f"copy_{i}") for i, m in enumerate(_placed([vase] * 4, 1))]
     with pytest.raises(CollectionError, match="copies of one mesh after alignment: there is no variation to learn"):
         fit_meshes(copies, FitSettings(model="ppca"))
+
+
+def _on_floor(meshes, seed: int) -> list[Mesh]:
+    """Random size, every shape's lowest point on z = 0 and its origin near the middle of
+    its base: files that share a floor (scans, statues, one Blender ground plane)."""
+    rng = np.random.default_rng(seed)
+    placed = []
+    for mesh in meshes:
+        vertices = mesh.vertices * rng.uniform(0.5, 2.0)
+        low = vertices.min(axis=0)
+        middle = (low + vertices.max(axis=0)) / 2
+        placed.append(mesh.with_vertices(vertices - [middle[0], middle[1], low[2]] + [*rng.uniform(-0.05, 0.05, 2), 0]))
+    return placed
+
+
+def test_file_floors_closed_forms():
+    """The shared floor is the median lowest point when most upright shapes rest on it;
+    a shape resting on it as given is kept, one that rests on it only after a turn about
+    its file's origin lands."""
+    box = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-2.0, 2.0) for z in (0.0, 3.0)])  # on z = 0
+    hanging = box - [0.0, 0.0, 3.0]  # saved upside down about its origin: its top at z = 0
+    floors = FileFloors([box, box + [5.0, 0.0, 0.0], box, hanging, box + [0.0, 0.0, 40.0]], [2.0] * 5)
+    floor = floors.shared([0, 1, 2, 3, 4], tolerance=0.15)
+    assert floor == Floor(0.0, 0.3)
+    half_turn = np.diag([1.0, -1.0, -1.0])
+    assert floors.lowest(3, half_turn) == 0.0 and floors.lands(3, half_turn, floor)
+    assert floors.keeps(0, floor) and not floors.lands(0, half_turn, floor)
+    assert not floors.keeps(4, floor) and not floors.lands(4, half_turn, floor)  # off it either way
+    assert floors.shared([3, 4, 0], tolerance=0.15) is None  # no majority on one floor
+    assert not floors.keeps(0, None) and not floors.lands(3, half_turn, None)
+
+
+def test_on_a_shared_floor_the_floor_decides_what_the_file_says():
+    """Barrels on one floor: one saved upside down about its origin is turned over (the
+    odd moments alone only flag it, previous test), one laid on its side on the floor by
+    its author is flagged and left as given, one saved a quarter turn about its origin
+    is stood up."""
+    barrels = _on_floor(make_barrels(9, seed=5, pose=False), 4)
+    laid = barrels[4].with_vertices(barrels[4].vertices @ Y_UP_FILE.T)
+    laid = laid.with_vertices(laid.vertices - [0.0, 0.0, laid.vertices[:, 2].min()])  # resting on the floor
+    prepared = prepare_collection(_turned(barrels[:4] + [laid] + barrels[5:], {1: UPSIDE_DOWN, 7: Y_UP_FILE}))
+    assert _up_error(prepared[1], UPSIDE_DOWN) < 3.0 and "floor" in prepared[1].pose_change
+    assert _up_error(prepared[7], Y_UP_FILE) < 3.0 and "file-convention turn" in prepared[7].pose_change
+    assert not prepared[4].orientation_changed
+    assert prepared[4].pose_outlier.startswith("may be on its side") and "where its author put it" in \
+        prepared[4].pose_outlier
+    for i in (0, 2, 3, 5, 6, 8):
+        assert not prepared[i].orientation_changed and prepared[i].pose_outlier == "", (i, prepared[i].pose_change)
