@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import MeshError
-from .mesh import FACE_CHUNK, SLIVER_RATIO, Mesh, triangle_cross
+from .mesh import FACE_CHUNK, SLIVER_RATIO, Mesh, cross_rows, triangle_cross
 
 __all__ = ["clean_mesh", "weld_vertices", "sliver_faces", "loose_slivers", "drop_twin_faces", "internal_faces", "separate_parts",
            "orient_faces", "shared_edges", "outwardness", "winding_numbers", "WELD_RTOL", "SLIVER_RATIO",
@@ -178,11 +178,22 @@ def loose_slivers(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     thin = sliver_faces(vertices, faces)
     if not thin.any():
         return thin, thin
-    ends = np.sort(np.stack([faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1), axis=1).astype(np.int64)
-    _, edge, count = np.unique(ends[:, 0] * (int(faces.max()) + 1) + ends[:, 1], return_inverse=True,
-                               return_counts=True)
-    open_edge = (count[np.asarray(edge).ravel()] != 2).reshape(-1, 3).any(axis=1)
+    open_edge = (faces_per_edge(faces) != 2).reshape(-1, 3).any(axis=1)
     return thin & open_edge, thin
+
+
+def faces_per_edge(faces: np.ndarray) -> np.ndarray:
+    """(3F,): for each half-edge (face f's corner k → k + 1 at 3f + k), how many faces
+    share its edge (either direction): 2 inside a manifold surface, 1 on a border, 3 or
+    more where sheets branch."""
+    _, edge, count = np.unique(_edge_keys(faces), return_inverse=True, return_counts=True)
+    return count[np.asarray(edge).ravel()]
+
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """(3F,) one int64 per half-edge, the same for both directions of an edge."""
+    ends = np.sort(np.stack([faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1), axis=1).astype(np.int64)
+    return ends[:, 0] * (int(faces.max()) + 1) + ends[:, 1]
 
 
 def sliver_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -190,13 +201,12 @@ def sliver_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     edge) over longest edge."""
     thin = np.zeros(len(faces), dtype=bool)
     for start in range(0, len(faces), FACE_CHUNK):
-        chunk = faces[start:start + FACE_CHUNK]
-        corners = vertices[chunk]
-        longest = np.max([np.einsum("ij,ij->i", d, d) for d in
-                          (corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 1],
-                           corners[:, 0] - corners[:, 2])], axis=0)
-        twice_area = np.linalg.norm(triangle_cross(vertices, chunk), axis=1)
-        thin[start:start + FACE_CHUNK] = twice_area < SLIVER_RATIO * longest
+        corners = vertices[faces[start:start + FACE_CHUNK]]
+        u, v, w = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], corners[:, 2] - corners[:, 1]
+        longest = np.maximum(np.maximum(np.einsum("ij,ij->i", u, u), np.einsum("ij,ij->i", v, v)),
+                             np.einsum("ij,ij->i", w, w))
+        cross = cross_rows(u, v)
+        thin[start:start + FACE_CHUNK] = np.einsum("ij,ij->i", cross, cross) < (SLIVER_RATIO * longest) ** 2
     return thin
 
 
@@ -264,12 +274,10 @@ def internal_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh")
     faces = np.asarray(faces)
     inside = np.zeros(len(faces), dtype=bool)
     half_face = np.repeat(np.arange(len(faces)), 3)
-    ends = np.sort(np.stack([faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1), axis=1).astype(np.int64)
-    _, edge, edge_faces = np.unique(ends[:, 0] * (int(faces.max()) + 1) + ends[:, 1], return_inverse=True,
-                                    return_counts=True)
-    faces_on_edge = edge_faces[np.asarray(edge).ravel()]
-    if faces_on_edge.max() < 3:
+    keys = np.sort(_edge_keys(faces))
+    if len(keys) < 3 or not (keys[2:] == keys[:-2]).any():  # no edge of three faces: a plain sort decides
         return inside
+    faces_on_edge = faces_per_edge(faces)
     first, second, _, _ = shared_edges(faces)
     graph = sp.coo_matrix((np.ones(len(first), dtype=np.int8), (first, second)), shape=(len(faces),) * 2)
     n_sheets, sheet = connected_components(graph, directed=False)
