@@ -11,7 +11,9 @@ mouth). Then made CAD-like in bmesh:
 
 * UVs per corner (cylindrical), cut by splitting every edge: a soup whose UV seams split
   every vertex (`bmesh.ops.split_edges`);
-* double-sided: every face duplicated on its own vertices and reversed;
+* double-sided: every face repeated on its own vertices with its corners listed
+  backwards (from its last corner, as a writer reading a polygon backwards does: a quad's
+  back is cut along the other diagonal);
 * mixed-up axes: each object turned about its up axis, exported with the exporter's
   default axes (Y up, −Z forward) and its object transform applied.
 """
@@ -73,8 +75,11 @@ def cad_object(name: str, rng: np.random.Generator, bouquet: bool):
             x, y, z = loop.vert.co
             loop[uv_layer].uv = ((np.arctan2(y, x) / (2 * np.pi)) % 1.0, z / 4.0)
     bmesh.ops.split_edges(bm, edges=bm.edges[:])  # a soup: every face on its own corners
-    backs = bmesh.ops.duplicate(bm, geom=bm.faces[:])["geom"]
-    bmesh.ops.reverse_faces(bm, faces=[g for g in backs if isinstance(g, bmesh.types.BMFace)])
+    for face in list(bm.faces):  # the back of every face on its own corners, its corners listed backwards
+        loops = list(face.loops)[::-1]
+        back = bm.faces.new([bm.verts.new(loop.vert.co) for loop in loops])
+        for corner, loop in zip(back.loops, loops):
+            corner[uv_layer].uv = loop[uv_layer].uv
     data = bpy.data.meshes.new(name)
     bm.to_mesh(data)
     bm.free()
