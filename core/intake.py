@@ -104,8 +104,11 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
     kept, twin_of = drop_twin_faces(faces, None if polygon_of is None else np.asarray(polygon_of)[
         np.arange(len(faces)) if source is None else source])
     source = np.arange(len(faces)) if source is None else source
-    twin_source = source[np.setdiff1d(np.arange(len(faces)), kept)]
-    faces, source = faces[kept], source[kept]
+    twin_source = np.empty(0, dtype=np.int64)
+    if len(twin_of):
+        dropped = np.ones(len(faces), dtype=bool)
+        dropped[kept] = False
+        twin_source, faces, source = source[dropped], faces[kept], source[kept]
     n_faces = len(faces) + len(twin_of)
     faces, source, twin_source, twin_of = _without(internal_faces(welded, faces, label), faces, source,
                                                    twin_source, twin_of)
@@ -192,8 +195,8 @@ def faces_per_edge(faces: np.ndarray) -> np.ndarray:
 
 def _edge_keys(faces: np.ndarray) -> np.ndarray:
     """(3F,) one int64 per half-edge, the same for both directions of an edge."""
-    ends = np.sort(np.stack([faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1), axis=1).astype(np.int64)
-    return ends[:, 0] * (int(faces.max()) + 1) + ends[:, 1]
+    start, end = faces.ravel().astype(np.int64), faces[:, [1, 2, 0]].ravel().astype(np.int64)
+    return np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
 
 
 def sliver_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
