@@ -343,7 +343,7 @@ def test_a_double_sided_quad_soup_file_is_one_surface_however_its_back_was_cut(t
     lines, face_lines = [], []
     for polygon in polygons:
         face_lines.append("f " + " ".join(str(len(lines) + k + 1) for k in range(len(polygon))))
-        lines += ["v %r %r %r" % p for p in polygon]
+        lines += ["v %r %r %r" % tuple(map(float, p)) for p in polygon]
     (tmp_path / "box.obj").write_text("\n".join(lines + face_lines) + "\n")
     mesh = read_mesh(tmp_path / "box.obj")
     assert mesh.n_faces == 12 + 4 and mesh.report.twin_faces_dropped == 16
