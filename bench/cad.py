@@ -171,8 +171,9 @@ def thinnest_faces() -> None:
             except Exception as exc:  # a damaged file of the shared data (TOSCA horse7) is named
                 print(f"{'':>10} skipped: {exc}")
         values = [ratios(m) for m in meshes]
+        dropped = sum(m.report.sliver_faces_dropped for m in meshes)  # read: loose slivers already left out
         print(f"{name:>10} {len(meshes):6d} {min(v.min() for v in values):9.2e}  "
-              f"{sum(int((v < SLIVER_RATIO).sum()) for v in values):20d}")
+              f"{dropped + sum(int((v < SLIVER_RATIO).sum()) for v in values):20d}")
     procedural = {"vases": [v.mesh for v in make_vases(20, seed=0)], "barrels": make_barrels(20, seed=0),
                   "cups": make_cups(20, seed=0), "mugs": make_mugs(10, seed=0)}
     for name, meshes in procedural.items():
