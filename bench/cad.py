@@ -32,6 +32,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / ".pyshim"))
+sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 
@@ -59,7 +60,7 @@ def clean_class(name: str, n: int) -> tuple[list[Mesh], str]:
         from shapegen_core.datasets import make_cups
 
         return make_cups(n, seed=0), "z"
-    raise SystemExit(f"unknown class {name!r} (psb:<Class>, vases, cups)")
+    raise SystemExit(f"unknown class {name!r} (psb:<Class>, vases, cups, blender:bottles)")
 
 
 def label_part(mesh: Mesh, up: int) -> tuple[np.ndarray, np.ndarray]:
@@ -95,11 +96,12 @@ def write_cad_obj(mesh: Mesh, path: Path, up_axis: str, rng: np.random.Generator
     path.write_text("\n".join(lines) + "\n")
 
 
-def written_twins(writers: MeshWriters, mesh: Mesh, template: int, folder: Path) -> int:
-    """Coincident face pairs in the sample as the CLI writes it, on the file's own vertices."""
+def written_twins(writers: MeshWriters, mesh: Mesh, template: int, path: Path) -> int:
+    """Coincident face pairs in the sample as the CLI writes it to `path`, on the file's own
+    vertices."""
     import trimesh
 
-    path = writers.write(mesh, template, folder / "sample.obj")
+    path = writers.write(mesh, template, path)
     written = trimesh.load(path, process=False, force="mesh")
     return coincident_faces(np.asarray(written.vertices), np.asarray(written.faces))
 
@@ -110,7 +112,7 @@ def measure(meshes: list[Mesh], up_axis: str, n_samples: int, folder: Path) -> d
     fit_seconds = time.perf_counter() - start
     samples = gated_samples(model, n_samples, 0)
     writers = MeshWriters(model.meshes)
-    twins = [written_twins(writers, s.mesh, s.template_index, folder) for s in samples]
+    twins = [written_twins(writers, s.mesh, s.template_index, folder / f"sample_{k}.obj") for k, s in enumerate(samples)]
     ratio = [s.quality.roughness_ratio for s in samples]
     return {"fit_seconds": fit_seconds, "twins_max": int(max(twins)), "roughness_median": float(np.median(ratio)),
             "roughness_max": float(np.max(ratio)),
@@ -147,48 +149,115 @@ def draw(panels: list[tuple[str, Mesh]], path: Path) -> None:
     plt.close(figure)
 
 
+def thinnest_faces() -> None:
+    """The thinnest face (shortest altitude / longest edge) of every clean mesh of PSB, TOSCA
+    and the procedural classes, per class: intake.SLIVER_RATIO must stay below them all."""
+    from shapegen_core.datasets import make_barrels, make_cups, make_mugs, make_vases
+    from shapegen_core.io import list_mesh_files, read_mesh
+    from shapegen_core.mesh import SLIVER_RATIO
+
+    def ratios(mesh: Mesh) -> np.ndarray:
+        corners = mesh.vertices[mesh.faces]
+        edges = corners[:, [1, 2, 0]] - corners
+        return 2 * mesh.face_areas() / np.einsum("fki,fki->fk", edges, edges).max(axis=1)
+
+    classes = {folder.name: folder for root in (PSB, Path("/work/shared/data/tosca")) for folder in sorted(root.iterdir())}
+    print(f"{'class':>10} {'meshes':>6} {'thinnest':>9}  {'faces < SLIVER_RATIO':>20}")
+    for name, folder in classes.items():
+        meshes = []
+        for path in list_mesh_files(folder):
+            try:
+                meshes.append(read_mesh(path))
+            except Exception as exc:  # a damaged file of the shared data (TOSCA horse7) is named
+                print(f"{'':>10} skipped: {exc}")
+        values = [ratios(m) for m in meshes]
+        dropped = sum(m.report.sliver_faces_dropped for m in meshes)  # read: loose slivers already left out
+        print(f"{name:>10} {len(meshes):6d} {min(v.min() for v in values):9.2e}  "
+              f"{dropped + sum(int((v < SLIVER_RATIO).sum()) for v in values):20d}")
+    procedural = {"vases": [v.mesh for v in make_vases(20, seed=0)], "barrels": make_barrels(20, seed=0),
+                  "cups": make_cups(20, seed=0), "mugs": make_mugs(10, seed=0)}
+    for name, meshes in procedural.items():
+        values = [ratios(m) for m in meshes]
+        print(f"{name:>10} {len(meshes):6d} {min(v.min() for v in values):9.2e}  "
+              f"{sum(int((v < SLIVER_RATIO).sum()) for v in values):20d}")
+
+
+def cad_files(name: str, n: int, folder: Path, rng: np.random.Generator) -> tuple[list[Mesh], str]:
+    """The class's CAD-like files written to `folder`: a shared or procedural class made
+    CAD-like (`write_cad_obj`), or the Blender bottles (bench/blender_cad.py); and the
+    clean meshes it was made from with their up axis (none for the Blender class)."""
+    if name == "blender:bottles":
+        from blender_cad import write_bottles
+
+        write_bottles(folder, n)
+        return [], "y"
+    meshes, up_axis = clean_class(name, n)
+    for mesh in meshes:
+        write_cad_obj(mesh, folder / f"{mesh.name}.obj", up_axis, rng)
+    return meshes, up_axis
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--classes", default="psb:Cup,psb:Vase,cups,vases")
+    parser.add_argument("--classes", default="psb:Cup,psb:Vase,cups,vases,blender:bottles")
     parser.add_argument("-n", type=int, default=10, help="shapes per class")
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--no-clean", action="store_true", help="skip the clean classes' rows")
     parser.add_argument("--picture", action="store_true")
+    parser.add_argument("--thinnest", action="store_true", help="only: the thinnest face of each clean class")
     args = parser.parse_args()
+    if args.thinnest:
+        thinnest_faces()
+        return 0
     OUTPUT.mkdir(exist_ok=True)
     rng = np.random.default_rng(0)
     rows, panels = [], []
-    print(f"{'class':>14} {'kind':>5} {'fit s':>6} {'twins':>5} {'rough med':>9} {'rough max':>9} "
+    print(f"{'class':>15} {'kind':>5} {'fit s':>6} {'twins':>5} {'rough med':>9} {'rough max':>9} "
           f"{'redraws':>7} {'failing':>7}", flush=True)
     for name in args.classes.split(","):
-        meshes, up_axis = clean_class(name, args.n)
         with tempfile.TemporaryDirectory() as scratch:
             scratch = Path(scratch)
             (scratch / "in").mkdir()
-            for mesh in meshes:
-                write_cad_obj(mesh, scratch / "in" / f"{mesh.name}.obj", up_axis, rng)
+            (scratch / "out").mkdir()
+            meshes, up_axis = cad_files(name, args.n, scratch / "in", rng)
             cad = read_folder(scratch / "in")
-            kinds = [("cad", cad, "y")] + ([] if args.no_clean else [("clean", meshes, up_axis)])
+            kinds = [("cad", cad, "y")] + ([] if args.no_clean or not meshes else [("clean", meshes, up_axis)])
             for kind, collection, up in kinds:
-                result = measure(collection, up, args.samples, scratch)
+                result = measure(collection, up, args.samples, scratch / "out")
                 row = {"class": name, "kind": kind, **{k: v for k, v in result.items() if k not in ("model", "samples")}}
                 if kind == "cad":
-                    row["intake"] = cad[0].report.summary()
+                    row["intake"] = [m.report.summary() for m in cad]
                     first = result["samples"][0]
                     panels += [(f"{name} template", result["model"].meshes[first.template_index]),
                                (f"{name} CAD sample", first.mesh)]
+                    if args.picture and name.startswith("blender:"):
+                        render_blender_class(name, result, scratch)
                 rows.append(row)
-                print(f"{name:>14} {kind:>5} {row['fit_seconds']:6.1f} {row['twins_max']:5d} "
+                print(f"{name:>15} {kind:>5} {row['fit_seconds']:6.1f} {row['twins_max']:5d} "
                       f"{row['roughness_median']:9.3f} {row['roughness_max']:9.3f} "
                       f"{row['redraws']:7d} {row['failing']:7d}", flush=True)
                 if kind == "cad":
-                    print(f"{'':>14} intake: {row['intake']}", flush=True)
+                    print(f"{'':>15} intake of {cad[0].name}: {row['intake'][0]}", flush=True)
     (OUTPUT / "cad.json").write_text(json.dumps(rows, indent=1))
-    if args.picture:
+    if args.picture and panels:
         draw(panels, OUTPUT / "cad.png")
         print(f"picture: {OUTPUT / 'cad.png'}")
     return 0
 
+
+def render_blender_class(name: str, result: dict, scratch: Path) -> None:
+    """Blender's Workbench render of the first file (the bouquet) and the first four
+    samples' template files (top row), and the samples as written (bottom row), imported
+    by Blender's OBJ importer (the files Y up, the samples in the model's frame, Z up)."""
+    from blender_cad import render_files
+
+    samples = result["samples"][:4]
+    names = result["model"].names
+    files = [names[0]] + [names[s.template_index] for s in samples]
+    rows = [[(scratch / "in" / f"{n}.obj", "Y") for n in files],
+            [(scratch / "out" / f"sample_{k}.obj", "Z") for k in range(len(samples))]]
+    path = render_files(rows, OUTPUT / f"cad_{name.split(':')[1]}.png")
+    print(f"render: {path} (top: {files}, bottom: samples 0-{len(samples) - 1})")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -10,9 +10,16 @@ io.read_mesh; Blender: convert.object_to_mesh, and meshset.load_mesh_set in the 
    ways) or a plain duplicate; one surface is kept, so every edge of a double-sided sheet
    has two faces again instead of four, and the dropped sides are recorded (`twin_source`,
    `twin_of`) so a caller can map them back to the file's faces (issue 31);
-4. `orient_faces`: wind every face like its neighbours and every connected part outwards
+4. `internal_faces`: a sheet inside a closed volume (the wall between two cells of a CAD
+   model, met by the outer surface along edges of three or more faces) is dropped from the
+   surface and counted: Prepare, correspondence and the closedness test see the outside;
+5. `loose_slivers`: faces thinner than SLIVER_RATIO of their longest edge (CAD tessellators
+   leave needles along trimmed edges; zero-area faces went in step 1) are dropped where
+   that opens no hole (on a border or a non-manifold edge) and counted; the others are
+   counted and kept;
+6. `orient_faces`: wind every face like its neighbours and every connected part outwards
    (files wound inwards or inconsistently); a non-orientable part is refused.
-5. `separate_parts`: the surface's connected parts are counted and the largest one's share
+7. `separate_parts`: the surface's connected parts are counted and the largest one's share
    of the area recorded (labels, decals, a bouquet in a vase): they stay in the mesh and
    are deformed with it; the report names them.
 
@@ -31,10 +38,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import MeshError
-from .mesh import FACE_CHUNK, Mesh, triangle_cross
+from .mesh import FACE_CHUNK, SLIVER_RATIO, Mesh, cross_rows, triangle_cross
 
-__all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "orient_faces", "shared_edges",
-           "outwardness", "WELD_RTOL", "OPEN_PART_MIN_OUTWARDNESS"]
+__all__ = ["clean_mesh", "weld_vertices", "sliver_faces", "loose_slivers", "drop_twin_faces", "internal_faces", "separate_parts",
+           "orient_faces", "shared_edges", "outwardness", "winding_numbers", "WELD_RTOL", "SLIVER_RATIO",
+           "OPEN_PART_MIN_OUTWARDNESS"]
 
 #: Vertices closer than this fraction of the bounding-box diagonal are one vertex. The
 #: corners a soup repeats are bitwise equal (STL stores float32 and every writer prints the
@@ -43,6 +51,19 @@ __all__ = ["clean_mesh", "weld_vertices", "drop_twin_faces", "separate_parts", "
 #: (rounding ~1e-16 of the coordinates). It stays far below what any model distinguishes:
 #: float32, the precision of STL, PLY, glTF and Blender, resolves ~6e-8 of a coordinate.
 WELD_RTOL = 1e-9
+
+#: A sheet is inside a closed volume when the rest of the surface winds around points just
+#: off both of its sides at least this much (generalised winding number: 1 inside a closed
+#: outward surface, 0 outside).
+INSIDE_WINDING = 0.5
+
+#: Faces of a candidate sheet whose both sides are probed, and how far off the face (a
+#: fraction of the bounding-box diagonal).
+INTERNAL_PROBES = 4
+PROBE_OFFSET = 1e-4
+
+#: Passes of `loose_slivers`: a fan of slivers along a border loses one layer per pass.
+SLIVER_PEELS = 8
 
 #: An open part (one with a border) is turned outward only when its `outwardness` is at
 #: least this large in magnitude. A spherical cap of half-angle φ has outwardness ≈ 0.7 φ,
@@ -82,22 +103,39 @@ def clean_mesh(vertices: np.ndarray, polygons, name: str = "", mirrored: bool = 
             faces, source = faces[~collapsed], source[~collapsed]
     kept, twin_of = drop_twin_faces(faces, None if polygon_of is None else np.asarray(polygon_of)[
         np.arange(len(faces)) if source is None else source])
-    twin_source = None
+    source = np.arange(len(faces)) if source is None else source
+    twin_source = np.empty(0, dtype=np.int64)
     if len(twin_of):
-        source = np.arange(len(faces)) if source is None else source
-        dropped = np.setdiff1d(np.arange(len(faces)), kept)
+        dropped = np.ones(len(faces), dtype=bool)
+        dropped[kept] = False
         twin_source, faces, source = source[dropped], faces[kept], source[kept]
+    n_faces = len(faces) + len(twin_of)
+    faces, source, twin_source, twin_of = _without(internal_faces(welded, faces, label), faces, source,
+                                                   twin_source, twin_of)
+    n_inside = n_faces - len(faces) - len(twin_of)  # with their other sides
+    n_thin = 0
+    for _ in range(SLIVER_PEELS):  # a fan of slivers along a border comes off one layer per pass
+        loose, thin = loose_slivers(welded, faces)
+        if not loose.any() or loose.all():  # none loose, or none would be left
+            break
+        n_thin += int(loose.sum())
+        faces, source, twin_source, twin_of = _without(loose, faces, source, twin_source, twin_of)
+    else:
+        thin = sliver_faces(welded, faces)
+    if len(source) == mesh.n_faces and np.array_equal(source, np.arange(mesh.n_faces)):
+        source = None
     faces, reversed_faces, counts = orient_faces(welded, faces, label)
     n_parts, largest_share = separate_parts(welded, faces)
     report = replace(
         mesh.report,
         degenerate_faces_dropped=mesh.report.degenerate_faces_dropped + int(collapsed.sum()),
         vertices_welded=welded_away, mirrored=bool(mirrored), **counts,
+        sliver_faces_dropped=n_thin, sliver_faces_kept=int(thin.sum()), internal_faces_dropped=n_inside,
         twin_faces_dropped=len(twin_of), separate_parts=n_parts, largest_part_share=largest_share,
         vertex_map=vertex_map if welded_away else None,
         face_source=source,
         face_reversed=reversed_faces if reversed_faces.any() else None,
-        twin_source=twin_source, twin_of=twin_of if len(twin_of) else None,
+        twin_source=twin_source if len(twin_of) else None, twin_of=twin_of if len(twin_of) else None,
     )
     return Mesh(welded, faces, name=name, report=report)
 
@@ -122,6 +160,57 @@ def weld_vertices(vertices: np.ndarray, rtol: float = WELD_RTOL) -> tuple[np.nda
     rank = np.empty(n_groups, dtype=np.int64)
     rank[order] = np.arange(n_groups)
     return vertices[first[order]], rank[group]
+
+
+def _without(dropped: np.ndarray, faces: np.ndarray, source: np.ndarray, twin_source: np.ndarray,
+             twin_of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(faces, source, twin_source, twin_of) without the faces `dropped` (F,) bool: the
+    twins of a dropped face (its other side) leave with it, the others are renumbered."""
+    if not dropped.any():
+        return faces, source, twin_source, twin_of
+    renumber = np.cumsum(~dropped) - 1
+    stays = ~dropped[twin_of]
+    return faces[~dropped], source[~dropped], twin_source[stays], renumber[twin_of[stays]]
+
+
+def loose_slivers(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(loose (F,), thin (F,)): `sliver_faces`, and those of them on a border or
+    non-manifold edge (an edge not shared by exactly two faces). Dropping a loose sliver
+    leaves no new hole; one inside a closed surface is kept (dropping it would open the
+    surface: a deformed sample has thin faces where it is stretched)."""
+    thin = sliver_faces(vertices, faces)
+    if not thin.any():
+        return thin, thin
+    open_edge = (faces_per_edge(faces) != 2).reshape(-1, 3).any(axis=1)
+    return thin & open_edge, thin
+
+
+def faces_per_edge(faces: np.ndarray) -> np.ndarray:
+    """(3F,): for each half-edge (face f's corner k → k + 1 at 3f + k), how many faces
+    share its edge (either direction): 2 inside a manifold surface, 1 on a border, 3 or
+    more where sheets branch."""
+    _, edge, count = np.unique(_edge_keys(faces), return_inverse=True, return_counts=True)
+    return count[np.asarray(edge).ravel()]
+
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """(3F,) one int64 per half-edge, the same for both directions of an edge."""
+    start, end = faces.ravel().astype(np.int64), faces[:, [1, 2, 0]].ravel().astype(np.int64)
+    return np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
+
+
+def sliver_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) True for faces thinner than SLIVER_RATIO: shortest altitude (2 × area / longest
+    edge) over longest edge."""
+    thin = np.zeros(len(faces), dtype=bool)
+    for start in range(0, len(faces), FACE_CHUNK):
+        corners = vertices[faces[start:start + FACE_CHUNK]]
+        u, v, w = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], corners[:, 2] - corners[:, 1]
+        longest = np.maximum(np.maximum(np.einsum("ij,ij->i", u, u), np.einsum("ij,ij->i", v, v)),
+                             np.einsum("ij,ij->i", w, w))
+        cross = cross_rows(u, v)
+        thin[start:start + FACE_CHUNK] = np.einsum("ij,ij->i", cross, cross) < (SLIVER_RATIO * longest) ** 2
+    return thin
 
 
 def drop_twin_faces(faces: np.ndarray, polygon_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -172,6 +261,71 @@ def _repeated_polygon_first_face(faces: np.ndarray, polygon_of: np.ndarray) -> n
         repeat = earliest != polygons[group]
         twin_face[polygons[group[repeat]]] = first_face[earliest[repeat]]
     return twin_face[polygon_of]
+
+
+def internal_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh") -> np.ndarray:
+    """(F,) True for the faces of sheets inside a closed volume (a wall between two cells).
+
+    Candidates are the sheets (faces connected across edges of exactly two faces) with no
+    border whose rim runs along edges of three or more faces: a wall meets the outside
+    there. A candidate is internal when the rest of the surface, each sheet wound
+    consistently and outwards (`orient_faces`), winds around points just off both sides of
+    most of its probed faces (|winding number| ≥ INSIDE_WINDING): there is volume on both
+    sides. The two halves of the outside around a wall are candidates too, but have nothing
+    on their outer side. A clean mesh (no edge of three faces) costs one sort of its edges.
+    """
+    faces = np.asarray(faces)
+    inside = np.zeros(len(faces), dtype=bool)
+    half_face = np.repeat(np.arange(len(faces)), 3)
+    keys = np.sort(_edge_keys(faces))
+    if len(keys) < 3 or not (keys[2:] == keys[:-2]).any():  # no edge of three faces: a plain sort decides
+        return inside
+    faces_on_edge = faces_per_edge(faces)
+    first, second, _, _ = shared_edges(faces)
+    graph = sp.coo_matrix((np.ones(len(first), dtype=np.int8), (first, second)), shape=(len(faces),) * 2)
+    n_sheets, sheet = connected_components(graph, directed=False)
+    bordered = np.bincount(sheet[half_face[faces_on_edge == 1]], minlength=n_sheets) > 0
+    branching = np.bincount(sheet[half_face[faces_on_edge >= 3]], minlength=n_sheets) > 0
+    candidates = np.flatnonzero(branching & ~bordered)
+    if len(candidates) < 2:  # a wall has the outside's sheets around it, candidates too
+        return inside
+    oriented, _, _ = orient_faces(vertices, faces, label)
+    cross = triangle_cross(vertices, oriented)
+    twice_area = np.linalg.norm(cross, axis=1)
+    normal = cross / np.maximum(twice_area, np.finfo(float).tiny)[:, None]
+    offset = PROBE_OFFSET * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    probes = []  # (sheet, probed face) pairs
+    for candidate in candidates:
+        members = np.flatnonzero(sheet == candidate)
+        probes += [(candidate, f) for f in members[np.argsort(-twice_area[members], kind="stable")[:INTERNAL_PROBES]]]
+    probe_sheet, probe_face = np.array(probes).T
+    centre = vertices[oriented[probe_face]].mean(axis=1)
+    points = np.concatenate([centre + offset * normal[probe_face], centre - offset * normal[probe_face]])
+    winding = winding_numbers(vertices, oriented, points)
+    for candidate in candidates:  # the sheet's own share taken out: the rest of the surface around it
+        at = np.flatnonzero(np.tile(probe_sheet == candidate, 2))
+        winding[at] -= winding_numbers(vertices, oriented[sheet == candidate], points[at])
+    both_sides = np.minimum(*np.abs(winding).reshape(2, -1)) >= INSIDE_WINDING
+    share = np.bincount(probe_sheet, both_sides, n_sheets) / np.maximum(np.bincount(probe_sheet, minlength=n_sheets), 1)
+    return share[sheet] > 0.5
+
+
+def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Generalised winding number of the surface at each point (Q,): the solid angle its
+    faces subtend, signed by their winding, over 4π (Van Oosterom & Strackee's formula per
+    triangle). 1 inside a closed outward surface, 0 outside, in between near an open one."""
+    points = np.asarray(points, dtype=np.float64)
+    total = np.zeros(len(points))
+    block = max(1, 2_000_000 // max(len(points), 1))
+    for start in range(0, len(faces), block):
+        corners = vertices[faces[start:start + block]]  # (B, 3, 3)
+        a, b, c = (corners[None, :, k, :] - points[:, None, :] for k in range(3))  # (Q, B, 3)
+        la, lb, lc = (np.linalg.norm(d, axis=2) for d in (a, b, c))
+        numerator = np.einsum("qbi,qbi->qb", a, np.cross(b, c))
+        denominator = (la * lb * lc + np.einsum("qbi,qbi->qb", a, b) * lc
+                       + np.einsum("qbi,qbi->qb", a, c) * lb + np.einsum("qbi,qbi->qb", b, c) * la)
+        total += 2 * np.arctan2(numerator, denominator).sum(axis=1)
+    return total / (4 * np.pi)
 
 
 def separate_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, float]:

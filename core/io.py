@@ -97,8 +97,13 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         raise MeshFileError(f"{label}: contains no mesh geometry (not a mesh file, or no vertices)")
     if faces.size == 0:
         raise MeshFileError(f"{label}: has vertices but no faces (a point cloud is not a mesh)")
+    if file_faces is None:
+        try:
+            file_faces = _loaded_faces(loaded, faces, len(vertices))
+        except (ValueError, TypeError) as exc:  # face lists trimesh kept but cannot be polygons
+            raise MeshFileError(f"{label}: its face lists are not polygons ({exc})") from None
     try:
-        mesh = clean_mesh(vertices, faces, name=name)
+        mesh = clean_mesh(vertices, faces, name=name, polygon_of=_polygon_of(file_faces, faces))
     except MeshError as exc:
         # replace the mesh label by the file path so the user knows which file to fix
         message = str(exc)
@@ -107,17 +112,51 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         raise MeshFileError(f"{label}: {message}") from None
     welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
     check_not_repeated(label, welded)
-    unused = mesh.n_vertices - len(np.unique(mesh.faces))
+    unused = mesh.n_vertices - len(np.unique(welded))  # of the file's faces: intake may leave slivers out
     unterminated = suffix == ".obj" and obj_unterminated(path)
     if unused or unterminated:  # reported: a file cut short may still read as a mesh (issue 32)
         mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name,
                     report=replace(mesh.report, vertices_unused=unused, unterminated=unterminated))
-    if file_faces is None:
-        try:
-            file_faces = _loaded_faces(loaded, faces, len(vertices))
-        except (ValueError, TypeError) as exc:  # face lists trimesh kept but cannot be polygons
-            raise MeshFileError(f"{label}: its face lists are not polygons ({exc})") from None
     return _with_layout(mesh, file_faces, len(vertices))
+
+
+def _polygon_of(file_faces, triangles: np.ndarray) -> np.ndarray | None:
+    """(T,) the file polygon each triangle trimesh read was cut from, or None when the file
+    holds triangles only or a triangle is not one of its polygons' fans. Intake needs the
+    map to recognise a double-sided quad or n-gon, whose back may be cut along the other
+    diagonal (issue 31). trimesh fans every polygon from its first corner but orders the
+    triangles its own way (an all-quad OBJ: every quad's first triangle, then every
+    second), so each triangle is matched to a fan triangle with the same corners in the
+    same cyclic order (a polygon and its reverse on the same vertices have opposite ones)."""
+    sizes, corners = np.asarray(file_faces[0], dtype=np.int64), np.asarray(file_faces[1], dtype=np.int64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if len(sizes) == 0 or np.all(sizes == 3) or sizes.min() < 3 or int(np.sum(sizes - 2)) != len(triangles):
+        return None
+    start = np.cumsum(sizes) - sizes
+    polygon = np.repeat(np.arange(len(sizes)), sizes - 2)
+    step = np.arange(len(polygon)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2)
+    first = start[polygon]
+    fans = np.stack([corners[first], corners[first + step + 1], corners[first + step + 2]], axis=1)
+    fan_keys, read_keys = _cyclic_rows(fans), _cyclic_rows(triangles)
+    keys = np.concatenate([fan_keys, read_keys])
+    n = int(keys.max()) + 1
+    if n <= 2_000_000:  # one int64 per triple (n³ < 2⁶³): a flat sort
+        _, inverse = np.unique((keys[:, 0] * n + keys[:, 1]) * n + keys[:, 2], return_inverse=True)
+    else:
+        _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).ravel()
+    owner = np.full(int(inverse.max()) + 1, -1)
+    owner[inverse[:len(fans)]] = polygon
+    polygon_of = owner[inverse[len(fans):]]
+    return None if (polygon_of < 0).any() else polygon_of
+
+
+def _cyclic_rows(triangles: np.ndarray) -> np.ndarray:
+    """Each triangle's corners turned cyclically to start at its smallest index (the
+    winding kept)."""
+    shift = np.argmin(triangles, axis=1)
+    order = (shift[:, None] + np.arange(3)) % 3
+    return np.take_along_axis(triangles, order, axis=1)
 
 
 def _load_geometry(trimesh, handle, file_type: str) -> dict:

@@ -41,6 +41,12 @@ FACE_CHUNK = 1 << 18
 #: treated as degenerate (zero area up to rounding) and dropped.
 DEGENERATE_AREA_RTOL = 1e-12
 
+#: A face whose shortest altitude is below this fraction of its longest edge (2 × area /
+#: longest edge², scale-free) is a sliver: a needle or a flat cap that draws as a crack and
+#: has no usable normal. Set well below the thinnest face of every clean mesh of PSB, TOSCA
+#: and the procedural classes (`bench/cad.py --thinnest`, docs/results.md), which lose none.
+SLIVER_RATIO = 1e-4
+
 
 @dataclass(frozen=True, eq=False)
 class MeshReport:
@@ -68,6 +74,9 @@ class MeshReport:
     parts_without_inside: int = 0  # open, nearly flat parts: no side is outside, winding kept
     vertices_unused: int = 0  # vertices of the file no face uses (a file cut short between faces?)
     unterminated: bool = False  # the file's last line has no line end (valid OBJ, or a file cut short)
+    sliver_faces_dropped: int = 0  # faces thinner than SLIVER_RATIO on a border or non-manifold edge
+    sliver_faces_kept: int = 0  # such faces inside the surface (dropping one would open a hole)
+    internal_faces_dropped: int = 0  # faces of sheets inside a closed volume (walls between cells)
     twin_faces_dropped: int = 0  # faces on the vertices of a kept face (a double-sided sheet's back)
     separate_parts: int = 1  # connected parts of the surface (handles, labels, decals)
     largest_part_share: float = 1.0  # the largest part's share of the surface area
@@ -101,6 +110,14 @@ class MeshReport:
             parts.append(f"{self.vertices_unused} vertices used by no face (kept; is the file cut short?)")
         if self.unterminated:
             parts.append("its last line has no line end (read as it is; is the file cut short?)")
+        if self.sliver_faces_dropped:
+            parts.append(f"{self.sliver_faces_dropped} loose sliver face(s) dropped (thinner than {SLIVER_RATIO:g} of "
+                         "their longest edge)")
+        if self.sliver_faces_kept:
+            parts.append(f"{self.sliver_faces_kept} sliver face(s) inside the surface kept (dropping them would open it)")
+        if self.internal_faces_dropped:
+            parts.append(f"{self.internal_faces_dropped} internal face(s) (walls inside a closed volume) left out of "
+                         "the surface")
         if self.twin_faces_dropped:
             parts.append(f"{self.twin_faces_dropped} double-sided or repeated face(s) read as one surface "
                          "(samples are written one-sided)")

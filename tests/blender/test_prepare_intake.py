@@ -200,3 +200,37 @@ def test_a_double_sided_cad_file_reads_alike_through_blenders_importer_and_the_c
     assert from_blender.report.separate_parts == from_file.report.separate_parts == 2
     assert from_blender.report.summary() == from_file.report.summary()
     assert from_blender.is_closed() and from_file.is_closed()
+
+
+def test_double_sided_quads_and_a_wall_between_cells_read_alike_through_blenders_importer(extension, tmp_path):
+    """Two cells of a box and the wall between them, every quad twice (the back listed from
+    its last corner, so its triangles are cut along the other diagonal): Blender's OBJ
+    importer and the core's reader both make the same closed surface of the outside, the
+    wall left out. The core's reader reads the backs as twins (20 triangles; the wall's two
+    sides, 4, are counted as internal); Blender's importer keeps one polygon per vertex set
+    on its own, so the object has no backs and a one-sided wall (issue 31)."""
+    convert = addon_module(extension, "shapegen_addon.convert")
+    io = addon_module(extension, "core.io")
+    at = lambda x, y, z: 4 * x + 2 * y + z + 1  # noqa: E731  (OBJ numbers vertices from 1)
+    quads = [[at(0, 0, 0), at(0, 0, 1), at(0, 1, 1), at(0, 1, 0)], [at(2, 0, 0), at(2, 1, 0), at(2, 1, 1), at(2, 0, 1)],
+             [at(1, 0, 0), at(1, 1, 0), at(1, 1, 1), at(1, 0, 1)]]  # two ends and the wall
+    for x in (0, 1):
+        quads += [[at(x, 0, 0), at(x + 1, 0, 0), at(x + 1, 0, 1), at(x, 0, 1)],
+                  [at(x, 1, 0), at(x, 1, 1), at(x + 1, 1, 1), at(x + 1, 1, 0)],
+                  [at(x, 0, 0), at(x, 1, 0), at(x + 1, 1, 0), at(x + 1, 0, 0)],
+                  [at(x, 0, 1), at(x + 1, 0, 1), at(x + 1, 1, 1), at(x, 1, 1)]]
+    quads += [q[::-1] for q in quads]
+    lines = [f"v {x} {y} {z}" for x in (0, 1, 2) for y in (0, 1) for z in (0, 1)]
+    path = tmp_path / "cells.obj"
+    path.write_text("\n".join(lines + ["f " + " ".join(map(str, q)) for q in quads]) + "\n")
+    from_file = io.read_mesh(path)
+    assert bpy.ops.wm.obj_import(filepath=str(path)) == {"FINISHED"}
+    from_blender = convert.read_object(bpy.context.selected_objects[0], world=False).mesh
+    for mesh in (from_file, from_blender):
+        assert mesh.n_faces == 20 and mesh.is_closed()
+        assert trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).volume == pytest.approx(2.0)
+    np.testing.assert_array_equal(from_blender.vertices, from_file.vertices)
+    assert from_blender.face_areas().sum() == pytest.approx(from_file.face_areas().sum()) == pytest.approx(10.0)
+    assert (from_file.report.twin_faces_dropped, from_file.report.internal_faces_dropped) == (20, 4)
+    assert (from_blender.report.twin_faces_dropped, from_blender.report.internal_faces_dropped) == (0, 2)
+    assert "internal face(s)" in from_blender.report.summary()

@@ -7,7 +7,9 @@ through the CLI's `main` in this process. Every case must be either refused (exi
 2, one line on stderr naming the damaged file, no output file, nothing left in the
 output folder) or read exactly as the undamaged file. A byte flip that only changes a
 coordinate of a binary file leaves a well-formed file no reader can tell from the
-original: it must then be read with every face the file declares (none lost, none added).
+original: it must then be read with every face the file declares (none added; one lost
+only as a loose sliver the message names: a corner flung far off pulls its triangle into a
+needle on a new border, issue 31).
 An OBJ cut at a line end between its faces declares nothing that says so: it is read, and
 its vertices that no face uses are reported on stderr.
 """
@@ -101,7 +103,9 @@ def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, th
             continue
         # only a value a binary file stores in place of another (no structure) may differ
         assert name.startswith("flipped") and file_format in ("ply_binary", "stl_binary", "glb", "gltf"), name
-        assert mesh.n_faces == expected.n_faces, (name, mesh.n_faces, expected.n_faces)
+        if mesh.n_faces != expected.n_faces:  # a corner flung off makes a needle on a new border: dropped, said
+            assert any(line.startswith("case: ") and f"{expected.n_faces - mesh.n_faces} loose sliver" in line
+                       for line in lines), (name, mesh.n_faces, expected.n_faces, stderr)
         outcomes["values changed"].append(name)
     assert list(private_temp.iterdir()) == []  # every run's spill store removed, refused or not
     print(f"{file_format}: {len(cases)} cases: " + ", ".join(f"{k} {len(v)}" for k, v in outcomes.items()))

@@ -325,3 +325,91 @@ def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_thei
         welded = trimesh.Trimesh(written.vertices, written.faces)  # merged vertices: the connected surface
         assert welded.body_count == 2 and welded.is_winding_consistent
         assert all(body.volume > 0 for body in welded.split(only_watertight=False))
+
+
+# ------------------------------------------------- quads, walls between cells, slivers
+_CUBE = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float)
+_CUBE_QUADS = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+
+
+def test_a_double_sided_quad_soup_file_is_one_surface_however_its_back_was_cut(tmp_path):
+    """An OBJ soup of quads and a hexagon, each written twice with opposite windings (the
+    back starts at another corner, so trimesh cuts it along the other diagonal): one
+    closed outward surface, every back named as a twin, written back one-sided."""
+    hexagon = [[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 7)[:-1]]
+    polygons = [[tuple(_CUBE[v]) for v in q] for q in _CUBE_QUADS]
+    polygons += [[tuple(p) for p in np.asarray(hexagon) * 0.3 + [0.5, 0.5, 1.5]]]  # a sheet floating above
+    polygons += [p[::-1][1:] + p[::-1][:1] for p in polygons]  # the backs, from another corner
+    lines, face_lines = [], []
+    for polygon in polygons:
+        face_lines.append("f " + " ".join(str(len(lines) + k + 1) for k in range(len(polygon))))
+        lines += ["v %r %r %r" % tuple(map(float, p)) for p in polygon]
+    (tmp_path / "box.obj").write_text("\n".join(lines + face_lines) + "\n")
+    mesh = read_mesh(tmp_path / "box.obj")
+    assert mesh.n_faces == 12 + 4 and mesh.report.twin_faces_dropped == 16
+    box = Mesh(mesh.vertices, mesh.faces[:12])
+    assert box.is_closed() and enclosed_volume(box) == pytest.approx(1.0)
+    assert "16 double-sided" in mesh.report.summary() and "no outside" in mesh.report.summary()
+    written = write_mesh(mesh, tmp_path / "out.obj").read_text()
+    assert sum(line.startswith("f ") for line in written.splitlines()) == 7  # one side of each polygon
+
+
+def _two_cells():
+    """A 2 × 1 × 1 box of two unit cells and the wall between them (quads as triangles)."""
+    vertices = np.array([[x, y, z] for x in (0, 1, 2) for y in (0, 1) for z in (0, 1)], dtype=float)
+    at = lambda x, y, z: 4 * x + 2 * y + z  # noqa: E731
+    quads = [[at(0, 0, 0), at(0, 0, 1), at(0, 1, 1), at(0, 1, 0)], [at(2, 0, 0), at(2, 1, 0), at(2, 1, 1), at(2, 0, 1)]]
+    for x in (0, 1):
+        quads += [[at(x, 0, 0), at(x + 1, 0, 0), at(x + 1, 0, 1), at(x, 0, 1)],
+                  [at(x, 1, 0), at(x, 1, 1), at(x + 1, 1, 1), at(x + 1, 1, 0)],
+                  [at(x, 0, 0), at(x, 1, 0), at(x + 1, 1, 0), at(x + 1, 0, 0)],
+                  [at(x, 0, 1), at(x + 1, 0, 1), at(x + 1, 1, 1), at(x, 1, 1)]]
+    wall = [at(1, 0, 0), at(1, 1, 0), at(1, 1, 1), at(1, 0, 1)]
+    triangles = lambda q: [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]  # noqa: E731
+    return vertices, np.array([t for q in quads for t in triangles(q)]), np.array(triangles(wall))
+
+
+def test_a_wall_between_two_cells_is_left_out_of_the_surface_and_named():
+    vertices, outside, wall = _two_cells()
+    faces = np.concatenate([wall, outside, wall[:, [0, 2, 1]]])  # the wall double-sided too
+    mesh = clean_mesh(vertices, faces, name="cells")
+    assert mesh.n_faces == len(outside) and mesh.is_closed() and enclosed_volume(mesh) == pytest.approx(2.0)
+    assert mesh.report.internal_faces_dropped == 4 and mesh.report.twin_faces_dropped == 0
+    np.testing.assert_array_equal(mesh.report.face_source, np.arange(2, 2 + len(outside)))
+    assert "4 internal face(s)" in mesh.report.summary()
+
+
+def test_a_fin_on_a_closed_box_is_not_internal():
+    """A sheet standing on an edge of the box (three faces on that edge, but a border of
+    its own) is part of the outside."""
+    vertices, outside, _ = _two_cells()
+    vertices = np.concatenate([vertices, [[0, 0, 2], [1, 0, 2]]])
+    fin = np.array([[1, 5, 13], [1, 13, 12]])  # on the edge (0,0,1)-(1,0,1)
+    mesh = clean_mesh(vertices, np.concatenate([outside, fin]), name="fin")
+    assert mesh.n_faces == len(outside) + 2 and mesh.report.internal_faces_dropped == 0
+
+
+def test_loose_slivers_are_dropped_and_slivers_inside_the_surface_kept():
+    """A needle on the border of a sheet comes off (no new hole); a sliver between two
+    faces of a closed surface stays (a hole otherwise), and both are counted."""
+    sheet = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, -1e-6, 0]], dtype=float)
+    mesh = clean_mesh(sheet, [[0, 1, 2], [0, 2, 3], [0, 4, 1]], name="sheet")
+    assert mesh.n_faces == 2 and mesh.report.sliver_faces_dropped == 1
+    assert "1 loose sliver face(s) dropped" in mesh.report.summary()
+    # a tetrahedron-like closed surface with one corner nearly on the opposite edge
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1e-6, 0], [0.5, 0.3, 1]], dtype=float)
+    closed = clean_mesh(vertices, [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]], name="closed")
+    assert closed.n_faces == 4 and closed.is_closed()
+    assert closed.report.sliver_faces_kept == 1 and closed.report.sliver_faces_dropped == 0
+    assert "1 sliver face(s) inside the surface kept" in closed.report.summary()
+
+
+def test_winding_numbers_of_a_closed_box():
+    """1 inside a closed outward surface, 0 outside, 1/2 at the middle of a face's plane
+    close by (half the solid angle)."""
+    from shapegen_core.intake import winding_numbers
+
+    vertices, outside, _ = _two_cells()
+    mesh = clean_mesh(vertices, outside)
+    w = winding_numbers(mesh.vertices, mesh.faces, np.array([[0.5, 0.5, 0.5], [1.5, 0.2, 0.9], [3, 0, 0], [-1, 2, 2]]))
+    np.testing.assert_allclose(w, [1, 1, 0, 0], atol=1e-12)
