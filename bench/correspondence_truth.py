@@ -29,7 +29,8 @@ Methods:
 * population: the default's result refined by `refine_population` with `refine="population"`
   (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
 * warps: the default's result refined by core/correspond/warps.py `refine_warps` (no
-  setting turns it on; the settings `refine_*` of `refine="population"`);
+  setting turns it on; the settings `refine_*` of `refine="population"`); not on PSB in
+  the full mode (about 10 s more per shape: 80 shapes would double the run);
 * nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes (1 in --quick) of each
   procedural and TOSCA class (not on PSB: its dense meshes make it far from cheap);
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words),
@@ -55,6 +56,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
+from shapegen_core.correspond.warps import refine_warps  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
@@ -65,7 +67,9 @@ from correspondence import console_log, face_labels, nricp_baseline  # noqa: E40
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
-DATA = ROOT.parent / "shared" / "data"
+#: the shared data (README.md there): $SHAPEGEN_SHARED_DATA, else shared/data beside an ancestor of this checkout
+DATA = Path(os.environ.get("SHAPEGEN_SHARED_DATA") or next(
+    (p / "shared" / "data" for p in ROOT.parents if (p / "shared" / "data").is_dir()), ROOT.parent / "shared" / "data"))
 LANDMARKS = 800
 JOBS = 1
 
@@ -183,22 +187,16 @@ def settings_methods(extra: list) -> dict:
 REFINED = CorrespondenceSettings(refine="population")
 
 
-def refined_rows(bench: BenchClass, prepared, nicp, nicp_seconds: float) -> dict:
-    """The default's landmarks refined by population descent and by kernel warps (the
-    shapes NICP kept; outliers keep NICP's), input frame, with time per shape."""
-    from shapegen_core.correspond.warps import refine_warps
-
+def refined_rows(prepared, nicp, nicp_seconds: float, warps: bool) -> dict:
+    """The default's landmarks refined by population descent and (`warps`) by kernel
+    warps (the shapes NICP kept; outliers keep NICP's), input frame, with time per shape."""
     keep = ~nicp.outliers
     meshes = [s.mesh for s, k in zip(prepared.shapes, keep) if k]
     rows = {}
-    for name, refine in (("population", refine_population), ("warps", refine_warps)):
+    for name, refine in (("population", refine_population), ("warps", refine_warps))[:2 if warps else 1]:
         start = time.perf_counter()
-        if name == "warps":
-            result = refine(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
-                            nicp.edges, jobs=JOBS)
-        else:
-            result = refine(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
-                            edges=nicp.edges, jobs=JOBS)
+        result = refine(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
+                        edges=nicp.edges, jobs=JOBS)
         seconds = time.perf_counter() - start
         points = nicp.points.copy()
         points[keep] = result.points
@@ -218,7 +216,7 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
             "shapes": shapes}
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, warps: bool, log) -> dict:
     start = time.perf_counter()
     prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=0))
     vertices = [m.n_vertices for m in bench.meshes]
@@ -237,7 +235,7 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
         rows[name] = summary(bench, t, reference, result.points_input, seconds)
         rows[name]["outliers"] = int(result.outliers.sum())
         log(row_text(name, rows[name], bench.measure))
-    for name, (points_input, seconds) in refined_rows(bench, prepared, *default).items():
+    for name, (points_input, seconds) in refined_rows(prepared, *default, warps).items():
         rows[name] = summary(bench, t, reference, points_input, seconds)
         log(row_text(name, rows[name], bench.measure))
     if nricp_pairs and bench.measure == "error":
@@ -318,7 +316,8 @@ def main() -> int:
     log(f"methods: {', '.join(methods)}, population, warps, nricp_amberg; {LANDMARKS} landmarks; jobs {JOBS}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only):
-        report["classes"][name] = run_class(make(), methods, 1 if args.quick else 2, log)
+        report["classes"][name] = run_class(make(), methods, 1 if args.quick else 2,
+                                            args.quick or not name.startswith("PSB"), log)
         (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "
