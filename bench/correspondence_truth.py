@@ -19,6 +19,8 @@ per class):
 * PSB Vase, Cup, Fish, Airplane (shared/data/psb, up axis y): label transfer = share of
   landmarks whose part label on shape m is the label of landmark i on the template.
 
+Shapes: --quick 5 per procedural class, 4 cats, 5 PSB vases; full 10 per procedural class,
+every TOSCA shape, the first 12 of each PSB class. 800 landmarks (the default).
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
 shapes other than the template ("mean") and the worst shape's ("max"). Time is the
 correspondence wall time per shape in this process (jobs=1).
@@ -31,8 +33,9 @@ Methods:
 * warps: the default's result refined by core/correspond/warps.py `refine_warps` (no
   setting turns it on; the settings `refine_*` of `refine="population"`); not on PSB in
   the full mode (about 10 s more per shape: 80 shapes would double the run);
-* nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes (1 in --quick) of each
-  procedural and TOSCA class (not on PSB: its dense meshes make it far from cheap);
+* nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes of each procedural
+  class and 1 of each TOSCA class (--quick: 1; not on PSB: its dense meshes make it far
+  from cheap), compared with closest points on the same pairs;
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words),
   and every choice of an `initialisation` setting other than its default when the
   installed settings have one (issue 34's spectral start), e.g.
@@ -143,16 +146,19 @@ def psb_class(folder: Path, limit: int | None) -> BenchClass:
 
 
 def classes(quick: bool, only: set | None) -> list:
-    n = 5 if quick else 12
-    makers = {
+    """(name, maker) of every class, the pose-varying TOSCA animals first (a run cut short
+    still has them: the report is written after every class)."""
+    n, psb_shapes = (5, 5) if quick else (10, 12)
+    makers = {}
+    for animal in (["cat"] if quick else ["cat", "centaur", "dog", "horse"]):
+        makers[f"TOSCA {animal}"] = lambda animal=animal: tosca_class(animal, 4 if quick else None)
+    makers.update({
         "vases": lambda: procedural_class("vases", make_vases(n, seed=11, resolution=(40, 80))),
         "handled mugs": lambda: procedural_class("handled mugs", make_handled_mugs(n, seed=11)),
         "quadrupeds": lambda: procedural_class("quadrupeds", make_quadrupeds(n, seed=11)),
-    }
-    for animal in (["cat"] if quick else ["cat", "centaur", "dog", "horse"]):
-        makers[f"TOSCA {animal}"] = lambda animal=animal: tosca_class(animal, 4 if quick else None)
+    })
     for folder in (["Vase"] if quick else ["Vase", "Cup", "Fish", "Airplane"]):
-        makers[f"PSB {folder}"] = lambda folder=folder: psb_class(DATA / "psb" / folder, 5 if quick else None)
+        makers[f"PSB {folder}"] = lambda folder=folder: psb_class(DATA / "psb" / folder, psb_shapes)
     return [(name, make) for name, make in makers.items() if only is None or name in only]
 
 
@@ -307,7 +313,11 @@ def main() -> int:
     parser.add_argument("--method", action="append", default=[], metavar="NAME:key=value,...",
                         help="another row: CorrespondenceSettings fields (repeatable)")
     parser.add_argument("--classes", default=None, help="comma-separated class names (default: all)")
+    parser.add_argument("--table", metavar="JSON", help="only print the table of a report (a run cut short too)")
     args = parser.parse_args()
+    if args.table:
+        print("\n".join(table(json.loads(Path(args.table).read_text()))))
+        return 0
     methods = settings_methods(args.method)
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
@@ -316,8 +326,8 @@ def main() -> int:
     log(f"methods: {', '.join(methods)}, population, warps, nricp_amberg; {LANDMARKS} landmarks; jobs {JOBS}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only):
-        report["classes"][name] = run_class(make(), methods, 1 if args.quick else 2,
-                                            args.quick or not name.startswith("PSB"), log)
+        pairs = 1 if args.quick or name.startswith("TOSCA") else 2
+        report["classes"][name] = run_class(make(), methods, pairs, args.quick or not name.startswith("PSB"), log)
         (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "
