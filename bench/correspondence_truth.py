@@ -30,12 +30,11 @@ Methods:
 * features: `matching="features"`;
 * population: the default's result refined by `refine_population` with `refine="population"`
   (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
-* warps: the default's result refined by core/correspond/warps.py `refine_warps` (no
-  setting turns it on; the settings `refine_*` of `refine="population"`); not on PSB in
-  the full mode (about 10 s more per shape: 80 shapes would double the run);
 * nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes of each procedural
   class and 1 of each TOSCA class (--quick: 1; not on PSB: its dense meshes make it far
   from cheap), compared with closest points on the same pairs;
+* (kernel warps, core/correspond/warps.py, had a row until they were removed: their
+  figures are in docs/results.md, the code at bfbd68b;)
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words),
   and every choice of an `initialisation` setting other than its default when the
   installed settings have one (issue 34's spectral start), e.g.
@@ -59,7 +58,6 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
-from shapegen_core.correspond.warps import refine_warps  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
@@ -193,22 +191,19 @@ def settings_methods(extra: list) -> dict:
 REFINED = CorrespondenceSettings(refine="population")
 
 
-def refined_rows(prepared, nicp, nicp_seconds: float, warps: bool) -> dict:
-    """The default's landmarks refined by population descent and (`warps`) by kernel
-    warps (the shapes NICP kept; outliers keep NICP's), input frame, with time per shape."""
+def refined_rows(prepared, nicp, nicp_seconds: float) -> dict:
+    """The default's landmarks refined by population descent (the shapes NICP kept;
+    outliers keep NICP's), input frame, with time per shape."""
     keep = ~nicp.outliers
     meshes = [s.mesh for s, k in zip(prepared.shapes, keep) if k]
-    rows = {}
-    for name, refine in (("population", refine_population), ("warps", refine_warps))[:2 if warps else 1]:
-        start = time.perf_counter()
-        result = refine(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
-                        edges=nicp.edges, jobs=JOBS)
-        seconds = time.perf_counter() - start
-        points = nicp.points.copy()
-        points[keep] = result.points
-        rows[name] = (np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, points)]),
-                      nicp_seconds + seconds / len(points))
-    return rows
+    start = time.perf_counter()
+    result = refine_population(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
+                               edges=nicp.edges, jobs=JOBS)
+    seconds = time.perf_counter() - start
+    points = nicp.points.copy()
+    points[keep] = result.points
+    return {"population": (np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, points)]),
+                           nicp_seconds + seconds / len(points))}
 
 
 def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, shapes=None) -> dict:
@@ -222,7 +217,7 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
             "shapes": shapes}
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, warps: bool, log) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
     start = time.perf_counter()
     prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=0))
     vertices = [m.n_vertices for m in bench.meshes]
@@ -241,7 +236,7 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, warps: bool, l
         rows[name] = summary(bench, t, reference, result.points_input, seconds)
         rows[name]["outliers"] = int(result.outliers.sum())
         log(row_text(name, rows[name], bench.measure))
-    for name, (points_input, seconds) in refined_rows(prepared, *default, warps).items():
+    for name, (points_input, seconds) in refined_rows(prepared, *default).items():
         rows[name] = summary(bench, t, reference, points_input, seconds)
         log(row_text(name, rows[name], bench.measure))
     if nricp_pairs and bench.measure == "error":
@@ -323,11 +318,11 @@ def main() -> int:
     log, lines = console_log()
     report = {"quick": args.quick, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
               "load_average_start": os.getloadavg()[0], "classes": {}}
-    log(f"methods: {', '.join(methods)}, population, warps, nricp_amberg; {LANDMARKS} landmarks; jobs {JOBS}")
+    log(f"methods: {', '.join(methods)}, population, nricp_amberg; {LANDMARKS} landmarks; jobs {JOBS}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only):
         pairs = 1 if args.quick or name.startswith("TOSCA") else 2
-        report["classes"][name] = run_class(make(), methods, pairs, args.quick or not name.startswith("PSB"), log)
+        report["classes"][name] = run_class(make(), methods, pairs, log)
         (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "
