@@ -20,7 +20,7 @@ per class):
   landmarks whose part label on shape m is the label of landmark i on the template.
 
 Shapes: --quick 5 per procedural class, 4 cats, 5 PSB vases; full 10 per procedural class,
-every TOSCA shape, the first 12 of each PSB class. 800 landmarks (the default).
+every TOSCA shape, the first 10 of each PSB class. 800 landmarks (the default).
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
 shapes other than the template ("mean") and the worst shape's ("max"). Time is the
 correspondence wall time per shape in this process (jobs=1).
@@ -146,7 +146,7 @@ def psb_class(folder: Path, limit: int | None) -> BenchClass:
 def classes(quick: bool, only: set | None) -> list:
     """(name, maker) of every class, the pose-varying TOSCA animals first (a run cut short
     still has them: the report is written after every class)."""
-    n, psb_shapes = (5, 5) if quick else (10, 12)
+    n, psb_shapes = (5, 5) if quick else (10, 10)
     makers = {}
     for animal in (["cat"] if quick else ["cat", "centaur", "dog", "horse"]):
         makers[f"TOSCA {animal}"] = lambda animal=animal: tosca_class(animal, 4 if quick else None)
