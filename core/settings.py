@@ -95,6 +95,7 @@ def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = Fals
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
     if recorded:
         data = {**getattr(cls, "FIELDS_ADDED_LATER", {}), **data}
+    data = _without_removed(cls, data, path, recorded)
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -113,6 +114,18 @@ def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = Fals
         raise SettingsError(f"{path}.{exc.option}", exc.problem, exc.prefix) from None
     except (TypeError, ValueError) as exc:
         raise SettingsError(label, f"is invalid: {exc}") from None
+
+
+def _without_removed(cls, data: Mapping, path: str, recorded: bool) -> Mapping:
+    """`data` without the fields `cls.FIELDS_REMOVED` names (name → why it went). A file
+    (`recorded`) that records one is read as if it had not: the field's removal kept the
+    behaviour of its default, which the class documents. Settings given now (JSON, command
+    line, the add-on) that name one are refused, naming the option and why it went."""
+    removed = getattr(cls, "FIELDS_REMOVED", {})
+    named = [name for name in data if name in removed]
+    if named and not recorded:
+        raise SettingsError(f"{path}.{named[0]}" if path else named[0], f"was removed: {removed[named[0]]}")
+    return {name: value for name, value in data.items() if name not in removed}
 
 
 def settings_from_json(cls, text: str, recorded: bool = False):
@@ -164,7 +177,8 @@ class Settings:
     """Base of frozen settings dataclasses: checks its fields after construction and
     round-trips through plain data / JSON. A subclass's `FIELDS_ADDED_LATER` (a class
     attribute) maps a field added after files were written to the value runs recorded
-    in those files used (when it differs from the field's default)."""
+    in those files used (when it differs from the field's default); its `FIELDS_REMOVED`
+    maps a field taken out to why (files that record it still load, `_without_removed`)."""
 
     def __post_init__(self):
         check_fields(self)

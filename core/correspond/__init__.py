@@ -42,8 +42,6 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   objective.py     the population objective of refinement: compactness + spread, gradients
   refine.py        `refine_population`: projected, backtracking descent on the surfaces
   shards.py        refinement's per-shape state (surfaces, moves, spread) in worker processes
-  warps.py         `refine_warps`: coarse-to-fine kernel warps per shape searched by L-BFGS
-                   (Davies et al.; measured in bench/refine_warps.py, not a `refine` option)
   result.py        `Correspondence` and its .npz file
 """
 

@@ -9,26 +9,26 @@ target point in a joint space of position and surface features (ICP with invaria
 features, Sharp, Lucas & Hebert 2002):
 
     v_n(i) = argmin_y ‖x_i − y‖² + ‖f_i − f(y)‖²,
-    f(n) = [w_n · (n_x, n_y, c · n_z),  w_u · tanh(n_z / h)],
+    f(n) = [w_n · (n_x, n_y, 0),  w_u · tanh(n_z / h)],
 
 x_i the template point, n its unit normal; n_z = n · up (+z after Prepare). The first part
-keeps a point on the side of a wall that faces its way (it replaces the compatibility test
-of `normal_max_angle`; c = `feature_tilt`, 0 by default: the normal's slope would pull
+keeps a point on the side of a wall that faces its way by the normal's horizontal direction
+(it replaces the compatibility test of `normal_max_angle`; the normal's slope would pull
 matches towards equal slope, a different height on every flaring lip); the second, the
 saturated up-component, marks where the surface turns from facing down to facing up: a
 belly or a neck (n_z = 0 between the two) is a level set of it whatever the shape's
-proportions, so matching it lines such features up (`CorrespondenceSettings.feature_*`
-explain the defaults and what they measured).
+proportions, so matching it lines such features up (the constants below say why each
+value; docs/results.md, Correspondence, what they measured).
 
 The template point's features are its normals as the first (stiffest, nearly affine) α of
 the schedule left them (`register`): a taller target tilts every normal less, and the
 near-affine fit carries that over before features are compared (a warm start's
 `initial_normals` instead, when given). The target is represented
 by its landmarks and area-uniform surface samples (their face normals),
-`feature_samples` per template point, in one KD-tree over the joint space; a match is the
+SAMPLES_PER_POINT per template point, in one KD-tree over the joint space; a match is the
 closest point on the face of the nearest sample (the samples only choose the face), and
 the final placement is the exact closest surface point as before (registration.py).
-An iteration drops the matches farther than `feature_trim` × the median match distance
+An iteration drops the matches farther than TRIM × the median match distance
 (`kept_matches`): a part of the template with no counterpart on the target follows its
 neighbours instead of being dragged to the nearest surface facing its way.
 From the groupwise round on, template regions facing opposite ways whose first-round
@@ -63,6 +63,27 @@ __all__ = ["point_features", "uses_between", "carry_positions", "uses_features",
 
 #: seed of the target's surface samples (fixed: a registration is deterministic)
 SAMPLE_SEED = 0
+#: w_n, weight of the normal's horizontal direction: two points whose normals differ by
+#: 60° are as far apart as points w_n apart on a wall
+NORMAL_WEIGHT = 0.5
+#: w_u, weight of the saturated up-component tanh(n_z / h) (+z is up after Prepare)
+UP_WEIGHT = 1.0
+#: h: n_z well below it counts as facing sideways, well above as up; small, so the feature
+#: is nearly the side of the turning line a point lies on and a belly's gentle slopes do not
+#: pull matches towards equal slope
+UP_WIDTH = 0.01
+#: an iteration drops the matches farther than this many times the median match distance
+#: (trimmed ICP, **beyond** the thesis): a template part with no counterpart on the target
+#: (a neck on a vase without one, a handle) follows its neighbours through the stiffness
+#: term instead of being dragged to the nearest surface facing its way
+TRIM = 10.0
+#: area-uniform target surface samples per template point; they choose the face a match
+#: lies on (the match is that face's closest point)
+SAMPLES_PER_POINT = 20
+#: the fit check (`worse_fits`, `keeps_features`): above this share of shapes fitted worse,
+#: the collection is matched by closest points; one collapse in 10 or more shapes is left
+#: to the outlier flags, more say the class's walls contradict the features
+FALLBACK_SHARE = 0.1
 #: a shape whose positions between turning lines differ from the template's by at most
 #: this on average (at the first round's matches) compares them with the full weight w_b,
 #: by `NO_AGREEMENT` or more not at all, linearly between. Positions of unrelated structures
@@ -92,15 +113,14 @@ def uses_features(settings: CorrespondenceSettings) -> bool:
 
 def point_features(normals: np.ndarray, settings: CorrespondenceSettings, between: np.ndarray | None = None) -> np.ndarray:
     """f of the module docstring for (n, 3) normals (normalised here; a zero normal gives
-    zero features): (n, 4) = [w_n · (n_x, n_y, c · n_z), w_u · tanh(n_z / h)] (c =
-    `feature_tilt`), and when `between` (n,) is given a fifth column w_b · g: the points'
-    positions between turning lines (turning.py; w_b = `feature_between`)."""
+    zero features): (n, 4) = [w_n · (n_x, n_y, 0), w_u · tanh(n_z / h)], and when
+    `between` (n,) is given a fifth column w_b · g: the points' positions between turning
+    lines (turning.py; w_b = `feature_between`)."""
     normals = np.asarray(normals, dtype=np.float64)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    up = np.tanh(unit[:, 2] / settings.feature_up_width)
-    tilted = unit * np.array([1.0, 1.0, settings.feature_tilt])
-    columns = [settings.feature_normals * tilted, settings.feature_up * up[:, None]]
+    up = np.tanh(unit[:, 2] / UP_WIDTH)
+    columns = [NORMAL_WEIGHT * unit * np.array([1.0, 1.0, 0.0]), UP_WEIGHT * up[:, None]]
     if between is not None:
         if np.shape(between) != (len(normals),):
             raise ValueError(f"between must hold one position per normal ({len(normals)}), got {np.shape(between)}")
@@ -118,8 +138,9 @@ def agreement_weights(template_between: np.ndarray, shape_between: list[np.ndarr
 
 
 def checks_fit(settings: CorrespondenceSettings) -> bool:
-    """Whether feature matches are checked against closest points (`feature_fit_check`)."""
-    return uses_features(settings) and settings.feature_fit_check
+    """Whether the first round checks feature matches against closest points: whenever
+    they run (groupwise.py `_checked_feature_fits`)."""
+    return uses_features(settings)
 
 
 def worse_fits(feature_residuals: np.ndarray, closest_residuals: np.ndarray) -> np.ndarray:
@@ -139,17 +160,18 @@ def worse_fits(feature_residuals: np.ndarray, closest_residuals: np.ndarray) -> 
     return feature_residuals > (1.0 + FIT_TOLERANCE) * closest_residuals + 1e-9  # a shape on itself: both 0
 
 
-def keeps_features(worse: np.ndarray, fallback_share: float) -> bool:
+def keeps_features(worse: np.ndarray, fallback_share: float = FALLBACK_SHARE) -> bool:
     """Whether a collection stays with feature matches after the fit check: unless more than
-    `fallback_share` (`feature_fallback_share`) of its shapes are fitted worse (`worse`,
-    from `worse_fits`), when the whole collection is matched by closest points."""
+    `fallback_share` of its shapes are fitted worse (`worse`, from `worse_fits`), when the
+    whole collection is matched by closest points. Empty `worse` (not checked: files
+    written before the check) keeps them."""
     worse = np.asarray(worse, dtype=bool)
     return not (len(worse) and worse.mean() > fallback_share)
 
 
-def kept_matches(distance: np.ndarray, trim: float) -> np.ndarray:
+def kept_matches(distance: np.ndarray, trim: float = TRIM) -> np.ndarray:
     """1.0 for every match at most `trim` × the median match distance away, 0.0 beyond
-    (`feature_trim`; trimmed ICP); all 1 when trim is 0. Distances are in the registration
+    (TRIM; trimmed ICP); all 1 when trim is 0. Distances are in the registration
     frame (unit scale), so a median of 0 (a shape on itself) still keeps matches within 1e-9."""
     distance = np.asarray(distance, dtype=np.float64)
     if trim <= 0 or len(distance) == 0:
@@ -160,16 +182,16 @@ def kept_matches(distance: np.ndarray, trim: float) -> np.ndarray:
 
 
 def checks_regions(settings: CorrespondenceSettings) -> bool:
-    """Whether feature matches look for template regions that merge on a shape
-    (`feature_merged_regions`)."""
-    return uses_features(settings) and settings.feature_merged_regions
+    """Whether template regions that merge on a shape are looked for (`merged_regions`):
+    whenever feature matches run."""
+    return uses_features(settings)
 
 
 def merged_regions(template_regions: np.ndarray, template_normals: np.ndarray,
                    shape_regions: np.ndarray) -> np.ndarray:
     """(L,) bool: the template points whose region merges with a region facing the other way
     on a shape, so feature matches compare them plainly there (position and normal
-    direction; `feature_merged_regions`).
+    direction).
 
     `template_regions` (L,): each template point's region on the template's own surface
     (turning.facing_regions); `template_normals` (L, 3) its normals; `shape_regions` (L,):
@@ -236,7 +258,7 @@ class FeatureMatcher:
 
     def __init__(self, target: TargetSurface, target_landmarks: np.ndarray, target_landmark_normals: np.ndarray | None,
                  n_template_points: int, settings: CorrespondenceSettings, with_between: bool = False):
-        count = max(1, settings.feature_samples * n_template_points)
+        count = max(1, SAMPLES_PER_POINT * n_template_points)
         samples = Mesh(target.vertices, target.faces).sample_surface(count, np.random.default_rng(SAMPLE_SEED))
         self.landmarks = np.asarray(target_landmarks, dtype=np.float64)
         self.triangles = target.triangles

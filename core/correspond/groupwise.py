@@ -283,9 +283,9 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
 
 def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: RegistrationRunner, report: Progress,
                           label: str) -> tuple[list[Registration], CorrespondenceSettings, np.ndarray]:
-    """(feature matches, **beyond** the thesis; `feature_fit_check`) the first round by
+    """(feature matches, **beyond** the thesis) the first round by
     feature matches and by closest points side by side, from the same template. When
-    feature matches fit more than `feature_fallback_share` of the shapes worse
+    feature matches fit more than features.FALLBACK_SHARE of the shapes worse
     (features.worse_fits: the template collapsed onto part of them), the collection is
     matched by closest points, and the result is the closest-point correspondence exactly;
     else by feature matches, as without the check. The template's own shape decides nothing
@@ -299,7 +299,7 @@ def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: Reg
     by_features, by_closest = both[:len(tasks)], both[len(tasks):]
     worse = worse_fits([r.residual for r in by_features], [r.residual for r in by_closest])
     worse[start] = False
-    if keeps_features(worse, settings.feature_fallback_share):
+    if keeps_features(worse):
         return by_features, settings, worse
     report(1.0, f"feature matches fit {int(worse.sum())} of {len(tasks)} shapes worse than closest points "
                 f"({', '.join(t.name for t, w in zip(tasks, worse) if w)}): closest points for the collection")

@@ -141,7 +141,7 @@ def register(
     template shape's own), compared by feature matches when `feature_between` > 0; with
     feature matches and `feature_between` > 0 the result reports the target's positions at
     its placed points (`Registration.between`), given a template's or not; with
-    `feature_merged_regions` it reports the target's regions there (`Registration.regions`).
+    feature matches it reports the target's regions there (`Registration.regions`).
     `plain_points` (L,) bool: template points feature matches compare by position and
     normal only (features.merged_regions). Raises Cancelled
     between iterations once `should_cancel` (None, a callable or an Event-like object;
@@ -199,7 +199,7 @@ def register(
                 goals = forward.points
             else:
                 goals, distance = matcher.forward(points, features, plain_points)
-                weights = _match_weights(distance, settings) * kept_matches(distance, settings.feature_trim)
+                weights = _match_weights(distance, settings) * kept_matches(distance)
             rows = np.arange(n_points)
             if lam > 0:
                 if features is None:

@@ -28,7 +28,7 @@ from ..collection import PrepareSettings
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..settings import recorded_settings
-from .features import keeps_features, uses_features
+from .features import FALLBACK_SHARE, keeps_features, uses_features
 from .settings import REFINE_METHODS, CorrespondenceSettings
 
 __all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
@@ -73,15 +73,15 @@ class Correspondence:
     def feature_matches_ran(self) -> bool:
         """Whether feature matches (features.py) registered the collection, not closest
         points: never unless the settings asked for them; always when they were not checked
-        against closest points (`feature_fit_check` off, older files); else as the check
-        decided (`features.keeps_features`)."""
+        against closest points (files written before the check); else as the check decided
+        (`features.keeps_features`)."""
         if self.settings is None or not uses_features(self.settings):
             return False
-        return keeps_features(self.feature_fit_worse, self.settings.feature_fallback_share)
+        return keeps_features(self.feature_fit_worse)
 
     def matching_summary(self) -> str:
         """One line for people: which data term matched the landmarks, and whether the fit
-        check (`feature_fit_check`) chose closest points instead of feature matches."""
+        check (groupwise.py `_checked_feature_fits`) chose closest points instead of feature matches."""
         if self.settings is None:
             return "matches not recorded"
         if not uses_features(self.settings):
@@ -90,7 +90,7 @@ class Correspondence:
         count = f"{int(worse.sum())} of {len(self)} shapes"
         if not self.feature_matches_ran:
             return (f"closest points: feature matches fitted {count} worse "
-                    f"(more than {self.settings.feature_fallback_share:.0%})")
+                    f"(more than {FALLBACK_SHARE:.0%})")
         summary = "feature matches" + (f" (they fitted {count} worse than closest points)" if len(worse) else "")
         merged = int(np.count_nonzero(self.plain_shares))
         if merged:  # features.merged_regions

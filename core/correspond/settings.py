@@ -10,10 +10,16 @@ import numpy as np
 from ..settings import Settings, SettingsError, option
 from ..simplify import REGISTRATION_PROXY_FACES
 
-__all__ = ["CorrespondenceSettings", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
+__all__ = ["CorrespondenceSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
 
 #: `matching`: the data term's matches (registration.py, features.py)
 MATCHING_METHODS = ("closest", "features")
+
+#: with feature matches the stiffness schedule ends at this fraction of `alpha_end`: the
+#: features pull only the points between the template's turning line and the target's, and
+#: a softer last α lets the wall around them follow (with closest points a softer end does
+#: not help, so the schedule changes only there; docs/results.md, Correspondence)
+FEATURE_STIFFNESS = 0.4
 
 #: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
@@ -59,22 +65,6 @@ class CorrespondenceSettings(Settings):
         regions — a belly, a neck, a shoulder — are pulled onto each other. Closer to the
         true correspondence on turned shapes, but the landmark models it gives are less
         compact on real classes, so it is not the default.
-      feature_normals: w_n, weight of the normal feature: two points whose normals differ
-        by 60° are as far apart as points w_n apart on a wall.
-      feature_tilt: c: the normal feature is w_n · (n_x, n_y, c · n_z). At 0 (default;
-        files written before it record 1) the normal keeps a match on the side of a thin
-        wall by its horizontal direction only; its up-component would pull matches
-        towards equal slope, a different height on every flaring lip, while the up
-        feature below already says which side of a turning line a point lies on.
-      feature_up: w_u: weight of the saturated up-component tanh(n_z / h) of the normal
-        (+z is up after Prepare): where the surface turns from facing down to facing up.
-      feature_up_width: h: n_z well below h counts as facing sideways, well above as up.
-        Small, so the feature is nearly the side of the turning line a point lies on and
-        a belly's gentle slopes do not pull matches towards equal slope.
-      feature_stiffness: with feature matches the schedule ends at this fraction of
-        `alpha_end`. The features pull only the points between the template's turning
-        line and the target's; a softer last α lets the wall around them follow. (With
-        closest points a softer end does not help, so the schedule changes only here.)
       feature_between: w_b > 0 adds a fifth feature, w_b · g: where a point lies between
         the turning lines of its region (turning.py: 0 on the lower line, 1 on the upper,
         by height), so points on both sides of a line are pulled in proportion. The first
@@ -83,32 +73,11 @@ class CorrespondenceSettings(Settings):
         falls from 1 to 0 as its first-round g disagrees with the template's by 0.1 to
         0.2 (features.agreement_weights): real classes whose turning lines differ are
         matched without it. 0: off (files written before it record 0).
-      feature_trim: with feature matches, an iteration drops the matches farther than this
-        many times the median match distance (trimmed ICP, **beyond** the thesis, which
-        keeps every compatible match): a template part with no counterpart on the target
-        (a neck on a vase without one, a handle) then follows its neighbours through the
-        stiffness term instead of being dragged to the nearest surface facing its way.
-        0: none dropped (files written before it record 0).
-      feature_merged_regions: after the first round, template points of two regions facing
-        opposite ways (turning.facing_regions) whose matches land in one region of a shape
-        are matched on that shape by position and normal only (features.merged_regions):
-        a vase whose lip is narrower than its neck faces up from belly to rim, where the
-        template's neck splits that wall in two, and matching sides there would drag the
-        template's neck onto the shape's rim. Files written before it record False.
-      feature_samples: area-uniform target surface samples per template point; they choose
-        the face a match lies on (the match is that face's closest point; the final
-        placement is the exact closest surface point as always).
-      feature_fit_check: True (default; files written before it record False): the first
-        round registers every shape by feature matches and by closest points from the same
-        template; a shape counts as fitted worse by feature matches when its residual is
-        more than 25 % above the closest-point fit's (features.worse_fits: a template
-        collapsed onto part of the shape, as where its wall leans in and the shape's out).
-        When more than `feature_fallback_share` of the shapes are, the collection is
-        matched by closest points (exactly the "closest" result); otherwise by feature
-        matches, exactly as without the check. The file records each shape's outcome
-        (`Correspondence.feature_fit_worse`; `matching_summary` says which data term ran).
-      feature_fallback_share: one collapse in a collection of 10 or more is left to the
-        outlier flags; more say the class's walls contradict the features.
+      The other weights and rules of feature matches are constants of features.py (the
+      normal's and the up-component's weights, the up-width, trimmed matches, merged
+      regions, surface samples, the fit check against closest points and its fallback
+      share) and FEATURE_STIFFNESS here: they were research knobs, removed in issue 34
+      (`FIELDS_REMOVED`; their measurements are in docs/results.md).
     Iteration (Alg. 3, §4.2.6):
       update_template: True: every solve starts from the moved points, so the stiffness
         regularises each step only (the thesis's modification of Alg. 3). False
@@ -181,8 +150,13 @@ class CorrespondenceSettings(Settings):
 
     #: files written before these fields existed ran with these values (settings.Settings);
     #: not annotated: a class attribute, not a field
-    FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0,
-                          "feature_fit_check": False, "feature_tilt": 1.0, "feature_merged_regions": False}
+    FIELDS_ADDED_LATER = {"feature_between": 0.0}
+    #: fields taken out (settings.Settings): files that record them load as today's
+    #: settings; settings given now that name them are refused, saying why
+    FIELDS_REMOVED = dict.fromkeys(
+        ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
+         "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
+        "a research knob of feature matches, now a constant of core/correspond/features.py (issue 34)")
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
@@ -194,26 +168,8 @@ class CorrespondenceSettings(Settings):
     matching: str = option("closest", "data term matches: closest (compatible) points, the thesis; features: "
                            "nearest in position and surface normal (beyond the thesis)", flag="--matching",
                            choices=MATCHING_METHODS)
-    feature_normals: float = option(0.5, "features: weight of the surface normal beside the position", minimum=0)
-    feature_tilt: float = option(0.0, "features: weight of the normal's up-component within the normal feature, "
-                                      "relative to its horizontal part", minimum=0)
-    feature_up: float = option(1.0, "features: weight of the saturated up-component of the normal", minimum=0)
-    feature_up_width: float = option(0.01, "features: up-components well below this count as facing sideways",
-                                     above=0)
-    feature_stiffness: float = option(0.4, "features: the stiffness schedule ends at this fraction of alpha_end",
-                                      above=0)
     feature_between: float = option(1.0, "features: weight of a point's position between the turning lines of its "
                                     "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
-    feature_trim: float = option(10.0, "features: matches farther than this many times the median match distance "
-                                 "are dropped in that iteration (0: none)", minimum=0)
-    feature_merged_regions: bool = option(True, "features: template points whose region merges with one facing "
-                                                "the other way on a shape are matched there by position and normal "
-                                                "only, from the groupwise round on")
-    feature_samples: int = option(20, "features: target surface samples per template point", minimum=1)
-    feature_fit_check: bool = option(True, "features: the first round also registers every shape by closest points; "
-                                     "a collection feature matches fit badly is matched by closest points")
-    feature_fallback_share: float = option(0.1, "features: above this share of shapes fitted over 25 % worse, the "
-                                           "whole collection is matched by closest points", minimum=0)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")
     update_template: bool = option(False, "every solve starts from the moved points (the thesis's Alg. 3)")
@@ -255,10 +211,6 @@ class CorrespondenceSettings(Settings):
         super().__post_init__()
         if self.loo_variance > 1:
             raise SettingsError("loo_variance", f"must be at most 1, got {self.loo_variance!r}")
-        if self.feature_fallback_share > 1:
-            raise SettingsError("feature_fallback_share", f"must be at most 1, got {self.feature_fallback_share!r}")
-        if self.feature_stiffness > 1:
-            raise SettingsError("feature_stiffness", f"must be at most 1, got {self.feature_stiffness!r}")
         if self.alpha_start < self.alpha_end:
             raise SettingsError("alpha_start", f"must be at least alpha_end ({self.alpha_end!r}), got "
                                 f"{self.alpha_start!r}")
@@ -266,8 +218,8 @@ class CorrespondenceSettings(Settings):
     @property
     def alphas(self) -> np.ndarray:
         """The stiffness schedule α_1 > α_2 > ... of Alg. 3: `alpha_steps` values from
-        `alpha_start` down to `alpha_end` (× `feature_stiffness` with feature matches)."""
-        end = self.alpha_end * (self.feature_stiffness if self.matching == "features" else 1.0)
+        `alpha_start` down to `alpha_end` (× FEATURE_STIFFNESS with feature matches)."""
+        end = self.alpha_end * (FEATURE_STIFFNESS if self.matching == "features" else 1.0)
         if self.alpha_steps == 1:
             return np.array([end], dtype=float)
         return np.linspace(self.alpha_start, end, self.alpha_steps)

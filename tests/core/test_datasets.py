@@ -51,3 +51,47 @@ def test_generation_is_deterministic_for_a_seed():
         np.testing.assert_array_equal(x.mesh.vertices, y.mesh.vertices)
         np.testing.assert_array_equal(x.mesh.faces, y.mesh.faces)
     assert not np.array_equal(make_vases(1, seed=10)[0].mesh.vertices[:10], a[0].mesh.vertices[:10])
+
+
+def _parted_classes():
+    from shapegen_core.datasets import make_handled_mugs, make_quadrupeds
+
+    return [make_handled_mugs(3, seed=4, resolution=(12, 16)), make_quadrupeds(3, seed=4, resolution=(12, 16))]
+
+
+def test_parted_shapes_are_closed_outward_parts_at_their_coordinates():
+    for shapes in _parted_classes():
+        assert len({s.mesh.n_vertices for s in shapes}) > 1  # triangulated differently
+        for shape in shapes:
+            mesh = shape.mesh
+            np.testing.assert_allclose(shape.points_at(shape.vertex_coordinates), mesh.vertices, atol=1e-12)
+            part_of_face = shape.vertex_coordinates[mesh.faces, 0]
+            assert np.all(part_of_face == part_of_face[:, :1])  # a face never spans two parts
+            edges = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
+            assert np.all(np.unique(edges, axis=0, return_counts=True)[1] == 2)  # every part closed and manifold
+            tri = mesh.triangles
+            volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6
+            for k in range(len(shape.parts)):
+                assert volume[part_of_face[:, 0] == k].sum() > 0  # every part faces outward
+
+
+def test_parted_surface_coordinates_round_trip_within_discretisation():
+    for shapes in _parted_classes():
+        shape = shapes[0]
+        samples = shape.mesh.sample_surface(2000, np.random.default_rng(0))
+        coordinates = shape.surface_coordinates(samples.face_index, samples.barycentric)
+        error = np.linalg.norm(shape.points_at(coordinates) - samples.points, axis=1)
+        assert np.median(error) < 0.2 * shape.mesh.mean_edge_length()
+
+
+def test_quadruped_bodies_correspond_by_an_affine_map():
+    """Equal body coordinates are an affine map between two quadrupeds' bodies (what the
+    ground truth claims geometry can recover): a least-squares affine fits them exactly."""
+    from shapegen_core.datasets import make_quadrupeds
+
+    a, b = make_quadrupeds(2, seed=9, resolution=(12, 16), pose=False)
+    rng = np.random.default_rng(1)
+    coordinates = np.column_stack([np.zeros(200), rng.uniform(0, 1, 200), rng.uniform(-np.pi, np.pi, 200)])
+    pa, pb = a.points_at(coordinates), b.points_at(coordinates)
+    affine, *_ = np.linalg.lstsq(np.c_[pa, np.ones(200)], pb, rcond=None)
+    np.testing.assert_allclose(np.c_[pa, np.ones(200)] @ affine, pb, atol=1e-9)

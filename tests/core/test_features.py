@@ -13,10 +13,12 @@ from scipy.spatial import cKDTree
 from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond, pool, register
-from shapegen_core.correspond.features import (FIT_TOLERANCE, NO_REGION, FeatureMatcher, agreement_weights,
-                                               keeps_features, kept_matches, merged_regions, point_features,
-                                               worse_fits)
+from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond, groupwise, pool, register
+from shapegen_core.correspond import registration
+from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO_REGION, TRIM, FeatureMatcher,
+                                               agreement_weights, keeps_features, kept_matches, merged_regions,
+                                               point_features, worse_fits)
+from shapegen_core.correspond.settings import FEATURE_STIFFNESS
 from shapegen_core.datasets import make_cups, make_vases
 from shapegen_core.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, closest_points_on_triangles, knn_graph, registration_frame
@@ -41,17 +43,12 @@ def _register(template, template_lm, target, target_lm, settings=FEATURES, **opt
 
 
 def test_point_features_closed_form():
-    settings = CorrespondenceSettings(matching="features", feature_normals=0.5, feature_up=2.0, feature_up_width=0.1,
-                                      feature_between=0.0, feature_tilt=1.0)
+    # w_n 0.5, w_u 1, h 0.01 (features.py); the normal compared by its horizontal direction
+    settings = CorrespondenceSettings(matching="features", feature_between=0.0)
     normals = np.array([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6, -0.8]])
     features = point_features(normals, settings)
-    expected = np.array([[0, 0, 0.5, 2 * np.tanh(10.0)], [0.5, 0, 0, 0.0], [0, 0, 0, 0], [0, 0.3, -0.4, 2 * np.tanh(-8.0)]])
+    expected = np.array([[0, 0, 0, np.tanh(100.0)], [0.5, 0, 0, 0.0], [0, 0, 0, 0], [0, 0.3, 0, np.tanh(-80.0)]])
     np.testing.assert_allclose(features, expected, atol=1e-15)
-    # feature_tilt scales the normal's up-component only; the up feature still tells the side
-    tilted = point_features(normals, replace(settings, feature_tilt=0.25))
-    np.testing.assert_allclose(tilted, expected * [1, 1, 0.25, 1], atol=1e-15)
-    level = point_features(normals, replace(settings, feature_tilt=0.0))  # the default
-    np.testing.assert_allclose(level, expected * [1, 1, 0, 1], atol=1e-15)
     between = np.array([0.0, 0.25, 0.5, 1.0])
     with_between = point_features(normals, replace(settings, feature_between=2.0), between)
     np.testing.assert_allclose(with_between, np.c_[expected, 2.0 * between], atol=1e-15)
@@ -87,7 +84,7 @@ def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():
     placed, _, _ = _register(coarse.mesh, landmarks, fine.mesh, select_landmarks(fine.mesh, 300, seed=1))
     truth = fine.points_at(coarse.surface_coordinates(landmarks.face_index, landmarks.barycentric))
     error = np.linalg.norm(placed - truth, axis=1).mean()
-    # measured 0.308 edges; the softer end of the schedule (feature_stiffness 0.4) follows the
+    # measured 0.308 edges; the softer end of the schedule (FEATURE_STIFFNESS 0.4) follows the
     # finer mesh more than α 5 did (0.218), the price of its lower error across shapes
     assert error < 0.35 * fine.mesh.mean_edge_length(), f"{error / fine.mesh.mean_edge_length():.3f} edges"
 
@@ -115,34 +112,25 @@ def _true_error(shapes, prepared, result) -> float:
 
 
 def test_feature_matches_lower_the_true_error_of_a_procedural_class():
-    # measured 2.74 % (closest points) → 2.60 % (features as first shipped: h 0.1, α ending
-    # at 5) → 2.48 % (h 0.01, α ending at 0.4 × 5) → 2.29 % (and positions between turning
-    # lines in the groupwise round, 2.40 % before they were measured by height and the
-    # template kept its own) → 2.23 % (normals compared without their up-component,
-    # feature_tilt 0); at full size docs/results.md
+    # measured 2.74 % (closest points), 2.46 % (sides only), 2.23 % (with positions between
+    # turning lines, the default); how each step got there: docs/results.md, Correspondence
     shapes = make_vases(5, seed=11, resolution=(33, 64))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=300, seed=0))
     error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
     closest = error(CorrespondenceSettings())
-    first = error(CorrespondenceSettings(matching="features", feature_up_width=0.1, feature_stiffness=1.0,
-                                         feature_between=0.0, feature_fit_check=False,
-                                         feature_tilt=1.0))  # as first shipped
-    sides_only = error(replace(FEATURES, feature_tilt=1.0))
-    tilted = error(replace(BETWEEN, feature_tilt=1.0))
+    sides_only = error(FEATURES)
     features = error(BETWEEN)
-    assert first < 0.97 * closest, f"features {first:.4f} vs closest {closest:.4f}"
-    assert sides_only < 0.98 * first, f"features {sides_only:.4f} vs as first shipped {first:.4f}"
-    assert tilted < 0.985 * sides_only, f"features {tilted:.4f} vs without positions between lines {sides_only:.4f}"
-    assert features < 0.985 * tilted, f"features {features:.4f} vs with the normals' up-component {tilted:.4f}"
+    assert sides_only < 0.97 * closest, f"features {sides_only:.4f} vs closest {closest:.4f}"
+    assert features < 0.985 * sides_only, f"features {features:.4f} vs without positions between lines {sides_only:.4f}"
 
 
-def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours():
+def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours(monkeypatch):
     # seed 1's template (vase 2) has a neck; vase 1's lip (0.17) is narrower than its neck
     # (0.21), so its neck is no turning line and the template's neck-to-lip wall, facing
     # down, has no counterpart facing its way. Measured true error of vase 1: 4.03 % with
     # every match kept, 3.09 % with matches beyond 10 × the median distance dropped; the
     # other four 1.94 → 1.90 % on average (vase 4, also neckless, 3.22 → 3.11). Measured
-    # without `feature_merged_regions`, which now matches vase 1's upper wall plainly (then
+    # without merged regions, which now match vase 1's upper wall plainly (then
     # 1.74 % with every match kept, 1.81 % trimmed); a part with no counterpart whose
     # regions do not merge (a handle, a spout) is still what trimming is for
     shapes = make_vases(6, seed=1, resolution=(65, 130))
@@ -158,9 +146,11 @@ def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours():
         return np.array([np.linalg.norm(result.points_input[m] - shapes[m].points_at(st), axis=1).mean()
                          / shapes[m].mesh.bbox_diagonal() for m in range(len(shapes))])
 
-    unmerged = replace(FEATURES, feature_merged_regions=False)
-    kept_all, trimmed = errors(replace(unmerged, feature_trim=0.0)), errors(unmerged)
-    assert FEATURES.feature_trim == 10.0
+    monkeypatch.setattr(groupwise, "checks_regions", lambda settings: False)  # as measured: without merged regions
+    trimmed = errors(FEATURES)
+    monkeypatch.setattr(registration, "kept_matches", lambda distance: kept_matches(distance, 0.0))
+    kept_all = errors(FEATURES)
+    assert TRIM == 10.0
     assert trimmed[1] < 0.85 * kept_all[1], (trimmed[1], kept_all[1])
     others = [0, 3, 4, 5]
     assert trimmed[others].mean() <= 1.01 * kept_all[others].mean(), (trimmed[others], kept_all[others])
@@ -248,12 +238,10 @@ def test_agreement_weights_give_the_full_weight_to_agreement_and_none_to_unrelat
 
 def test_feature_matches_end_the_stiffness_schedule_softer():
     assert CorrespondenceSettings().alphas.tolist() == [100.0, 76.25, 52.5, 28.75, 5.0]  # the thesis's schedule
+    assert FEATURE_STIFFNESS == 0.4
     np.testing.assert_allclose(FEATURES.alphas, np.linspace(100.0, 2.0, 5))
-    one = CorrespondenceSettings(matching="features", alpha_end=10.0, alpha_steps=1, feature_stiffness=0.5)
-    assert one.alphas.tolist() == [5.0]
-    assert CorrespondenceSettings(feature_stiffness=0.5).alphas[-1] == 5.0  # closest points ignore it
-    with pytest.raises(SettingsError, match="feature_stiffness must be at most 1"):
-        CorrespondenceSettings(matching="features", feature_stiffness=1.5)
+    one = CorrespondenceSettings(matching="features", alpha_end=10.0, alpha_steps=1)
+    assert one.alphas.tolist() == [4.0]
 
 
 def test_matching_setting_and_flag():
@@ -270,29 +258,39 @@ def test_matching_setting_and_flag():
         build_parser().parse_args(["correspond", "x", "-o", "y", "--matching", "nearest"])
 
 
-def test_files_written_before_feature_stiffness_record_the_schedule_they_ran():
-    # a file recorded every field but feature_stiffness: its run ended the schedule at alpha_end
+def test_files_written_before_feature_between_compared_sides_only():
     old = CorrespondenceSettings(matching="features").as_dict()
-    del old["feature_stiffness"]
-    loaded = recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))}, "old.npz")
-    assert loaded.feature_stiffness == 1.0 and loaded.alphas[-1] == 5.0
-    assert loaded.feature_trim == 10.0  # recorded in it
-    del old["feature_trim"]  # a file written before feature_trim kept every match
-    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))}, "old.npz").feature_trim == 0
-    del old["feature_between"]  # and one written before feature_between compared sides only
+    del old["feature_between"]
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
                              "old.npz").feature_between == 0
-    assert CorrespondenceSettings(matching="features").feature_tilt == 0.0
-    del old["feature_tilt"]  # and one written before feature_tilt compared whole normals
-    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
-                             "old.npz").feature_tilt == 1.0
-    fit = FitSettings(correspondence=CorrespondenceSettings(matching="features")).as_dict()
-    del fit["correspondence"]["feature_stiffness"]
-    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence.alphas[-1] == 5.0
     # options given today (the panel's, the command line's) take today's default
-    assert CorrespondenceSettings.from_dict({"matching": "features"}).alphas[-1] == 2.0
-    new = CorrespondenceSettings(matching="features", feature_stiffness=0.5)
-    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(new.to_json())}, "new.npz") == new
+    assert CorrespondenceSettings.from_dict({"matching": "features"}).feature_between == 1.0
+
+
+REMOVED_KNOBS = {"feature_normals": 1.0, "feature_tilt": 1.0, "feature_up": 1.0, "feature_up_width": 0.1,
+                 "feature_stiffness": 1.0, "feature_trim": 0.0, "feature_merged_regions": False,
+                 "feature_samples": 20, "feature_fit_check": False, "feature_fallback_share": 0.1}
+
+
+def test_files_that_record_removed_feature_knobs_load_as_today_and_new_settings_naming_them_are_refused(tmp_path):
+    """Issue 34 took the research knobs of feature matches out of the settings: a file that
+    records them (as every file written before did) loads with today's constants; settings
+    given now that name one are refused, naming it and why."""
+    today = CorrespondenceSettings(matching="features")
+    recorded = {**today.as_dict(), **REMOVED_KNOBS}
+    assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))}, "old.npz") == today
+    legacy = {"settings_keys": np.asarray(list(recorded)), "settings_values": np.asarray([repr(v) for v in recorded.values()])}
+    assert recorded_settings(CorrespondenceSettings, legacy, "older.npz") == today  # key/value files too
+    fit = FitSettings(correspondence=today).as_dict()
+    fit["correspondence"].update(REMOVED_KNOBS)
+    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == today  # inside model files
+    for name, value in REMOVED_KNOBS.items():
+        with pytest.raises(SettingsError, match=f"^{name} was removed: a research knob of feature matches"):
+            CorrespondenceSettings.from_dict({"matching": "features", name: value})
+        with pytest.raises(TypeError):
+            CorrespondenceSettings(**{name: value})
+    with pytest.raises(SettingsError, match=r"^correspondence\.feature_trim was removed"):
+        FitSettings.from_dict({"correspondence": {"feature_trim": 10.0}})
 
 
 def test_worse_fits_and_the_collection_rule():
@@ -301,14 +299,20 @@ def test_worse_fits_and_the_collection_rule():
     np.testing.assert_array_equal(worse_fits(features, closest), [False, False, True, False, False])  # a shape on itself: 0 ≈ 0
     with pytest.raises(ValueError, match="one residual per shape"):
         worse_fits(features[:3], closest)
-    assert keeps_features(np.zeros(10, bool), 0.1) and keeps_features(np.r_[True, np.zeros(9, bool)], 0.1)
-    assert not keeps_features(np.r_[True, True, np.zeros(8, bool)], 0.1)  # 2 of 10 > 10 %
-    assert keeps_features(np.zeros(0, bool), 0.1)
-    with pytest.raises(SettingsError, match="feature_fallback_share must be at most 1"):
-        CorrespondenceSettings(feature_fallback_share=1.5)
+    assert FALLBACK_SHARE == 0.1
+    assert keeps_features(np.zeros(10, bool)) and keeps_features(np.r_[True, np.zeros(9, bool)])
+    assert not keeps_features(np.r_[True, True, np.zeros(8, bool)])  # 2 of 10 > 10 %
+    assert keeps_features(np.zeros(0, bool))
 
 
-def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_path):
+def _unchecked(prepared, settings, monkeypatch):
+    """The correspondence as without the fit check (its first round by feature matches only)."""
+    with monkeypatch.context() as patched:
+        patched.setattr(groupwise, "checks_fit", lambda settings: False)
+        return correspond(prepared, settings, jobs=1)
+
+
+def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_path, monkeypatch):
     # the template (cup 3) leans in (top radius 12 % below the bottom's); in the first round
     # feature matches collapse it onto part of the three cups leaning out by 12-21 % (residual
     # 1.55-1.65 × the closest-point fit's), so the collection is matched by closest points,
@@ -316,7 +320,7 @@ def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_pa
     prepared = prepare_meshes(make_cups(8, seed=1, rings=(8, 14)), PrepareSettings(n_landmarks=300, seed=0))
     closest = correspond(prepared, CorrespondenceSettings(), jobs=1)
     checked = correspond(prepared, BETWEEN, jobs=1)
-    unchecked = correspond(prepared, replace(BETWEEN, feature_fit_check=False), jobs=1)
+    unchecked = _unchecked(prepared, BETWEEN, monkeypatch)
     assert closest.template_name == checked.template_name == "cup_003"
     np.testing.assert_array_equal(checked.points, closest.points)
     np.testing.assert_array_equal(checked.face_index, closest.face_index)
@@ -330,11 +334,11 @@ def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_pa
     assert loaded.matching_summary() == checked.matching_summary()
 
 
-def test_the_fit_check_changes_nothing_where_feature_matches_fit():
+def test_the_fit_check_changes_nothing_where_feature_matches_fit(monkeypatch):
     shapes = make_vases(4, seed=2, resolution=(20, 28))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
     checked = correspond(prepared, BETWEEN, jobs=1)
-    unchecked = correspond(prepared, replace(BETWEEN, feature_fit_check=False), jobs=1)
+    unchecked = _unchecked(prepared, BETWEEN, monkeypatch)
     np.testing.assert_array_equal(checked.points, unchecked.points)
     np.testing.assert_array_equal(checked.between_shares, unchecked.between_shares)
     np.testing.assert_array_equal(checked.feature_fit_worse, np.zeros(4, bool))
@@ -353,7 +357,6 @@ def test_files_before_the_fit_check_load_and_bad_records_are_refused():
     old = Correspondence.from_arrays(arrays, "old")
     assert old.feature_fit_worse.shape == (0,) and old.feature_matches_ran
     _refused(arrays, "feature_fit_worse", (np.zeros(2, bool), np.zeros(3)))
-    assert not _recorded_without("feature_fit_check").feature_fit_check  # a file written before ran without it
 
 
 def test_merged_regions_mark_template_regions_facing_opposite_ways_that_land_in_one():
@@ -407,7 +410,7 @@ def test_plain_points_are_matched_by_position_and_normal_only():
     np.testing.assert_array_equal(matcher.backward(points, features, ~every)[0], matcher.backward(points, features)[0])
 
 
-def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_path):
+def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_path, monkeypatch):
     # seed 1: the template (vase 2) has a neck; vases 1 and 4 have none, so belly to rim
     # faces up on them in one piece where the template's neck splits it. Measured true
     # error here (400 landmarks): vase 1 3.34 -> 1.52 %, vase 4 3.13 -> 2.15 %, the others
@@ -417,7 +420,9 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     neckless = [i for i, s in enumerate(shapes) if s.params.lip_radius < s.params.neck_radius]
     assert neckless == [1, 4]
     checked = correspond(prepared, BETWEEN, jobs=1)
-    unchecked = correspond(prepared, replace(BETWEEN, feature_merged_regions=False), jobs=1)
+    with monkeypatch.context() as patched:
+        patched.setattr(groupwise, "checks_regions", lambda settings: False)
+        unchecked = correspond(prepared, BETWEEN, jobs=1)
     assert checked.template_name == unchecked.template_name == "vase_002"
     np.testing.assert_array_equal(np.flatnonzero(checked.plain_shares), neckless)
     assert (checked.plain_shares[neckless] > 0.3).all()
@@ -433,7 +438,6 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     del arrays["plain_shares"]  # a file written before the check
     assert Correspondence.from_arrays(arrays, "old").plain_shares.shape == (0,)
     _refused(arrays, "plain_shares", (np.full(5, 0.5), np.r_[np.zeros(5), 1.5]))
-    assert not _recorded_without("feature_merged_regions").feature_merged_regions  # files before ran without it
 
 
 def _refused(arrays: dict, key: str, wrong_values) -> None:
@@ -442,13 +446,6 @@ def _refused(arrays: dict, key: str, wrong_values) -> None:
         arrays[key] = wrong
         with pytest.raises(ModelFileError, match=key):
             Correspondence.from_arrays(arrays, "bad")
-
-
-def _recorded_without(field: str) -> CorrespondenceSettings:
-    """The settings a file records when it was written before `field` existed."""
-    recorded = CorrespondenceSettings(matching="features").as_dict()
-    del recorded[field]
-    return recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))}, "old.npz")
 
 
 def _shape_error(shapes, prepared, result, m: int) -> float:
