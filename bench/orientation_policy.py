@@ -3,7 +3,8 @@ conventions, and flag (rather than silently turn) a shape turned by hand — on 
 whose top/bottom evidence varies (tapers both ways, closed and open tops, handles at
 varying heights, several parts, sitting and standing), with no setting tuned per class.
 
-Classes (each standing on +z facing +x as given, random size and position):
+Classes (each standing on +z facing +x as given, random size and position; with --floor
+also each procedural class on one floor, its files' origins under their bases):
   closed mugs, open mugs (core.datasets.make_mugs: tapering both ways, handle at 30-70 %
   of the height), cups (make_cups: open, leaning in or out, no handle), vases
   (make_vases), barrels (make_barrels), bottles and teddies (bench/orientation_classes.py;
@@ -24,7 +25,7 @@ Scenarios per class:
             three shapes per class: detected (flagged, or turned back to within 5°),
             turned back, turned wrong (turned but not back), others moved.
 
-    python bench/orientation_policy.py [--n 10] [--seeds 2] [--classes ...] [--blender]
+    python bench/orientation_policy.py [--n 10] [--seeds 2] [--classes ...] [--blender] [--floor]
         [--revisions main=a833ff8]
 
 Prints one table; every revision given runs beside the working tree ("now").
@@ -63,6 +64,7 @@ HAND = {"upside down": HALVES[0], "on its side": QUARTERS[0], "120° about up": 
 SAME_DEGREES = 5.0
 VISIBLE = 0.01  # RMS surface distance (share of the RMS radius) below which a turn leaves the surface in place
 PROCEDURAL = ("closed mugs", "open mugs", "cups", "vases", "barrels", "bottles", "teddies")
+FLOOR = " on a floor"
 REAL = ("PSB Vase", "PSB Cup", "PSB Fish", "PSB Airplane", "TOSCA cat", "TOSCA dog", "TOSCA horse",
         "TOSCA centaur")
 
@@ -74,8 +76,26 @@ def placed(meshes, seed: int) -> list:
                             .to_normalised(m.vertices)) for m in meshes]
 
 
+def on_a_floor(meshes, seed: int) -> list:
+    """The shapes moved so that every lowest point is on z = 0 and each file's origin near
+    the middle of its base (objects on one ground plane, scans standing on z = 0): the
+    turns of the scenarios are about that origin, as a re-saved file turns."""
+    rng = np.random.default_rng(8000 + seed)
+    floored = []
+    for mesh in meshes:
+        vertices = mesh.vertices
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        shift = np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]])
+        floored.append(mesh.with_vertices(vertices - shift + [*rng.uniform(-0.05, 0.05, 2), 0.0]))
+    return floored
+
+
 def collection(name: str, n: int, seed: int) -> tuple[list, str]:
-    """(meshes as given, up axis) of one class."""
+    """(meshes as given, up axis) of one class ("… on a floor": the procedural class
+    placed by `on_a_floor` instead of at random heights)."""
+    if name.endswith(FLOOR):
+        meshes, up = collection(name[:-len(FLOOR)], n, seed)
+        return on_a_floor(meshes, seed), up
     if name == "closed mugs":
         return placed(make_mugs(n, seed, closed=True, handle_height=(0.3, 0.7), pose=False), seed), "z"
     if name == "open mugs":
@@ -189,6 +209,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=2, help="seeds per procedural class")
     parser.add_argument("--classes", nargs="+", default=list(PROCEDURAL + REAL))
     parser.add_argument("--blender", action="store_true", help="also the mugs modelled in Blender (needs bpy)")
+    parser.add_argument("--floor", action="store_true",
+                        help="also every procedural class of --classes placed on one floor (on_a_floor)")
     parser.add_argument("--revisions", nargs="*", default=[], metavar="NAME=REV",
                         help="other versions of the core to run beside the working tree")
     parser.add_argument("--without-now", action="store_true", help="only the revisions given, not the working tree")
@@ -198,9 +220,11 @@ def main(argv=None) -> int:
         name, revision = item.split("=", 1)
         methods[name] = load_revision(name, revision)
     classes = list(args.classes) + (["Blender mugs"] if args.blender else [])
+    if args.floor:
+        classes += [name + FLOOR for name in args.classes if name in PROCEDURAL]
     rows = []
     for name in classes:
-        seeds = range(args.seeds) if name in PROCEDURAL or name == "Blender mugs" else [0]
+        seeds = range(args.seeds) if name.removesuffix(FLOOR) in PROCEDURAL or name == "Blender mugs" else [0]
         for seed in seeds:
             meshes, up = collection(name, args.n, seed)
             for version, prepare in methods.items():
