@@ -607,9 +607,6 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
 
     def by_signature(j: int, references: list[tuple[int, np.ndarray]], unshared: str = "") -> PoseDecision:
         rotation = turned[j]
-        if not unshared:  # the inputs share a facing: a turn needs the collection, not three nearest shapes
-            references = [(i, turned[i]) for i in search.nearest(j, [i for i in range(n) if settled[i]],
-                                                                 settings.references)]
         angle, coherence = signatures.facing_turn(j, rotation, references)
         least = settings.unshared_angle if unshared else settings.facing_angle
         cost = search.cost(j, rotation, references)
@@ -617,21 +614,9 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
         if (coherence <= settings.coherence or abs(angle) <= least
                 or search.cost(j, candidate, references) > (1.0 + settings.tolerance) * cost):
             return PoseDecision(rotation)
-        if unshared:
-            return PoseDecision(candidate, f"{describe_rotation(candidate @ rotation.T)}: its facing like its "
-                                           f"{len(references)} nearest shapes ({_names(names, references)}) "
-                                           f"({unshared})")
-        # each reference's own facing turn must agree with the collection's
-        own = [signatures.facing_turn(j, rotation, [r]) for r in references]
-        told = [a for a, c in own if c > 0.0]
-        agreeing = sum(abs((a - angle + 180.0) % 360.0 - 180.0) <= settings.facing_angle for a in told)
-        share = f"{agreeing} of {len(told)} shapes' facings ask for it"
-        if agreeing >= settings.agreement * len(told):
-            return PoseDecision(candidate, f"{describe_rotation(candidate @ rotation.T)}: its facing like the "
-                                           f"collection's ({share})")
-        if 2 * agreeing > len(told):
-            return PoseDecision(rotation, flag=f"may face another way: {share}", flag_rotation=candidate)
-        return PoseDecision(rotation)
+        return PoseDecision(candidate, f"{describe_rotation(candidate @ rotation.T)}: its facing like its "
+                                       f"{len(references)} nearest shapes ({_names(names, references)})"
+                                       + (f" ({unshared})" if unshared else ""))
 
     second = _settle(search, k, frozen, turned, lambda j, i: not by_signature(j, [(i, turned[i])]).changed,
                      by_signature, report, 0.68, 0.18, [s and not d.changed for s, d in zip(settled, first)],
