@@ -10,10 +10,13 @@ import numpy as np
 from ..settings import Settings, SettingsError, option
 from ..simplify import REGISTRATION_PROXY_FACES
 
-__all__ = ["CorrespondenceSettings", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
+__all__ = ["CorrespondenceSettings", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS", "INITIALISATIONS"]
 
 #: `matching`: the data term's matches (registration.py, features.py)
 MATCHING_METHODS = ("closest", "features")
+
+#: `initialisation`: where each shape's registration starts (start.py)
+INITIALISATIONS = ("closest", "spectral")
 
 #: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
@@ -109,6 +112,17 @@ class CorrespondenceSettings(Settings):
         (`Correspondence.feature_fit_worse`; `matching_summary` says which data term ran).
       feature_fallback_share: one collapse in a collection of 10 or more is left to the
         outlier flags; more say the class's walls contradict the features.
+    Start (**beyond** the thesis, opt-in; issue 34, start.py, functional_map.py):
+      initialisation: "closest" (default; files written before it record it): every
+        shape's registration starts from the template as it is (the thesis). "spectral":
+        from the template's landmarks carried to the shape by an intrinsic map
+        (Laplace–Beltrami eigenfunctions, sign search, orientation, ZoomOut), which bending
+        does not change: for classes whose shapes differ in pose (an animal's limbs). Each
+        shape is also registered from the closest-point start in the first round; where
+        the spectrum is not trusted (parts, a failed solve, no orientation-preserving
+        map) or the spectral fit is clearly worse, the closest-point start is used and the
+        shape's message says so. Rounds after the first start every shape from its
+        previous landmarks (a mean template of shapes in different poses is no start).
     Iteration (Alg. 3, §4.2.6):
       update_template: True: every solve starts from the moved points, so the stiffness
         regularises each step only (the thesis's modification of Alg. 3). False
@@ -182,7 +196,8 @@ class CorrespondenceSettings(Settings):
     #: files written before these fields existed ran with these values (settings.Settings);
     #: not annotated: a class attribute, not a field
     FIELDS_ADDED_LATER = {"feature_stiffness": 1.0, "feature_between": 0.0, "feature_trim": 0.0,
-                          "feature_fit_check": False, "feature_tilt": 1.0, "feature_merged_regions": False}
+                          "feature_fit_check": False, "feature_tilt": 1.0, "feature_merged_regions": False,
+                          "initialisation": "closest"}
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
@@ -214,6 +229,9 @@ class CorrespondenceSettings(Settings):
                                      "a collection feature matches fit badly is matched by closest points")
     feature_fallback_share: float = option(0.1, "features: above this share of shapes fitted over 25 % worse, the "
                                            "whole collection is matched by closest points", minimum=0)
+    initialisation: str = option("closest", "where registration starts: closest (the template as it is, the "
+                                 "thesis); spectral (an intrinsic map, for shapes that differ in pose)",
+                                 flag="--initialisation", choices=INITIALISATIONS)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")
     update_template: bool = option(False, "every solve starts from the moved points (the thesis's Alg. 3)")
