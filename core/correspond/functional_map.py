@@ -50,10 +50,16 @@ __all__ = ["SpectralShape", "SpectralStart", "spectral_shape", "spectral_start",
 #: eigenpairs computed per shape; ZoomOut ends at ZOOM_FUNCTIONS of them
 SPECTRUM_SIZE = 40
 ZOOM_FUNCTIONS = 40
-#: non-constant eigenfunctions whose signs are searched (2^SIGN_FUNCTIONS candidates)
+#: the coarse maps C are COARSE_FUNCTIONS square; consecutive eigenvalues within BLOCK_RATIO
+#: form one block of C; the AMBIGUOUS_DIRECTIONS directions the signatures say least about
+#: are tried both ways (2^AMBIGUOUS_DIRECTIONS candidates), each refined to
+#: ORIENTATION_FUNCTIONS and tested for orientation
+COARSE_FUNCTIONS = 8
+BLOCK_RATIO = 1.2
+AMBIGUOUS_DIRECTIONS = 3
+#: and the SIGN_CANDIDATES best sign patterns of the first SIGN_FUNCTIONS non-constant ones
 SIGN_FUNCTIONS = 6
-#: candidates (best signature scores) refined to ORIENTATION_FUNCTIONS and tested for orientation
-CANDIDATES = 4
+SIGN_CANDIDATES = 4
 ORIENTATION_FUNCTIONS = 16
 #: ZoomOut adds one eigenfunction per step up to FINE_FUNCTIONS, then FINE_STEP per step
 FINE_FUNCTIONS = 20
@@ -63,6 +69,10 @@ FINE_STEP = 3
 #: into SHAPE_VERTICES of the shape's vertices; ORIENTATION_FACES template triangles vote
 SAMPLE_VERTICES = 1500
 SEARCH_VERTICES = 400
+#: candidates are refined and compared on smaller samples: TRIAL_VERTICES into TRIAL_TARGETS
+TRIAL_VERTICES = 1000
+TRIAL_TARGETS = 2000
+TRIAL_STEP = 2
 SHAPE_VERTICES = 2500
 ORIENTATION_FACES = 600
 #: the largest part must hold at least this share of a mesh's area
@@ -169,7 +179,7 @@ def point_map(template: SpectralShape, shape: SpectralShape, vertices: np.ndarra
 
 
 def zoom_out(template: SpectralShape, shape: SpectralShape, matches: np.ndarray, sample: np.ndarray,
-             weights: np.ndarray, k_from: int, k_to: int, targets: np.ndarray | None = None
+             weights: np.ndarray, k_from: int, k_to: int, targets: np.ndarray | None = None, coarse_step: int = 1
              ) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut (Melzi et al. 2019): alternately C from the point map of the sample, then
     the point map from C, with k growing from `k_from` to `k_to` (by one up to
@@ -177,8 +187,8 @@ def zoom_out(template: SpectralShape, shape: SpectralShape, matches: np.ndarray,
     `targets` (shape vertices; all by default). Returns (the sample's final matches, the
     last C)."""
     c = None
-    schedule = sorted({*range(k_from, min(k_to, FINE_FUNCTIONS)), *range(max(k_from, FINE_FUNCTIONS), k_to, FINE_STEP),
-                       k_to})
+    schedule = sorted({*range(k_from, min(k_to, FINE_FUNCTIONS), coarse_step),
+                       *range(max(k_from, FINE_FUNCTIONS), k_to, FINE_STEP), k_to})
     for k in schedule:
         c = functional_map(template, shape, sample, weights, matches, k)
         matches = point_map(template, shape, sample, c, targets)
@@ -207,20 +217,63 @@ def _signature_error(template: SpectralShape, shape: SpectralShape, sample: np.n
     return float(weights @ (difference**2).sum(axis=1) / weights.sum())
 
 
-def _sign_candidates(template: SpectralShape, shape: SpectralShape, sample: np.ndarray, weights: np.ndarray
-                     ) -> list[tuple[float, np.ndarray]]:
-    """(signature error, sample matches) of every sign pattern of eigenfunctions
-    1..SIGN_FUNCTIONS (the constant function 0 keeps its sign), best first."""
-    count = SIGN_FUNCTIONS + 1
-    shape_rows = shape.spectrum.vectors[:, 1:count]
-    tree = cKDTree(shape_rows)
-    rows = template.spectrum.vectors[sample, 1:count]
-    scored = []
-    for signs in product((1.0, -1.0), repeat=SIGN_FUNCTIONS):
-        _, matches = tree.query(rows * np.asarray(signs))
-        scored.append((_signature_error(template, shape, sample, weights, matches), matches))
-    scored.sort(key=lambda pair: pair[0])
-    return scored
+def _eigen_blocks(template_values: np.ndarray, shape_values: np.ndarray) -> list[np.ndarray]:
+    """Runs of consecutive eigenvalues closer than BLOCK_RATIO on either shape: their
+    eigenfunctions may swap or mix between the two shapes, so C is fitted per run."""
+    blocks, current = [], [0]
+    for j in range(1, len(template_values)):
+        close = any(values[j] < BLOCK_RATIO * values[j - 1] for values in (template_values, shape_values))
+        if close and j > 1:
+            current.append(j)
+        else:
+            blocks.append(np.array(current))
+            current = [j]
+    blocks.append(np.array(current))
+    return blocks
+
+
+def _sign_candidates(template: SpectralShape, shape: SpectralShape, sample: np.ndarray, weights: np.ndarray,
+                     k: int) -> list[np.ndarray]:
+    """The SIGN_CANDIDATES diagonal coarse maps C = diag(±1) (k × k) whose point maps fit
+    the signatures best: for a near-isometry without close eigenvalues C is nearly
+    diagonal, each eigenfunction known up to its sign (the constant one keeps it). All
+    2^(k−1) patterns are scored on the sample (a k-d tree of the shape's spectral
+    coordinates)."""
+    patterns = np.array(list(product((1.0, -1.0), repeat=k - 1)))  # (P, k − 1)
+    rows = template.spectrum.vectors[sample, 1:k]
+    _, matches = cKDTree(shape.spectrum.vectors[:, 1:k]).query((patterns[:, None, :] * rows[None]).reshape(-1, k - 1))
+    difference = template.signature[sample][None] - shape.signature[matches.reshape(len(patterns), len(sample))]
+    errors = (difference**2).sum(axis=2) @ weights
+    return [np.diag(np.r_[1.0, patterns[p]]) for p in np.argsort(errors, kind="stable")[:SIGN_CANDIDATES]]
+
+
+def _descriptor_candidates(template: SpectralShape, shape: SpectralShape, k: int) -> list[np.ndarray]:
+    """Candidate coarse maps C (k × k). C should carry the shape's signatures onto the
+    template's: C A_S ≈ A_T, A the signatures' coefficients on the first k eigenfunctions.
+    Per run of close eigenvalues (`_eigen_blocks`) the best orthogonal C is the Procrustes
+    solution U Vᵀ of A_T A_Sᵀ = U Σ Vᵀ. A direction whose singular value is small has no
+    say from the signatures (an eigenfunction that is odd under the left–right mirror
+    integrates to ~0 against every symmetric signature): the AMBIGUOUS_DIRECTIONS weakest
+    are tried both ways, 2^AMBIGUOUS_DIRECTIONS candidates."""
+    a_t = template.spectrum.project(template.signature, k)
+    a_s = shape.spectrum.project(shape.signature, k)
+    scale = np.linalg.norm(a_t) * np.linalg.norm(a_s)
+    parts, strengths = [], []
+    for block in _eigen_blocks(template.spectrum.values[:k], shape.spectrum.values[:k]):
+        u, sigma, vt = np.linalg.svd(a_t[block] @ a_s[block].T)
+        parts.append((block, u, vt))
+        strengths.extend((sigma[i] / scale, len(parts) - 1, i) for i in range(len(block)))
+    weakest = sorted(strengths)[:AMBIGUOUS_DIRECTIONS]
+    candidates = []
+    for flips in product((1.0, -1.0), repeat=len(weakest)):
+        c = np.zeros((k, k))
+        signs = [np.ones(len(block)) for block, _, _ in parts]
+        for flip, (_, part, direction) in zip(flips, weakest):
+            signs[part][direction] = flip
+        for (block, u, vt), sign in zip(parts, signs):
+            c[np.ix_(block, block)] = (u * sign) @ vt
+        candidates.append(c)
+    return candidates
 
 
 def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: SpectralShape) -> SpectralStart:
@@ -228,27 +281,30 @@ def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: 
     in its coordinates) start on the shape: sign search, orientation, ZoomOut (module
     docstring). Points are returned in the shape's coordinates (at its vertices)."""
     sample, weights = _sample(template, SAMPLE_VERTICES)
-    search, search_weights = _sample(template, SEARCH_VERTICES, seed=1)
     targets, _ = _sample(shape, SHAPE_VERTICES)
+    trial, trial_weights = _sample(template, TRIAL_VERTICES, seed=3)
+    trial_targets, _ = _sample(shape, TRIAL_TARGETS, seed=3)
     voters = template.faces[np.random.default_rng(2).choice(len(template.faces), min(ORIENTATION_FACES,
                                                                                     len(template.faces)), replace=False)]
     corners, corner_index = np.unique(voters, return_inverse=True)
-    k_start = SIGN_FUNCTIONS + 1
     k_orient = min(ORIENTATION_FUNCTIONS, len(shape.spectrum.values), len(template.spectrum.values))
-    agreements = []
-    for _, coarse in _sign_candidates(template, shape, search, search_weights)[:CANDIDATES]:
-        c = functional_map(template, shape, search, search_weights, coarse, k_start)
-        matches = point_map(template, shape, sample, c, targets)
-        matches, c = zoom_out(template, shape, matches, sample, weights, k_start, k_orient, targets)
+    refined = []
+    search, search_weights = _sample(template, SEARCH_VERTICES, seed=1)
+    for c in (_sign_candidates(template, shape, search, search_weights, SIGN_FUNCTIONS + 1)
+              + _descriptor_candidates(template, shape, COARSE_FUNCTIONS)):
+        matches = point_map(template, shape, trial, c, trial_targets)
+        matches, c = zoom_out(template, shape, matches, trial, trial_weights, len(c) + 1, k_orient, trial_targets,
+                              TRIAL_STEP)
         images = point_map(template, shape, corners, c)[corner_index.reshape(voters.shape)]
-        agreements.append(orientation_agreement(shape, images))
-        if agreements[-1] > MIN_ORIENTATION:
-            break
-    else:
-        return SpectralStart(None, f"no orientation-preserving spectral map among the {len(agreements)} best "
-                                   f"(the best keeps {100 * max(agreements):.0f} % of the triangles facing out)",
-                             orientation=max(agreements))
-    agreement = agreements[-1]
+        refined.append((_signature_error(template, shape, trial, trial_weights, matches),
+                        orientation_agreement(shape, images), c))
+    kept = [r for r in refined if r[1] > MIN_ORIENTATION]
+    if not kept:
+        best = max(r[1] for r in refined)
+        return SpectralStart(None, f"no orientation-preserving spectral map among {len(refined)} candidates "
+                                   f"(the best keeps {100 * best:.0f} % of the triangles facing out)", orientation=best)
+    _, agreement, c = min(kept, key=lambda r: r[0])
+    matches = point_map(template, shape, sample, c, targets)
     k_end = min(ZOOM_FUNCTIONS, len(shape.spectrum.values), len(template.spectrum.values))
     matches, c = zoom_out(template, shape, matches, sample, weights, k_orient, k_end, targets)
     _, nearest = cKDTree(template.vertices).query(np.asarray(template_points, dtype=np.float64))
