@@ -2,16 +2,19 @@
 vases and PSB label transfer, for today's start (closest points) and the spectral start.
 
     python bench/spectral_probe.py [--classes cat dog ...] [--initialisation closest spectral]
-                                   [--vases] [--psb Vase Cup ...] [--shapes N]
+                                   [--vases N] [--psb Vase Cup ...] [--shapes N]
 
 Not part of the tests. Every class is run with the same settings (nothing tuned per
-class). Figures go to stdout and bench_output/spectral_probe.json.
+class). Figures go to stdout and bench_output/spectral_probe_<pid>.json.
 
 TOSCA (shared/data/tosca/<class>, z up): true error of a template landmark = distance, in
 the input frame, from where the correspondence put it on a shape to where the ground truth
 puts it (the three corners of its template face carried by the `.vts` maps, blended by its
 barycentrics), over the shape's bounding-box diagonal; mean over landmarks and shapes other
-than the template. Time: wall seconds of `correspond` per shape (1 process).
+than the template. Time: wall (and this process's CPU) seconds of `correspond` per shape
+(1 process; with the spectral start this includes the closest-point registration each
+shape is checked against). Vases: bench/correspondence.py part 1's error vs the template;
+PSB: its part 3's label transfer (the closest-point rows are today's default).
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E4
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.errors import MeshFileError  # noqa: E402
 from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/correspondence.py: the vase and PSB measures
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent.parent / "shared" / "data"
@@ -115,6 +120,59 @@ def run_tosca(name: str, initialisations, shapes: int | None, landmarks: int) ->
     return out
 
 
+def _correspond_timed(prepared, initialisation: str):
+    """(result, wall s/shape, messages) of one `correspond` in this process."""
+    messages = []
+    start = time.perf_counter()
+    result = correspond(prepared, _settings(initialisation), jobs=1, progress=lambda f, m: messages.append(m))
+    return result, (time.perf_counter() - start) / len(prepared.shapes), messages
+
+
+def _starts_said(messages) -> list[str]:
+    return [m for m in messages if ": closest-point start" in m]
+
+
+def run_vases(n: int, initialisations) -> dict:
+    """Procedural vases (core/datasets.py, bench/correspondence.py part 1): mean true error
+    vs the template landmark's surface coordinates, % of the diagonal."""
+    from correspondence import error_vs_template
+    from shapegen_core.datasets import make_vases
+
+    shapes = make_vases(n, seed=11, resolution=(65, 130))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=800, seed=0))
+    out = {}
+    for init in initialisations:
+        result, seconds, messages = _correspond_timed(prepared, init)
+        t = result.names.index(result.template_name)
+        errors = np.delete(error_vs_template(shapes, t, prepared.landmarks[t], result.points_input), t)
+        out[init] = {"mean %": 100 * float(errors.mean()), "s/shape": seconds, "fallbacks": _starts_said(messages)}
+        print(f"vases ({n})     {init:9s} mean {out[init]['mean %']:5.2f} %  {seconds:5.2f} s/shape  "
+              f"fallbacks {len(out[init]['fallbacks'])}", flush=True)
+    return out
+
+
+def run_psb(name: str, initialisations, shapes: int | None) -> dict:
+    """PSB label transfer (bench/correspondence.py part 3): share of landmarks whose part
+    label is the template landmark's."""
+    from correspondence import face_labels
+
+    folder = DATA / "psb" / name
+    meshes = read_folder(folder)[:shapes] if shapes else read_folder(folder)
+    labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=800, up_axis="y", seed=0))
+    out = {}
+    for init in initialisations:
+        result, seconds, messages = _correspond_timed(prepared, init)
+        ref = result.names.index(result.template_name)
+        reference = labels[result.template_name][result.face_index[ref]]
+        accuracy = [np.mean(labels[n][result.face_index[m]] == reference) for m, n in enumerate(result.names) if m != ref]
+        out[init] = {"label transfer %": 100 * float(np.mean(accuracy)), "s/shape": seconds,
+                     "fallbacks": _starts_said(messages)}
+        print(f"PSB {name:10s} {init:9s} label transfer {out[init]['label transfer %']:5.1f} %  {seconds:5.2f} s/shape  "
+              f"fallbacks {len(out[init]['fallbacks'])}", flush=True)
+    return out
+
+
 def _settings(initialisation: str) -> CorrespondenceSettings:
     if initialisation == "closest":
         return CorrespondenceSettings()
@@ -127,12 +185,18 @@ def main(argv=None) -> int:
     parser.add_argument("--initialisation", nargs="+", default=["closest", "spectral"])
     parser.add_argument("--shapes", type=int, default=None, help="first N shapes of each class")
     parser.add_argument("--landmarks", type=int, default=800)
+    parser.add_argument("--vases", type=int, default=0, help="also N procedural vases")
+    parser.add_argument("--psb", nargs="*", default=[], help="also these PSB classes (label transfer)")
     args = parser.parse_args(argv)
     OUTPUT.mkdir(exist_ok=True)
     report = {}
     for name in args.classes:
         report[f"TOSCA {name}"] = run_tosca(name, args.initialisation, args.shapes, args.landmarks)
-    (OUTPUT / "spectral_probe.json").write_text(json.dumps(report, indent=1))
+    if args.vases:
+        report["vases"] = run_vases(args.vases, args.initialisation)
+    for name in args.psb:
+        report[f"PSB {name}"] = run_psb(name, args.initialisation, args.shapes)
+    (OUTPUT / f"spectral_probe_{os.getpid()}.json").write_text(json.dumps(report, indent=1))
     return 0
 
 

@@ -8,24 +8,31 @@ A point map π (template vertex → shape vertex) and a functional map C (k × k
 shape's first k eigenfunctions read on the template, C = Φ_Tᵀ M_T Φ_S[π]) determine each
 other; the steps:
 
-1. **Sign search.** For a near-isometry C starts out nearly diagonal with entries ±1: an
-   eigenfunction is known up to its sign. Every sign pattern of the first SIGN_FUNCTIONS
-   non-constant eigenfunctions gives a point map (nearest neighbours between the template's
-   and the shape's spectral embeddings); each is scored by how far the wave kernel
-   signatures (a pose-invariant description of every point's neighbourhood at many scales)
-   of matched points differ.
+1. **Coarse candidates.** For a near-isometry C is nearly orthogonal and, at low
+   frequencies, nearly block-diagonal. Two sources of candidates for its first few rows:
+   the sign patterns of the first SIGN_FUNCTIONS non-constant eigenfunctions (an
+   eigenfunction is known up to its sign) whose point maps best match the wave kernel
+   signatures (a pose-invariant description of every point's neighbourhood at many
+   scales); and orthogonal Procrustes fits of the signatures' spectral coefficients, one
+   block per run of close eigenvalues (whose eigenfunctions may swap or mix between two
+   shapes), with the directions the signatures say least about tried both ways.
 2. **Orientation.** A left–right mirror of the right map matches the signatures as well as
    the map itself (the animal is bilaterally symmetric), so signatures cannot choose. A
    mirror reverses the surface's orientation: the image of a template triangle, in the
    order of its corners, faces into the shape instead of out of it. Intake orients every
    mesh consistently (outward), so the share of template triangles whose images agree with
    the shape's normals tells the map from its mirror whatever the pose
-   (`orientation_agreement`). The candidates are refined a little in the order of their
-   scores; the first that keeps the orientation is kept (a mirror pair scores alike, so
-   the mirror of the best is next in line).
+   (`orientation_agreement`). Every candidate is refined by ZoomOut to
+   ORIENTATION_FUNCTIONS; among those that keep the orientation, the one whose matched
+   points' signatures differ least is kept.
 3. **ZoomOut** (Melzi et al. 2019): C is re-estimated from the point map and the point map
-   from C with one more eigenfunction at a time, from a few (smooth, pose-free) to
-   ZOOM_FUNCTIONS, so the map gets finer without leaving the coarse map's basin.
+   from C with more eigenfunctions each time (one at a time up to FINE_FUNCTIONS, where
+   the map's layout is decided, then FINE_STEP), from a few (smooth, pose-free) to
+   ZOOM_FUNCTIONS, so the map gets finer without leaving the coarse map's basin. Each C
+   is projected to the nearest orthogonal matrix (`functional_map`). C is estimated on
+   a mass-weighted sample of the template's vertices, matched into a sample of the
+   shape's, which keeps a 5k-vertex pair to about a second; the landmarks are matched
+   into all of the shape's vertices.
 4. The template's landmarks are carried to the shape by the final map (each by its nearest
    template vertex); non-rigid ICP then starts from there (groupwise.py).
 
@@ -278,8 +285,8 @@ def _descriptor_candidates(template: SpectralShape, shape: SpectralShape, k: int
 
 def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: SpectralShape) -> SpectralStart:
     """Where the template's landmarks (`template_points`, (L, 3) on the template's surface,
-    in its coordinates) start on the shape: sign search, orientation, ZoomOut (module
-    docstring). Points are returned in the shape's coordinates (at its vertices)."""
+    in its coordinates) start on the shape: coarse candidates, orientation, ZoomOut
+    (module docstring). Points are returned in the shape's coordinates (at its vertices)."""
     sample, weights = _sample(template, SAMPLE_VERTICES)
     targets, _ = _sample(shape, SHAPE_VERTICES)
     trial, trial_weights = _sample(template, TRIAL_VERTICES, seed=3)

@@ -48,7 +48,8 @@ def _start_on_shape(item: _StartItem) -> SpectralStart:
         shape = spectral_shape(item.vertices, item.faces)
     except SpectrumError as exc:
         return SpectralStart(None, f"closest-point start: spectrum not trusted ({exc})")
-    return spectral_start(item.template, item.template_points, shape)
+    start = spectral_start(item.template, item.template_points, shape)
+    return start if start.points is not None else replace(start, message=f"closest-point start: {start.message}")
 
 
 def spectral_starts(names: Sequence[str], surfaces: Sequence, template_index: int, template_points: np.ndarray,
