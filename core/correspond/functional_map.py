@@ -131,6 +131,13 @@ class SpectralStart:
     normals: np.ndarray | None = None  # (L, 3) the shape's vertex normals there
     orientation: float = float("nan")  # share of template triangles the map keeps facing out
     signature_error: float = float("nan")  # mean signature distance of matched points
+    signature_vertices: np.ndarray | None = None  # (n, 3) the shape's (part's) vertices, its coordinates
+    signature: np.ndarray | None = None  # (n, E) their wave kernel signatures
+
+
+def landmark_signatures(template: SpectralShape, template_points: np.ndarray) -> np.ndarray:
+    """(L, E) the signatures of the template's landmarks (at their nearest template vertex)."""
+    return template.signature[cKDTree(template.vertices).query(np.asarray(template_points, dtype=np.float64))[1]]
 
 
 def nearest_rows(queries: np.ndarray, rows: np.ndarray, chunk: int = 2048) -> np.ndarray:
@@ -318,6 +325,7 @@ def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: 
     landmark_matches = point_map(template, shape, nearest, c)
     return SpectralStart(shape.vertices[landmark_matches],
                          f"spectral start (orientation kept on {100 * agreement:.0f} % of triangles)",
-                         shape.normals[landmark_matches], agreement, _signature_error(template, shape, sample, weights, matches))
+                         shape.normals[landmark_matches], agreement, _signature_error(template, shape, sample, weights, matches),
+                         shape.vertices, shape.signature)
 
 

@@ -27,7 +27,7 @@ from .features import agreement_weights, checks_fit, checks_regions, keeps_featu
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
-from .start import checked_spectral_fits, spectral_starts
+from .start import checked_spectral_fits, signature_error, spectral_starts
 
 __all__ = ["chamfer_medoid", "correspond"]
 
@@ -241,7 +241,8 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     rounds = settings.groupwise_rounds + 1
     starts = None
     if settings.initialisation == "spectral":
-        starts = spectral_starts(names, surfaces, start, template_points, runner, sub_range(report, 0.0, SPECTRAL_SHARE))
+        starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
+                                                      sub_range(report, 0.0, SPECTRAL_SHARE))
         for name, spectral in zip(names, starts):
             if spectral is not None:
                 report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
@@ -276,7 +277,8 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         if starts is not None:
-            registrations = _from_spectral_starts(tasks, starts, outcome, to_frame, runner, round_report, label)
+            registrations = _from_spectral_starts(tasks, starts, template_signatures, outcome, to_frame, runner,
+                                                  round_report, label)
         elif round_index == 0 and checks_fit(settings):
             registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
         else:
@@ -293,12 +295,13 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     return outcome
 
 
-def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, previous: _Rounds | None, to_frame,
-                          runner: RegistrationRunner, report: Progress, label: str) -> list[Registration]:
+def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_signatures, previous: _Rounds | None,
+                          to_frame, runner: RegistrationRunner, report: Progress, label: str) -> list[Registration]:
     """(the spectral start, **beyond** the thesis; start.py) the round's registrations. The
     first round registers every shape from its spectral start (`starts[i]`, None for the
     template's own shape) beside the closest-point start, which replaces it where the
-    spectrum was not trusted or the spectral fit is clearly worse (said per shape). Later
+    spectrum was not trusted, the spectral fit is clearly worse or its landmarks do not
+    match the template's signatures clearly better (start.py; said per shape). Later
     rounds start every shape from its previous round's landmarks: the mean template of
     shapes in different poses is no start, and the affines then act on those landmarks."""
     if previous is not None:
@@ -307,7 +310,11 @@ def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, previous:
     spectral = [task if s is None or s.points is None else
                 replace(task, template=to_frame(s.points), template_normals=s.normals)
                 for task, s in zip(tasks, starts)]
-    registrations, reasons = checked_spectral_fits(spectral, tasks, runner, report, label)
+    def signature_errors(index: int, registration: Registration) -> float:
+        return signature_error(template_signatures, starts[index], registration.placed.points, to_frame)
+
+    registrations, reasons = checked_spectral_fits(spectral, tasks, runner, report, label,
+                                                   None if template_signatures is None else signature_errors)
     for task, reason in zip(tasks, reasons):
         if reason:
             report(1.0, f"{task.name}: {reason}")

@@ -18,7 +18,9 @@ import numpy as np
 
 from ..geometry.spectral import SpectrumError
 from ..progress import Progress
-from .functional_map import SpectralShape, SpectralStart, spectral_shape, spectral_start
+from scipy.spatial import cKDTree
+
+from .functional_map import SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
 from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration
 
@@ -27,6 +29,11 @@ __all__ = ["spectral_starts", "checked_spectral_fits", "SPECTRAL_FIT_MARGIN"]
 #: a spectral start whose registration's residual is more than this times the closest-point
 #: registration's is not trusted (the intrinsic map put part of the template on the wrong part)
 SPECTRAL_FIT_MARGIN = 1.5
+#: nor one whose landmarks' signatures differ from the template's by more than this times
+#: the closest-point registration's: the intrinsic map must match the intrinsic geometry
+#: clearly better to overrule the closest points (a body of revolution fits its signatures
+#: alike at every turn about its axis, so the spectrum cannot say which turn is right)
+SPECTRAL_SIGNATURE_MARGIN = 0.9
 
 
 @dataclass(frozen=True)
@@ -53,10 +60,12 @@ def _start_on_shape(item: _StartItem) -> SpectralStart:
 
 
 def spectral_starts(names: Sequence[str], surfaces: Sequence, template_index: int, template_points: np.ndarray,
-                    runner: RegistrationRunner, report: Progress) -> list[SpectralStart | None]:
+                    runner: RegistrationRunner, report: Progress
+                    ) -> tuple[list[SpectralStart | None], np.ndarray | None]:
     """Per shape (None for the template's own shape, which starts as itself): where its
     landmarks start by the intrinsic map from the template shape (functional_map.py), or
-    why not. `surfaces`: per shape, the mesh registered against (a dense shape's proxy)."""
+    why not; and the signatures of the template's landmarks (None: its spectrum is not
+    trusted). `surfaces`: per shape, the mesh registered against (a dense shape's proxy)."""
     template_mesh = surfaces[template_index].mesh
     try:
         template, problem = spectral_shape(template_mesh.vertices, template_mesh.faces), ""
@@ -69,16 +78,26 @@ def spectral_starts(names: Sequence[str], surfaces: Sequence, template_index: in
     starts: list[SpectralStart | None] = [None] * len(names)
     for index, outcome in zip(others, mapped):
         starts[index] = outcome
-    return starts
+    return starts, None if template is None else landmark_signatures(template, template_points)
+
+
+def signature_error(template_signatures: np.ndarray, start: SpectralStart, points: np.ndarray, to_frame) -> float:
+    """Mean squared difference between the template landmarks' signatures and the shape's
+    at `points` (its landmarks in the registration frame; the shape's signature read at
+    the nearest of its vertices, which `to_frame` takes to that frame)."""
+    _, nearest = cKDTree(to_frame(start.signature_vertices)).query(points)
+    return float(((template_signatures - start.signature[nearest]) ** 2).sum(axis=1).mean())
 
 
 def checked_spectral_fits(spectral: list[RegistrationTask], closest: list[RegistrationTask], runner: RegistrationRunner,
-                          report: Progress, label: str) -> tuple[list[Registration], list[str]]:
+                          report: Progress, label: str, signature_errors=None) -> tuple[list[Registration], list[str]]:
     """Register every shape from its spectral start and from the closest-point start side
     by side (`spectral[i]` and `closest[i]` are the same shape; a shape without a spectral
     start has its closest task in both places and runs once). A spectral fit whose
-    residual is more than SPECTRAL_FIT_MARGIN times the closest-point fit's is replaced by
-    it. Returns the registrations and, per shape, "" or why it fell back."""
+    residual is more than SPECTRAL_FIT_MARGIN times the closest-point fit's, or (with
+    `signature_errors(i, registration)`: the signature error of shape i's landmarks) whose
+    signatures do not match at least 1 / SPECTRAL_SIGNATURE_MARGIN times better, is
+    replaced by it. Returns the registrations and, per shape, "" or why it fell back."""
     differs = [s is not c for s, c in zip(spectral, closest)]
     extra = [replace(task, index=len(spectral) + k, name=f"{task.name} (closest-point start)")
              for k, task in enumerate(t for t, d in zip(closest, differs) if d)]
@@ -92,5 +111,11 @@ def checked_spectral_fits(spectral: list[RegistrationTask], closest: list[Regist
         if registrations[index].residual > SPECTRAL_FIT_MARGIN * alternative.residual:
             ratio = registrations[index].residual / alternative.residual
             reasons[index] = f"closest-point start: the spectral start fit {ratio:.1f}× worse"
+        elif signature_errors is not None:
+            by_spectrum, by_closest_points = (signature_errors(index, r) for r in (registrations[index], alternative))
+            if by_spectrum > SPECTRAL_SIGNATURE_MARGIN * by_closest_points:
+                reasons[index] = (f"closest-point start: the spectral start does not match the intrinsic geometry "
+                                  f"clearly better (signature error {by_spectrum:.2f} against {by_closest_points:.2f})")
+        if reasons[index]:
             registrations[index] = alternative
     return registrations, reasons
