@@ -4,6 +4,7 @@ closed forms, the spectral map on known answers, the option's wiring and its fil
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,43 @@ def test_correspond_with_the_spectral_start_reports_every_shape_s_start(small_va
         assert said, f"{name}: no start reported in {messages}"
     assert result.settings.initialisation == "spectral"
     assert np.isfinite(result.points).all()
+
+
+@dataclass(frozen=True)
+class _Task:
+    """What `checked_spectral_fits` reads of a registration task."""
+
+    index: int
+    name: str
+
+
+class _Runner:
+    """Hands back prepared registrations in task order (what `runner.run` returns)."""
+
+    def __init__(self, by_name):
+        self.by_name = by_name
+
+    def run(self, tasks, progress, label):
+        return [self.by_name[task.name] for task in tasks]
+
+
+def test_a_spectral_fit_worse_or_no_closer_to_the_signatures_falls_back_to_closest_points():
+    from types import SimpleNamespace
+
+    from shapegen_core.correspond.start import checked_spectral_fits
+
+    names = ["kept", "worse fit", "same signatures", "template"]
+    closest = [_Task(i, n) for i, n in enumerate(names)]
+    spectral = [_Task(i, n) for i, n in enumerate(names[:3])] + [closest[3]]  # the template: no spectral start
+    fits = {"kept": 1.0, "worse fit": 2.0, "same signatures": 1.0, "template": 1.0}
+    registrations = {n: SimpleNamespace(residual=fits[n], by="spectral") for n in names}
+    registrations.update({f"{n} (closest-point start)": SimpleNamespace(residual=1.0, by="closest") for n in names})
+    signature = {("kept", "spectral"): 1.0, ("kept", "closest"): 2.0, ("same signatures", "spectral"): 0.95,
+                 ("same signatures", "closest"): 1.0}
+    chosen, reasons = checked_spectral_fits(spectral, closest, _Runner(registrations), lambda *a: None, "round 1",
+                                            lambda i, r: signature.get((names[i], r.by), 1.0))
+    assert [r.by for r in chosen] == ["spectral", "closest", "closest", "spectral"]
+    assert reasons[0] == "" and reasons[3] == ""
+    assert reasons[1] == "closest-point start: the spectral start fit 2.0× worse"
+    assert reasons[2].startswith("closest-point start: the spectral start does not match the intrinsic geometry "
+                                 "clearly better (signature error 0.95 against 1.00)")
