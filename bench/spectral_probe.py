@@ -2,7 +2,7 @@
 vases and PSB label transfer, for today's start (closest points) and the spectral start.
 
     python bench/spectral_probe.py [--classes cat dog ...] [--initialisation closest spectral]
-                                   [--vases N] [--psb Vase Cup ...] [--shapes N]
+                                   [--vases N] [--psb Vase Cup ...] [--shapes N] [--starts]
 
 Not part of the tests. Every class is run with the same settings (nothing tuned per
 class). Figures go to stdout and bench_output/spectral_probe_<pid>.json.
@@ -173,6 +173,38 @@ def run_psb(name: str, initialisations, shapes: int | None) -> dict:
     return out
 
 
+#: the template `correspond` chooses in each class (its Chamfer medoid), for `--starts`
+MEDOIDS = {"cat": "cat0", "dog": "dog5", "centaur": "centaur4", "horse": "horse6"}
+
+
+def run_starts(name: str) -> dict:
+    """The spectral start alone (functional_map.spectral_start, no NICP): the class's medoid's
+    ground-truth points (every 6th common point) carried to every other shape, true error %
+    of the diagonal (input frames: TOSCA files share up and facing) and CPU seconds per
+    shape (the shape's spectrum and the map; the template's spectrum once)."""
+    from shapegen_core.correspond.functional_map import spectral_shape, spectral_start
+
+    meshes, maps = tosca_class(name)
+    t = [m.name for m in meshes].index(MEDOIDS[name])
+    template = spectral_shape(meshes[t].vertices, meshes[t].faces)
+    common = np.arange(0, len(maps[t]), 6)
+    errors, seconds = {}, []
+    for mesh, truth in zip(meshes, maps):
+        if mesh is meshes[t]:
+            continue
+        cpu = time.process_time()
+        start = spectral_start(template, meshes[t].vertices[maps[t][common]], spectral_shape(mesh.vertices, mesh.faces))
+        seconds.append(time.process_time() - cpu)
+        errors[mesh.name] = (float("nan") if start.points is None else
+                             100 * float(np.linalg.norm(start.points - mesh.vertices[truth[common]], axis=1).mean()
+                                         / mesh.bbox_diagonal()))
+    out = {"mean %": float(np.nanmean(list(errors.values()))), "per shape %": errors,
+           "cpu s/shape": float(np.mean(seconds))}
+    print(f"start {name:8s} mean {out['mean %']:5.2f} %  {out['cpu s/shape']:4.2f} CPU s/shape  "
+          + " ".join(f"{n}:{e:.1f}" for n, e in errors.items()), flush=True)
+    return out
+
+
 def _settings(initialisation: str) -> CorrespondenceSettings:
     if initialisation == "closest":
         return CorrespondenceSettings()
@@ -186,12 +218,16 @@ def main(argv=None) -> int:
     parser.add_argument("--shapes", type=int, default=None, help="first N shapes of each class")
     parser.add_argument("--landmarks", type=int, default=800)
     parser.add_argument("--vases", type=int, default=0, help="also N procedural vases")
+    parser.add_argument("--starts", action="store_true", help="the spectral start alone on the TOSCA classes")
     parser.add_argument("--psb", nargs="*", default=[], help="also these PSB classes (label transfer)")
     args = parser.parse_args(argv)
     OUTPUT.mkdir(exist_ok=True)
     report = {}
     for name in args.classes:
-        report[f"TOSCA {name}"] = run_tosca(name, args.initialisation, args.shapes, args.landmarks)
+        if args.starts:
+            report[f"start {name}"] = run_starts(name)
+        else:
+            report[f"TOSCA {name}"] = run_tosca(name, args.initialisation, args.shapes, args.landmarks)
     if args.vases:
         report["vases"] = run_vases(args.vases, args.initialisation)
     for name in args.psb:
