@@ -71,22 +71,24 @@ ORIENTATION_FUNCTIONS = 16
 #: ZoomOut adds one eigenfunction per step up to FINE_FUNCTIONS, then FINE_STEP per step
 FINE_FUNCTIONS = 20
 FINE_STEP = 3
-#: template vertices used to estimate C (a mass-weighted sample: C is an integral over the template);
-#: the sign search scores a SEARCH_VERTICES prefix of it; until the last step ZoomOut matches
-#: into SHAPE_VERTICES of the shape's vertices; ORIENTATION_FACES template triangles vote
+#: the final ZoomOut estimates C on SAMPLE_VERTICES template vertices (a mass-weighted
+#: sample: C is an integral over the template) matched into SHAPE_VERTICES of the shape's;
+#: sign patterns are scored on SEARCH_VERTICES; candidates are refined (TRIAL_STEP
+#: eigenfunctions per step) and compared on TRIAL_VERTICES matched into TRIAL_TARGETS;
+#: ORIENTATION_FACES template triangles vote on the orientation
 SAMPLE_VERTICES = 1500
+SHAPE_VERTICES = 2500
 SEARCH_VERTICES = 400
-#: candidates are refined and compared on smaller samples: TRIAL_VERTICES into TRIAL_TARGETS
 TRIAL_VERTICES = 1000
 TRIAL_TARGETS = 2000
 TRIAL_STEP = 2
-SHAPE_VERTICES = 2500
 ORIENTATION_FACES = 600
 #: the largest part must hold at least this share of a mesh's area
 MIN_PART_SHARE = 0.9
 #: an orientation-preserving map agrees with the shape's normals on more than this share of
 #: triangles (a mirror on about 0.3, maps that fold the surface about 0.5)
 MIN_ORIENTATION = 0.6
+#: log-energies of the wave kernel signature
 SIGNATURE_ENERGIES = 40
 
 
