@@ -310,6 +310,7 @@ def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_
     spectral = [task if s is None or s.points is None else
                 replace(task, template=to_frame(s.points), template_normals=s.normals)
                 for task, s in zip(tasks, starts)]
+
     def signature_errors(index: int, registration: Registration) -> float:
         return signature_error(template_signatures, starts[index], registration.placed.points, to_frame)
 

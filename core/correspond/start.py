@@ -5,9 +5,10 @@
 there. "spectral": the template's landmarks carried to every shape by an intrinsic map
 (functional_map.py) and non-rigid ICP run from there, its affines acting on those start
 points so the stiffness keeps the start's layout (a limb that moved stays matched to the
-limb). A shape whose spectrum is not trusted, or whose spectral fit is clearly worse than
-the closest-point fit, is registered from the closest-point start instead, and the
-per-shape message says so."""
+limb). A shape whose spectrum is not trusted, whose spectral fit is clearly worse than the
+closest-point fit, or whose spectral landmarks do not match the template's wave-kernel
+signatures clearly better than the closest-point ones, is registered from the
+closest-point start instead, and the per-shape message says so."""
 
 from __future__ import annotations
 
@@ -15,16 +16,16 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.spectral import SpectrumError
 from ..progress import Progress
-from scipy.spatial import cKDTree
-
 from .functional_map import SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
 from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration
 
-__all__ = ["spectral_starts", "checked_spectral_fits", "SPECTRAL_FIT_MARGIN"]
+__all__ = ["spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
+           "SPECTRAL_SIGNATURE_MARGIN"]
 
 #: a spectral start whose registration's residual is more than this times the closest-point
 #: registration's is not trusted (the intrinsic map put part of the template on the wrong part)
