@@ -120,8 +120,9 @@ class CorrespondenceSettings(Settings):
         does not change: for classes whose shapes differ in pose (an animal's limbs). Each
         shape is also registered from the closest-point start in the first round; where
         the spectrum is not trusted (parts, a failed solve, no orientation-preserving
-        map) or the spectral fit is clearly worse, the closest-point start is used and the
-        shape's message says so. Rounds after the first start every shape from its
+        map), the spectral fit is clearly worse or its landmarks match the template's
+        wave-kernel signatures no clearly better (start.py), the closest-point start is
+        used and the shape's message says so. Rounds after the first start every shape from its
         previous landmarks (a mean template of shapes in different poses is no start).
     Iteration (Alg. 3, §4.2.6):
       update_template: True: every solve starts from the moved points, so the stiffness
