@@ -37,6 +37,10 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   pool.py          registration tasks in this process or in spawned worker processes, their
                    ICP iterations turned into progress fractions
   groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
+  functional_map.py  the intrinsic start (**beyond**, issue 34): a spectral map of the template's
+                   landmarks onto a shape (candidates, orientation, ZoomOut)
+  start.py         `initialisation = "spectral"`: the starts of a collection and the check
+                   against closest points that decides which start each shape keeps
   outliers.py      outlier flags and their reasons (residual, size, leave-one-out
                    reconstruction in a PPCA model of the other shapes)
   objective.py     the population objective of refinement: compactness + spread, gradients

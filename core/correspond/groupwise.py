@@ -27,6 +27,7 @@ from .features import agreement_weights, checks_fit, checks_regions, keeps_featu
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
+from .start import checked_spectral_fits, signature_error, spectral_starts
 
 __all__ = ["chamfer_medoid", "correspond"]
 
@@ -201,6 +202,8 @@ def correspond(
 
 #: with refinement, NICP's progress fills [0, REFINE_START] and the refinement the rest
 REFINE_START = 0.8
+#: with the spectral start, the intrinsic maps fill this share of the rounds' progress
+SPECTRAL_SHARE = 0.2
 
 
 def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
@@ -236,6 +239,14 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
     ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
     rounds = settings.groupwise_rounds + 1
+    starts = None
+    if settings.initialisation == "spectral":
+        starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
+                                                      sub_range(report, 0.0, SPECTRAL_SHARE))
+        for name, spectral in zip(names, starts):
+            if spectral is not None:
+                report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
+        report = sub_range(report, SPECTRAL_SHARE, 1.0)
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
     round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
@@ -265,7 +276,10 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
                              scale, current_between, None if plain is None else plain[i])
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
-        if round_index == 0 and checks_fit(settings):
+        if starts is not None:
+            registrations = _from_spectral_starts(tasks, starts, template_signatures, outcome, to_frame, runner,
+                                                  round_report, label)
+        elif round_index == 0 and checks_fit(settings):
             registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
         else:
             registrations = runner.run(tasks, round_report, label)
@@ -279,6 +293,33 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
+
+
+def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_signatures, previous: _Rounds | None,
+                          to_frame, runner: RegistrationRunner, report: Progress, label: str) -> list[Registration]:
+    """(the spectral start, **beyond** the thesis; start.py) the round's registrations. The
+    first round registers every shape from its spectral start (`starts[i]`, None for the
+    template's own shape) beside the closest-point start, which replaces it where the
+    spectrum was not trusted, the spectral fit is clearly worse or its landmarks do not
+    match the template's signatures clearly better (start.py; said per shape). Later
+    rounds start every shape from its previous round's landmarks: the mean template of
+    shapes in different poses is no start, and the affines then act on those landmarks."""
+    if previous is not None:
+        return runner.run([replace(task, template=r.placed.points, template_normals=r.normals)
+                           for task, r in zip(tasks, previous.registrations)], report, label)
+    spectral = [task if s is None or s.points is None else
+                replace(task, template=to_frame(s.points), template_normals=s.normals)
+                for task, s in zip(tasks, starts)]
+
+    def signature_errors(index: int, registration: Registration) -> float:
+        return signature_error(template_signatures, starts[index], registration.placed.points, to_frame)
+
+    registrations, reasons = checked_spectral_fits(spectral, tasks, runner, report, label,
+                                                   None if template_signatures is None else signature_errors)
+    for task, reason in zip(tasks, reasons):
+        if reason:
+            report(1.0, f"{task.name}: {reason}")
+    return registrations
 
 
 def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: RegistrationRunner, report: Progress,

@@ -10,7 +10,8 @@ import numpy as np
 from ..settings import Settings, SettingsError, option
 from ..simplify import REGISTRATION_PROXY_FACES
 
-__all__ = ["CorrespondenceSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS"]
+__all__ = ["CorrespondenceSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",
+           "INITIALISATIONS"]
 
 #: `matching`: the data term's matches (registration.py, features.py)
 MATCHING_METHODS = ("closest", "features")
@@ -20,6 +21,9 @@ MATCHING_METHODS = ("closest", "features")
 #: a softer last α lets the wall around them follow (with closest points a softer end does
 #: not help, so the schedule changes only there; docs/results.md, Correspondence)
 FEATURE_STIFFNESS = 0.4
+
+#: `initialisation`: where each shape's registration starts (start.py)
+INITIALISATIONS = ("closest", "spectral")
 
 #: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
@@ -78,6 +82,18 @@ class CorrespondenceSettings(Settings):
       regions, surface samples, the fit check against closest points and its fallback
       share) and FEATURE_STIFFNESS here: they were research knobs, removed in issue 34
       (`FIELDS_REMOVED`; their measurements are in docs/results.md).
+    Start (**beyond** the thesis, opt-in; issue 34, start.py, functional_map.py):
+      initialisation: "closest" (default; files written before it record it): every
+        shape's registration starts from the template as it is (the thesis). "spectral":
+        from the template's landmarks carried to the shape by an intrinsic map
+        (Laplace–Beltrami eigenfunctions, sign search, orientation, ZoomOut), which bending
+        does not change: for classes whose shapes differ in pose (an animal's limbs). Each
+        shape is also registered from the closest-point start in the first round; where
+        the spectrum is not trusted (parts, a failed solve, no orientation-preserving
+        map), the spectral fit is clearly worse or its landmarks match the template's
+        wave-kernel signatures no clearly better (start.py), the closest-point start is
+        used and the shape's message says so. Rounds after the first start every shape from its
+        previous landmarks (a mean template of shapes in different poses is no start).
     Iteration (Alg. 3, §4.2.6):
       update_template: True: every solve starts from the moved points, so the stiffness
         regularises each step only (the thesis's modification of Alg. 3). False
@@ -150,7 +166,7 @@ class CorrespondenceSettings(Settings):
 
     #: files written before these fields existed ran with these values (settings.Settings);
     #: not annotated: a class attribute, not a field
-    FIELDS_ADDED_LATER = {"feature_between": 0.0}
+    FIELDS_ADDED_LATER = {"feature_between": 0.0, "initialisation": "closest"}
     #: fields taken out (settings.Settings): files that record them load as today's
     #: settings; settings given now that name them are refused, saying why
     FIELDS_REMOVED = dict.fromkeys(
@@ -170,6 +186,9 @@ class CorrespondenceSettings(Settings):
                            choices=MATCHING_METHODS)
     feature_between: float = option(1.0, "features: weight of a point's position between the turning lines of its "
                                     "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
+    initialisation: str = option("closest", "where registration starts: closest (the template as it is, the "
+                                 "thesis); spectral (an intrinsic map, for shapes that differ in pose)",
+                                 flag="--initialisation", choices=INITIALISATIONS)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")
     update_template: bool = option(False, "every solve starts from the moved points (the thesis's Alg. 3)")

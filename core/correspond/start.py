@@ -1,0 +1,122 @@
+"""Where each shape's registration starts (**beyond** the thesis: issue 34,
+`CorrespondenceSettings.initialisation`).
+
+"closest" (the thesis): the template as it is; non-rigid ICP finds closest points from
+there. "spectral": the template's landmarks carried to every shape by an intrinsic map
+(functional_map.py) and non-rigid ICP run from there, its affines acting on those start
+points so the stiffness keeps the start's layout (a limb that moved stays matched to the
+limb). A shape whose spectrum is not trusted, whose spectral fit is clearly worse than the
+closest-point fit, or whose spectral landmarks do not match the template's wave-kernel
+signatures clearly better than the closest-point ones, is registered from the
+closest-point start instead, and the per-shape message says so."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry.spectral import SpectrumError
+from ..progress import Progress
+from .functional_map import SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
+from .pool import RegistrationRunner, RegistrationTask
+from .registration import Registration
+
+__all__ = ["spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
+           "SPECTRAL_SIGNATURE_MARGIN"]
+
+#: a spectral start whose registration's residual is more than this times the closest-point
+#: registration's is not trusted (the intrinsic map put part of the template on the wrong part)
+SPECTRAL_FIT_MARGIN = 1.5
+#: nor one whose landmarks' signatures differ from the template's by more than this times
+#: the closest-point registration's: the intrinsic map must match the intrinsic geometry
+#: clearly better to overrule the closest points (a body of revolution fits its signatures
+#: alike at every turn about its axis, so the spectrum cannot say which turn is right)
+SPECTRAL_SIGNATURE_MARGIN = 0.9
+
+
+@dataclass(frozen=True)
+class _StartItem:
+    """One shape's share of `spectral_starts` (picklable, for a worker)."""
+
+    name: str
+    template: SpectralShape | None  # None: the template's own spectrum was not trusted
+    template_points: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+    template_problem: str = ""
+
+
+def _start_on_shape(item: _StartItem) -> SpectralStart:
+    if item.template is None:
+        return SpectralStart(None, f"closest-point start: the template's {item.template_problem}")
+    try:
+        shape = spectral_shape(item.vertices, item.faces)
+    except SpectrumError as exc:
+        return SpectralStart(None, f"closest-point start: spectrum not trusted ({exc})")
+    start = spectral_start(item.template, item.template_points, shape)
+    return start if start.points is not None else replace(start, message=f"closest-point start: {start.message}")
+
+
+def spectral_starts(names: Sequence[str], surfaces: Sequence, template_index: int, template_points: np.ndarray,
+                    runner: RegistrationRunner, report: Progress
+                    ) -> tuple[list[SpectralStart | None], np.ndarray | None]:
+    """Per shape (None for the template's own shape, which starts as itself): where its
+    landmarks start by the intrinsic map from the template shape (functional_map.py), or
+    why not; and the signatures of the template's landmarks (None: its spectrum is not
+    trusted). `surfaces`: per shape, the mesh registered against (a dense shape's proxy)."""
+    template_mesh = surfaces[template_index].mesh
+    try:
+        template, problem = spectral_shape(template_mesh.vertices, template_mesh.faces), ""
+    except SpectrumError as exc:
+        template, problem = None, f"spectrum is not trusted ({exc})"
+    items = [_StartItem(name, template, template_points, surface.mesh.vertices, surface.mesh.faces, problem)
+             for index, (name, surface) in enumerate(zip(names, surfaces)) if index != template_index]
+    others = [index for index in range(len(names)) if index != template_index]
+    mapped = runner.map(_start_on_shape, items, report, lambda i: f"intrinsic map to {items[i].name}")
+    starts: list[SpectralStart | None] = [None] * len(names)
+    for index, outcome in zip(others, mapped):
+        starts[index] = outcome
+    return starts, None if template is None else landmark_signatures(template, template_points)
+
+
+def signature_error(template_signatures: np.ndarray, start: SpectralStart, points: np.ndarray, to_frame) -> float:
+    """Mean squared difference between the template landmarks' signatures and the shape's
+    at `points` (its landmarks in the registration frame; the shape's signature read at
+    the nearest of its vertices, which `to_frame` takes to that frame)."""
+    _, nearest = cKDTree(to_frame(start.signature_vertices)).query(points)
+    return float(((template_signatures - start.signature[nearest]) ** 2).sum(axis=1).mean())
+
+
+def checked_spectral_fits(spectral: list[RegistrationTask], closest: list[RegistrationTask], runner: RegistrationRunner,
+                          report: Progress, label: str, signature_errors=None) -> tuple[list[Registration], list[str]]:
+    """Register every shape from its spectral start and from the closest-point start side
+    by side (`spectral[i]` and `closest[i]` are the same shape; a shape without a spectral
+    start has its closest task in both places and runs once). A spectral fit whose
+    residual is more than SPECTRAL_FIT_MARGIN times the closest-point fit's, or (with
+    `signature_errors(i, registration)`: the signature error of shape i's landmarks) whose
+    signatures do not match at least 1 / SPECTRAL_SIGNATURE_MARGIN times better, is
+    replaced by it. Returns the registrations and, per shape, "" or why it fell back."""
+    differs = [s is not c for s, c in zip(spectral, closest)]
+    extra = [replace(task, index=len(spectral) + k, name=f"{task.name} (closest-point start)")
+             for k, task in enumerate(t for t, d in zip(closest, differs) if d)]
+    both = runner.run(list(spectral) + extra, report, f"{label}, spectral starts checked against closest points")
+    registrations, reasons = list(both[:len(spectral)]), [""] * len(spectral)
+    by_closest = iter(both[len(spectral):])
+    for index, checked in enumerate(differs):
+        if not checked:
+            continue
+        alternative = next(by_closest)
+        if registrations[index].residual > SPECTRAL_FIT_MARGIN * alternative.residual:
+            ratio = registrations[index].residual / alternative.residual
+            reasons[index] = f"closest-point start: the spectral start fit {ratio:.1f}× worse"
+        elif signature_errors is not None:
+            by_spectrum, by_closest_points = (signature_errors(index, r) for r in (registrations[index], alternative))
+            if by_spectrum > SPECTRAL_SIGNATURE_MARGIN * by_closest_points:
+                reasons[index] = (f"closest-point start: the spectral start does not match the intrinsic geometry "
+                                  f"clearly better (signature error {by_spectrum:.2f} against {by_closest_points:.2f})")
+        if reasons[index]:
+            registrations[index] = alternative
+    return registrations, reasons
