@@ -158,6 +158,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.shapegen
+        layout.prop(settings, "differ_in_pose")
         layout.label(text="Optional: Fit finds them too", icon="INFO")
         layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")
         if MANAGER.task == "correspond":

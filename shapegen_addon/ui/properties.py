@@ -140,6 +140,12 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
                            description="What each landmark is matched to on every shape")
     refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refine,
                          description="An extra pass after matching")
+    differ_in_pose: BoolProperty(
+        name="Shapes Differ in Pose", default=CORE_DEFAULTS.correspondence.initialisation == "spectral",
+        description="Animals, people, hands: shapes that bend at joints. Each shape's landmarks then start where "
+                    "a map along its surface puts them, which a moved limb does not change (slower; where that map "
+                    "cannot be trusted the shape starts as usual and its message says so)",
+    )
     mesh_stiffness: FloatProperty(
         name="Meshing Stiffness", default=CORE_DEFAULTS.deform.final_alpha, min=0.01, soft_max=100.0,
         description="How stiffly new shapes are bent out of a training object: higher keeps its surface smooth "
@@ -190,9 +196,10 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         return {name: getattr(self, name) for name in PREPARE_SETTINGS}
 
     def correspondence_options(self) -> dict:
-        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `matching`, `refine`."""
+        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `matching`, `refine`;
+        `initialisation` spectral where the shapes differ in pose."""
         return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
-                "refine": self.refine}
+                "refine": self.refine, "initialisation": "spectral" if self.differ_in_pose else "closest"}
 
     def fit_options(self) -> dict:
         """FitSettings as plain data (`FitSettings.as_dict()`-shaped): Prepare's options

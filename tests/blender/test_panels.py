@@ -171,6 +171,10 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         panel = scene.shapegen
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
         assert received == pipeline.FitSettings()
+        panel.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
+        received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
+        assert received.correspondence.initialisation == "spectral"
+        panel.differ_in_pose = False
         assert panel.sample_template == pipeline.FitSettings().mesh_template
         assert panel.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
     finally:
