@@ -261,6 +261,24 @@ def _random_placement(rng: np.random.Generator) -> ShapeTransform:
     return ShapeTransform(rotation, float(rng.uniform(0.5, 2.0)), rng.uniform(-1, 1, 3))
 
 
+def _capped_ring_faces(count: int, n_around: int, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Faces of `count` rings of `n_around` vertices (vertex 1 + k·n_around + i), a pole
+    vertex 0 below the first and one after the last closing the ends. Each quad between
+    two rings is cut along its rising diagonal, or (with `rng`) along either at random."""
+    ring = lambda k: 1 + k * n_around + np.arange(n_around)  # noqa: E731
+    j = np.arange(n_around)
+    first, last, top = ring(0), ring(count - 1), count * n_around + 1
+    faces = [np.stack([np.zeros(n_around, int), first[(j + 1) % n_around], first[j]], axis=1)]
+    for k in range(count - 1):
+        a, b = ring(k), ring(k + 1)
+        a0, a1, b0, b1 = a[j], a[(j + 1) % n_around], b[j], b[(j + 1) % n_around]
+        flip = np.ones(n_around, bool) if rng is None else rng.random(n_around) < 0.5
+        faces.append(np.where(flip[:, None], np.stack([a0, a1, b1], 1), np.stack([a0, a1, b0], 1)))
+        faces.append(np.where(flip[:, None], np.stack([a0, b1, b0], 1), np.stack([a1, b1, b0], 1)))
+    faces.append(np.stack([np.full(n_around, top), last[j], last[(j + 1) % n_around]], axis=1))
+    return np.concatenate(faces)
+
+
 def _revolved_mesh(profile: np.ndarray, radius_scale, rng: np.random.Generator,
                    n_around: int) -> tuple[np.ndarray, np.ndarray]:
     """Closed surface of revolution about z: profile (rings, 2) rows (r, z) from the bottom
@@ -273,16 +291,7 @@ def _revolved_mesh(profile: np.ndarray, radius_scale, rng: np.random.Generator,
     r = rings[:, 0:1] * radius_scale(np.angle(np.exp(1j * theta)), z)
     ring_points = np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=-1).reshape(-1, 3)
     vertices = np.vstack([[0.0, 0.0, profile[0, 1]], ring_points, [0.0, 0.0, profile[-1, 1]]])
-    ring = lambda k: 1 + k * n_around + np.arange(n_around)  # noqa: E731
-    j = np.arange(n_around)
-    first, last, top = ring(0), ring(len(rings) - 1), len(vertices) - 1
-    faces = [np.stack([np.zeros(n_around, int), first[(j + 1) % n_around], first[j]], axis=1)]
-    for k in range(len(rings) - 1):
-        a, b = ring(k), ring(k + 1)
-        faces.append(np.stack([a[j], a[(j + 1) % n_around], b[(j + 1) % n_around]], axis=1))
-        faces.append(np.stack([a[j], b[(j + 1) % n_around], b[j]], axis=1))
-    faces.append(np.stack([np.full(n_around, top), last[j], last[(j + 1) % n_around]], axis=1))
-    return vertices, np.concatenate(faces)
+    return vertices, _capped_ring_faces(len(rings), n_around)
 
 
 def make_barrels(n: int = 24, seed: int = 0, rings: tuple[int, int] = (14, 22), pose: bool = True) -> list[Mesh]:
@@ -461,18 +470,7 @@ def _part_mesh(surface, rng: np.random.Generator, breaks, n_rings: int,
     uv = np.concatenate([[[0.0, np.nan]], np.stack([np.repeat(levels, n_around), theta.ravel()], axis=1),
                          [[1.0, np.nan]]])
     vertices = surface(uv[:, 0], np.nan_to_num(uv[:, 1]))
-    ring = lambda k: 1 + k * n_around + np.arange(n_around)  # noqa: E731
-    j = np.arange(n_around)
-    first, last, top = ring(0), ring(len(levels) - 1), len(uv) - 1
-    faces = [np.stack([np.zeros(n_around, int), first[(j + 1) % n_around], first[j]], axis=1)]
-    for k in range(len(levels) - 1):
-        a, b = ring(k), ring(k + 1)
-        a0, a1, b0, b1 = a[j], a[(j + 1) % n_around], b[j], b[(j + 1) % n_around]
-        flip = rng.random(n_around) < 0.5
-        faces.append(np.where(flip[:, None], np.stack([a0, a1, b1], 1), np.stack([a0, a1, b0], 1)))
-        faces.append(np.where(flip[:, None], np.stack([a0, b1, b0], 1), np.stack([a1, b1, b0], 1)))
-    faces.append(np.stack([np.full(n_around, top), last[j], last[(j + 1) % n_around]], axis=1))
-    return vertices, np.concatenate(faces), uv
+    return vertices, _capped_ring_faces(len(levels), n_around, rng), uv
 
 
 #: u-values where a tube (`_tube`) changes part: start cap | wall | end cap
