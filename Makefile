@@ -56,7 +56,7 @@ demo: dist/.built
 
 test-core: $(VENV)/.installed $(VENV_NP2)/.installed
 	$(PY) -m pytest tests/core -q -p no:cacheprovider
-	$(PY_NP2) -m pytest tests/core -q -p no:cacheprovider
+	$(PY_NP2) -m pytest tests/core -q -p no:cacheprovider -m numpy_sensitive
 
 test-blender: dist/.built
 	timeout $(BLENDER_TEST_TIMEOUT) $(PY) -m pytest tests/blender -q -p no:cacheprovider

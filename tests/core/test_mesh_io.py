@@ -14,6 +14,8 @@ from shapegen_core.mesh import Mesh
 
 from conftest import random_mesh, random_surface
 
+pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
+
 
 # ---------------------------------------------------------------------------- vertex order
 @pytest.mark.parametrize("suffix", ["obj", "ply", "off", "glb"])

@@ -15,6 +15,8 @@ from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.settings import SettingsError
 
+pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
+
 
 @pytest.fixture(scope="module")
 def prepared(small_vases):
