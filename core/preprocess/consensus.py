@@ -350,7 +350,7 @@ def _side(turn: int | None) -> int | None:
 
 def _floor_stand(evidence: CollectionEvidence, j: int, references: Sequence[int], side: int,
                  frozen: bool, settings: ConsensusSettings) -> PoseDecision:
-    """Shape j stood on the side its file's floor is on (`_floor_side`) unless its
+    """Shape j stood on the side its file's floor is on (`_floor_turn`) unless its
     upright references fit it clearly better as given (by `margin`; in a class that
     varies in pose they may: a rearing cat fits standing cats better lying). Evidence
     that disagrees so is flagged, the floor's stand suggested."""
