@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 from .cli_common import (turned_on_console, add_keep_pose_option, add_settings_options, console_progress, correspond_on_console,
-                         flag_of, given_options, positive_int, prepare_source, read_source, settings_from_args)
+                         flag_of, given_options, positive_int, prepare_source, read_source, requested_settings,
+                         settings_from_args)
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
@@ -29,7 +30,7 @@ __all__ = ["main", "build_parser"]
 def cmd_prepare(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     with SpillStore() as spill:  # dense meshes on disk until the file is written (core/spill.py)
-        source = read_source(args.directory, args, accepts=("folder",), spill=spill)
+        source = read_source(args.directory, args, accepts=("folder",), spill=spill, last="prepare")
         prepared = prepare_source(source)
         if args.turn_flagged is not None:
             prepared = turned_on_console(prepared, args.turn_flagged)
@@ -47,12 +48,14 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     import numpy as np
 
     start = time.perf_counter()
-    options = settings_from_args(FitSettings, args)
+    requested = requested_settings(args)
     with SpillStore() as spill:
-        source = read_source(args.source, args, accepts=("folder", "prepared"), spill=spill)
-        result = correspond_on_console(prepare_source(source), template=options.template, jobs=options.jobs,
-                                       settings=settings_from_args(CorrespondenceSettings, args),
-                                       scheduler=options.scheduler)
+        source = read_source(args.source, args, accepts=("folder", "prepared"), spill=spill, requested=requested,
+                             last="correspond")
+        print(f"[correspond] {source.plan.reason}", file=sys.stderr)
+        settings = source.plan.settings
+        result = correspond_on_console(prepare_source(source), template=settings.template, jobs=settings.jobs,
+                                       settings=settings.correspondence, scheduler=settings.scheduler)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -77,7 +80,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     models = parse_model_names(args.models)
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
     with SpillStore() as spill:
-        source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",), spill=spill)
+        source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",), spill=spill,
+                             last="correspond")
         corr = _evaluated_correspondence(source, args)
     prepared_seconds = time.perf_counter() - start
     outliers = [n for n, flag in zip(corr.names, corr.outliers) if flag]

@@ -1,6 +1,6 @@
 """What the `shapegen` commands share: options built from settings dataclasses, the one
-source resolver (folder, prepared .npz or correspondence .npz) and the console progress
-printer."""
+source reader (folder, prepared .npz or correspondence .npz; which stages run on it is
+core/stages.py's decision) and the console progress printer."""
 
 from __future__ import annotations
 
@@ -16,13 +16,14 @@ from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSet
 from .errors import CollectionError, ShapeGenError
 from .io import read_folder
 from .mesh import Mesh
-from .npzfile import read_format
+from .pipeline import FitSettings
 from .progress import Progress
 from .settings import SettingsError
 from .spill import SpillStore
+from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
-           "settings_from_args", "add_keep_pose_option", "turned_on_console", "read_source", "prepare_source", "pose_lines",
+           "settings_from_args", "requested_settings", "add_keep_pose_option", "turned_on_console", "read_source", "prepare_source", "pose_lines",
            "correspond_on_console", "console_progress"]
 
 
@@ -85,6 +86,13 @@ def settings_from_args(cls, args: argparse.Namespace, flags: dict[str, str] | No
         raise SettingsError(names.get(exc.option, exc.option), exc.problem, exc.prefix) from None
 
 
+def requested_settings(args: argparse.Namespace, **fixed) -> FitSettings:
+    """The FitSettings a command's options ask for: its FitSettings, Prepare and
+    correspondence options (the rest at their defaults), and the `fixed` fields."""
+    return settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
+                              correspondence=settings_from_args(CorrespondenceSettings, args), **fixed)
+
+
 def add_keep_pose_option(parser: argparse.ArgumentParser) -> None:
     """--keep-pose NAME [NAME ...]: shapes of a folder whose pose Prepare keeps (issue 12)."""
     parser.add_argument("--keep-pose", nargs="+", metavar="NAME", default=None,
@@ -94,7 +102,7 @@ def add_keep_pose_option(parser: argparse.ArgumentParser) -> None:
 
 # ---------------------------------------------------------------------------- sources
 SOURCE_KINDS = ("folder", "prepared", "correspondence")
-
+_KIND_OF_STAGE = {"prepare": "prepared", "correspond": "correspondence"}
 
 _DESCRIPTIONS = {"folder": "a folder of meshes", "prepared": f"a prepared .npz ({PREPARED_FORMAT!r})",
                  "correspondence": f"a correspondence .npz ({CORRESPONDENCE_FORMAT!r})"}
@@ -106,69 +114,79 @@ def _either(things: list[str]) -> str:
 
 @dataclass
 class Source:
-    """A command's input. `prepare` says how its shapes are (or are to be) prepared: the
-    command line's options for a folder, the file's own for a prepared or correspondence
-    file (the command line's if the file records none)."""
+    """A command's input and its `plan` (core/stages.py): the stages that run on it and the
+    settings its result records (a file's own where it records them)."""
 
     path: Path
     kind: str  # one of SOURCE_KINDS
-    prepare: PrepareSettings
+    plan: StagePlan
     meshes: list[Mesh] | None = None  # folder: the meshes read (dense ones spill.StoredMesh; None once prepared)
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
 
+    @property
+    def prepare(self) -> PrepareSettings:
+        """How its shapes are (or are to be) prepared."""
+        return self.plan.settings.prepare
 
-def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS,
-                own: tuple[str, ...] = (), spill: SpillStore | None = None) -> Source:
-    """Read a folder of meshes, a prepared .npz or a correspondence .npz (the file's format
-    tag decides). Prepare options given with a file must agree with the Prepare settings
-    it records, except the `own` ones, which the command uses for itself (evaluate's
-    --seed seeds the evaluation). `spill`: the run's store for a folder's dense meshes
-    (core/spill.py; the command keeps it open until it has written its output)."""
-    path = Path(path)
+
+def _source_kind(path: Path, accepts: tuple[str, ...]) -> str:
+    """folder, prepared or correspondence (a file's format tag decides); a CommandError
+    when `path` is missing or of a kind the command does not take."""
     expected = _either([_DESCRIPTIONS[k] for k in accepts])
     if not path.exists():
         raise CommandError(f"{path}: no such {_either(['folder'] + [f'{k} file' for k in accepts if k != 'folder'])}")
-    if path.is_dir():
-        kind = "folder"
-    else:
-        file_format = read_format(path)
-        kind = {PREPARED_FORMAT: "prepared", CORRESPONDENCE_FORMAT: "correspondence"}.get(file_format)
+    kind = "folder"
+    if not path.is_dir():
+        file_format, stage = file_stage(path)
+        kind = _KIND_OF_STAGE.get(stage)
         if kind not in accepts:
             raise CommandError(f"{path}: is a {file_format!r} file; expected {expected}")
     if kind not in accepts:
         raise CommandError(f"{path}: is a folder; expected {expected}")
+    return kind
+
+
+def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] = SOURCE_KINDS,
+                own: tuple[str, ...] = (), spill: SpillStore | None = None, requested: FitSettings | None = None,
+                last: str = "fit") -> Source:
+    """Read a folder of meshes, a prepared .npz or a correspondence .npz and plan the stages
+    up to `last` on it (core/stages.py: a file is used as given; Prepare options given with
+    it, but the `own` ones, which the command uses for itself — evaluate's --seed —, and
+    for a fit its correspondence options, must agree with the settings it records).
+    `requested`: the command's settings (default: its Prepare and correspondence options).
+    `spill`: the run's store for a folder's dense meshes (core/spill.py)."""
+    path = Path(path)
+    kind = _source_kind(path, accepts)
+    if requested is None:
+        requested = FitSettings(prepare=settings_from_args(PrepareSettings, args),
+                                correspondence=settings_from_args(CorrespondenceSettings, args))
     keep_pose = getattr(args, "keep_pose", None)
     if kind == "folder":
         for mesh in (meshes := read_folder(path, jobs=getattr(args, "jobs", 1), spill=spill)):
             if mesh.report.summary() != "clean":
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
-        return Source(path, kind, settings_from_args(PrepareSettings, args), meshes=meshes,
+        return Source(path, kind, plan_stages(requested, last=last), meshes=meshes,
                       keep_pose=kept_poses([m.name for m in meshes], keep_pose))
     if keep_pose:
         raise CommandError(f"--keep-pose applies to a folder of meshes; {path} is already prepared (its poses were "
                            "decided then: prepare its folder again with --keep-pose)")
+    offered = read_offered(path, "prepare" if kind == "prepared" else "correspond")
+    given = {"prepare": {k: v for k, v in given_options(PrepareSettings, args).items() if k not in own}}
+    if last == "fit":
+        given["correspondence"] = given_options(CorrespondenceSettings, args)
+    try:
+        plan = plan_stages(requested, [offered], given, last)
+    except SettingsConflict as exc:
+        cls = PrepareSettings if exc.group == "prepare" else CorrespondenceSettings
+        flag = flag_of(cls, exc.option)
+        made = "prepared" if exc.group == "prepare" else "corresponded"
+        raise CommandError(f"{flag} {exc.value} conflicts with {path}, {made} with {flag} {exc.recorded}; "
+                           f"leave {flag} out to use the file's") from None
     if kind == "correspondence":
-        correspondence = Correspondence.load(path)
-        return Source(path, kind, _recorded_prepare(path, correspondence.prepare, args, own), correspondence=correspondence)
-    prepared = PreparedCollection.load(path)
-    return Source(path, kind, _recorded_prepare(path, prepared.settings, args, own), prepared=prepared)
-
-
-def _recorded_prepare(path: Path, recorded: PrepareSettings | None, args: argparse.Namespace,
-                      own: tuple[str, ...]) -> PrepareSettings:
-    """The Prepare settings a file records (the command line's when it records none);
-    Prepare options given on the command line, but the `own` ones, must agree with the
-    file's."""
-    if recorded is None:
-        return settings_from_args(PrepareSettings, args)
-    for name, value in given_options(PrepareSettings, args).items():
-        if name not in own and value != getattr(recorded, name):
-            flag = flag_of(PrepareSettings, name)
-            raise CommandError(f"{flag} {value} conflicts with {path}, prepared with {flag} "
-                               f"{getattr(recorded, name)}; leave {flag} out to use the file's")
-    return recorded
+        return Source(path, kind, plan, correspondence=offered.data)
+    return Source(path, kind, plan, prepared=offered.data)
 
 
 def prepare_source(source: Source) -> PreparedCollection:

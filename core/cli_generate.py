@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress, positive_int,
-                         prepare_source, read_source, settings_from_args)
+                         prepare_source, read_source, requested_settings, settings_from_args)
 from .child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
@@ -86,25 +86,22 @@ def _meshes_for_correspondence(corr, meshes_dir: Path, spill: SpillStore | None 
 def cmd_fit(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # every setting is checked before the source is read
-    settings = settings_from_args(FitSettings, args, prepare=settings_from_args(PrepareSettings, args),
-                                  correspondence=settings_from_args(CorrespondenceSettings, args),
-                                  deform=settings_from_args(DeformSettings, args))
+    settings = requested_settings(args, deform=settings_from_args(DeformSettings, args))
     with SpillStore() as spill:  # dense meshes on disk until the model file is written (core/spill.py)
-        source = read_source(args.source, args, spill=spill)
-        settings = replace(settings, prepare=source.prepare)
+        source = read_source(args.source, args, spill=spill, requested=settings)
+        if source.correspondence is None and args.meshes is not None:
+            raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
+                               f"{source.kind}")
+        if source.correspondence is not None and args.meshes is None:
+            raise CommandError(f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the "
+                               "folder it was computed from) so the training meshes can be meshed")
+        print(f"[fit] {source.plan.reason}", file=sys.stderr)
         report = console_progress("fit")
         if source.correspondence is None:
-            if args.meshes is not None:
-                raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
-                                   f"{source.kind}")
-            model = fit_meshes(prepare_source(source), settings, progress=report)
+            model = fit_meshes(prepare_source(source), source.plan.settings, progress=report)
         else:
-            if args.meshes is None:
-                raise CommandError(
-                    f"{source.path}: a correspondence file holds landmarks only; pass --meshes DIR (the folder it "
-                    "was computed from) so the training meshes can be meshed")
             meshes = _meshes_for_correspondence(source.correspondence, args.meshes, spill)
-            model = fit_shape_model(meshes, source.correspondence, settings, progress=report)
+            model = fit_shape_model(meshes, source.correspondence, source.plan.settings, progress=report)
         model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):

@@ -171,8 +171,12 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert info["model"] == "ppca" and info["shapes"] == 6 and info["metadata"]["n_shapes"] == "6"
     assert info["settings"]["prepare"]["n_landmarks"] == 60  # the file records how it was prepared
     assert "note:" not in result.stderr
+    assert f"[fit] using {corr} as given (with the settings it records); fitting" in result.stderr
     result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--landmarks", 100)
     assert result.returncode == 2 and f"--landmarks 100 conflicts with {corr}" in result.stderr
+    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--refine", "population")
+    assert result.returncode == 2  # the model records the file's correspondence settings: others cannot be asked for
+    assert f"--refine population conflicts with {corr}, corresponded with --refine none" in result.stderr
 
 
 # ---------------------------------------------------------------------------- settings on the command line
@@ -209,6 +213,8 @@ def test_fit_of_a_prepared_file_records_its_settings_and_refuses_conflicts(model
     assert run("prepare", model_file.parent / "data", "-o", prepared, "--landmarks", 50, "--up", "y").returncode == 0
     result = run("fit", prepared, "-o", tmp_path / "m.npz", "--model", "ppca", "--jobs", 1)
     assert result.returncode == 0, result.stderr
+    assert f"[fit] using {prepared} as given (with the settings it records); corresponding and fitting" \
+        in result.stderr
     recorded = GenerativeShapeModel.load(tmp_path / "m.npz").settings.prepare
     assert (recorded.n_landmarks, recorded.up_axis) == (50, "y")
     info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
