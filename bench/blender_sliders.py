@@ -88,9 +88,9 @@ def main() -> None:
         collection.objects.link(bpy.data.objects.new(
             shape.name, convert.mesh_data_from_arrays(shape.name, shape.mesh.vertices, shape.mesh.faces)))
     settings.source_collection = collection
-    settings.n_landmarks = args.landmarks
-    settings.fit_model = "ppca"
-    settings.latent_dim = 3
+    settings.prepare.n_landmarks = args.landmarks
+    settings.fit.model = "ppca"
+    settings.fit.latent_dim = 3
     counts = [s.mesh.n_vertices for s in shapes]
     print(f"{args.shapes} vases, {min(counts)}-{max(counts)} vertices; fitting in a worker ...", flush=True)
 

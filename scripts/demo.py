@@ -137,8 +137,8 @@ def main(argv=None) -> int:
 
     bpy.ops.shapegen.import_collection(directory=str(data_dir))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = args.landmarks
-    settings.seed = args.seed
+    settings.prepare.n_landmarks = args.landmarks
+    settings.prepare.seed = args.seed
     source = settings.source_collection
     bpy.ops.shapegen.prepare(wait=True)
     prepared = bpy.data.collections[f"{source.name} Prepared"]

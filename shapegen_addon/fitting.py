@@ -1,8 +1,10 @@
 """The fit job outside its operators: what a Fit hands the worker, what its end does to the
 scene, and `poll_fit`, the scripting entry point the README documents.
 
-1. `gather_meshes` / `save_meshes` (main thread, then the job's setup thread) turn the
-   collection's objects into a "shapegen.meshes" hand-off file for core/worker.py.
+1. `plan_fit` asks core/stages.py which stages run (what Prepare and the scene's model
+   offer); `fit_inputs` writes what the worker starts from: the model's correspondence,
+   the prepared collection, or the objects' meshes (`gather_meshes` / `save_meshes`, main
+   thread, then the job's setup thread) as a "shapegen.meshes" hand-off file.
 2. `load_result` (helper thread, no bpy) loads and validates the model the worker wrote.
 3. `finish` (main thread, from the job runtime's poll) installs it (`install_model`:
    packed into the .blend, sliders follow), or reports why not; the scene and any earlier
@@ -12,20 +14,23 @@ scene, and `poll_fit`, the scripting entry point the README documents.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import bpy
 import numpy as np
 
-from ..core.collection import PreparedCollection
 from ..core.errors import ShapeGenError
 from ..core.jobs import JobStatus
 from ..core.meshset import save_mesh_set
 from ..core.pipeline import FitSettings
+from ..core.stages import Offered, StagePlan, plan_stages, same_shapes
 from . import latent, store
 from .convert import object_triangles
 from .jobs import MANAGER, job_settings, poll_job, report_outcome
+from .keys import KEEP_POSE_KEY
+from .prepared import offered_prepared
 
-__all__ = ["check_fit_settings", "reusable_correspondence", "gather_meshes", "save_meshes", "install_model", "load_result", "finish",
+__all__ = ["check_fit_settings", "plan_fit", "fit_inputs", "gather_meshes", "save_meshes", "install_model", "load_result", "finish",
            "poll_fit"]
 
 
@@ -37,28 +42,40 @@ def poll_fit() -> JobStatus | None:
     return poll_job()
 
 
-def reusable_correspondence(scene: bpy.types.Scene, prepared: PreparedCollection, options: dict):
-    """The scene's model when its correspondence can be reused for this fit (only the model
-    part changes: model type, latent dimension, meshing): it was computed with the same
-    Prepare, correspondence and template settings on this `prepared` collection (Prepare's
-    current result, prepared.reusable_prepared), i.e. the same shapes (names, meshes and
-    transforms equal). Else None."""
-    model = store.get_model(scene)
-    if model is None:
-        return None
-    wanted, had = FitSettings.from_dict(options), model.settings
-    if (had.prepare, had.correspondence, had.template) != (wanted.prepare, wanted.correspondence, wanted.template):
-        return None
-    if model.names != prepared.names:
-        return None
-    transforms = model.correspondence.transforms
-    for mesh, shape, transform in zip(model.meshes, prepared.shapes, transforms):
-        size = max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-12)
-        if (mesh.vertices.shape != shape.mesh.vertices.shape or not np.array_equal(mesh.faces, shape.mesh.faces)
-                or np.abs(mesh.vertices - shape.mesh.vertices).max() > 1e-5 * size
-                or np.abs(transform - shape.transform.matrix).max() > 1e-6 * max(1.0, np.abs(transform).max())):
-            return None
-    return model
+def plan_fit(scene: bpy.types.Scene, collection, objects, options: dict, evaluated: bool) -> StagePlan:
+    """Which stages a Fit of `objects` (the mesh objects of `collection`) with `options`
+    (FitSettings as plain data) runs, decided by core.stages from what the scene offers:
+    Prepare's results for the collection (prepared.offered_prepared) and the correspondence
+    of the scene's model, current when its training shapes are exactly the reused prepared
+    collection's (core.stages.same_shapes)."""
+    offered = offered_prepared(collection, objects, evaluated)
+    try:
+        model = store.get_model(scene)
+    except ShapeGenError:  # an unreadable model offers nothing to reuse; the fit replaces it
+        model = None
+    if model is not None:
+        had = model.settings
+        offered.append(Offered("correspond", f"the correspondence of model '{store.model_name(scene)}'",
+                               prepare=had.prepare, correspondence=had.correspondence, template=had.template,
+                               current=lambda prepared: same_shapes(model, prepared.data.core()), data=model))
+    return plan_stages(FitSettings.from_dict(options), offered)
+
+
+def fit_inputs(plan: StagePlan, settings, objects, evaluated: bool, folder: Path) -> tuple[dict, Callable]:
+    """The fit task's inputs for `plan` (core/worker.py task_fit) and the bpy-free setup that
+    writes them into `folder` on the job's helper thread: the scene's model (its
+    correspondence is reused), the reused prepared collection, or the objects' meshes."""
+    if "correspond" not in plan.run:  # only the model part changed: the worker fits the shape model alone
+        data = store.model_bytes(settings.model_text)
+        return {"correspondence_of": str(folder / "earlier.npz")}, lambda: (folder / "earlier.npz").write_bytes(data)
+    reused = plan.reused_stage("prepare")
+    if reused is not None:  # Prepare's result is current: the worker starts at correspondence
+        prepared = reused.data.core()
+        prepared.settings = plan.settings.prepare
+        return {"prepared": str(folder / "prepared.npz")}, lambda: prepared.save(folder / "prepared.npz")
+    gathered = gather_meshes(objects, evaluated)
+    inputs = {"meshes": str(folder / "meshes.npz"), "keep_pose": [bool(o.get(KEEP_POSE_KEY, False)) for o in objects]}
+    return inputs, lambda: save_meshes(gathered, folder / "meshes.npz")
 
 
 def check_fit_settings(options: dict) -> None:

@@ -22,8 +22,10 @@ from mathutils import Matrix
 
 from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
 from ..core.landmarks import Landmarks
+from ..core.pipeline import FitSettings
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.settings import SettingsError
+from ..core.stages import Offered, plan_stages
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,
                    KEEP_POSE_KEY,
@@ -34,7 +36,8 @@ from .placement import grid_offsets, place, vertex_box
 from .preview import add_correspondence_markers, add_landmark_markers, landmark_index_colours, new_collection
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects", "prepared_collection_for",
-           "recorded_prepare_settings", "to_prepared_collection", "reusable_prepared", "apply_correspondence",
+           "recorded_prepare_settings", "to_prepared_collection", "PreparedCopies", "offered_prepared",
+           "reusable_prepared", "apply_correspondence",
            "prepared_pose_notes", "turn_flagged_copies", "has_correspondence", "flagged_copies"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
@@ -173,28 +176,54 @@ def prepared_pose_notes(objects) -> list[str]:
                       [o.get(POSE_OUTLIER_KEY, "") for o in objects])
 
 
-def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
-    """The prepared copies of `objects` (the mesh objects of `collection`, sorted by name)
-    when Prepare ran on them with the same settings as this fit (`options`, FitSettings as
-    plain data: its "prepare" part), read them the
-    same way (`evaluated`: modifiers applied, or the base mesh) and none has changed since:
-    every copy equals its source as read now, in world coordinates, under its stored
+class PreparedCopies:
+    """A "<name> Prepared" collection and its copies of a fit's objects (in the objects'
+    order; None when it has no copy of some), with their core data read once."""
+
+    def __init__(self, collection: bpy.types.Collection, copies: list | None):
+        self.collection = collection
+        self.copies = copies
+        self._core: PreparedCollection | None = None
+
+    def core(self) -> PreparedCollection:
+        """The copies as a core PreparedCollection (`to_prepared_collection`), read once."""
+        if self._core is None:
+            self._core = to_prepared_collection(self.copies)
+        return self._core
+
+
+def offered_prepared(collection, objects, evaluated: bool = True) -> list[Offered]:
+    """Every Prepare result of `collection` (newest name first) as a found stage output for
+    core.stages: the Prepare settings it records, and, as its `current` check, whether it
+    has a copy of each of `objects` (the mesh objects of `collection`, sorted by name) read
+    the same way (`evaluated`: modifiers applied, or the base mesh) and none has changed
+    since: every copy equals its source as read now, in world coordinates, under its stored
     transform (bulk reads, well under 1 ms per 100k vertices), so editing a modifier makes
-    the copies stale. Else None (Fit prepares again in the worker). Returns (prepared bpy
-    collection, copies in `objects` order)."""
-    settings = PrepareSettings.from_dict(options["prepare"])
-    candidates = [c for c in bpy.data.collections
-                  if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name
-                  and recorded_prepare_settings(c) == settings]
+    the copies stale. `data`: its `PreparedCopies`."""
+    found = sorted((c for c in bpy.data.collections
+                    if c.get(PREPARED_KEY) and c.get(SOURCE_COLLECTION_KEY) == collection.name),
+                   key=lambda c: c.name, reverse=True)
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    for prepared in sorted(candidates, key=lambda c: c.name, reverse=True):  # newest name first
+    offered = []
+    for prepared in found:
         copies = {o.get(SOURCE_KEY): o for o in prepared_objects(prepared)}
-        if set(copies) != {o.name for o in objects}:
-            continue
-        ordered = [copies[o.name] for o in objects]
-        if all(_unchanged(source, copy, evaluated, depsgraph) for source, copy in zip(objects, ordered)):
-            return prepared, ordered
-    return None
+        ordered = [copies[o.name] for o in objects] if set(copies) == {o.name for o in objects} else None
+        current = (lambda _, ordered=ordered: ordered is not None and all(
+            _unchanged(source, copy, evaluated, depsgraph) for source, copy in zip(objects, ordered)))
+        offered.append(Offered("prepare", f"'{prepared.name}'", prepare=recorded_prepare_settings(prepared),
+                               current=current, data=PreparedCopies(prepared, ordered)))
+    return offered
+
+
+def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
+    """The Prepare result of `collection` a fit with `options` (FitSettings as plain data)
+    starts from (core.stages decides: the same Prepare settings and unchanged copies, see
+    `offered_prepared`): (prepared bpy collection, copies in `objects` order), or None (Fit
+    prepares again in the worker)."""
+    plan = plan_stages(FitSettings.from_dict(options), offered_prepared(collection, objects, evaluated),
+                       last="prepare")
+    reused = plan.reused_stage("prepare")
+    return None if reused is None else (reused.data.collection, reused.data.copies)
 
 
 def turn_flagged_copies(collection: bpy.types.Collection) -> list[str]:

@@ -84,7 +84,7 @@ def _recorded_evaluated(scene: bpy.types.Scene, obj: bpy.types.Object) -> bool:
     for copy in prepared_objects(prepared) if prepared is not None else ():
         if copy.get(SOURCE_KEY) == obj.name and MESH_SOURCE_KEY in copy:
             return copy[MESH_SOURCE_KEY] == mesh_source(True)
-    return not scene.shapegen.use_base_mesh
+    return not scene.shapegen.prepare.use_base_mesh
 
 
 def find_template(scene: bpy.types.Scene, model, index: int) -> tuple[Template | None, str]:

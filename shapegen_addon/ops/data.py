@@ -131,7 +131,7 @@ def _finish_prepare(status: JobStatus, prepared) -> None:
         report_outcome(settings, "CANCELLED" if status.state == "cancelled" else "FAILED",
                        f"Prepare {status.state}: {reason or status.state}; nothing was created")
         return
-    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.preview_spacing,
+    target = build_prepared_collection(settings.id_data, source, objects, prepared, settings.prepare.preview_spacing,
                                        world_meshes, payload["evaluated"])
     counts = [len(l) for l in prepared.landmarks]
     for line in prepared.pose_notes():
@@ -240,7 +240,7 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
 
         # 1. read and clean here (bulk reads, fast): a bad object is named at once and
         #    the scene is never touched; the slow part (alignment, landmarks) runs in a worker
-        evaluated = not settings.use_base_mesh
+        evaluated = not settings.prepare.use_base_mesh
         depsgraph = context.evaluated_depsgraph_get()
         try:
             readings = [read_object(o, evaluated=evaluated, depsgraph=depsgraph) for o in mesh_objects]

@@ -84,10 +84,10 @@ class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
         def work():
             scene = context.scene
             model = store.require_model(scene)
-            seed = scene.shapegen.explore_seed
+            seed = scene.shapegen.explore.seed
             drawn = slider_units(scene).random(model.model.sample_latents, np.random.default_rng(seed))
             set_values(scene, drawn.values)
-            scene.shapegen.explore_seed = seed + 1
+            scene.shapegen.explore.seed = seed + 1
             if drawn.clipped:
                 return f"Random shape (seed {seed}): no draw within ±3 in {drawn.redraws + 1}, clipped to ±3"
             return f"Random shape (seed {seed}{f', {drawn.redraws} redrawn beyond ±3' if drawn.redraws else ''})"
@@ -161,7 +161,7 @@ class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
         def work():
             scene = context.scene
             model = store.require_model(scene)
-            size = self.size or scene.shapegen.map_size
+            size = self.size or scene.shapegen.explore.map_size
             live = live_object(scene)
             picture = latent_map_pixels(
                 model.training_latents(), model.correspondence.outliers, size,

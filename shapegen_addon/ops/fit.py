@@ -2,11 +2,12 @@
 the .blend), Load Model, Export Model.
 
 Flow of Fit:
-1. `SHAPEGEN_OT_fit` (main thread) reads the collection's mesh objects' triangles
-   (convert.object_triangles, world coordinates) — or, when Prepare's result for them is
-   current (prepared.reusable_prepared), the prepared shapes, or, when the scene's model
-   was corresponded on exactly those with the same settings
-   (fitting.reusable_correspondence), that model's correspondence; a helper thread writes them
+1. `SHAPEGEN_OT_fit` (main thread) asks core/stages.py which stages run
+   (fitting.plan_fit: is Prepare's result for the objects current, was the scene's model
+   corresponded on exactly those with the same settings?) and reads what the worker starts
+   from (fitting.fit_inputs): the collection's mesh objects' triangles
+   (convert.object_triangles, world coordinates), the prepared shapes, or that model's
+   correspondence; a helper thread writes them
    into a temporary folder, then the core's "fit" task starts in a worker process
    (core/worker.py, which never imports bpy) through `jobs.MANAGER`. Nothing in the scene
    changes yet.
@@ -25,14 +26,11 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ...core.collection import PrepareSettings
 from ...core.errors import ShapeGenError
 from ...core.jobs import BackgroundJob
 from .. import fitting, store
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, no_job_running
-from ..keys import KEEP_POSE_KEY
-from ..prepared import reusable_prepared, to_prepared_collection
 
 __all__ = ["CLASSES"]
 
@@ -60,33 +58,23 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
         options = self.job_options(settings.fit_options(), fitting.check_fit_settings)
         if options is None:
             return {"CANCELLED"}
-        evaluated = not settings.use_base_mesh
-        reuse = reusable_prepared(collection, objects, options, evaluated)
+        evaluated = not settings.prepare.use_base_mesh
+        try:
+            plan = fitting.plan_fit(scene, collection, objects, options, evaluated)
+        except ShapeGenError as exc:  # the scene's model could not be read
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        print(f"ShapeGen: fit '{collection.name}': {plan.reason}")
 
         def start(folder: Path) -> None:
-            payload = {"scene": scene.name, "name": collection.name}
-            prepared = to_prepared_collection(reuse[1]) if reuse is not None else None
-            earlier = fitting.reusable_correspondence(scene, prepared, options) if prepared is not None else None
-            if earlier is not None:  # only the model part changed: the worker fits the shape model alone
-                data = store.model_bytes(settings.model_text)
-                inputs = {"correspondence_of": str(folder / "earlier.npz")}
-                payload["reused"] = f"'{reuse[0].name}' and the correspondence of model '{store.model_name(scene)}'"
-                setup = lambda: (folder / "earlier.npz").write_bytes(data)  # noqa: E731
-            elif prepared is not None:  # Prepare's result is current: the worker starts at correspondence
-                prepared.settings = PrepareSettings.from_dict(options["prepare"])
-                inputs, payload["reused"] = {"prepared": str(folder / "prepared.npz")}, f"'{reuse[0].name}'"
-                setup = lambda: prepared.save(folder / "prepared.npz")  # noqa: E731
-            else:
-                gathered = fitting.gather_meshes(objects, evaluated)
-                inputs = {"meshes": str(folder / "meshes.npz"),
-                          "keep_pose": [bool(o.get(KEEP_POSE_KEY, False)) for o in objects]}
-                setup = lambda: fitting.save_meshes(gathered, folder / "meshes.npz")  # noqa: E731
+            inputs, setup = fitting.fit_inputs(plan, settings, objects, evaluated, folder)
             job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})
             MANAGER.start(job, fitting.finish, label=f"fit '{collection.name}'", folder=folder,
-                          payload=payload, prepare=fitting.load_result, setup=setup)
+                          payload={"scene": scene.name, "name": collection.name, "reused": plan.reused_labels},
+                          prepare=fitting.load_result, setup=setup)
 
-        return self.run_job(context, start,
-                            started=f"Fitting {len(objects)} shapes of '{collection.name}' in the background")
+        return self.run_job(context, start, started=f"Fitting {len(objects)} shapes of '{collection.name}' in the "
+                                                    f"background: {plan.reason}")
 
 
 class SHAPEGEN_OT_load_model(bpy.types.Operator):

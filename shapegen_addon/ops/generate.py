@@ -60,15 +60,15 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
         settings = scene.shapegen
         try:
             model = store.require_model(scene)
-            count = self.count or settings.sample_count
-            first_seed = settings.seed if self.seed < 0 else self.seed
+            count = self.count or settings.generate.sample_count
+            first_seed = settings.prepare.seed if self.seed < 0 else self.seed
             # everything that can fail runs before the scene is touched; sample i is drawn
             # with seed first_seed + i (redraws: core.sampling.redraw_seed)
-            results = gated_samples(model, count, first_seed, template=settings.sample_template)
+            results = gated_samples(model, count, first_seed, template=settings.generate.sample_template)
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        spacing = settings.preview_spacing * shape_size(model)
+        spacing = settings.prepare.preview_spacing * shape_size(model)
         locations = place(scene, [vertex_box(s.mesh.vertices) for s in results], grid_offsets(count, spacing))
         collection = ensure_collection(scene, SAMPLES_COLLECTION)
         name = store.model_name(scene)
@@ -108,8 +108,8 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
     def _objects(self, context):
         settings = context.scene.shapegen
         found = []
-        for name, pointer, label in ((self.object_a, settings.interpolate_a, "From"),
-                                     (self.object_b, settings.interpolate_b, "To")):
+        for name, pointer, label in ((self.object_a, settings.generate.interpolate_a, "From"),
+                                     (self.object_b, settings.generate.interpolate_b, "To")):
             obj = bpy.data.objects.get(name) if name else pointer
             if obj is None:
                 raise ShapeGenError(f"No object named '{name}'" if name else f"Choose the '{label}' object first")
@@ -121,13 +121,13 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         settings = scene.shapegen
-        steps = self.steps or settings.interpolate_steps
-        mode = settings.interpolate_mode if self.mode == "PANEL" else self.mode
+        steps = self.steps or settings.generate.interpolate_steps
+        mode = settings.generate.interpolate_mode if self.mode == "PANEL" else self.mode
         try:
             model = store.require_model(scene)
             first, second = self._objects(context)
             z_a, z_b = object_latent(model, scene, first), object_latent(model, scene, second)
-            index = model.path_template(z_a, z_b, settings.sample_template)  # one mesh along the path
+            index = model.path_template(z_a, z_b, settings.generate.sample_template)  # one mesh along the path
             mesher = model.latent_mesher(index, dtype=np.float64)
             ts = np.linspace(0.0, 1.0, steps + 2)
             shapes = [mesher.vertices((1 - t) * z_a + t * z_b) for t in ts]
@@ -137,7 +137,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
         meshes = TemplateMeshes(scene, model)
         collection = ensure_collection(scene, INTERPOLATION_COLLECTION)
         base = f"{first.name} to {second.name}"
-        spacing = settings.preview_spacing * shape_size(model)
+        spacing = settings.prepare.preview_spacing * shape_size(model)
         if mode == "OBJECTS":
             locations = place(scene, [vertex_box(shape) for shape in shapes[1:-1]],
                               grid_offsets(steps, spacing, columns=steps))
@@ -156,7 +156,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
         collection.objects.link(obj)
         tag_object(obj, scene, z_a, model.names[index])
         obj.shape_key_add(name="Basis", from_mix=False)
-        frames = settings.interpolate_frames
+        frames = settings.generate.interpolate_frames
         start = scene.frame_start
         for k in range(1, len(shapes)):
             key = obj.shape_key_add(name=f"t={ts[k]:.3f}", from_mix=False)

@@ -5,8 +5,9 @@ sub-panel, closed by default. The Data, Correspondence and Model panels show the
 background job's progress and Cancel while it runs (the Model panel shows any job, and
 the last job's outcome).
 
-Panels only draw: they read `scene.shapegen`, the model's summary properties on its Text
-datablock (no model decoding while drawing) and the job manager's runtime status.
+Panels only draw: they read `scene.shapegen` (one settings group per section), the
+model's summary properties on its Text datablock (no model decoding while drawing) and
+the job manager's runtime status.
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ class SHAPEGEN_PT_data(_SubPanel, bpy.types.Panel):
         settings = context.scene.shapegen
         layout.operator("shapegen.import_collection", icon="IMPORT")
         layout.prop(settings, "source_collection")
-        layout.prop(settings, "up_axis")
+        layout.prop(settings.prepare, "up_axis")
         _draw_prepare(layout, context)
 
 
@@ -106,7 +107,7 @@ def _draw_prepare(layout, context) -> None:
                         depress=bool(active.get(KEEP_POSE_KEY, False)))
     row = layout.row(align=True)
     row.operator("shapegen.prepare", icon="PIVOT_BOUNDBOX")
-    row.prop(settings, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
+    row.prop(settings.prepare, "use_base_mesh", toggle=True, icon="MODIFIER_OFF")
     if MANAGER.task == "prepare":
         _draw_progress(layout, settings)
     prepared = prepared_collection_for(settings.source_collection)
@@ -121,18 +122,20 @@ class _AdvancedPanel(_SubPanel):
 
     bl_label = "Advanced"
     bl_options = {"DEFAULT_CLOSED"}
-    properties: tuple[str, ...] = ()
+    properties: tuple[str, ...] = ()  # "group.name" paths in scene.shapegen
 
     def draw(self, context):
         column = self.layout.column(align=True)
-        for name in self.properties:
-            column.prop(context.scene.shapegen, name)
+        for path in self.properties:
+            group, name = path.split(".")
+            column.prop(getattr(context.scene.shapegen, group), name)
 
 
 class SHAPEGEN_PT_data_advanced(_AdvancedPanel, bpy.types.Panel):
     bl_idname = "SHAPEGEN_PT_data_advanced"
     bl_parent_id = "SHAPEGEN_PT_data"
-    properties = ("n_landmarks", "align", "scale", "centre", "seed", "preview_spacing")
+    properties = ("prepare.n_landmarks", "prepare.align", "prepare.scale", "prepare.centre", "prepare.seed",
+                  "prepare.preview_spacing")
 
 
 def _draw_pose_notes(layout, collection, shown: int = 8) -> None:
@@ -158,7 +161,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.shapegen
-        layout.prop(settings, "differ_in_pose")
+        layout.prop(settings.correspondence, "differ_in_pose")
         layout.label(text="Optional: Fit finds them too", icon="INFO")
         layout.operator("shapegen.find_correspondences", icon="STICKY_UVS_LOC")
         if MANAGER.task == "correspond":
@@ -191,7 +194,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
 class SHAPEGEN_PT_correspondence_advanced(_AdvancedPanel, bpy.types.Panel):
     bl_idname = "SHAPEGEN_PT_correspondence_advanced"
     bl_parent_id = "SHAPEGEN_PT_correspondence"
-    properties = ("stiffness", "matching", "refine")
+    properties = ("correspondence.stiffness", "correspondence.matching", "correspondence.refine")
 
 
 class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
@@ -202,8 +205,8 @@ class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
         layout = self.layout
         settings = context.scene.shapegen
         column = layout.column(align=True)
-        column.prop(settings, "fit_model")
-        column.prop(settings, "latent_dim")
+        column.prop(settings.fit, "model")
+        column.prop(settings.fit, "latent_dim")
         if not MANAGER.running:
             layout.operator("shapegen.fit", icon="PLAY")
         else:
@@ -226,7 +229,7 @@ class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):
 class SHAPEGEN_PT_model_advanced(_AdvancedPanel, bpy.types.Panel):
     bl_idname = "SHAPEGEN_PT_model_advanced"
     bl_parent_id = "SHAPEGEN_PT_model"
-    properties = ("mesh_stiffness",)
+    properties = ("fit.mesh_stiffness",)
 
 
 class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
@@ -237,16 +240,16 @@ class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
         layout = self.layout
         settings = context.scene.shapegen
         column = layout.column(align=True)
-        column.prop(settings, "sample_count")
+        column.prop(settings.generate, "sample_count")
         layout.operator("shapegen.sample", icon="MOD_ARRAY")
         layout.separator()
         column = layout.column(align=True)
-        column.prop(settings, "interpolate_a")
-        column.prop(settings, "interpolate_b")
-        column.prop(settings, "interpolate_steps")
-        column.prop(settings, "interpolate_mode")
-        if settings.interpolate_mode == "SHAPE_KEYS":
-            column.prop(settings, "interpolate_frames")
+        column.prop(settings.generate, "interpolate_a")
+        column.prop(settings.generate, "interpolate_b")
+        column.prop(settings.generate, "interpolate_steps")
+        column.prop(settings.generate, "interpolate_mode")
+        if settings.generate.interpolate_mode == "SHAPE_KEYS":
+            column.prop(settings.generate, "interpolate_frames")
         layout.operator("shapegen.interpolate", icon="IPO_LINEAR")
         layout.separator()
         row = layout.row()
@@ -258,7 +261,7 @@ class SHAPEGEN_PT_generate(_SubPanel, bpy.types.Panel):
 class SHAPEGEN_PT_generate_advanced(_AdvancedPanel, bpy.types.Panel):
     bl_idname = "SHAPEGEN_PT_generate_advanced"
     bl_parent_id = "SHAPEGEN_PT_generate"
-    properties = ("sample_template", "seed")
+    properties = ("generate.sample_template", "prepare.seed")
 
 
 class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
@@ -282,14 +285,14 @@ class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
                     box.label(text=reason)
             row = layout.row(align=True)
             row.operator("shapegen.explore_randomise", icon="FILE_REFRESH")
-            row.prop(settings, "explore_seed", text="")
+            row.prop(settings.explore, "seed", text="")
             row = layout.row(align=True)
             row.operator("shapegen.explore_reset", icon="LOOP_BACK")
             row.operator("shapegen.explore_snap", text="Snap", icon="SNAP_ON")
             layout.operator("shapegen.explore_bake", icon="CHECKMARK")
         layout.separator()
         row = layout.row(align=True)
-        row.prop(settings, "map_size")
+        row.prop(settings.explore, "map_size")
         row.operator("shapegen.latent_map", icon="IMAGE_DATA")
         image = bpy.data.images.get("ShapeGen Latent Map")
         if image is not None:

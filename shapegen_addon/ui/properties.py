@@ -99,14 +99,10 @@ class ShapeGenLatent(bpy.types.PropertyGroup):
     scale: FloatProperty(name="Scale", default=1.0, options={"HIDDEN"})
 
 
-class ShapeGenSettings(bpy.types.PropertyGroup):
-    """The panel's settings. Every default that the core also has is read from the core's
-    settings (`CORE_DEFAULTS`), so Blender and `shapegen` start from the same values."""
+class ShapeGenPrepareSettings(bpy.types.PropertyGroup):
+    """The Data panel's settings (`scene.shapegen.prepare`): how Prepare reads, aligns,
+    scales and landmarks the collection, and the gap between the objects it lays out."""
 
-    source_collection: PointerProperty(
-        name="Collection", type=bpy.types.Collection,
-        description="The collection of example objects to learn from, all of one kind (vases, mugs, cars, ...)",
-    )
     n_landmarks: IntProperty(
         name="Landmarks", default=CORE_DEFAULTS.prepare.n_landmarks, min=16, max=5000,
         description="Points placed on every shape to compare them. More follow finer detail and take longer",
@@ -128,9 +124,15 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         name="Base Mesh", default=False,
         description="Read each object without its modifiers (off: as the viewport shows it, modifiers applied)",
     )
-    last_import_directory: StringProperty(name="Last Folder", subtype="DIR_PATH")
 
-    # --- fit (Correspondence and Model sub-panels)
+    def options(self) -> dict:
+        """Options of the core's prepare_meshes (the settings a prepared collection records)."""
+        return {name: getattr(self, name) for name in PREPARE_SETTINGS}
+
+
+class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
+    """The Correspondence panel's settings (`scene.shapegen.correspondence`)."""
+
     stiffness: FloatProperty(
         name="Stiffness", default=CORE_DEFAULTS.correspondence.alpha_end, min=0.01, soft_max=100.0,
         description="How stiffly the landmarks move when matched to each shape: higher keeps them evenly "
@@ -146,29 +148,33 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
                     "a map along its surface puts them, which a moved limb does not change (slower; where that map "
                     "cannot be trusted the shape starts as usual and its message says so)",
     )
+
+    def options(self) -> dict:
+        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `matching`, `refine`;
+        `initialisation` spectral where the shapes differ in pose."""
+        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
+                "refine": self.refine, "initialisation": "spectral" if self.differ_in_pose else "closest"}
+
+
+class ShapeGenFitSettings(bpy.types.PropertyGroup):
+    """The Model panel's settings (`scene.shapegen.fit`): the shape model and its meshing."""
+
+    model: EnumProperty(name="Model", items=MODEL_ITEMS, default=CORE_DEFAULTS.model,
+                        description="The kind of model that learns the shapes")
+    latent_dim: IntProperty(
+        name="Latent Dimension", default=CORE_DEFAULTS.latent_dim or 0, min=0, soft_max=20,
+        description="How many ways the shapes may vary (one slider each). 0: as many as the collection needs",
+    )
     mesh_stiffness: FloatProperty(
         name="Meshing Stiffness", default=CORE_DEFAULTS.deform.final_alpha, min=0.01, soft_max=100.0,
         description="How stiffly new shapes are bent out of a training object: higher keeps its surface smooth "
                     "and unbroken, lower follows the new shape more closely",
     )
-    fit_model: EnumProperty(name="Model", items=MODEL_ITEMS, default=CORE_DEFAULTS.model,
-                            description="The kind of model that learns the shapes")
-    latent_dim: IntProperty(
-        name="Latent Dimension", default=CORE_DEFAULTS.latent_dim or 0, min=0, soft_max=20,
-        description="How many ways the shapes may vary (one slider each). 0: as many as the collection needs",
-    )
 
-    # --- the fitted model (packed in a Text datablock, see store.py) and the last job
-    model_text: PointerProperty(
-        name="Model", type=bpy.types.Text,
-        description="The text block that keeps the fitted model inside this .blend file",
-    )
-    job_state: EnumProperty(name="Job State", items=JOB_STATE_ITEMS, default="IDLE")
-    job_fraction: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
-    job_stage: StringProperty(name="Stage")
-    job_message: StringProperty(name="Message", description="What the last job did, or why it stopped")
 
-    # --- generate
+class ShapeGenGenerateSettings(bpy.types.PropertyGroup):
+    """The Generate panel's settings (`scene.shapegen.generate`): samples and in-betweens."""
+
     sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="How many new shapes to make")
     sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, default=CORE_DEFAULTS.mesh_template,
                                   description="Which training object a new shape's mesh is made from")
@@ -183,36 +189,70 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
     interpolate_frames: IntProperty(name="Frames per Step", default=10, min=1, soft_max=100,
                                     description="Animation frames from one in-between shape to the next")
 
-    # --- explore
-    latents: CollectionProperty(type=ShapeGenLatent)
-    live_object: PointerProperty(name="Live Object", type=bpy.types.Object)
-    explore_seed: IntProperty(name="Seed", default=0, min=0, description="Change it for another random shape")
+
+class ShapeGenExploreSettings(bpy.types.PropertyGroup):
+    """The Explore panel's settings (`scene.shapegen.explore`)."""
+
+    seed: IntProperty(name="Seed", default=0, min=0, description="Change it for another random shape")
     map_size: IntProperty(name="Map Size", default=256, min=64, max=2048,
                           description="Size of the latent map picture, in pixels")
+
+
+class ShapeGenSettings(bpy.types.PropertyGroup):
+    """The panel's settings, one group per panel section (prepare, correspondence, fit,
+    generate, explore), beside the chosen collection, the fitted model, the last job and
+    the live object's sliders. Every default that the core also has is read from the core's
+    settings (`CORE_DEFAULTS`), so Blender and `shapegen` start from the same values."""
+
+    source_collection: PointerProperty(
+        name="Collection", type=bpy.types.Collection,
+        description="The collection of example objects to learn from, all of one kind (vases, mugs, cars, ...)",
+    )
+    last_import_directory: StringProperty(name="Last Folder", subtype="DIR_PATH")
+    prepare: PointerProperty(type=ShapeGenPrepareSettings)
+    correspondence: PointerProperty(type=ShapeGenCorrespondenceSettings)
+    fit: PointerProperty(type=ShapeGenFitSettings)
+    generate: PointerProperty(type=ShapeGenGenerateSettings)
+    explore: PointerProperty(type=ShapeGenExploreSettings)
+
+    # --- the fitted model (packed in a Text datablock, see store.py) and the last job
+    model_text: PointerProperty(
+        name="Model", type=bpy.types.Text,
+        description="The text block that keeps the fitted model inside this .blend file",
+    )
+    job_state: EnumProperty(name="Job State", items=JOB_STATE_ITEMS, default="IDLE")
+    job_fraction: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")
+    job_stage: StringProperty(name="Stage")
+    job_message: StringProperty(name="Message", description="What the last job did, or why it stopped")
+
+    # --- the live object and its sliders (Explore)
+    latents: CollectionProperty(type=ShapeGenLatent)
+    live_object: PointerProperty(name="Live Object", type=bpy.types.Object)
 
     # --- the panel's settings as the core's options (the worker tasks' JSON)
     def prepare_options(self) -> dict:
         """Options of the core's prepare_meshes (the settings a prepared collection records)."""
-        return {name: getattr(self, name) for name in PREPARE_SETTINGS}
+        return self.prepare.options()
 
     def correspondence_options(self) -> dict:
-        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `matching`, `refine`;
-        `initialisation` spectral where the shapes differ in pose."""
-        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
-                "refine": self.refine, "initialisation": "spectral" if self.differ_in_pose else "closest"}
+        """CorrespondenceSettings fields (ShapeGenCorrespondenceSettings.options)."""
+        return self.correspondence.options()
 
     def fit_options(self) -> dict:
         """FitSettings as plain data (`FitSettings.as_dict()`-shaped): Prepare's options
         nested under "prepare", the model's, correspondence and meshing stiffness."""
+        fit = self.fit
         return {
             "prepare": self.prepare_options(),
-            "model": self.fit_model, "latent_dim": self.latent_dim or None,
+            "model": fit.model, "latent_dim": fit.latent_dim or None,
             "correspondence": self.correspondence_options(),
-            "deform": {"final_alpha": self.mesh_stiffness, "start_alpha": max(100.0, self.mesh_stiffness)},
+            "deform": {"final_alpha": fit.mesh_stiffness, "start_alpha": max(100.0, fit.mesh_stiffness)},
         }
 
 
-CLASSES = (ShapeGenLatent, ShapeGenSettings)
+#: the groups before the settings that point to them (Blender registers them in this order)
+CLASSES = (ShapeGenLatent, ShapeGenPrepareSettings, ShapeGenCorrespondenceSettings, ShapeGenFitSettings,
+           ShapeGenGenerateSettings, ShapeGenExploreSettings, ShapeGenSettings)
 
 
 def register_properties():

@@ -113,8 +113,8 @@ def add_vase_collection(extension: str, n: int = 6, name: str = "vases", pose: b
         collection.objects.link(obj)
     bpy.context.scene.shapegen.source_collection = collection
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 100
-    settings.latent_dim = 2
+    settings.prepare.n_landmarks = 100
+    settings.fit.latent_dim = 2
     return collection
 
 

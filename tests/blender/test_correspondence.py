@@ -18,7 +18,7 @@ def prepared(extension, tmp_path):
     for shape in datasets.make_vases(4, seed=7, resolution=(14, 18)):
         trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False).export(folder / f"{shape.name}.obj")
     bpy.ops.shapegen.import_collection(directory=str(folder))
-    bpy.context.scene.shapegen.n_landmarks = 80
+    bpy.context.scene.shapegen.prepare.n_landmarks = 80
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     return bpy.data.collections["vases Prepared"]
 
@@ -83,11 +83,11 @@ def test_refine_and_matching_choices_reach_the_job(prepared, extension, monkeypa
     monkeypatch.setattr(ops, "BackgroundJob",
                         lambda task, arguments: sent.append(arguments) or original(task, arguments))
     settings = bpy.context.scene.shapegen
-    assert settings.refine == "none" and settings.matching == "closest"
+    assert settings.correspondence.refine == "none" and settings.correspondence.matching == "closest"
     extra = '{"groupwise_rounds": 0, "refine_iterations": 3}'
     assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
-    settings.refine = "population"
-    settings.matching = "features"
+    settings.correspondence.refine = "population"
+    settings.correspondence.matching = "features"
     assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
     assert settings.job_state == "DONE"
     assert [arguments["settings"]["refine"] for arguments in sent] == ["none", "population"]

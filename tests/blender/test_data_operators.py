@@ -70,7 +70,7 @@ def test_prepare_aligns_scales_and_landmarks_without_touching_originals(vase_fol
     folder, shapes = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 150
+    settings.prepare.n_landmarks = 150
     source = settings.source_collection
     before = {o.name: _vertices(o).copy() for o in source.objects}
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
@@ -108,7 +108,7 @@ def test_prepare_skips_non_mesh_objects_and_refuses_empty_or_single(vase_folder)
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 60
+    settings.prepare.n_landmarks = 60
     source = settings.source_collection
     empty = bpy.data.objects.new("an empty", None)
     source.objects.link(empty)
@@ -129,7 +129,7 @@ def test_prepare_extra_settings_override_the_panel_and_unknown_ones_are_refused(
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 120
+    settings.prepare.n_landmarks = 120
     with pytest.raises(RuntimeError, match="Invalid prepare settings: unknown option.*landmarks"):
         bpy.ops.shapegen.prepare(wait=True, extra_settings='{"landmarks": 40}')
     assert settings.job_state == "IDLE"  # refused before any worker started
@@ -143,7 +143,7 @@ def test_prepare_names_the_object_with_bad_geometry(vase_folder):
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 60
+    settings.prepare.n_landmarks = 60
     bad = bpy.data.objects.new("no faces", bpy.data.meshes.new("no faces"))
     bad.data.vertices.add(3)
     settings.source_collection.objects.link(bad)
@@ -176,7 +176,7 @@ def test_prepare_runs_in_a_worker_and_the_scene_changes_only_when_it_ends(vase_f
     folder, shapes = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 120
+    settings.prepare.n_landmarks = 120
     n_collections = len(bpy.data.collections)
     assert bpy.ops.shapegen.prepare() == {"FINISHED"}  # returns at once: the worker runs
     assert jobs.MANAGER.running and settings.job_state == "RUNNING"
@@ -194,7 +194,7 @@ def test_cancelling_or_deleting_a_source_while_preparing_creates_nothing(vase_fo
     folder, _ = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 120
+    settings.prepare.n_landmarks = 120
     n_collections = len(bpy.data.collections)
 
     assert bpy.ops.shapegen.prepare() == {"FINISHED"}
@@ -231,7 +231,7 @@ def test_prepare_says_triangulated_once_for_the_whole_collection(jobs):
             owner.objects.unlink(cube)
         collection.objects.link(cube)
     settings = bpy.context.scene.shapegen
-    settings.source_collection, settings.n_landmarks = collection, 60
+    settings.source_collection, settings.prepare.n_landmarks = collection, 60
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     assert settings.job_message.lower().count("triangulated") == 1
     assert "Triangulated 18 polygon(s) of 3 object(s) into 36 triangles" in settings.job_message

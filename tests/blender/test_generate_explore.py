@@ -25,7 +25,7 @@ def _model(store):
 def test_sample_inserts_tagged_objects_on_a_grid(extension, model_files, store):
     load_model("bgplvm", model_files)
     settings = bpy.context.scene.shapegen
-    settings.seed = 7
+    settings.prepare.seed = 7
     before = {o.name: vertices(o).copy() for o in bpy.data.objects}
     assert bpy.ops.shapegen.sample(count=4) == {"FINISHED"}
     collection = bpy.data.collections["ShapeGen Samples"]
@@ -89,7 +89,7 @@ def test_sliders_remesh_the_live_object_for_every_model_type(extension, model_fi
 
     assert bpy.ops.shapegen.explore_randomise() == {"FINISHED"}
     assert np.abs(vertices(live) - moved).max() > 1e-4
-    assert settings.explore_seed == 1
+    assert settings.explore.seed == 1
     assert bpy.ops.shapegen.explore_reset() == {"FINISHED"}
     np.testing.assert_allclose(vertices(live), mean, atol=1e-6)
     settings.latents[1].value = -0.4
@@ -127,8 +127,8 @@ def test_interpolate_between_training_shapes_makes_in_between_objects(extension,
     load_model("gplvm", model_files)
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
-    settings.interpolate_a = bpy.data.objects["vase_000"]
-    settings.interpolate_b = bpy.data.objects["vase_004"]
+    settings.generate.interpolate_a = bpy.data.objects["vase_000"]
+    settings.generate.interpolate_b = bpy.data.objects["vase_004"]
     assert bpy.ops.shapegen.interpolate(steps=3, mode="OBJECTS") == {"FINISHED"}
     made = sorted(bpy.data.collections["ShapeGen Interpolation"].objects, key=lambda o: o["shapegen_interpolation"])
     assert [round(o["shapegen_interpolation"], 3) for o in made] == [0.25, 0.5, 0.75]
@@ -141,7 +141,7 @@ def test_interpolate_between_training_shapes_makes_in_between_objects(extension,
     # a sample (latent from its tag) to a training shape, as a shape-key animation
     bpy.ops.shapegen.sample(count=1, seed=3)
     sample = bpy.data.collections["ShapeGen Samples"].objects[0]
-    settings.interpolate_frames = 5
+    settings.generate.interpolate_frames = 5
     assert bpy.ops.shapegen.interpolate(object_a=sample.name, object_b="vase_004", steps=2,
                                         mode="SHAPE_KEYS") == {"FINISHED"}
     morph = bpy.data.objects[f"{sample.name} to vase_004 morph"]

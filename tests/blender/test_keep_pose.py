@@ -25,7 +25,7 @@ def test_upside_down_object_is_turned_and_reported_or_kept_and_flagged(extension
     keys = addon_module(extension, "shapegen_addon.keys")
     add_vase_collection(extension, n=8, pose=False)
     settings = bpy.context.scene.shapegen
-    settings.n_landmarks = 50
+    settings.prepare.n_landmarks = 50
     flipped = bpy.data.objects["vase_002"]
     flipped.rotation_euler = (math.pi, 0.0, 0.0)
     bpy.context.view_layer.update()

@@ -62,7 +62,7 @@ def _solid_mugs(count: int = 10, closed: bool = True) -> bpy.types.Collection:
     bpy.context.view_layer.update()
     settings = bpy.context.scene.shapegen
     settings.source_collection = collection
-    settings.n_landmarks = 60
+    settings.prepare.n_landmarks = 60
     return collection
 
 

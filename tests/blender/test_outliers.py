@@ -62,7 +62,7 @@ def test_exclude_outliers_and_refit_fits_without_them(extension, model_files, tm
     collection = add_vase_collection(extension)
     _model_with_an_outlier(extension, model_files, tmp_path, "vase_004")
     settings = bpy.context.scene.shapegen
-    settings.fit_model = "ppca"
+    settings.fit.model = "ppca"
     assert bpy.ops.shapegen.fit.poll()
     bpy.ops.shapegen.exclude_outliers(refit=True, wait=True, extra_settings=fast_fit_json())
     assert list(collection["shapegen_excluded"]) == ["vase_004"]

@@ -18,14 +18,16 @@ ADVANCED = ("SHAPEGEN_PT_data_advanced", "SHAPEGEN_PT_correspondence_advanced", 
             "SHAPEGEN_PT_generate_advanced")
 PANELS = STAGES + ADVANCED
 #: research and rarely needed settings: only in a stage's Advanced sub-panel
-RARELY_NEEDED = ("n_landmarks", "align", "scale", "centre", "seed", "preview_spacing", "stiffness", "matching",
-                 "refine", "mesh_stiffness", "sample_template")
+RARELY_NEEDED = ("prepare.n_landmarks", "prepare.align", "prepare.scale", "prepare.centre", "prepare.seed",
+                 "prepare.preview_spacing", "correspondence.stiffness", "correspondence.matching",
+                 "correspondence.refine", "fit.mesh_stiffness", "generate.sample_template")
 ICONS = set(bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items.keys())
 
 
 class RecordingLayout:
-    def __init__(self, calls: list):
+    def __init__(self, calls: list, qualified: bool = False):
         self.calls = calls
+        self.qualified = qualified  # props recorded as "group.name" (scene.shapegen.<group>)
         self.enabled = True
         self.active = True
 
@@ -35,7 +37,8 @@ class RecordingLayout:
     def prop(self, data, name, **options):
         assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
         self._icon(options.get("icon", "NONE"))
-        self.calls.append(("prop", name))
+        group = data.path_from_id().split(".")[-1]
+        self.calls.append(("prop", f"{group}.{name}" if self.qualified else name))
 
     def operator(self, idname, **options):
         category, name = idname.split(".")
@@ -58,7 +61,7 @@ class RecordingLayout:
         pass
 
     def column(self, **options):
-        return RecordingLayout(self.calls)
+        return RecordingLayout(self.calls, self.qualified)
 
     row = box = column
 
@@ -70,11 +73,11 @@ class Context:
         self.active_object = bpy.context.view_layer.objects.active
 
 
-def _draw_all(panels=PANELS) -> list:
+def _draw_all(panels=PANELS, qualified: bool = False) -> list:
     calls = []
     for name in panels:
         panel = getattr(bpy.types, name)
-        fake = type("Fake", (), {"layout": RecordingLayout(calls), "properties": getattr(panel, "properties", ())})
+        fake = type("Fake", (), {"layout": RecordingLayout(calls, qualified), "properties": getattr(panel, "properties", ())})
         panel.draw(fake(), Context())
     return calls
 
@@ -142,9 +145,9 @@ def test_every_operator_has_a_description(name):
 
 
 def test_rarely_needed_settings_sit_in_closed_advanced_sub_panels():
-    shown = {name for kind, name in _draw_all(STAGES) if kind == "prop"}
+    shown = {name for kind, name in _draw_all(STAGES, qualified=True) if kind == "prop"}
     assert not shown & set(RARELY_NEEDED), sorted(shown & set(RARELY_NEEDED))
-    advanced = {name for kind, name in _draw_all(ADVANCED) if kind == "prop"}
+    advanced = {name for kind, name in _draw_all(ADVANCED, qualified=True) if kind == "prop"}
     assert set(RARELY_NEEDED) <= advanced
     for name in ADVANCED:
         assert "DEFAULT_CLOSED" in getattr(bpy.types, name).bl_options
@@ -152,8 +155,11 @@ def test_rarely_needed_settings_sit_in_closed_advanced_sub_panels():
 
 def test_tooltips_speak_to_artists_not_programmers():
     settings = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type
+    groups = [p.fixed_type for p in settings.properties if p.type == "POINTER" and
+              p.fixed_type.identifier.startswith("ShapeGen")]
+    assert len(groups) == 5  # prepare, correspondence, fit, generate, explore
     texts = []
-    for prop in settings.properties:
+    for prop in [p for rna in (settings, *groups) for p in rna.properties]:
         texts.append(prop.description)
         if prop.type == "ENUM":
             texts += [item.description for item in prop.enum_items]
@@ -171,21 +177,23 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         panel = scene.shapegen
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
         assert received == pipeline.FitSettings()
-        panel.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
+        panel.correspondence.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
         assert received.correspondence.initialisation == "spectral"
-        panel.differ_in_pose = False
-        assert panel.sample_template == pipeline.FitSettings().mesh_template
-        assert panel.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
+        panel.correspondence.differ_in_pose = False
+        assert panel.generate.sample_template == pipeline.FitSettings().mesh_template
+        assert panel.fit.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
     finally:
         bpy.data.scenes.remove(scene)
     # every choice the panel offers is one the core knows, and the other way round
     defaults = pipeline.FitSettings()
-    choices = {"up_axis": (defaults.prepare, "up_axis"), "align": (defaults.prepare, "align"),
-               "scale": (defaults.prepare, "scale"), "centre": (defaults.prepare, "centre"),
-               "matching": (defaults.correspondence, "matching"), "refine": (defaults.correspondence, "refine"),
-               "fit_model": (defaults, "model")}
+    choices = {"prepare.up_axis": (defaults.prepare, "up_axis"), "prepare.align": (defaults.prepare, "align"),
+               "prepare.scale": (defaults.prepare, "scale"), "prepare.centre": (defaults.prepare, "centre"),
+               "correspondence.matching": (defaults.correspondence, "matching"),
+               "correspondence.refine": (defaults.correspondence, "refine"), "fit.model": (defaults, "model")}
     rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
-    for name, (owner, field_name) in choices.items():
+    for path, (owner, field_name) in choices.items():
+        group, name = path.split(".")
         core_field = next(f for f in dataclasses.fields(owner) if f.name == field_name)
-        assert set(rna[name].enum_items.keys()) == set(core_field.metadata["choices"]), name
+        enum = rna[group].fixed_type.properties[name]
+        assert set(enum.enum_items.keys()) == set(core_field.metadata["choices"]), path

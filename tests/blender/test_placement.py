@@ -78,8 +78,8 @@ def test_every_operator_puts_its_objects_beside_the_existing_ones(extension, mod
     assert len(first) == 4 and len(second) == 3
 
     settings = scene.shapegen
-    settings.interpolate_a = bpy.data.objects["vase_000"]
-    settings.interpolate_b = bpy.data.objects["vase_004"]
+    settings.generate.interpolate_a = bpy.data.objects["vase_000"]
+    settings.generate.interpolate_b = bpy.data.objects["vase_004"]
     assert bpy.ops.shapegen.interpolate(steps=3, mode="OBJECTS") == {"FINISHED"}
     state.assert_clear("interpolate (objects)")
     assert bpy.ops.shapegen.interpolate(steps=3, mode="SHAPE_KEYS") == {"FINISHED"}

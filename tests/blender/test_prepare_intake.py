@@ -47,7 +47,7 @@ def shapes(extension):
     add("rotated", vases[6]).rotation_euler = (0.25, -0.15, math.radians(70))
     settings = bpy.context.scene.shapegen
     settings.source_collection = collection
-    settings.n_landmarks = 60
+    settings.prepare.n_landmarks = 60
     return collection
 
 
@@ -99,7 +99,7 @@ def test_prepared_copies_are_the_world_shapes_as_seen_with_outward_normals(shape
 
 
 def test_base_mesh_option_reads_the_cage_and_says_so(shapes):
-    bpy.context.scene.shapegen.use_base_mesh = True
+    bpy.context.scene.shapegen.prepare.use_base_mesh = True
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     assert "from their base meshes (modifiers ignored)" in bpy.context.scene.shapegen.job_message
     copies = _copies()

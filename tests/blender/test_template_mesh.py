@@ -118,9 +118,9 @@ def add_vessels(name: str = "vessels") -> dict:
     objects[0].scale = (-1.0, 1.0, 1.0)
     settings = bpy.context.scene.shapegen
     settings.source_collection = collection
-    settings.n_landmarks = 100
-    settings.latent_dim = 2
-    settings.fit_model = "ppca"
+    settings.prepare.n_landmarks = 100
+    settings.fit.latent_dim = 2
+    settings.fit.model = "ppca"
     return {o.name: o for o in objects}
 
 
@@ -260,11 +260,11 @@ def test_the_copy_is_the_mesh_the_fit_read(extension, jobs, base):
         obj.shape_key_add(name="Basis")
         obj.shape_key_add(name="Taller").data[0].co.z += 0.1
     settings = bpy.context.scene.shapegen
-    settings.use_base_mesh = base
+    settings.prepare.use_base_mesh = base
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     fit()
     assert "reusing" in settings.job_message
-    settings.use_base_mesh = not base
+    settings.prepare.use_base_mesh = not base
     assert bpy.ops.shapegen.sample(count=2, seed=1) == {"FINISHED"}
     depsgraph = bpy.context.evaluated_depsgraph_get()
     for obj in bpy.data.collections["ShapeGen Samples"].objects:

@@ -47,7 +47,7 @@ def _pump(jobs, until, timeout=120.0, poll=None):
 def test_fit_runs_in_a_worker_and_progress_reaches_100_percent(extension, jobs):
     collection = add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
-    settings.fit_model = "ppca"
+    settings.fit.model = "ppca"
     objects_before = {o.name for o in bpy.data.objects}
     assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
     assert settings.job_state == "RUNNING"
@@ -82,7 +82,7 @@ def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension,
     prepares again."""
     collection = add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
-    settings.fit_model = "ppca"
+    settings.fit.model = "ppca"
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     prepared = bpy.data.collections["vases Prepared"]
     copies = {o["shapegen_source"]: o for o in prepared.objects if "shapegen_landmarks" in o}
@@ -98,10 +98,10 @@ def test_fit_reuses_a_current_prepared_collection_and_not_a_stale_one(extension,
         copy.data.vertices.foreach_get("co", local)
         np.testing.assert_allclose(model.meshes[model.shape_index(name)].vertices, local.reshape(-1, 3), atol=1e-6)
 
-    settings.seed += 1  # other Prepare settings: not reused
+    settings.prepare.seed += 1  # other Prepare settings: not reused
     assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
     assert "reusing" not in settings.job_message
-    settings.seed -= 1
+    settings.prepare.seed -= 1
     source = sorted(collection.objects, key=lambda o: o.name)[2]
     source.data.vertices[0].co.z += 0.05  # an edit after Prepare: stale
     assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
@@ -116,13 +116,13 @@ def test_changing_only_the_model_type_reuses_the_correspondence(extension, jobs)
     collection = add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
     store = addon_module(extension, "shapegen_addon.store")
-    settings.fit_model = "ppca"
+    settings.fit.model = "ppca"
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
     first = store.get_model(bpy.context.scene)
     assert "correspondence of model" not in settings.job_message
 
-    settings.fit_model, settings.latent_dim = "gplvm", 1
+    settings.fit.model, settings.fit.latent_dim = "gplvm", 1
     assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
     assert "reusing 'vases Prepared' and the correspondence of model 'vases'" in settings.job_message
     second = store.get_model(bpy.context.scene)
@@ -200,7 +200,7 @@ def test_a_killed_registration_worker_names_its_shape(extension, jobs, monkeypat
 def test_a_failing_fit_reports_the_workers_reason(extension, jobs):
     add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
-    settings.latent_dim = 9  # more latent dimensions than the 6 shapes allow: the core refuses
+    settings.fit.latent_dim = 9  # more latent dimensions than the 6 shapes allow: the core refuses
     with pytest.raises(RuntimeError, match="latent dimension 9 must be smaller than the number of shapes"):
         bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
     assert settings.job_state == "FAILED" and settings.model_text is None
@@ -334,7 +334,7 @@ def test_poll_fit_after_a_file_load_says_cancelled(extension, jobs, tmp_path):
 def test_a_fit_whose_collection_was_deleted_installs_nothing(extension, jobs):
     collection = add_vase_collection(extension)
     settings = bpy.context.scene.shapegen
-    settings.fit_model = "ppca"
+    settings.fit.model = "ppca"
     assert bpy.ops.shapegen.fit(extra_settings=fast_fit_json()) == {"FINISHED"}
     bpy.data.collections.remove(collection)
     statuses, _ = _pump(jobs, lambda s: s is not None and s.finished)
@@ -346,7 +346,7 @@ def test_a_fit_whose_collection_was_deleted_installs_nothing(extension, jobs):
 def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words(extension, jobs):
     add_vase_collection(extension, n=2)
     settings = bpy.context.scene.shapegen
-    settings.fit_model, settings.latent_dim = "ppca", 0
+    settings.fit.model, settings.fit.latent_dim = "ppca", 0
     with pytest.raises(RuntimeError, match=r"add training shapes or choose another Model \(gplvm or bgplvm\)"):
         bpy.ops.shapegen.fit(extra_settings=fast_fit_json(), wait=True)
     assert "shrinkage" not in settings.job_message
