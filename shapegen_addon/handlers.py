@@ -2,8 +2,9 @@
 
 Closing: a running job belongs to the file being closed, so it is stopped. Opening: the
 process caches (decoded models, latent meshers) belong to the old file and are dropped,
-every scene's packed model is decoded again, and a job state left at RUNNING when the file
-was saved (its worker is gone) is reset.
+every scene's packed model is decoded again, a job state left at RUNNING when the file
+was saved (its worker is gone) is reset, and panel settings saved before they were grouped
+by section are moved into their groups (ui.properties.regroup_flat_settings).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from bpy.app.handlers import persistent
 from ..core.errors import ShapeGenError
 from . import latent, store
 from .jobs import MANAGER
+from .ui.properties import regroup_flat_settings
 
 __all__ = ["register_handlers", "unregister_handlers"]
 
@@ -32,6 +34,10 @@ def _load_post(*_args):
     latent.forget_cache()
     for scene in bpy.data.scenes:
         settings = scene.shapegen
+        moved = regroup_flat_settings(settings)
+        if moved:
+            print(f"ShapeGen: scene '{scene.name}': panel settings saved by an earlier version moved into their "
+                  f"sections: {', '.join(moved)}")
         if settings.job_state == "RUNNING":
             settings.job_state = "IDLE"
             settings.job_stage = ""

@@ -250,6 +250,42 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
         }
 
 
+#: where each panel setting lived in files saved before the settings were grouped by panel
+#: section: old name on `scene.shapegen` → (group, name)
+FLAT_NAMES = {
+    **{name: ("prepare", name) for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed",
+                                            "preview_spacing", "use_base_mesh")},
+    **{name: ("correspondence", name) for name in ("stiffness", "matching", "refine", "differ_in_pose")},
+    "fit_model": ("fit", "model"), "latent_dim": ("fit", "latent_dim"), "mesh_stiffness": ("fit", "mesh_stiffness"),
+    **{name: ("generate", name) for name in ("sample_count", "sample_template", "interpolate_a", "interpolate_b",
+                                             "interpolate_steps", "interpolate_mode", "interpolate_frames")},
+    "explore_seed": ("explore", "seed"), "map_size": ("explore", "map_size"),
+}
+
+
+def regroup_flat_settings(settings: ShapeGenSettings) -> list[str]:
+    """Move the panel settings a .blend saved before they were grouped (Blender keeps them
+    as plain ID properties of `scene.shapegen`: enums as item numbers, booleans as 0/1)
+    into their groups, so an artist's settings survive the update. Returns the old names
+    moved (Blender clamps a value out of range); one of the wrong type is dropped, its name
+    followed by "?"."""
+    moved = []
+    for old, (group, name) in FLAT_NAMES.items():
+        if old not in settings.keys():
+            continue
+        value, target = settings[old], getattr(settings, group)
+        kind = target.bl_rna.properties[name]
+        if kind.type == "ENUM":
+            value = next((item.identifier for item in kind.enum_items if item.value == value), value)
+        try:
+            setattr(target, name, bool(value) if kind.type == "BOOLEAN" else value)
+            moved.append(old)
+        except (TypeError, ValueError):
+            moved.append(f"{old}?")
+        del settings[old]
+    return moved
+
+
 #: the groups before the settings that point to them (Blender registers them in this order)
 CLASSES = (ShapeGenLatent, ShapeGenPrepareSettings, ShapeGenCorrespondenceSettings, ShapeGenFitSettings,
            ShapeGenGenerateSettings, ShapeGenExploreSettings, ShapeGenSettings)

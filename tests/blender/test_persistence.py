@@ -90,3 +90,26 @@ def test_reopening_in_the_same_process_restores_the_model_from_the_file(extensio
     before = vertices(settings.live_object).copy()
     settings.latents[0].value = 2.0
     assert np.abs(vertices(settings.live_object) - before).max() > 1e-3
+
+
+def test_panel_settings_saved_before_they_were_grouped_move_into_their_sections(extension, tmp_path):
+    """A .blend saved before scene.shapegen was grouped by panel section holds the settings
+    flat (enums as item numbers, booleans as 0/1); opening it keeps the artist's values."""
+    settings = bpy.context.scene.shapegen
+    collection = bpy.data.collections.new("vases")
+    old = {"n_landmarks": 77, "up_axis": 1, "use_base_mesh": 1, "fit_model": 0, "latent_dim": 3, "stiffness": 7.5,
+           "differ_in_pose": 1, "interpolate_steps": 9, "explore_seed": 4, "map_size": 10, "sample_count": "six"}
+    for name, value in old.items():
+        settings[name] = value
+    settings.source_collection = collection
+    blend = tmp_path / "flat.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    settings = bpy.context.scene.shapegen
+    prepare, fit = settings.prepare, settings.fit
+    assert (prepare.n_landmarks, prepare.up_axis, prepare.use_base_mesh) == (77, "y", True)
+    assert (fit.model, fit.latent_dim, settings.correspondence.stiffness) == ("ppca", 3, 7.5)
+    assert settings.correspondence.differ_in_pose and settings.generate.interpolate_steps == 9
+    assert settings.explore.seed == 4 and settings.explore.map_size == 64  # clamped to its minimum, as Blender does
+    assert settings.generate.sample_count == 6  # text where a number belongs: dropped, the default stays
+    assert not set(old) & set(settings.keys()) and settings.source_collection.name == "vases"
