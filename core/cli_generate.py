@@ -145,7 +145,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- sample
 def _write_meshes(model, landmarks, template: str | None, smooth: int, folder: Path, names, file_format: str) -> None:
     """Mesh landmark sets on their templates and write them (complete, morph)."""
-    writers = MeshWriters(model.meshes)
+    writers = MeshWriters(model.meshes, model.file_axes)
     for name, lm in zip(names, landmarks):
         index = model.choose_template(lm, template)
         mesh = model.mesh_from_landmarks(lm, template=model.names[index], smooth=smooth, name=name)
@@ -170,7 +170,7 @@ def _gated_chunk(model, run: SampleRun, indices) -> list[GatedSample]:
     """Samples `indices` of `run`, gated (core/sampling.py) and written; returned without
     their meshes."""
     settings = QualitySettings.from_json(run.quality)
-    writers = MeshWriters(model.meshes)
+    writers = MeshWriters(model.meshes, model.file_axes)
     return [_written(writers, run, gated_sample(model, index, run.first_seed, run.count, run.template, settings,
                                                 run.smooth, run.exact, name=sample_name(index)))
             for index in indices]
@@ -229,7 +229,7 @@ def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSa
     templates."""
     if args.scheduler is not None:
         order = sorted(range(run.count), key=lambda i: (templates[i], i)) if templates else list(range(run.count))
-        writers = MeshWriters(model.meshes)
+        writers = MeshWriters(model.meshes, model.file_axes)
         samples = [_written(writers, run, sample)
                    for sample in gated_samples_on_cluster(args.scheduler, args.model, run, order)]
         return sorted(samples, key=lambda sample: sample.index)

@@ -498,14 +498,20 @@ class ObjWriter:
 class MeshWriters:
     """Writes deformed copies of template meshes (same faces, new positions): OBJ through
     one `ObjWriter` per template (its face block formatted once), other formats through
-    `write_mesh`; both with the template's file layout when it has one."""
+    `write_mesh`; both with the template's file layout when it has one. `file_axes`
+    (3 × 3, rows: the model frame's axes in the files' coordinates; None: the same) turns
+    every written mesh from the model's Z-up frame into the axes the training files were
+    read in (`GenerativeShapeModel.file_axes`)."""
 
-    def __init__(self, templates: Sequence[Mesh]):
+    def __init__(self, templates: Sequence[Mesh], file_axes: np.ndarray | None = None):
         self.templates = list(templates)
+        self.file_axes = None if file_axes is None or np.array_equal(file_axes, np.eye(3)) else file_axes
         self._obj: dict[int, ObjWriter] = {}
 
     def write(self, mesh: Mesh, template_index: int, path: str | os.PathLike) -> Path:
         path = Path(path)
+        if self.file_axes is not None:
+            mesh = mesh.with_vertices(mesh.vertices @ self.file_axes)
         if path.suffix.lower() != ".obj":
             return write_mesh(mesh, path)
         if template_index not in self._obj:

@@ -45,6 +45,7 @@ from .mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .models.scaling import ScaleWarning, size_note
 from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .preprocess.rotations import up_rotation
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 from .spill import full_mesh
@@ -132,6 +133,14 @@ class GenerativeShapeModel:
     @property
     def names(self) -> list[str]:
         return list(self.correspondence.names)
+
+    @property
+    def file_axes(self) -> np.ndarray:
+        """3 × 3, rows: the model frame's x, y, z in the coordinates of the files it was
+        fitted from (the inverse of Prepare's up rotation, §3.1): `vertices @ file_axes`
+        turns a Z-up mesh of the model into the files' axis convention (Y up for files read
+        with `--up y`), which is how written samples leave the CLI."""
+        return up_rotation(self.settings.prepare.up_axis)
 
     @property
     def deform_settings(self) -> DeformSettings:

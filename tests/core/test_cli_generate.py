@@ -219,6 +219,12 @@ def test_fit_of_a_prepared_file_records_its_settings_and_refuses_conflicts(model
     assert (recorded.n_landmarks, recorded.up_axis) == (50, "y")
     info = json.loads(run("info", tmp_path / "m.npz", "--json").stdout)
     assert info["settings"]["prepare"]["up_axis"] == "y"
+    # samples are written in the files' axes: a vase whose files stand along Z (read
+    # "Y up", so it lies along the model's x) is written standing along Z again
+    assert run("sample", tmp_path / "m.npz", "-n", 1, "-o", tmp_path / "samples").returncode == 0
+    written = trimesh.load(tmp_path / "samples" / "sample_0000.obj", process=False).extents
+    given = trimesh.load(next((model_file.parent / "data").glob("*.obj")), process=False).extents
+    assert np.argmax(written) == np.argmax(given) == 2
     result = run("fit", prepared, "-o", tmp_path / "m2.npz", "--model", "ppca", "--up", "z")
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert f"--up z conflicts with {prepared}, prepared with --up y" in result.stderr
