@@ -173,7 +173,7 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         assert received == pipeline.FitSettings()
         panel.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
-        assert received.correspondence.initialisation == "spectral"
+        assert received.correspondence.data_term.initialisation == "spectral"
         panel.differ_in_pose = False
         assert panel.sample_template == pipeline.FitSettings().mesh_template
         assert panel.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
@@ -183,7 +183,8 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
     defaults = pipeline.FitSettings()
     choices = {"up_axis": (defaults.prepare, "up_axis"), "align": (defaults.prepare, "align"),
                "scale": (defaults.prepare, "scale"), "centre": (defaults.prepare, "centre"),
-               "matching": (defaults.correspondence, "matching"), "refine": (defaults.correspondence, "refine"),
+               "matching": (defaults.correspondence.data_term, "matching"),
+               "refine": (defaults.correspondence.refinement, "method"),
                "fit_model": (defaults, "model")}
     rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
     for name, (owner, field_name) in choices.items():
