@@ -42,7 +42,10 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
-from shapegen_core.correspond import Anchors, CorrespondenceSettings, correspond, refine_population, register  # noqa: E402
+from shapegen_core.correspond import (Anchors, CorrespondenceSettings, RegistrationProblem, correspond,  # noqa: E402
+                                      refine_population, register)
+from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, RefinementSettings,  # noqa: E402
+                                               StiffnessSettings)
 from shapegen_core.correspond.objective import PopulationObjective  # noqa: E402
 from shapegen_core.correspond.refine import landmark_state  # noqa: E402
 from shapegen_core.evaluation.completion import hidden_coordinates, region_mask  # noqa: E402
@@ -136,13 +139,19 @@ class PairwiseFrame:
     def register(self, m: int, settings, surface: TargetSurface | None = None, **options):
         """Template → shape m (`options`: register's anchors, initial_points)."""
         mesh, target_lm = self.prepared.shapes[m].mesh, self.prepared.landmarks[m]
-        return register(self.template, self.edges, surface or self.surface(m), self.frame(target_lm.points),
-                        settings, self.normals, mesh.face_normals()[target_lm.face_index], **options)
+        return register(RegistrationProblem(self.template, self.edges, surface or self.surface(m),
+                                            self.frame(target_lm.points), settings, self.normals,
+                                            mesh.face_normals()[target_lm.face_index], **options))
+
+
+def pairwise(**groups) -> CorrespondenceSettings:
+    """Pairwise registration (no groupwise round) with the given settings groups."""
+    return CorrespondenceSettings(groupwise_rounds=0, **groups)
 
 
 def ours_pairwise(prepared, template_index, settings):
     """Register the template to every shape; returns (points, face, bary, seconds per shape)."""
-    pair = PairwiseFrame(prepared, template_index, settings.k_neighbours)
+    pair = PairwiseFrame(prepared, template_index, settings.stiffness.k_neighbours)
     points, faces, barys = [], [], []
     start = time.perf_counter()
     for m in range(len(prepared)):
@@ -199,8 +208,8 @@ def pinned_stiffness_energy(template_points, edges, positions, settings, weight:
     objective dislikes a given correspondence, whatever the optimiser does."""
     n = len(template_points)
     blocks, rhs = data_blocks(template_points, np.arange(n), positions, np.full(n, weight), n)
-    affines = AffineSolver(edges, n, settings.gamma).solve(settings.alphas[-1], blocks, rhs)
-    return stiffness_energy(affines, edges, settings.gamma)
+    affines = AffineSolver(edges, n, settings.stiffness.gamma).solve(settings.alphas[-1], blocks, rhs)
+    return stiffness_energy(affines, edges, settings.stiffness.gamma)
 
 
 def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.03) -> dict:
@@ -216,7 +225,7 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     * started AT the ground truth (`initial_points`), 30 iterations at the last α (and at
       α = 1): how far the method walks away from the truth on its own."""
     settings = CorrespondenceSettings(groupwise_rounds=0)
-    pair = PairwiseFrame(prepared, template_index, settings.k_neighbours)
+    pair = PairwiseFrame(prepared, template_index, settings.stiffness.k_neighbours)
     template, edges = pair.template, pair.edges
     lm = prepared.landmarks[template_index]
     st = shapes[template_index].surface_coordinates(lm.face_index, lm.barycentric)
@@ -243,8 +252,9 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
         oracle_err.append(100 * error[~anchored].mean())
         oracle_parts.append([100 * error[part == k].mean() for k in range(len(PARTS))])
         for alpha, errors in from_truth.items():
-            stay = CorrespondenceSettings(groupwise_rounds=0, alpha_start=alpha, alpha_end=alpha, alpha_steps=1,
-                                          tolerance=0.0, max_iterations_per_alpha=30, max_iterations=30)
+            stay = CorrespondenceSettings(
+                groupwise_rounds=0, stiffness=StiffnessSettings(alpha_start=alpha, alpha_end=alpha, alpha_steps=1),
+                iterations=IterationSettings(tolerance=0.0, max_iterations_per_alpha=30, max_iterations=30))
             walked = pair.register(m, stay, surface, initial_points=truth).placed.points
             errors.append(100 * np.linalg.norm(walked - truth, axis=1).mean() / diagonal)
     out = {"energy_truth_over_ours": [float(r) for r in ratios], "anchored_landmarks": int(anchored.sum()),
@@ -262,7 +272,12 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
 
 
 # ---------------------------------------------------------------------------- refinement (issue 13)
-REFINED = CorrespondenceSettings(refine="population")
+def refined_by(**options) -> CorrespondenceSettings:
+    """The default settings with population refinement (`options`: RefinementSettings')."""
+    return CorrespondenceSettings(refinement=RefinementSettings(method="population", **options))
+
+
+REFINED = refined_by()
 
 
 def model_quality(landmark_matrix: np.ndarray, folds: int = 5, seed: int = 0, meshes=None) -> dict:
@@ -311,9 +326,9 @@ def population_objective(prepared, corr, settings=REFINED) -> PopulationObjectiv
     """The refinement's objective anchored at NICP's landmarks `corr` (as refine does)."""
     meshes = [s.mesh for s in prepared.shapes]
     return PopulationObjective(landmark_state(meshes, corr.points, corr.face_index, corr.barycentric),
-                               [m.area() for m in meshes], settings.refine_compactness, settings.refine_spread,
-                               settings.refine_regulariser, settings.refine_sigma, settings.refine_alignment,
-                               settings.refine_normals)
+                               [m.area() for m in meshes], settings.refinement.compactness,
+                               settings.refinement.spread, settings.refinement.regulariser, settings.refinement.sigma,
+                               settings.refinement.alignment, settings.refinement.normals)
 
 
 def refined_diagnosis(shapes, prepared, nicp, refined, template_index, log) -> dict:
@@ -380,12 +395,12 @@ def procedural(quick: bool, log) -> dict:
     record("ours (groupwise, jobs=1)", group.points, group.face_index, group.barycentric, group_seconds)
     refinements = {
         "ours + refinement (population)": REFINED,
-        "refinement - spread term": CorrespondenceSettings(refine="population", refine_spread=0.0),
-        "refinement - compactness term": CorrespondenceSettings(refine="population", refine_compactness=0.0),
-        "refinement, 10 iterations": CorrespondenceSettings(refine="population", refine_iterations=10),
-        "refinement - similarity removal": CorrespondenceSettings(refine="population", refine_alignment="none"),
-        "refinement - normals": CorrespondenceSettings(refine="population", refine_normals=0.0),
-        "refinement - smooth fields": CorrespondenceSettings(refine="population", refine_smooth_fields=0),
+        "refinement - spread term": refined_by(spread=0.0),
+        "refinement - compactness term": refined_by(compactness=0.0),
+        "refinement, 10 iterations": refined_by(iterations=10),
+        "refinement - similarity removal": refined_by(alignment="none"),
+        "refinement - normals": refined_by(normals=0.0),
+        "refinement - smooth fields": refined_by(smooth_fields=0),
     }
     refined_results = {}
     for name, settings in refinements.items():
@@ -401,11 +416,11 @@ def procedural(quick: bool, log) -> dict:
     refined = refined_results["ours + refinement (population)"]
     variants = {
         "ours pairwise": CorrespondenceSettings(groupwise_rounds=0),
-        "- bidirectional term (λ=0)": CorrespondenceSettings(groupwise_rounds=0, bidirectional_weight=0.0),
-        "- relaxation (one α = 5)": CorrespondenceSettings(groupwise_rounds=0, alpha_steps=1),
-        "- surface (snap to vertices)": CorrespondenceSettings(groupwise_rounds=0, snap_to_vertices=True),
-        "- normals (plain closest points)": CorrespondenceSettings(groupwise_rounds=0, normal_max_angle=None),
-        "thesis Alg. 3 (update_template)": CorrespondenceSettings(groupwise_rounds=0, update_template=True),
+        "- bidirectional term (λ=0)": pairwise(data_term=DataTermSettings(bidirectional_weight=0.0)),
+        "- relaxation (one α = 5)": pairwise(stiffness=StiffnessSettings(alpha_steps=1)),
+        "- surface (snap to vertices)": pairwise(data_term=DataTermSettings(snap_to_vertices=True)),
+        "- normals (plain closest points)": pairwise(data_term=DataTermSettings(normal_max_angle=None)),
+        "thesis Alg. 3 (update_template)": pairwise(iterations=IterationSettings(update_template=True)),
     }
     for name, settings in variants.items():
         record(name, *ours_pairwise(prepared, t, settings))
@@ -541,7 +556,8 @@ def psb(quick: bool, log) -> dict:
         ref_labels = labels[result.template_name][result.face_index[ref]]
         accuracy = [np.mean(labels[name][result.face_index[m]] == ref_labels)
                     for m, name in enumerate(result.names) if m != ref]
-        plain = correspond(prepared, CorrespondenceSettings(normal_max_angle=None), template=result.template_name, jobs=2)
+        plain = correspond(prepared, CorrespondenceSettings(data_term=DataTermSettings(normal_max_angle=None)),
+                           template=result.template_name, jobs=2)
         plain_ref = labels[result.template_name][plain.face_index[ref]]
         plain_accuracy = [np.mean(labels[name][plain.face_index[m]] == plain_ref)
                           for m, name in enumerate(plain.names) if m != ref]

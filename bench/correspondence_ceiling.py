@@ -52,6 +52,7 @@ import shapegen_core.correspond.features as features  # noqa: E402
 import shapegen_core.correspond.groupwise as groupwise  # noqa: E402
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, chamfer_medoid, correspond  # noqa: E402
+from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
 
@@ -120,8 +121,8 @@ def one_collection(seed: int, weights: list[float]) -> dict:
     on_wall = (s_template > WALL[0]) & (s_template < WALL[1])
     # shapes other than the template whose neck is a turning line: the lip is wider than the neck
     necked = np.array([m != template and s.params.lip_radius > s.params.neck_radius for m, s in enumerate(shapes)])
-    plain = CorrespondenceSettings(matching="features", feature_between=0.0)
-    between = CorrespondenceSettings(matching="features", feature_between=1.0)
+    plain = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=0.0))
+    between = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=1.0))
     variants = [("features", plain, None, False), ("features + between", between, None, False)]
     for w in weights:
         variants += [(f"truth s x {w:g}, template from population", between, w, False),

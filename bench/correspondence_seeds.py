@@ -54,10 +54,12 @@ from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa:
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.io import read_folder  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.settings import nested_data  # noqa: E402
 
 
 def parse_variant(spec: str) -> dict:
-    """'a=1;b=0.5' -> {'a': 1, 'b': 0.5} (values as Python literals: ints, floats, names)."""
+    """'a=1;b=0.5' -> {'a': 1, 'b': 0.5} (values as Python literals: ints, floats, names);
+    names are CorrespondenceSettings options, flat as before or dotted ('stiffness.alpha_end=3')."""
     options = {}
     for item in filter(None, spec.split(";")):
         key, value = item.split("=", 1)
@@ -65,7 +67,7 @@ def parse_variant(spec: str) -> dict:
             options[key.strip()] = json.loads(value)
         except json.JSONDecodeError:
             options[key.strip()] = value.strip()
-    return options
+    return nested_data(options)
 
 
 def one_collection(n: int, seed: int, variants: list[str], truth: bool = False) -> dict:
@@ -77,7 +79,7 @@ def one_collection(n: int, seed: int, variants: list[str], truth: bool = False) 
     template = None
     for spec in variants:
         start = time.perf_counter()
-        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), jobs=1)
+        result = correspond(prepared, CorrespondenceSettings.from_dict(parse_variant(spec)), jobs=1)
         seconds = time.perf_counter() - start
         t = result.names.index(result.template_name)
         template = t if template is None else template
@@ -124,7 +126,7 @@ def from_one_template(prepared, variants: list[str]):
     meshes, template = [s.mesh for s in prepared.shapes], None
     for spec in variants:
         start = time.perf_counter()
-        result = correspond(prepared, CorrespondenceSettings(**parse_variant(spec)), template=template, jobs=1)
+        result = correspond(prepared, CorrespondenceSettings.from_dict(parse_variant(spec)), template=template, jobs=1)
         seconds = time.perf_counter() - start
         template = result.template_name
         yield spec or "defaults", result, seconds, model_quality(result.landmark_matrix(), meshes=meshes)

@@ -58,10 +58,12 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
+from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
 from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.settings import nested_data  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from correspondence import console_log, face_labels, nricp_baseline  # noqa: E402
@@ -162,8 +164,9 @@ def classes(quick: bool, only: set | None) -> list:
 
 # ---------------------------------------------------------------------------- methods
 def parse_method(text: str) -> tuple[str, dict]:
-    """`NAME:key=value,...` → (NAME, CorrespondenceSettings keywords); values are JSON
-    (numbers, true, null) or else words."""
+    """`NAME:key=value,...` → (NAME, CorrespondenceSettings options: flat names of before or
+    dotted places, e.g. alpha_end=3 or stiffness.alpha_end=3); values are JSON (numbers,
+    true, null) or else words."""
     name, _, body = text.partition(":")
     options = {}
     for item in filter(None, body.split(",")):
@@ -172,14 +175,15 @@ def parse_method(text: str) -> tuple[str, dict]:
             options[key.strip()] = json.loads(value)
         except json.JSONDecodeError:
             options[key.strip()] = None if value.strip() == "None" else value.strip()
-    CorrespondenceSettings(**options)  # a wrong name or value fails here, before any work
+    options = nested_data(options)
+    CorrespondenceSettings.from_dict(options)  # a wrong name or value fails here, before any work
     return name, options
 
 
 def settings_methods(extra: list) -> dict:
-    """Name → CorrespondenceSettings keywords of the methods run through `correspond`."""
+    """Name → CorrespondenceSettings options of the methods run through `correspond`."""
     methods = {"closest (default)": {}, "features": {"matching": "features"}}
-    for f in fields(CorrespondenceSettings):
+    for f in fields(DataTermSettings):
         if f.name == "initialisation":
             for choice in f.metadata.get("choices") or ("spectral",):
                 if choice != f.default:
@@ -188,7 +192,7 @@ def settings_methods(extra: list) -> dict:
     return methods
 
 
-REFINED = CorrespondenceSettings(refine="population")
+REFINED = CorrespondenceSettings.from_dict({"refine": "population"})
 
 
 def refined_rows(prepared, nicp, nicp_seconds: float) -> dict:
@@ -226,7 +230,7 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
     rows, template = {}, None
     for name, options in methods.items():
         start = time.perf_counter()
-        result = correspond(prepared, CorrespondenceSettings(**options), template=template, jobs=JOBS)
+        result = correspond(prepared, CorrespondenceSettings.from_dict(options), template=template, jobs=JOBS)
         seconds = (time.perf_counter() - start) / len(bench.meshes)
         if template is None:
             template = result.template_name

@@ -57,7 +57,7 @@ from correspondence import error_vs_template  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
 LANDMARKS = 800
-REFINED = CorrespondenceSettings(refine="population")
+REFINED = CorrespondenceSettings.from_dict({"refinement": {"method": "population"}})
 
 
 # ---------------------------------------------------------------------------- candidate terms
@@ -156,7 +156,7 @@ class Collection:
         return landmark_state(self.meshes, *where)
 
     def refine(self, make_term, regulariser: float = 0.001, start=None):
-        settings = CorrespondenceSettings(refine="population", refine_regulariser=regulariser)
+        settings = CorrespondenceSettings.from_dict({"refinement": {"method": "population", "regulariser": regulariser}})
         return refine_population(self.meshes, *(start or self.start), settings, edges=self.nicp.edges,
                                  compactness=make_term)
 
@@ -174,7 +174,7 @@ def diagnose(collection: Collection, options: dict, anneal: bool = False) -> dic
     path = [energy(c.on_surfaces((1 - a) * c.start[0] + a * c.truth[0])) for a in np.linspace(0, 1, 6)]
     start_state = c.state(c.start)
     _, gradient = term.evaluate(start_state)
-    basis = smooth_basis(c.nicp.edges, c.start[0].shape[1], REFINED.refine_smooth_fields)
+    basis = smooth_basis(c.nicp.edges, c.start[0].shape[1], REFINED.refinement.smooth_fields)
     direction = _tangent(np.einsum("lk,mkd->mld", basis, np.einsum("lk,mld->mkd", basis,
                                                                      _tangent(gradient, start_state.face_normals))),
                          start_state.face_normals)

@@ -208,7 +208,7 @@ def run_starts(name: str) -> dict:
 def _settings(initialisation: str) -> CorrespondenceSettings:
     if initialisation == "closest":
         return CorrespondenceSettings()
-    return CorrespondenceSettings(initialisation=initialisation)
+    return CorrespondenceSettings.from_dict({"data_term": {"initialisation": initialisation}})
 
 
 def main(argv=None) -> int:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 import types
-from dataclasses import MISSING, dataclass, fields
+from dataclasses import MISSING, Field, dataclass, fields
 from pathlib import Path
 from typing import Sequence, Union, get_args, get_origin, get_type_hints
 
@@ -18,7 +18,7 @@ from .io import read_folder
 from .mesh import Mesh
 from .pipeline import FitSettings
 from .progress import Progress
-from .settings import SettingsError
+from .settings import SettingsError, is_group, nested_data, settings_from_dict
 from .spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
@@ -40,8 +40,21 @@ def positive_int(text: str) -> int:
     return value
 
 
-def _flagged_fields(cls, names: tuple[str, ...] | None = None):
-    return [f for f in fields(cls) if f.metadata.get("flag") and (names is None or f.name in names)]
+def _flagged_options(cls, names: tuple[str, ...] | None = None, prefix: str = "") -> list[tuple[str, Field, type]]:
+    """(path, field, type hint) of every option of the settings dataclass `cls` that declares
+    a flag, those of its groups (`settings.group`, e.g. CorrespondenceSettings.stiffness)
+    included under their dotted paths ("stiffness.gamma"); only the paths in `names`, if
+    given. Nested settings that are not groups (FitSettings.prepare) have options of their
+    own: a command adds them by themselves."""
+    hints = get_type_hints(cls)
+    found = []
+    for f in fields(cls):
+        path = prefix + f.name
+        if is_group(f):
+            found += _flagged_options(hints[f.name], names, f"{path}.")
+        elif f.metadata.get("flag") and (names is None or path in names):
+            found.append((path, f, hints[f.name]))
+    return found
 
 
 def _argument_type(hint):
@@ -52,36 +65,37 @@ def _argument_type(hint):
 
 
 def add_settings_options(parser: argparse.ArgumentParser, cls, names: tuple[str, ...] | None = None) -> None:
-    """One option per field of the settings dataclass `cls` that declares a flag (only
-    `names`, if given), help text and choices from the field. Options left out are not
+    """One option per field of the settings dataclass `cls` (and of its groups) that
+    declares a flag (only `names`, if given), help text and choices from the field; the
+    parsed value goes to the field's path (`_flagged_options`). Options left out are not
     set on the parsed namespace, so `settings_from_args` can tell them from given ones."""
-    hints = get_type_hints(cls)
-    for f in _flagged_fields(cls, names):
+    for path, f, hint in _flagged_options(cls, names):
         default = f.default if f.default is not MISSING else None
         text = f.metadata["help"] + ("" if default is None else f" (default {default})")
         flag, choices = f.metadata["flag"], f.metadata.get("choices")
-        parser.add_argument(flag, dest=f.name, type=_argument_type(hints[f.name]), choices=choices,
+        parser.add_argument(flag, dest=path, type=_argument_type(hint), choices=choices,
                             metavar=None if choices else flag.lstrip("-").upper().replace("-", "_"),
                             default=argparse.SUPPRESS, help=text.replace("%", "%%"))
 
 
 def given_options(cls, args: argparse.Namespace) -> dict:
-    """The options of `cls` given on the command line: {field name: value}."""
-    return {f.name: getattr(args, f.name) for f in _flagged_fields(cls) if hasattr(args, f.name)}
+    """The options of `cls` given on the command line: {path: value} (a group's option by
+    its dotted path)."""
+    return {path: getattr(args, path) for path, _, _ in _flagged_options(cls) if hasattr(args, path)}
 
 
 def flag_of(cls, name: str) -> str:
-    """The command-line option of field `name` of `cls`."""
-    return next(f.metadata["flag"] for f in fields(cls) if f.name == name)
+    """The command-line option of field `name` (a dotted path into a group) of `cls`."""
+    return next(f.metadata["flag"] for path, f, _ in _flagged_options(cls) if path == name)
 
 
 def settings_from_args(cls, args: argparse.Namespace, flags: dict[str, str] | None = None, **fixed):
     """`cls` from the options given on the command line (the rest at their defaults) and
     the `fixed` fields. A SettingsError names the command-line option: the field's flag,
     or `flags[option]` for options set through `fixed` (e.g. "deform.final_alpha")."""
-    names = {f.name: f.metadata["flag"] for f in _flagged_fields(cls)} | dict(flags or {})
+    names = {path: f.metadata["flag"] for path, f, _ in _flagged_options(cls)} | dict(flags or {})
     try:
-        return cls(**given_options(cls, args), **fixed)
+        return settings_from_dict(cls, {**nested_data(given_options(cls, args)), **fixed})
     except SettingsError as exc:
         raise SettingsError(names.get(exc.option, exc.option), exc.problem, exc.prefix) from None
 

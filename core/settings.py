@@ -4,7 +4,10 @@ A settings class derives from `Settings` and declares each option with `option(.
 help text, its command-line flag and its allowed values live on the field, so the checks
 here, the command line (`cli_common.add_settings_options`) and the saved JSON all read
 the same declaration. Nested settings (e.g. `FitSettings.prepare`) are dataclass fields
-and nest in the JSON.
+and nest in the JSON. A subsystem's options inside one settings class are a `group` field
+(e.g. `CorrespondenceSettings.stiffness`): nested in the JSON, offered on the command line
+with their parent's options; `Settings.FIELDS_MOVED` reads data that still names them flat
+(files written before they were grouped, the add-on's option dicts).
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from typing import Any, Mapping, Sequence, Union, get_args, get_origin, get_type
 from .errors import ModelFileError, ShapeGenError
 from .npzfile import ArraySpec, validate_arrays
 
-__all__ = ["Settings", "SettingsError", "option", "check_fields", "settings_from_dict", "settings_from_json",
-           "settings_to_json", "legacy_settings", "recorded_settings"]
+__all__ = ["Settings", "SettingsError", "option", "group", "is_group", "check_fields", "settings_from_dict",
+           "settings_from_json", "settings_to_json", "nested_data", "legacy_settings", "recorded_settings"]
 
 
 class SettingsError(ShapeGenError, ValueError):
@@ -40,6 +43,21 @@ def option(default: Any = MISSING, help: str = "", *, flag: str | None = None, c
     metadata = {"help": help, "flag": flag, "choices": tuple(choices) if choices is not None else None,
                 "minimum": minimum, "above": above}
     return field(default=default, default_factory=default_factory, metadata=metadata)
+
+
+def group(cls, help: str = ""):
+    """A settings field holding one subsystem's options (settings class `cls`, at its
+    defaults unless given): nested in the JSON like any nested settings, and part of its
+    parent's command-line options (`cli_common.add_settings_options` offers the group's
+    flags with the parent's), unlike nested settings of their own such as
+    `FitSettings.prepare`, which a command adds by themselves."""
+    metadata = {"help": help, "flag": None, "choices": None, "minimum": None, "above": None, "group": True}
+    return field(default_factory=cls, metadata=metadata)
+
+
+def is_group(f) -> bool:
+    """Whether dataclass field `f` was declared with `group`."""
+    return bool(f.metadata.get("group"))
 
 
 def _type_text(hint) -> str:
@@ -87,23 +105,26 @@ def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = Fals
     """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
     nested objects, missing fields at their defaults. Unknown names and invalid values
     raise SettingsError; an error of nested settings names the option by its dotted path
-    ("deform.final_alpha"). `recorded`: the data is what a file recorded, so a field the
-    file predates takes the value its run used (`cls.FIELDS_ADDED_LATER`), not today's
-    default."""
+    ("deform.final_alpha"). Options named by their flat names of before (`cls.FIELDS_MOVED`)
+    are read into their nested places. `recorded`: the data is what a file recorded, so a
+    field the file predates takes the value its run used (`FIELDS_ADDED_LATER` of the class
+    that holds it), not today's default."""
     label = path or cls.__name__
     if not isinstance(data, Mapping):
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
     if recorded:
         data = {**getattr(cls, "FIELDS_ADDED_LATER", {}), **data}
-    data = _without_removed(cls, data, path, recorded)
+    data = _moved_into_place(cls, _without_removed(cls, data, path, recorded), path)
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
         raise SettingsError(label, f"has no option {unknown[0]!r} (options: {', '.join(sorted(known))})")
     hints = get_type_hints(cls)
+    if recorded:  # settings a file leaves out entirely: read as recorded too (their FIELDS_ADDED_LATER)
+        data = {**{name: {} for name in known if _is_settings(hints[name])}, **data}
     values = {}
     for name, value in data.items():
-        if is_dataclass(hints[name]) and isinstance(value, Mapping):
+        if _is_settings(hints[name]) and isinstance(value, Mapping):
             value = settings_from_dict(hints[name], value, f"{path}.{name}" if path else name, recorded)
         values[name] = value
     try:
@@ -114,6 +135,37 @@ def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = Fals
         raise SettingsError(f"{path}.{exc.option}", exc.problem, exc.prefix) from None
     except (TypeError, ValueError) as exc:
         raise SettingsError(label, f"is invalid: {exc}") from None
+
+
+def _is_settings(hint) -> bool:
+    """Whether a field's type hint is a settings dataclass (not X | None, not a scalar)."""
+    return isinstance(hint, type) and is_dataclass(hint)
+
+
+def _moved_into_place(cls, data: Mapping, path: str) -> dict:
+    """`data` with every option named by a flat name of before (`cls.FIELDS_MOVED`: flat
+    name → dotted place, e.g. "gamma" → "stiffness.gamma") moved to its nested place, so
+    files written before options were grouped, and option dicts that still name them flat
+    (the add-on's, a worker's), read as the nested settings. An option named both ways
+    takes its nested value: the add-on's panel options are flat, and Extra Settings that
+    name an option nested override them as they would flat."""
+    moved = getattr(cls, "FIELDS_MOVED", {})
+    flat = {name: value for name, value in data.items() if name in moved}
+    if not flat:
+        return dict(data)
+    result = {name: value for name, value in data.items() if name not in moved}
+    for name, value in flat.items():
+        *parents, leaf = moved[name].split(".")
+        target = result
+        for parent in parents:
+            inner = target.get(parent, {})
+            if not isinstance(inner, Mapping):
+                raise SettingsError(f"{path}.{name}" if path else name,
+                                    f"cannot be given flat beside {parent!r} given as settings")
+            target[parent] = dict(inner)  # a copy: the caller's data stays as it was
+            target = target[parent]
+        target.setdefault(leaf, value)  # named both ways: today's nested name wins
+    return result
 
 
 def _without_removed(cls, data: Mapping, path: str, recorded: bool) -> Mapping:
@@ -137,22 +189,30 @@ def settings_from_json(cls, text: str, recorded: bool = False):
     return settings_from_dict(cls, data, recorded=recorded)
 
 
-def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
-    """Plain data from the key/value string arrays of files written before settings were
-    one JSON string: values were str() or repr() of scalars ("800", "'z'", "consensus",
-    "None"); dotted keys ("deform.gamma") name nested settings."""
+def nested_data(dotted: Mapping) -> dict:
+    """Plain data with dotted names ("deform.gamma": 2.0) as nested objects
+    ({"deform": {"gamma": 2.0}})."""
     data: dict = {}
-    for key, text in zip(keys, values):
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text  # str() of a word, e.g. consensus
+    for key, value in dotted.items():
         *parents, name = key.split(".")
         target = data
         for parent in parents:
             target = target.setdefault(parent, {})
         target[name] = value
     return data
+
+
+def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
+    """Plain data from the key/value string arrays of files written before settings were
+    one JSON string: values were str() or repr() of scalars ("800", "'z'", "consensus",
+    "None"); dotted keys ("deform.gamma") name nested settings."""
+    data = {}
+    for key, text in zip(keys, values):
+        try:
+            data[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            data[key] = text  # str() of a word, e.g. consensus
+    return nested_data(data)
 
 
 def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
@@ -175,10 +235,18 @@ def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
 
 class Settings:
     """Base of frozen settings dataclasses: checks its fields after construction and
-    round-trips through plain data / JSON. A subclass's `FIELDS_ADDED_LATER` (a class
-    attribute) maps a field added after files were written to the value runs recorded
-    in those files used (when it differs from the field's default); its `FIELDS_REMOVED`
-    maps a field taken out to why (files that record it still load, `_without_removed`)."""
+    round-trips through plain data / JSON. Class attributes (not fields) keep files of
+    before readable (`settings_from_dict`):
+
+    - `FIELDS_ADDED_LATER`: a field added after files were written → the value runs
+      recorded in those files used (when it differs from the field's default);
+    - `FIELDS_REMOVED`: a field taken out → why (files that record it still load,
+      `_without_removed`);
+    - `FIELDS_MOVED`: a flat name of before → the dotted place the option moved to when
+      options were grouped (`group`), e.g. {"gamma": "stiffness.gamma", "refine":
+      "refinement.method"}: data naming it flat is read into that place
+      (`_moved_into_place`), so flat JSON and key/value files of before load as the
+      nested settings, and option dicts may keep naming it flat."""
 
     def __post_init__(self):
         check_fields(self)

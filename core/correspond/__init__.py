@@ -32,8 +32,12 @@ RMS radius, so the thesis's α values mean the same for any input units.
 Everything tunable lives in `CorrespondenceSettings` (thesis defaults, one place).
 
 Modules, one layer each (the geometry they share with meshing is core/geometry):
-  settings.py      CorrespondenceSettings
-  registration.py  one template → target registration (Alg. 3): `register`, `Anchors`
+  settings.py      CorrespondenceSettings and its groups (stiffness, data term, iterations,
+                   outliers, refinement)
+  registration.py  one template → target registration (Alg. 3): `register` of a
+                   `RegistrationProblem`
+  data_terms.py    the data term's pieces (forward, bidirectional, known pairs `Anchors`),
+                   each giving the pulls of the next solve; closest or feature matches
   pool.py          registration tasks in this process or in spawned worker processes, their
                    ICP iterations turned into progress fractions
   groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
@@ -51,7 +55,8 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
 
 from .groupwise import chamfer_medoid, correspond
 from .outliers import flag_outliers, leave_one_out_errors
-from .registration import Anchors, Registration, register
+from .data_terms import Anchors
+from .registration import Registration, RegistrationProblem, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
 from .refine import Refinement, refine_population
 from .settings import MATCHING_METHODS, REFINE_METHODS, CorrespondenceSettings
@@ -60,6 +65,7 @@ __all__ = [
     "CorrespondenceSettings",
     "Correspondence",
     "Registration",
+    "RegistrationProblem",
     "Anchors",
     "correspond",
     "register",

@@ -1,5 +1,5 @@
 """Feature-space matches for non-rigid ICP (**beyond** the thesis, opt-in with
-`CorrespondenceSettings(matching="features")`; issue 13).
+`matching="features"` of `CorrespondenceSettings.data_term`; issue 13).
 
 The thesis's data term (§4.2.2, 4.11) matches every template point to its closest
 (normal-compatible) target point. Along a smooth wall every nearby point is equally close,
@@ -108,7 +108,7 @@ NO_REGION = -1
 
 def uses_features(settings: CorrespondenceSettings) -> bool:
     """Whether the data term compares features (`matching="features"`)."""
-    return settings.matching == "features"
+    return settings.data_term.matching == "features"
 
 
 def point_features(normals: np.ndarray, settings: CorrespondenceSettings, between: np.ndarray | None = None) -> np.ndarray:
@@ -124,7 +124,7 @@ def point_features(normals: np.ndarray, settings: CorrespondenceSettings, betwee
     if between is not None:
         if np.shape(between) != (len(normals),):
             raise ValueError(f"between must hold one position per normal ({len(normals)}), got {np.shape(between)}")
-        columns.append(settings.feature_between * np.asarray(between, dtype=np.float64)[:, None])
+        columns.append(settings.data_term.feature_between * np.asarray(between, dtype=np.float64)[:, None])
     return np.hstack(columns)
 
 
@@ -226,7 +226,7 @@ def merged_regions(template_regions: np.ndarray, template_normals: np.ndarray,
 
 def uses_between(settings: CorrespondenceSettings) -> bool:
     """Whether feature matches compare positions between turning lines (`feature_between` > 0)."""
-    return uses_features(settings) and settings.feature_between > 0
+    return uses_features(settings) and settings.data_term.feature_between > 0
 
 
 def carry_positions(between: np.ndarray, points: np.ndarray, normals: np.ndarray, to_points: np.ndarray,

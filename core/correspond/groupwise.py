@@ -136,7 +136,7 @@ def correspond(
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
     rounds = settings.groupwise_rounds + 1
-    refining = settings.refine == "population"
+    refining = settings.refinement.method == "population"
     nicp_report = sub_range(report, 0.0, REFINE_START) if refining else report
     runner = make_runner(jobs, scheduler, should_cancel)
     dense = dense_shapes(collection.shapes, settings)
@@ -192,7 +192,7 @@ def correspond(
         outlier_reasons=outcome.reasons,
         settings=settings,
         prepare=collection.settings,
-        refinement=settings.refine if len(trace) else "none",
+        refinement=settings.refinement.method if len(trace) else "none",
         refinement_trace=trace,
         between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
         feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
@@ -235,12 +235,12 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     to_frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
     template_normals = face_normals_at(collection.shapes[start].mesh, collection.landmarks[start].face_index)
     landmark_normals = [face_normals_at(s.mesh, l.face_index) for s, l in zip(collection.shapes, collection.landmarks)]
-    edges = knn_graph(template_points, settings.k_neighbours)
+    edges = knn_graph(template_points, settings.stiffness.k_neighbours)
     template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
     ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
     rounds = settings.groupwise_rounds + 1
     starts = None
-    if settings.initialisation == "spectral":
+    if settings.data_term.initialisation == "spectral":
         starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
                                                       sub_range(report, 0.0, SPECTRAL_SHARE))
         for name, spectral in zip(names, starts):
@@ -268,8 +268,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
         shape_settings = ([round_settings] * len(names) if shares is None else
-                          [replace(round_settings, feature_between=round_settings.feature_between * share)
-                           for share in shares])
+                          [_with_between_share(round_settings, share) for share in shares])
         tasks = [
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
                              landmark_normals[i], template_in_frame, current_normals, edges, shape_settings[i], centre,
@@ -333,7 +332,7 @@ def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: Reg
     (it fits itself either way). Returns the round's registrations, the settings of the
     rounds to come and (M,) bool: the shapes feature matches fitted worse."""
     settings = tasks[0].settings
-    closest_settings = replace(settings, matching="closest")
+    closest_settings = replace(settings, data_term=replace(settings.data_term, matching="closest"))
     closest_tasks = [replace(task, index=len(tasks) + task.index, name=f"{task.name} (closest points)",
                              settings=closest_settings, template_between=None) for task in tasks]
     both = runner.run(tasks + closest_tasks, report, f"{label}, feature matches checked against closest points")
@@ -386,6 +385,13 @@ def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[n
 def _fitting(results: Sequence[Registration], keep: np.ndarray) -> list[Registration]:
     """The registrations of the shapes that fit (all, if none does)."""
     return [r for r, k in zip(results, keep) if k] or list(results)
+
+
+def _with_between_share(settings: CorrespondenceSettings, share: float) -> CorrespondenceSettings:
+    """`settings` comparing positions between turning lines with `share` of `feature_between`
+    (features.agreement_weights)."""
+    data_term = settings.data_term
+    return replace(settings, data_term=replace(data_term, feature_between=data_term.feature_between * share))
 
 
 def _template_between(outcome: _Rounds, start: int) -> np.ndarray:

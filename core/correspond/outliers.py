@@ -79,30 +79,32 @@ def flag_outliers(residuals: np.ndarray, scale_ratios: np.ndarray,
                   settings: CorrespondenceSettings = CorrespondenceSettings(),
                   points: np.ndarray | None = None) -> list[str]:
     """A reason string per shape ("" = fits). Rules (any one flags):
-    residual: residual > median + f · 1.4826 · MAD and > `outlier_min_ratio` × median
-    (needs 3+ shapes), or > `max_residual`; size: bounding-box diagonal differs from the
+    (`settings.outliers`) residual: residual > median + `residual_mad_factor` · 1.4826 · MAD
+    and > `residual_min_ratio` × median (needs 3+ shapes), or > `max_residual`; size:
+    bounding-box diagonal differs from the
     template's by more than `max_scale_ratio` (either way); leave-one-out (with the
     corresponded `points` (M, L, 3) of 5+ shapes): reconstruction error
     (`leave_one_out_errors`) > median + `loo_mad_factor` · 1.4826 · MAD and >
     `loo_min_ratio` × median."""
+    rules = settings.outliers
     residuals = np.asarray(residuals, dtype=np.float64)
     count = len(residuals)
     residual_ratios, residual_z, median = robust_scores(residuals)
     if points is not None and count >= MIN_SHAPES_LEAVE_ONE_OUT:
-        loo_ratios, loo_z, _ = robust_scores(leave_one_out_errors(points, settings.loo_variance))
+        loo_ratios, loo_z, _ = robust_scores(leave_one_out_errors(points, rules.loo_variance))
     else:
         loo_ratios = loo_z = np.zeros(count)
     reasons = []
     for i, (residual, ratio) in enumerate(zip(residuals, scale_ratios)):
         why = []
-        if count >= MIN_SHAPES_ROBUST and residual_z[i] > settings.outlier_mad_factor \
-                and residual_ratios[i] > settings.outlier_min_ratio:
+        if count >= MIN_SHAPES_ROBUST and residual_z[i] > rules.residual_mad_factor \
+                and residual_ratios[i] > rules.residual_min_ratio:
             why.append(f"residual {residual:.4f} of the diagonal is far above the collection's median {median:.4f}")
-        elif residual > settings.max_residual:
-            why.append(f"residual {residual:.4f} of the diagonal exceeds {settings.max_residual}")
-        if ratio > settings.max_scale_ratio or ratio < 1.0 / settings.max_scale_ratio:
+        elif residual > rules.max_residual:
+            why.append(f"residual {residual:.4f} of the diagonal exceeds {rules.max_residual}")
+        if ratio > rules.max_scale_ratio or ratio < 1.0 / rules.max_scale_ratio:
             why.append(f"size is {ratio:.3g}× the template's (alignment or scaling failed or is off)")
-        if loo_z[i] > settings.loo_mad_factor and loo_ratios[i] > settings.loo_min_ratio:
+        if loo_z[i] > rules.loo_mad_factor and loo_ratios[i] > rules.loo_min_ratio:
             why.append(f"landmarks {loo_ratios[i]:.1f}× farther from the other shapes' model than the median shape "
                        "(leave-one-out reconstruction; upside down, turned, mirrored or another class?)")
         reasons.append("; ".join(why))

@@ -24,7 +24,7 @@ from ..child_process import MEMORY_ADVICE, exit_with_parent, how_it_ended
 from ..errors import WorkerDied
 from ..geometry import TargetSurface
 from ..progress import CancelCheck, Progress
-from .registration import Registration, register
+from .registration import Registration, RegistrationProblem, register
 from .settings import CorrespondenceSettings
 
 __all__ = ["RegistrationRunner", "RegistrationTask"]
@@ -82,9 +82,10 @@ def _started(run: int, index: int, name: str) -> None:
 def register_task(task: RegistrationTask, on_iteration=None, should_cancel=None) -> Registration:
     """Register the template to one shape (in this process or any worker)."""
     surface = TargetSurface((task.vertices - task.centre) / task.scale, task.faces)
-    return register(task.template, task.edges, surface, (task.landmarks - task.centre) / task.scale, task.settings,
-                    task.template_normals, task.landmark_normals, on_iteration, should_cancel,
-                    template_between=task.template_between, plain_points=task.plain_points)
+    problem = RegistrationProblem(task.template, task.edges, surface, (task.landmarks - task.centre) / task.scale,
+                                  task.settings, task.template_normals, task.landmark_normals,
+                                  template_between=task.template_between, plain_points=task.plain_points)
+    return register(problem, on_iteration, should_cancel)
 
 
 def _run_in_worker(task: RegistrationTask, run: int) -> tuple[int, Registration]:
@@ -141,7 +142,7 @@ def collector(count: int, progress: Progress, message: Callable[[int], str]) -> 
 
 class _RunProgress:
     """Progress of one run of registration tasks, its own 0..1: every task has an equal
-    share, filled by its ICP iterations up to its cap (settings.max_iterations) and
+    share, filled by its ICP iterations up to its cap (settings.iterations.max_iterations) and
     completely once it has finished. Late iteration events of a finished task change
     nothing, so the fraction never decreases and is 1.0 when all tasks have finished."""
 
@@ -151,7 +152,7 @@ class _RunProgress:
 
     def iteration(self, index: int, iteration: int) -> None:
         task = self.tasks[index]
-        self.shares[index] = max(self.shares[index], min(iteration / task.settings.max_iterations, 1.0))
+        self.shares[index] = max(self.shares[index], min(iteration / task.settings.iterations.max_iterations, 1.0))
         self._report(f"registering {task.name} ({self.label}, iteration {iteration})")
 
     def finished(self, index: int, iterations: int) -> None:

@@ -92,7 +92,7 @@ def dense_limit(settings) -> int:
 def dense_shapes(shapes, settings) -> list[int]:
     """Indices of the shapes registered against a proxy: more than `dense_limit` faces
     (none when registration snaps to vertices)."""
-    if settings.snap_to_vertices:
+    if settings.data_term.snap_to_vertices:
         return []
     return [i for i, shape in enumerate(shapes) if shape.mesh.n_faces > dense_limit(settings)]
 
@@ -126,7 +126,8 @@ def place_dense(registrations: list[Registration], collection, surfaces: list[Pr
                 centre: np.ndarray, scale: float, runner, progress) -> list[Registration]:
     """The registrations with those of the `dense` shapes placed on their full surfaces
     (`place_on_full_surface`, one shape per worker call), in the registration frame."""
-    min_cos = None if settings.normal_max_angle is None else float(np.cos(np.radians(settings.normal_max_angle)))
+    angle = settings.data_term.normal_max_angle
+    min_cos = None if angle is None else float(np.cos(np.radians(angle)))
     tasks = [(collection.shapes[i].mesh, PlacementTask(None, None, surfaces[i].representatives,
                                                        collection.landmarks[i].points, registrations[i], min_cos,
                                                        centre, scale)) for i in dense]

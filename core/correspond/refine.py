@@ -7,7 +7,7 @@ One iteration (projected gradient descent with backtracking):
 
 1. E and ∂E/∂x of every landmark (objective.py; N × N dual for the compactness);
 2. the gradient projected onto the landmark's tangent plane (its face normal n:
-   g − (g · n) n), then onto the `refine_smooth_fields` smoothest fields of the landmark
+   g − (g · n) n), then onto the `refinement.smooth_fields` smoothest fields of the landmark
    graph (Laplacian eigenvectors, per coordinate; whole regions slide together rather
    than landmark by landmark) and onto the tangent plane again; a step −τ g with every
    landmark's move capped at `max_move` × the shape's landmark spacing √(area / L);
@@ -103,7 +103,7 @@ def refine_population(meshes: Sequence[Mesh], points: np.ndarray, face_index: np
                       should_cancel=None, edges: np.ndarray | None = None, jobs: int = 1,
                       compactness=None) -> Refinement:
     """Refine the landmarks (N, L, ...) of shapes `meshes` (normalised frame) by descending
-    the population objective (module docstring; settings `refine_*`). edges: the landmark
+    the population objective (module docstring; `settings.refinement`). edges: the landmark
     graph of the smooth displacement fields (None: plain gradient steps). jobs: processes
     sharing the per-shape work (shards.py). progress: fractions by accepted iterations;
     should_cancel: checked every iteration (errors.Cancelled). compactness: a callable
@@ -112,7 +112,7 @@ def refine_population(meshes: Sequence[Mesh], points: np.ndarray, face_index: np
     measures candidate objectives this way); None: `CompactnessTerm` from the settings."""
     report = progress or no_progress
     cancel = CancelCheck(should_cancel, "correspondence")
-    shards = Shards(meshes, np.asarray(points), np.asarray(face_index), np.asarray(barycentric), settings.refine_sigma,
+    shards = Shards(meshes, np.asarray(points), np.asarray(face_index), np.asarray(barycentric), settings.refinement.sigma,
                     jobs)
     try:
         return _descend(shards, settings, edges, report, cancel, compactness)
@@ -124,10 +124,10 @@ def population_objective(start: ShardAnswer, settings: CorrespondenceSettings, m
     """The compactness term anchored at the `start` landmarks (`CompactnessTerm` from the
     settings, or `make_compactness(start.state)`) and `evaluate(answer)` → (E, ∂E/∂X): E =
     w_c C + w_s S̄ of a shards' answer (objective.py)."""
-    weights = (settings.refine_compactness, settings.refine_spread)
+    weights = (settings.refinement.compactness, settings.refinement.spread)
     if make_compactness is None:
-        compactness = CompactnessTerm(start.state, settings.refine_regulariser, settings.refine_alignment,
-                                      settings.refine_normals)
+        compactness = CompactnessTerm(start.state, settings.refinement.regulariser, settings.refinement.alignment,
+                                      settings.refinement.normals)
     else:
         compactness = make_compactness(start.state)
 
@@ -141,26 +141,26 @@ def population_objective(start: ShardAnswer, settings: CorrespondenceSettings, m
 def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Progress, cancel,
              make_compactness=None) -> Refinement:
     """The iterations of `refine_population` (module docstring)."""
-    weights = (settings.refine_compactness, settings.refine_spread)
+    weights = (settings.refinement.compactness, settings.refinement.spread)
     answer = shards.propose(None)
     compactness, evaluate = population_objective(answer, settings, make_compactness)
     value, gradient = evaluate(answer)
     state = answer.state
     trace, rejected = [value.as_row()], 0
-    cap = settings.refine_max_move * shards.spacing
-    basis = None if edges is None else smooth_basis(edges, state.points.shape[1], settings.refine_smooth_fields)
+    cap = settings.refinement.max_move * shards.spacing
+    basis = None if edges is None else smooth_basis(edges, state.points.shape[1], settings.refinement.smooth_fields)
     tau = None
-    for iteration in range(settings.refine_iterations):
+    for iteration in range(settings.refinement.iterations):
         cancel()
         direction = _tangent(gradient, state.face_normals)
         if basis is not None:  # only smooth displacement fields: the whole region slides together
             direction = _tangent(np.einsum("lk,mkd->mld", basis, np.einsum("lk,mld->mkd", basis, direction)),
                                  state.face_normals)
-        if tau is None:  # first step: RMS move = refine_step × the mean spacing
+        if tau is None:  # first step: RMS move = refinement.step × the mean spacing
             rms = float(np.sqrt(np.mean(np.sum(direction**2, axis=2))))
             if rms == 0.0:
                 break
-            tau = settings.refine_step * float(shards.spacing.mean()) / rms
+            tau = settings.refinement.step * float(shards.spacing.mean()) / rms
         for _ in range(MAX_BACKTRACKS + 1):
             candidate = shards.propose(_capped(-tau * direction, cap))
             new_value, new_gradient = evaluate(candidate)
@@ -173,7 +173,7 @@ def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Pr
         shards.accept()
         decrease = value.total - new_value.total
         value, gradient, state = new_value, new_gradient, candidate.state
-        if settings.refine_alignment != "none" and weights[0] and (iteration + 1) % REALIGN_EVERY == 0:
+        if settings.refinement.alignment != "none" and weights[0] and (iteration + 1) % REALIGN_EVERY == 0:
             old = compactness.scales, compactness.rotations
             compactness.realign(state.points)  # kept only if it lowers E as well
             realigned = evaluate(candidate)
@@ -183,9 +183,9 @@ def _descend(shards: Shards, settings: CorrespondenceSettings, edges, report: Pr
                 compactness.scales, compactness.rotations = old
         trace.append(value.as_row())
         tau *= GROW
-        report((iteration + 1) / max(settings.refine_iterations, 1),
+        report((iteration + 1) / max(settings.refinement.iterations, 1),
                f"refining (iteration {iteration + 1}, objective {value.total:.4f})")
-        if decrease <= settings.refine_tolerance * max(abs(value.total), 1.0):
+        if decrease <= settings.refinement.tolerance * max(abs(value.total), 1.0):
             break
     points, face_index, barycentric = shards.current()
     return Refinement(points, face_index, barycentric, np.array(trace), rejected)

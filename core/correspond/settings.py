@@ -1,5 +1,7 @@
-"""Every tunable parameter of the correspondence engine, in one frozen settings dataclass
-(core/settings.py: checks itself, travels as one JSON string)."""
+"""Every tunable parameter of the correspondence engine: `CorrespondenceSettings`, one
+frozen settings dataclass (core/settings.py: checks itself, travels as one JSON string)
+nesting one group per subsystem — stiffness, data term, iterations, outliers, refinement.
+Files written before the grouping record the options flat; `FIELDS_MOVED` reads them."""
 
 from __future__ import annotations
 
@@ -7,178 +9,117 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..settings import Settings, SettingsError, option
+from ..settings import Settings, SettingsError, group, option
 from ..simplify import REGISTRATION_PROXY_FACES
 
-__all__ = ["CorrespondenceSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",
+__all__ = ["CorrespondenceSettings", "StiffnessSettings", "DataTermSettings", "IterationSettings", "OutlierSettings",
+           "RefinementSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",
            "INITIALISATIONS"]
 
-#: `matching`: the data term's matches (registration.py, features.py)
+#: `data_term.matching`: the data term's matches (registration.py, features.py)
 MATCHING_METHODS = ("closest", "features")
 
-#: with feature matches the stiffness schedule ends at this fraction of `alpha_end`: the
+#: with feature matches the stiffness schedule ends at this fraction of `stiffness.alpha_end`: the
 #: features pull only the points between the template's turning line and the target's, and
 #: a softer last α lets the wall around them follow (with closest points a softer end does
 #: not help, so the schedule changes only there; docs/results.md, Correspondence)
 FEATURE_STIFFNESS = 0.4
 
-#: `initialisation`: where each shape's registration starts (start.py)
+#: `data_term.initialisation`: where each shape's registration starts (start.py)
 INITIALISATIONS = ("closest", "spectral")
 
-#: `refine`: "population" slides the landmarks on their surfaces after NICP (refine.py)
+#: `refinement.method`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
-#: `refine_alignment`: what is removed from every shape before the compactness term
+#: `refinement.alignment`: what is removed from every shape before the compactness term
 REFINE_ALIGNMENTS = ("similarity", "scale", "none")
 
 
 @dataclass(frozen=True)
-class CorrespondenceSettings(Settings):
-    """Every parameter of the correspondence engine, with the thesis defaults (§4.2.8)
-    except where a measurement said otherwise. The figures behind each non-thesis value
-    are in docs/results.md ("Measurements behind the correspondence settings").
+class StiffnessSettings(Settings):
+    """The stiffness term and its schedule (§4.2.4, §4.2.6), thesis defaults (§4.2.8).
 
-    Stiffness (§4.2.4):
-      gamma: γ in G = diag(1, 1, 1, γ); weight of the translation part of neighbouring
-        affine differences against the linear part (thesis 2).
-      k_neighbours: k of the symmetrised k-NN landmark graph of the stiffness term
-        (thesis 6).
-      alpha_start, alpha_end, alpha_steps: the stiffness schedule of Alg. 3 (§4.2.6),
-        `alpha_steps` values evenly spaced from `alpha_start` down to `alpha_end` (thesis
-        100 → 5 for vases and teapots, 100 → 10 for cars). `alpha_steps = 1` uses
-        `alpha_end` only (no relaxation).
-    Data term (§4.2.2):
-      bidirectional_weight: λ, weight of target landmarks pulling their closest template
-        point (thesis 1 vases, 0.5 teapots, 0.1 cars: small when meshes have interior
-        parts). 0 switches the bidirectional term off.
-      normal_max_angle: a match only counts between points whose normals differ by at most
-        this many degrees; the closest *compatible* target point is used, and a template
-        point with none nearby gets weight 0. None: plain closest points (the thesis).
-        Why 60: on thin-walled shapes plain closest points put many outer-wall landmarks
-        on the inner wall. Needs consistently oriented meshes (intake.py ensures it).
-      distance_weights: weight matches by s = 1 / (1 + d), normalised by the largest s
-        (eqs. 4.12–4.13; d in the registration frame, unit RMS template radius).
-      snap_to_vertices: closest points and final placement on target *vertices* (the
-        thesis's choice) instead of the closest point on the surface (default: snapping
-        costs accuracy on coarse meshes).
-    Feature-space matches (**beyond** the thesis, opt-in; features.py, turning.py):
-      matching: "closest": the thesis's data term, every template point matched to the
-        closest (normal-compatible) target point. "features": to the nearest target point
-        in a joint space of position and features (ICP with invariant features, Sharp et
-        al. 2002; frame units: unit RMS template radius), so matches keep to the side of a
-        thin wall that faces their way (`normal_max_angle` is not used) and turning
-        regions — a belly, a neck, a shoulder — are pulled onto each other. Closer to the
-        true correspondence on turned shapes, but the landmark models it gives are less
-        compact on real classes, so it is not the default.
-      feature_between: w_b > 0 adds a fifth feature, w_b · g: where a point lies between
-        the turning lines of its region (turning.py: 0 on the lower line, 1 on the upper,
-        by height), so points on both sides of a line are pulled in proportion. The first
-        round compares sides only; from the groupwise round on the template keeps the g of
-        the shape it was made from, and each shape compares it with a share of w_b that
-        falls from 1 to 0 as its first-round g disagrees with the template's by 0.1 to
-        0.2 (features.agreement_weights): real classes whose turning lines differ are
-        matched without it. 0: off (files written before it record 0).
-      The other weights and rules of feature matches are constants of features.py (the
-      normal's and the up-component's weights, the up-width, trimmed matches, merged
-      regions, surface samples, the fit check against closest points and its fallback
-      share) and FEATURE_STIFFNESS here: they were research knobs, removed in issue 34
-      (`FIELDS_REMOVED`; their measurements are in docs/results.md).
-    Start (**beyond** the thesis, opt-in; issue 34, start.py, functional_map.py):
-      initialisation: "closest" (default; files written before it record it): every
-        shape's registration starts from the template as it is (the thesis). "spectral":
-        from the template's landmarks carried to the shape by an intrinsic map
-        (Laplace–Beltrami eigenfunctions, sign search, orientation, ZoomOut), which bending
-        does not change: for classes whose shapes differ in pose (an animal's limbs). Each
-        shape is also registered from the closest-point start in the first round; where
-        the spectrum is not trusted (parts, a failed solve, no orientation-preserving
-        map), the spectral fit is clearly worse or its landmarks match the template's
-        wave-kernel signatures no clearly better (start.py), the closest-point start is
-        used and the shape's message says so. Rounds after the first start every shape from its
-        previous landmarks (a mean template of shapes in different poses is no start).
-    Iteration (Alg. 3, §4.2.6):
-      update_template: True: every solve starts from the moved points, so the stiffness
-        regularises each step only (the thesis's modification of Alg. 3). False
-        (default): the affines map the original template and the stiffness regularises the
-        whole deformation (Amberg et al.): fewer iterations and less drift.
-      tolerance: ε; iterate at one α until |E_t − E_(t−1)| <= ε · E_(t−1).
-      max_iterations_per_alpha, max_iterations: caps of ICP iterations at one α and over
-        the whole schedule (thesis ~20–30 in all). Later iterations at one α barely move
-        the points, so lower caps keep the accuracy at less cost; too low and pairwise
-        registration overtakes groupwise.
-      ridge: tiny Tikhonov weight pulling each affine towards "no change" (relative to the
-        mean diagonal of the data term's blocks); keeps BᵀB invertible when weights switch
-        matches off.
-    Dense shapes:
-      proxy_faces: a shape with more than 2.5 times this many faces is registered against
-        its vertex-clustering proxy of about this many faces (core/simplify.py, built once
-        per shape) and its final landmarks are placed exactly on the full surface
-        (proxy.py), so a dense sculpt costs about what a sparse mesh does; unused with
-        snap_to_vertices.
-    Groupwise (§4.2.7):
-      groupwise_rounds: times the template is replaced by the mean landmark cloud and all
-        shapes registered again (thesis 1; 0 = pairwise registration only).
-    Outliers (outliers.py `flag_outliers`; any rule flags):
-      outlier_mad_factor: flag a residual above median + factor · 1.4826 · MAD ...
-      outlier_min_ratio: ... and above this multiple of the median (both must hold), or
-      max_residual: above this fraction of the shape's bounding-box diagonal, or
-      max_scale_ratio: when the shape's and the template's bounding-box diagonals differ by
-        more than this factor (alignment or scaling failed or was switched off), or
-      loo_mad_factor, loo_min_ratio: when the shape's leave-one-out reconstruction error
-        (its landmarks against the PPCA model, §5.3.1, of the other shapes) is above
-        median + factor · 1.4826 · MAD and above this multiple of the median (upside down,
-        turned, mirrored, another class). The ratio sits between what clean collections
-        reach and what a shape turned upside down after Prepare reaches.
-      loo_variance: the leave-one-out model keeps the fewest principal directions that
-        explain this fraction of the other shapes' variance.
-    Groupwise refinement (**beyond** the thesis, opt-in; refine.py, objective.py):
-      refine: "population": after NICP every landmark slides on its own surface to lower
-        E = w_c · compactness + w_s · spread (Cates et al. 2007; Davies et al. 2002).
-        "none" (default): NICP's landmarks as they are (the thesis). The default stays
-        "none": the refinement lowers its objective but not the true correspondence error.
-      refine_iterations: accepted descent steps at most.
-      refine_compactness: w_c, weight of ½ log det(I + K/δ) (K: the N × N dual Gram matrix
-        of the aligned, centred landmark vectors). 0: spread term only.
-      refine_spread: w_s, weight of the mean over shapes of the spread term (a Parzen
-        estimate of each shape's landmark density, lowest when they are spread out).
-        0: compactness only (landmarks may bunch up).
-      refine_regulariser: ρ / RMS landmark radius, δ = L ρ²: modes of variation that move
-        the landmarks by less than ρ count as squared size, larger ones by their log
-        (see objective.py). Small values reward few dimensions; large ones make the
-        term a plain sum of squares.
-      refine_normals: κ: the compactness term sees every landmark's smooth surface normal
-        beside its position, scaled by κ × the population's RMS landmark radius
-        (ShapeWorks' "use normals"): features where the surface turns (belly, neck, rim)
-        then cost variance when they are not lined up. 0: positions only.
-      refine_smooth_fields: K > 0: every step is a combination of the K smoothest fields
-        on the landmark graph (Laplacian eigenvectors) per coordinate, so whole regions
-        slide together instead of the gradient's noisy, landmark-by-landmark pattern;
-        0: the plain (projected) gradient.
-      refine_sigma: width of the spread kernel in landmark spacings √(area / L).
-      refine_step: the first step moves the landmarks by this many spacings (RMS); it
-        then grows by 1.5 after an accepted step and halves after a rejected one.
-      refine_max_move: no landmark moves by more than this many spacings in one step
-        (the step must stay local for the closest point to follow the surface).
-      refine_alignment: "similarity": compactness after removing every shape's scale and
-        rotation (generalised Procrustes, estimated again every 10 steps when that lowers
-        the objective) and centroid; "scale": its centroid and size only (the rotation
-        Prepare gave it stays); "none": on the prepared shapes as they are.
-      refine_tolerance: stop when an accepted step lowers E by less than this (relative).
+    gamma: γ in G = diag(1, 1, 1, γ); weight of the translation part of neighbouring affine
+      differences against the linear part (thesis 2).
+    k_neighbours: k of the symmetrised k-NN landmark graph of the stiffness term (thesis 6).
+    alpha_start, alpha_end, alpha_steps: the stiffness schedule of Alg. 3 (§4.2.6),
+      `alpha_steps` values evenly spaced from `alpha_start` down to `alpha_end` (thesis
+      100 → 5 for vases and teapots, 100 → 10 for cars). `alpha_steps = 1` uses `alpha_end`
+      only (no relaxation). With feature matches the schedule ends lower
+      (`CorrespondenceSettings.alphas`, FEATURE_STIFFNESS).
     """
-
-    #: files written before these fields existed ran with these values (settings.Settings);
-    #: not annotated: a class attribute, not a field
-    FIELDS_ADDED_LATER = {"feature_between": 0.0, "initialisation": "closest"}
-    #: fields taken out (settings.Settings): files that record them load as today's
-    #: settings; settings given now that name them are refused, saying why
-    FIELDS_REMOVED = dict.fromkeys(
-        ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
-         "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
-        "a research knob of feature matches, now a constant of core/correspond/features.py (issue 34)")
 
     gamma: float = option(2.0, "γ: weight of the translation part in the stiffness", above=0)
     k_neighbours: int = option(6, "k of the landmark graph of the stiffness term", minimum=1)
     alpha_start: float = option(100.0, "first stiffness α of the schedule (at least alpha_end)")
     alpha_end: float = option(5.0, "last stiffness α of the schedule", above=0)
     alpha_steps: int = option(5, "α values of the schedule", minimum=1)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.alpha_start < self.alpha_end:
+            raise SettingsError("alpha_start", f"must be at least alpha_end ({self.alpha_end!r}), got "
+                                f"{self.alpha_start!r}")
+
+
+@dataclass(frozen=True)
+class DataTermSettings(Settings):
+    """The data term (§4.2.2): which target point each template point is pulled to, which
+    template point each target landmark pulls, how matches are weighted, and where the
+    registration starts.
+
+    bidirectional_weight: λ, weight of target landmarks pulling their closest template
+      point (thesis 1 vases, 0.5 teapots, 0.1 cars: small when meshes have interior parts).
+      0 switches the bidirectional term off.
+    normal_max_angle: a match only counts between points whose normals differ by at most
+      this many degrees; the closest *compatible* target point is used, and a template
+      point with none nearby gets weight 0. None: plain closest points (the thesis). Why 60:
+      on thin-walled shapes plain closest points put many outer-wall landmarks on the inner
+      wall. Needs consistently oriented meshes (intake.py ensures it).
+    distance_weights: weight matches by s = 1 / (1 + d), normalised by the largest s (eqs.
+      4.12–4.13; d in the registration frame, unit RMS template radius).
+    snap_to_vertices: closest points and final placement on target *vertices* (the thesis's
+      choice) instead of the closest point on the surface (default: snapping costs accuracy
+      on coarse meshes).
+    Feature-space matches (**beyond** the thesis, opt-in; features.py, turning.py):
+    matching: "closest": the thesis's data term, every template point matched to the
+      closest (normal-compatible) target point. "features": to the nearest target point in
+      a joint space of position and features (ICP with invariant features, Sharp et al.
+      2002; frame units: unit RMS template radius), so matches keep to the side of a thin
+      wall that faces their way (`normal_max_angle` is not used) and turning regions — a
+      belly, a neck, a shoulder — are pulled onto each other. Closer to the true
+      correspondence on turned shapes, but the landmark models it gives are less compact on
+      real classes, so it is not the default.
+    feature_between: w_b > 0 adds a fifth feature, w_b · g: where a point lies between the
+      turning lines of its region (turning.py: 0 on the lower line, 1 on the upper, by
+      height), so points on both sides of a line are pulled in proportion. The first round
+      compares sides only; from the groupwise round on the template keeps the g of the
+      shape it was made from, and each shape compares it with a share of w_b that falls from
+      1 to 0 as its first-round g disagrees with the template's by 0.1 to 0.2
+      (features.agreement_weights): real classes whose turning lines differ are matched
+      without it. 0: off (files written before it record 0).
+    The other weights and rules of feature matches are constants of features.py (the
+    normal's and the up-component's weights, the up-width, trimmed matches, merged regions,
+    surface samples, the fit check against closest points and its fallback share) and
+    FEATURE_STIFFNESS: they were research knobs, removed in issue 34
+    (`CorrespondenceSettings.FIELDS_REMOVED`; their measurements are in docs/results.md).
+    Start (**beyond** the thesis, opt-in; issue 34, start.py, functional_map.py):
+    initialisation: "closest" (default; files written before it record it): every shape's
+      registration starts from the template as it is (the thesis). "spectral": from the
+      template's landmarks carried to the shape by an intrinsic map (Laplace–Beltrami
+      eigenfunctions, sign search, orientation, ZoomOut), which bending does not change: for
+      classes whose shapes differ in pose (an animal's limbs). Each shape is also registered
+      from the closest-point start in the first round; where the spectrum is not trusted
+      (parts, a failed solve, no orientation-preserving map), the spectral fit is clearly
+      worse or its landmarks match the template's wave-kernel signatures no clearly better
+      (start.py), the closest-point start is used and the shape's message says so. Rounds
+      after the first start every shape from its previous landmarks (a mean template of
+      shapes in different poses is no start).
+    """
+
+    #: files written before these fields existed ran with these values (settings.Settings);
+    #: not annotated: a class attribute, not a field
+    FIELDS_ADDED_LATER = {"feature_between": 0.0, "initialisation": "closest"}
+
     bidirectional_weight: float = option(1.0, "λ: weight of target landmarks pulling the template", minimum=0)
     normal_max_angle: float | None = option(60.0, "largest angle (degrees) between matched normals; None: off")
     matching: str = option("closest", "data term matches: closest (compatible) points, the thesis; features: "
@@ -191,54 +132,181 @@ class CorrespondenceSettings(Settings):
                                  flag="--initialisation", choices=INITIALISATIONS)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")
+
+
+@dataclass(frozen=True)
+class IterationSettings(Settings):
+    """The iterations of Alg. 3 (§4.2.6) and the solve of each.
+
+    update_template: True: every solve starts from the moved points, so the stiffness
+      regularises each step only (the thesis's modification of Alg. 3). False (default):
+      the affines map the original template and the stiffness regularises the whole
+      deformation (Amberg et al.): fewer iterations and less drift.
+    tolerance: ε; iterate at one α until |E_t − E_(t−1)| <= ε · E_(t−1).
+    max_iterations_per_alpha, max_iterations: caps of ICP iterations at one α and over the
+      whole schedule (thesis ~20–30 in all). Later iterations at one α barely move the
+      points, so lower caps keep the accuracy at less cost; too low and pairwise
+      registration overtakes groupwise.
+    ridge: tiny Tikhonov weight pulling each affine towards "no change" (relative to the
+      mean diagonal of the data term's blocks); keeps BᵀB invertible when weights switch
+      matches off.
+    """
+
     update_template: bool = option(False, "every solve starts from the moved points (the thesis's Alg. 3)")
     tolerance: float = option(1e-3, "ε: relative energy change that ends the iterations at one α", minimum=0)
     max_iterations_per_alpha: int = option(4, "ICP iterations at one α at most", minimum=1)
     max_iterations: int = option(20, "ICP iterations over the whole schedule at most", minimum=1)
     ridge: float = option(1e-9, "Tikhonov weight pulling each affine towards no change", minimum=0)
-    proxy_faces: int = option(REGISTRATION_PROXY_FACES, "faces of the proxy a shape with more than 2.5 times as many "
-                              "is registered against", minimum=100)
-    groupwise_rounds: int = option(1, "rounds with the mean landmark cloud as template", minimum=0)
-    outlier_mad_factor: float = option(3.0, "outlier: residual above median + factor · MAD ...")
-    outlier_min_ratio: float = option(1.5, "... and above this multiple of the median")
+
+
+@dataclass(frozen=True)
+class OutlierSettings(Settings):
+    """When a registered shape is flagged an outlier (outliers.py `flag_outliers`; any rule
+    flags).
+
+    residual_mad_factor: flag a residual above median + factor · 1.4826 · MAD ...
+    residual_min_ratio: ... and above this multiple of the median (both must hold), or
+    max_residual: above this fraction of the shape's bounding-box diagonal, or
+    max_scale_ratio: when the shape's and the template's bounding-box diagonals differ by
+      more than this factor (alignment or scaling failed or was switched off), or
+    loo_mad_factor, loo_min_ratio: when the shape's leave-one-out reconstruction error (its
+      landmarks against the PPCA model, §5.3.1, of the other shapes) is above median +
+      factor · 1.4826 · MAD and above this multiple of the median (upside down, turned,
+      mirrored, another class). The ratio sits between what clean collections reach and
+      what a shape turned upside down after Prepare reaches.
+    loo_variance: the leave-one-out model keeps the fewest principal directions that
+      explain this fraction of the other shapes' variance.
+    """
+
+    residual_mad_factor: float = option(3.0, "outlier: residual above median + factor · MAD ...")
+    residual_min_ratio: float = option(1.5, "... and above this multiple of the median")
     max_residual: float = option(0.05, "outlier: residual above this fraction of the diagonal")
     max_scale_ratio: float = option(3.0, "outlier: size differs from the template's by more than this factor")
     loo_mad_factor: float = option(3.0, "outlier: leave-one-out error above median + factor · MAD ...")
     loo_min_ratio: float = option(4.0, "... and above this multiple of the median", above=1)
     loo_variance: float = option(0.9, "fraction of variance the leave-one-out PPCA model keeps", above=0)
-    refine: str = option("none", "groupwise refinement after non-rigid ICP (population: landmarks slide on their "
-                         "surfaces to make the population compact; none: the thesis)", flag="--refine",
-                         choices=REFINE_METHODS)
-    refine_iterations: int = option(30, "refinement: accepted descent steps at most", minimum=0)
-    refine_compactness: float = option(1.0, "refinement: weight of the compactness term", minimum=0)
-    refine_spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
-    refine_regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to "
-                                       "the RMS landmark radius", above=0)
-    refine_normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
-                                   "compactness term (× the RMS landmark radius)", minimum=0)
-    refine_smooth_fields: int = option(30, "refinement: steps restricted to this many smoothest displacement fields "
-                                       "of the landmark graph (0: plain gradient)", minimum=0)
-    refine_sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
-    refine_step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
-    refine_max_move: float = option(0.5, "refinement: largest move of a landmark in one step, in spacings", above=0)
-    refine_alignment: str = option("similarity", "refinement: similarity removed before the compactness term",
-                                   choices=REFINE_ALIGNMENTS)
-    refine_tolerance: float = option(1e-6, "refinement: stop below this relative decrease of the objective",
-                                     minimum=0)
 
     def __post_init__(self):
         super().__post_init__()
         if self.loo_variance > 1:
             raise SettingsError("loo_variance", f"must be at most 1, got {self.loo_variance!r}")
-        if self.alpha_start < self.alpha_end:
-            raise SettingsError("alpha_start", f"must be at least alpha_end ({self.alpha_end!r}), got "
-                                f"{self.alpha_start!r}")
+
+
+@dataclass(frozen=True)
+class RefinementSettings(Settings):
+    """Groupwise refinement after NICP (**beyond** the thesis, opt-in; refine.py, objective.py).
+
+    method: "population": after NICP every landmark slides on its own surface to lower
+      E = w_c · compactness + w_s · spread (Cates et al. 2007; Davies et al. 2002). "none"
+      (default): NICP's landmarks as they are (the thesis). The default stays "none": the
+      refinement lowers its objective but not the true correspondence error.
+    iterations: accepted descent steps at most.
+    compactness: w_c, weight of ½ log det(I + K/δ) (K: the N × N dual Gram matrix of the
+      aligned, centred landmark vectors). 0: spread term only.
+    spread: w_s, weight of the mean over shapes of the spread term (a Parzen estimate of
+      each shape's landmark density, lowest when they are spread out). 0: compactness only
+      (landmarks may bunch up).
+    regulariser: ρ / RMS landmark radius, δ = L ρ²: modes of variation that move the
+      landmarks by less than ρ count as squared size, larger ones by their log (see
+      objective.py). Small values reward few dimensions; large ones make the term a plain
+      sum of squares.
+    normals: κ: the compactness term sees every landmark's smooth surface normal beside its
+      position, scaled by κ × the population's RMS landmark radius (ShapeWorks' "use
+      normals"): features where the surface turns (belly, neck, rim) then cost variance
+      when they are not lined up. 0: positions only.
+    smooth_fields: K > 0: every step is a combination of the K smoothest fields on the
+      landmark graph (Laplacian eigenvectors) per coordinate, so whole regions slide
+      together instead of the gradient's noisy, landmark-by-landmark pattern; 0: the plain
+      (projected) gradient.
+    sigma: width of the spread kernel in landmark spacings √(area / L).
+    step: the first step moves the landmarks by this many spacings (RMS); it then grows by
+      1.5 after an accepted step and halves after a rejected one.
+    max_move: no landmark moves by more than this many spacings in one step (the step must
+      stay local for the closest point to follow the surface).
+    alignment: "similarity": compactness after removing every shape's scale and rotation
+      (generalised Procrustes, estimated again every 10 steps when that lowers the
+      objective) and centroid; "scale": its centroid and size only (the rotation Prepare
+      gave it stays); "none": on the prepared shapes as they are.
+    tolerance: stop when an accepted step lowers E by less than this (relative).
+    """
+
+    method: str = option("none", "groupwise refinement after non-rigid ICP (population: landmarks slide on their "
+                         "surfaces to make the population compact; none: the thesis)", flag="--refine",
+                         choices=REFINE_METHODS)
+    iterations: int = option(30, "refinement: accepted descent steps at most", minimum=0)
+    compactness: float = option(1.0, "refinement: weight of the compactness term", minimum=0)
+    spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
+    regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to the RMS "
+                                "landmark radius", above=0)
+    normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
+                            "compactness term (× the RMS landmark radius)", minimum=0)
+    smooth_fields: int = option(30, "refinement: steps restricted to this many smoothest displacement fields of the "
+                                "landmark graph (0: plain gradient)", minimum=0)
+    sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
+    step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
+    max_move: float = option(0.5, "refinement: largest move of a landmark in one step, in spacings", above=0)
+    alignment: str = option("similarity", "refinement: similarity removed before the compactness term",
+                            choices=REFINE_ALIGNMENTS)
+    tolerance: float = option(1e-6, "refinement: stop below this relative decrease of the objective", minimum=0)
+
+
+def _moved(group_name: str, names: tuple[str, ...], prefix: str = "") -> dict[str, str]:
+    """{flat name of before: its dotted place} of the options now in one group: `prefix` +
+    name before, group.name now."""
+    return {f"{prefix}{name}": f"{group_name}.{name}" for name in names}
+
+
+@dataclass(frozen=True)
+class CorrespondenceSettings(Settings):
+    """Every parameter of the correspondence engine, with the thesis defaults (§4.2.8)
+    except where a measurement said otherwise, one group per subsystem (each group's
+    docstring says what its options do). The figures behind each non-thesis value are in
+    docs/results.md ("Measurements behind the correspondence settings").
+
+    proxy_faces (dense shapes): a shape with more than 2.5 times this many faces is
+      registered against its vertex-clustering proxy of about this many faces
+      (core/simplify.py, built once per shape) and its final landmarks are placed exactly
+      on the full surface (proxy.py), so a dense sculpt costs about what a sparse mesh
+      does; unused with snap_to_vertices.
+    groupwise_rounds (§4.2.7): times the template is replaced by the mean landmark cloud and
+      all shapes registered again (thesis 1; 0 = pairwise registration only).
+    """
+
+    #: where each option of the flat settings of before (files written before issue 35, the
+    #: add-on's option dicts) now lives (settings.Settings); not annotated: a class attribute
+    FIELDS_MOVED = {
+        **_moved("stiffness", ("gamma", "k_neighbours", "alpha_start", "alpha_end", "alpha_steps")),
+        **_moved("data_term", ("bidirectional_weight", "normal_max_angle", "matching", "feature_between",
+                               "initialisation", "distance_weights", "snap_to_vertices")),
+        **_moved("iterations", ("update_template", "tolerance", "max_iterations_per_alpha", "max_iterations", "ridge")),
+        "outlier_mad_factor": "outliers.residual_mad_factor", "outlier_min_ratio": "outliers.residual_min_ratio",
+        **_moved("outliers", ("max_residual", "max_scale_ratio", "loo_mad_factor", "loo_min_ratio", "loo_variance")),
+        "refine": "refinement.method",
+        **_moved("refinement", ("iterations", "compactness", "spread", "regulariser", "normals", "smooth_fields",
+                                "sigma", "step", "max_move", "alignment", "tolerance"), prefix="refine_"),
+    }
+    #: fields taken out (settings.Settings), by their flat names of before: files that record
+    #: them load as today's settings; settings given now that name them are refused, saying why
+    FIELDS_REMOVED = dict.fromkeys(
+        ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
+         "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
+        "a research knob of feature matches, now a constant of core/correspond/features.py (issue 34)")
+
+    stiffness: StiffnessSettings = group(StiffnessSettings, "the stiffness term and its schedule (§4.2.4, §4.2.6)")
+    data_term: DataTermSettings = group(DataTermSettings, "matches, their weights and the start (§4.2.2)")
+    iterations: IterationSettings = group(IterationSettings, "iterations of Alg. 3 and the solve (§4.2.6)")
+    proxy_faces: int = option(REGISTRATION_PROXY_FACES, "faces of the proxy a shape with more than 2.5 times as many "
+                              "is registered against", minimum=100)
+    groupwise_rounds: int = option(1, "rounds with the mean landmark cloud as template", minimum=0)
+    outliers: OutlierSettings = group(OutlierSettings, "when a shape is flagged an outlier (outliers.py)")
+    refinement: RefinementSettings = group(RefinementSettings, "groupwise refinement after NICP (refine.py)")
 
     @property
     def alphas(self) -> np.ndarray:
         """The stiffness schedule α_1 > α_2 > ... of Alg. 3: `alpha_steps` values from
         `alpha_start` down to `alpha_end` (× FEATURE_STIFFNESS with feature matches)."""
-        end = self.alpha_end * (FEATURE_STIFFNESS if self.matching == "features" else 1.0)
-        if self.alpha_steps == 1:
+        stiffness = self.stiffness
+        end = stiffness.alpha_end * (FEATURE_STIFFNESS if self.data_term.matching == "features" else 1.0)
+        if stiffness.alpha_steps == 1:
             return np.array([end], dtype=float)
-        return np.linspace(self.alpha_start, end, self.alpha_steps)
+        return np.linspace(stiffness.alpha_start, end, stiffness.alpha_steps)

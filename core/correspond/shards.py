@@ -70,7 +70,7 @@ class ShapeShard:
         n_landmarks = np.shape(points)[1]
         self.spacing = np.array([np.sqrt(mesh.area() / n_landmarks) for mesh in meshes])
         # candidate faces kept with a slack of one landmark spacing: a step moves a landmark by
-        # at most `refine_max_move` spacings, so most queries reuse them
+        # at most `refinement.max_move` spacings, so most queries reuse them
         self.trackers = [surface.tracker(margin) for surface, margin in zip(self.surfaces, self.spacing)]
         self.vertex_normals = [mesh.vertex_normals() for mesh in meshes]
         self.current = (np.array(points, dtype=np.float64), np.array(face_index, dtype=np.int64),

@@ -1,5 +1,5 @@
 """Where each shape's registration starts (**beyond** the thesis: issue 34,
-`CorrespondenceSettings.initialisation`).
+`CorrespondenceSettings.data_term.initialisation`).
 
 "closest" (the thesis): the template as it is; non-rigid ICP finds closest points from
 there. "spectral": the template's landmarks carried to every shape by an intrinsic map

@@ -134,24 +134,25 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
     """The Correspondence panel's settings (`scene.shapegen.correspondence`)."""
 
     stiffness: FloatProperty(
-        name="Stiffness", default=CORE_DEFAULTS.correspondence.alpha_end, min=0.01, soft_max=100.0,
+        name="Stiffness", default=CORE_DEFAULTS.correspondence.stiffness.alpha_end, min=0.01, soft_max=100.0,
         description="How stiffly the landmarks move when matched to each shape: higher keeps them evenly "
                     "spread, lower follows each shape's details closely (5 suits vases and mugs, 10 cars)",
     )
-    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default=CORE_DEFAULTS.correspondence.matching,
+    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default=CORE_DEFAULTS.correspondence.data_term.matching,
                            description="What each landmark is matched to on every shape")
-    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refine,
+    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refinement.method,
                          description="An extra pass after matching")
     differ_in_pose: BoolProperty(
-        name="Shapes Differ in Pose", default=CORE_DEFAULTS.correspondence.initialisation == "spectral",
+        name="Shapes Differ in Pose", default=CORE_DEFAULTS.correspondence.data_term.initialisation == "spectral",
         description="Animals, people, hands: shapes that bend at joints. Each shape's landmarks then start where "
                     "a map along its surface puts them, which a moved limb does not change (slower; where that map "
                     "cannot be trusted the shape starts as usual and its message says so)",
     )
 
     def options(self) -> dict:
-        """CorrespondenceSettings fields: the stiffness schedule ends at `stiffness`; `matching`, `refine`;
-        `initialisation` spectral where the shapes differ in pose."""
+        """CorrespondenceSettings options by their flat names (`CorrespondenceSettings.FIELDS_MOVED`
+        reads them into its groups): the stiffness schedule ends at `stiffness`; `matching`,
+        `refine`; `initialisation` spectral where the shapes differ in pose."""
         return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
                 "refine": self.refine, "initialisation": "spectral" if self.differ_in_pose else "closest"}
 

@@ -132,7 +132,7 @@ def model_files(extension, tmp_path_factory):
     for kind in ("ppca", "gplvm", "bgplvm"):
         settings = pipeline.FitSettings(
             prepare=collection.PrepareSettings(n_landmarks=100), model=kind, latent_dim=2, jobs=1,
-            correspondence=correspond.CorrespondenceSettings(**FAST_FIT["correspondence"]))
+            correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
         files[kind] = pipeline.fit_meshes(meshes, settings).save(folder / f"vases_{kind}.npz")
     return files
 

@@ -179,7 +179,7 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         assert received == pipeline.FitSettings()
         panel.correspondence.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
-        assert received.correspondence.initialisation == "spectral"
+        assert received.correspondence.data_term.initialisation == "spectral"
         panel.correspondence.differ_in_pose = False
         assert panel.generate.sample_template == pipeline.FitSettings().mesh_template
         assert panel.fit.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
@@ -189,8 +189,8 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
     defaults = pipeline.FitSettings()
     choices = {"prepare.up_axis": (defaults.prepare, "up_axis"), "prepare.align": (defaults.prepare, "align"),
                "prepare.scale": (defaults.prepare, "scale"), "prepare.centre": (defaults.prepare, "centre"),
-               "correspondence.matching": (defaults.correspondence, "matching"),
-               "correspondence.refine": (defaults.correspondence, "refine"), "fit.model": (defaults, "model")}
+               "correspondence.matching": (defaults.correspondence.data_term, "matching"),
+               "correspondence.refine": (defaults.correspondence.refinement, "method"), "fit.model": (defaults, "model")}
     rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
     for path, (owner, field_name) in choices.items():
         group, name = path.split(".")

@@ -41,7 +41,7 @@ def test_the_automatic_latent_dimension_of_twenty_shapes_gives_few_sliders(exten
     collection = addon_module(extension, "core.collection")
     meshes = [s.mesh for s in datasets.make_vases(20, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
     settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), model=kind, latent_dim=None, jobs=1,
-                                    correspondence=correspond.CorrespondenceSettings(**FAST_FIT["correspondence"]))
+                                    correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
     path = pipeline.fit_meshes(meshes, settings).save(tmp_path / f"vases20_{kind}.npz")
     assert bpy.ops.shapegen.load_model(filepath=str(path)) == {"FINISHED"}
     model = addon_module(extension, "shapegen_addon.store").get_model(bpy.context.scene)

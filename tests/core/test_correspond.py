@@ -23,10 +23,12 @@ from shapegen_core.correspond import (
     Anchors,
     Correspondence,
     CorrespondenceSettings,
+    RegistrationProblem,
     correspond,
     register,
 )
 from shapegen_core.correspond.pool import RegistrationRunner
+from shapegen_core.correspond.settings import StiffnessSettings
 from shapegen_core.geometry import (
     AffineSolver,
     TargetSurface,
@@ -51,11 +53,11 @@ def _register_landmarks(template_mesh: Mesh, template_lm: Landmarks, target_mesh
     return the placed points in the caller's coordinates plus the raw Registration."""
     centre, scale = registration_frame(template_lm.points)
     frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    result = register(
-        frame(template_lm.points), knn_graph(template_lm.points, settings.k_neighbours),
+    result = register(RegistrationProblem(
+        frame(template_lm.points), knn_graph(template_lm.points, settings.stiffness.k_neighbours),
         TargetSurface(frame(target_mesh.vertices), target_mesh.faces), frame(target_lm.points), settings,
         template_mesh.face_normals()[template_lm.face_index], target_mesh.face_normals()[target_lm.face_index],
-    )
+    ))
     return result.placed.points * scale + centre, result
 
 
@@ -145,9 +147,10 @@ def test_anchors_pull_their_points_to_the_given_positions_and_help_the_rest():
     rest = np.setdiff1d(np.arange(len(truth)), chosen)
 
     def run(anchors):
-        result = register(frame(lm_a.points), knn_graph(lm_a.points, 6), TargetSurface(frame(b.mesh.vertices), b.mesh.faces),
-                          frame(lm_b.points), CorrespondenceSettings(), a.mesh.face_normals()[lm_a.face_index],
-                          b.mesh.face_normals()[lm_b.face_index], anchors=anchors)
+        result = register(RegistrationProblem(
+            frame(lm_a.points), knn_graph(lm_a.points, 6), TargetSurface(frame(b.mesh.vertices), b.mesh.faces),
+            frame(lm_b.points), CorrespondenceSettings(), a.mesh.face_normals()[lm_a.face_index],
+            b.mesh.face_normals()[lm_b.face_index], anchors=anchors))
         return np.linalg.norm(result.deformed * scale + centre - truth, axis=1)
 
     free = run(None)
@@ -171,13 +174,14 @@ def test_a_warm_start_is_where_the_points_begin():
     args = (frame(lm_a.points), knn_graph(lm_a.points, 6), TargetSurface(frame(b.mesh.vertices), b.mesh.faces),
             frame(lm_b.points), CorrespondenceSettings(), a.mesh.face_normals()[lm_a.face_index],
             b.mesh.face_normals()[lm_b.face_index])
-    cold = register(*args)
-    np.testing.assert_array_equal(register(*args, initial_points=args[0]).placed.points, cold.placed.points)
-    last_alpha = CorrespondenceSettings(alpha_steps=1)
-    warm = register(*args[:4], last_alpha, *args[5:], initial_points=cold.deformed)
+    cold = register(RegistrationProblem(*args))
+    np.testing.assert_array_equal(register(RegistrationProblem(*args, initial_points=args[0])).placed.points,
+                                  cold.placed.points)
+    last_alpha = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=1))
+    warm = register(RegistrationProblem(*args[:4], last_alpha, *args[5:], initial_points=cold.deformed))
     assert np.linalg.norm(warm.placed.points - cold.placed.points, axis=1).mean() < 0.1 * lm_a.radius / scale
     with pytest.raises(ValueError, match="initial_points"):
-        register(*args, initial_points=args[0][:-1])
+        RegistrationProblem(*args, initial_points=args[0][:-1])
 
 
 def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():

@@ -12,6 +12,7 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond, flag_outliers, leave_one_out_errors
+from shapegen_core.correspond.settings import OutlierSettings
 from shapegen_core.correspond import groupwise
 from shapegen_core.datasets import make_vases
 from shapegen_core.landmarks import Landmarks
@@ -57,7 +58,8 @@ def test_a_shape_turned_upside_down_after_prepare_is_flagged_with_its_reason(ups
 def test_the_leave_one_out_rule_flags_on_its_own(upside_down):
     """With the residual and size rules switched off, the leave-one-out rule alone
     catches the upside-down shape (the residual rule missed such shapes on jugs)."""
-    settings = CorrespondenceSettings(outlier_min_ratio=1e6, max_residual=1e6, max_scale_ratio=1e6)
+    rules = OutlierSettings(residual_min_ratio=1e6, max_residual=1e6, max_scale_ratio=1e6)
+    settings = CorrespondenceSettings(outliers=rules)
     result = correspond(upside_down, settings, jobs=1)
     assert result.outliers.tolist() == [i == FLIPPED for i in range(len(result))]
     assert result.outlier_reasons[FLIPPED].startswith("landmarks ")

@@ -12,6 +12,7 @@ import pytest
 from shapegen_core.cluster import ClusterError, parse_scheduler
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
+from shapegen_core.correspond.settings import IterationSettings
 from shapegen_core.datasets import make_vases
 
 distributed = pytest.importorskip("distributed")
@@ -29,7 +30,7 @@ def cluster():
 def test_dask_registrations_equal_the_process_pool(cluster):
     prepared = prepare_meshes([s.mesh for s in make_vases(5, seed=4, resolution=(14, 20))],
                               PrepareSettings(n_landmarks=120))
-    settings = CorrespondenceSettings(max_iterations=8)
+    settings = CorrespondenceSettings(iterations=IterationSettings(max_iterations=8))
     pool = correspond(prepared, settings, jobs=2)
     messages = []
     on_dask = correspond(prepared, settings, scheduler=cluster.scheduler_address,
@@ -53,15 +54,15 @@ def test_cancel_on_dask_stops_the_registrations(cluster):
                               PrepareSettings(n_landmarks=120))
     stop = threading.Event()
     with pytest.raises(Cancelled):
-        correspond(prepared, CorrespondenceSettings(max_iterations=8), scheduler=cluster.scheduler_address,
-                   should_cancel=stop, progress=lambda fraction, message: "registered" in message and stop.set())
+        correspond(prepared, CorrespondenceSettings(iterations=IterationSettings(max_iterations=8)),
+                   scheduler=cluster.scheduler_address, should_cancel=stop, progress=lambda fraction, message: "registered" in message and stop.set())
 
 
 def test_dense_shapes_on_dask_equal_the_pool(cluster):
     """The proxy and placement steps (one dense mesh per task) run on Dask alike."""
     meshes = [s.mesh for s in make_vases(3, seed=5, resolution=(30, 34))]
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=100, align="none"))
-    settings = CorrespondenceSettings(max_iterations=6, proxy_faces=500)
+    settings = CorrespondenceSettings(iterations=IterationSettings(max_iterations=6), proxy_faces=500)
     assert all(s.mesh.n_faces > 2.5 * settings.proxy_faces for s in prepared.shapes)
     pool = correspond(prepared, settings, jobs=2)
     on_dask = correspond(prepared, settings, scheduler=cluster.scheduler_address)
@@ -103,7 +104,7 @@ def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
 
     meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca", jobs=1,
-                           correspondence=CorrespondenceSettings(max_iterations=6))
+                           correspondence=CorrespondenceSettings(iterations=IterationSettings(max_iterations=6)))
     model_path = fit_meshes(meshes, settings).save(tmp_path / "model.npz")
     common = ["sample", str(model_path), "-n", "64", "--seed", "3"]
     assert main(common + ["-o", str(tmp_path / "pool"), "--jobs", "2"]) == 0

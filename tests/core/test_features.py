@@ -13,12 +13,13 @@ from scipy.spatial import cKDTree
 from shapegen_core.cli import build_parser
 from shapegen_core.cli_common import settings_from_args
 from shapegen_core.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond, groupwise, pool, register
-from shapegen_core.correspond import registration
+from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond, groupwise,
+                                      pool, register)
+from shapegen_core.correspond import data_terms
 from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO_REGION, TRIM, FeatureMatcher,
                                                agreement_weights, keeps_features, kept_matches, merged_regions,
                                                point_features, worse_fits)
-from shapegen_core.correspond.settings import FEATURE_STIFFNESS
+from shapegen_core.correspond.settings import FEATURE_STIFFNESS, DataTermSettings, StiffnessSettings
 from shapegen_core.datasets import make_cups, make_vases
 from shapegen_core.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, closest_points_on_triangles, knn_graph, registration_frame
@@ -26,8 +27,8 @@ from shapegen_core.landmarks import select_landmarks
 from shapegen_core.pipeline import FitSettings
 from shapegen_core.settings import SettingsError, recorded_settings
 
-FEATURES = CorrespondenceSettings(matching="features", feature_between=0.0)  # sides only
-BETWEEN = CorrespondenceSettings(matching="features")  # positions between turning lines too (the default)
+FEATURES = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=0.0))  # sides only
+BETWEEN = CorrespondenceSettings(data_term=DataTermSettings(matching="features"))  # positions between turning lines too
 
 
 def _register(template, template_lm, target, target_lm, settings=FEATURES, **options):
@@ -35,25 +36,26 @@ def _register(template, template_lm, target, target_lm, settings=FEATURES, **opt
     points back in the caller's coordinates, and the raw Registration."""
     centre, scale = registration_frame(template_lm.points)
     frame = lambda p: (np.asarray(p) - centre) / scale  # noqa: E731
-    args = (frame(template_lm.points), knn_graph(template_lm.points, settings.k_neighbours),
+    args = (frame(template_lm.points), knn_graph(template_lm.points, settings.stiffness.k_neighbours),
             TargetSurface(frame(target.vertices), target.faces), frame(target_lm.points), settings,
             template.face_normals()[template_lm.face_index], target.face_normals()[target_lm.face_index])
-    result = register(*args, **options)
+    result = register(RegistrationProblem(*args, **options))
     return result.placed.points * scale + centre, result, args
 
 
 def test_point_features_closed_form():
     # w_n 0.5, w_u 1, h 0.01 (features.py); the normal compared by its horizontal direction
-    settings = CorrespondenceSettings(matching="features", feature_between=0.0)
+    settings = FEATURES
     normals = np.array([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6, -0.8]])
     features = point_features(normals, settings)
     expected = np.array([[0, 0, 0, np.tanh(100.0)], [0.5, 0, 0, 0.0], [0, 0, 0, 0], [0, 0.3, 0, np.tanh(-80.0)]])
     np.testing.assert_allclose(features, expected, atol=1e-15)
     between = np.array([0.0, 0.25, 0.5, 1.0])
-    with_between = point_features(normals, replace(settings, feature_between=2.0), between)
+    doubled = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=2.0))
+    with_between = point_features(normals, doubled, between)
     np.testing.assert_allclose(with_between, np.c_[expected, 2.0 * between], atol=1e-15)
     with pytest.raises(ValueError, match="between must hold one position per normal"):
-        point_features(normals, replace(settings, feature_between=2.0), between[:3])
+        point_features(normals, doubled, between[:3])
 
 
 def test_a_shape_matches_itself_exactly():
@@ -93,12 +95,13 @@ def test_a_warm_start_with_its_normals_converges_to_the_same_placement():
     a, b = make_vases(2, seed=6, resolution=(20, 28), pose=False)
     lm_a, lm_b = select_landmarks(a.mesh, 200, seed=0), select_landmarks(b.mesh, 200, seed=1)
     _, cold, args = _register(a.mesh, lm_a, b.mesh, lm_b)
-    one_alpha = CorrespondenceSettings(matching="features", alpha_steps=1)
-    warm = register(*args[:4], one_alpha, *args[5:], initial_points=cold.deformed, initial_normals=cold.normals)
+    one_alpha = replace(BETWEEN, stiffness=StiffnessSettings(alpha_steps=1))
+    warm = register(RegistrationProblem(*args[:4], one_alpha, *args[5:], initial_points=cold.deformed,
+                                        initial_normals=cold.normals))
     scale = registration_frame(lm_a.points)[1]
     assert np.linalg.norm(warm.placed.points - cold.placed.points, axis=1).mean() < 0.1 * lm_a.radius / scale
     with pytest.raises(ValueError, match="initial_normals"):
-        register(*args, initial_points=cold.deformed, initial_normals=cold.normals[:-1])
+        RegistrationProblem(*args, initial_points=cold.deformed, initial_normals=cold.normals[:-1])
 
 
 def _true_error(shapes, prepared, result) -> float:
@@ -148,7 +151,7 @@ def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours(mo
 
     monkeypatch.setattr(groupwise, "checks_regions", lambda settings: False)  # as measured: without merged regions
     trimmed = errors(FEATURES)
-    monkeypatch.setattr(registration, "kept_matches", lambda distance: kept_matches(distance, 0.0))
+    monkeypatch.setattr(data_terms, "kept_matches", lambda distance: kept_matches(distance, 0.0))
     kept_all = errors(FEATURES)
     assert TRIM == 10.0
     assert trimmed[1] < 0.85 * kept_all[1], (trimmed[1], kept_all[1])
@@ -172,14 +175,14 @@ def test_the_first_registration_reports_positions_between_turning_lines():
     _, first, args = _register(vase.mesh, landmarks, vase.mesh, landmarks, settings=BETWEEN)
     assert first.between is not None and first.between.shape == (len(landmarks.points),)  # about 300
     assert ((first.between >= 0) & (first.between <= 1)).all() and np.ptp(first.between) > 0.9
-    again = register(*args, template_between=first.between)
+    again = register(RegistrationProblem(*args, template_between=first.between))
     np.testing.assert_allclose(again.between, first.between, atol=1e-12)
     assert np.abs(again.placed.points - first.placed.points).max() <= 1e-9
     with pytest.raises(ValueError, match="template_between"):
-        register(*args, template_between=first.between[:-1])
-    off = register(*args[:4], FEATURES, *args[5:], template_between=first.between)
+        RegistrationProblem(*args, template_between=first.between[:-1])
+    off = register(RegistrationProblem(*args[:4], FEATURES, *args[5:], template_between=first.between))
     assert off.between is None  # not compared, not reported
-    closest = register(*args[:4], CorrespondenceSettings(), *args[5:])
+    closest = register(RegistrationProblem(*args[:4], CorrespondenceSettings(), *args[5:]))
     assert closest.between is None
 
 
@@ -198,7 +201,7 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
     result = correspond(prepared, BETWEEN, jobs=1)
     # the first round by feature matches, then by closest points for the fit check
     first_round, checked, second_round = seen[:4], seen[4:8], seen[8:]
-    assert [task.settings.matching for task, _ in checked] == ["closest"] * 4 and not result.feature_fit_worse.any()
+    assert [task.settings.data_term.matching for task, _ in checked] == ["closest"] * 4 and not result.feature_fit_worse.any()
     assert all(task.template_between is None for task, _ in first_round) and len(second_round) == 4
     # the template's positions are the template shape's own, at its landmarks, for every shape
     template = result.names.index(result.template_name)
@@ -210,7 +213,7 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
     shares = agreement_weights(own, [r.between for _, r in first_round])
     assert shares[template] == 1.0
     for (task, _), share in zip(second_round, shares):
-        assert task.settings.feature_between == BETWEEN.feature_between * share
+        assert task.settings.data_term.feature_between == BETWEEN.data_term.feature_between * share
     np.testing.assert_array_equal(result.between_shares, shares)  # recorded with the correspondence
 
 
@@ -240,31 +243,36 @@ def test_feature_matches_end_the_stiffness_schedule_softer():
     assert CorrespondenceSettings().alphas.tolist() == [100.0, 76.25, 52.5, 28.75, 5.0]  # the thesis's schedule
     assert FEATURE_STIFFNESS == 0.4
     np.testing.assert_allclose(FEATURES.alphas, np.linspace(100.0, 2.0, 5))
-    one = CorrespondenceSettings(matching="features", alpha_end=10.0, alpha_steps=1)
+    one = replace(BETWEEN, stiffness=StiffnessSettings(alpha_end=10.0, alpha_steps=1))
     assert one.alphas.tolist() == [4.0]
 
 
 def test_matching_setting_and_flag():
-    assert CorrespondenceSettings().matching == "closest"  # the thesis stays the default
-    assert CorrespondenceSettings(matching="features").feature_between == 1.0  # with its positions between lines
+    assert CorrespondenceSettings().data_term.matching == "closest"  # the thesis stays the default
+    assert BETWEEN.data_term.feature_between == 1.0  # with its positions between lines
     with pytest.raises(SettingsError, match="matching"):
-        CorrespondenceSettings(matching="nearest")
+        DataTermSettings(matching="nearest")
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--matching", "features"])
-        assert settings_from_args(CorrespondenceSettings, args).matching == "features"
+        assert settings_from_args(CorrespondenceSettings, args).data_term.matching == "features"
         args = build_parser().parse_args(command + ["--matching", "features", "--feature-between", "0"])
-        assert settings_from_args(CorrespondenceSettings, args).feature_between == 0.0
+        assert settings_from_args(CorrespondenceSettings, args).data_term.feature_between == 0.0
+        args = build_parser().parse_args(command + ["--feature-between", "-1"])  # an error names the flag
+        with pytest.raises(SettingsError, match=r"^--feature-between must be at least 0, got -1\.0$"):
+            settings_from_args(CorrespondenceSettings, args)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["correspond", "x", "-o", "y", "--matching", "nearest"])
 
 
 def test_files_written_before_feature_between_compared_sides_only():
-    old = CorrespondenceSettings(matching="features").as_dict()
-    del old["feature_between"]
+    old = BETWEEN.as_dict()
+    del old["data_term"]["feature_between"]
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
-                             "old.npz").feature_between == 0
+                             "old.npz").data_term.feature_between == 0
+    flat = {"gamma": 2.0, "bidirectional_weight": 1.0, "matching": "features"}  # as files before issue 35 record it
+    assert CorrespondenceSettings.from_dict(flat, recorded=True).data_term.feature_between == 0
     # options given today (the panel's, the command line's) take today's default
-    assert CorrespondenceSettings.from_dict({"matching": "features"}).feature_between == 1.0
+    assert CorrespondenceSettings.from_dict({"matching": "features"}).data_term.feature_between == 1.0
 
 
 REMOVED_KNOBS = {"feature_normals": 1.0, "feature_tilt": 1.0, "feature_up": 1.0, "feature_up_width": 0.1,
@@ -276,7 +284,7 @@ def test_files_that_record_removed_feature_knobs_load_as_today_and_new_settings_
     """Issue 34 took the research knobs of feature matches out of the settings: a file that
     records them (as every file written before did) loads with today's constants; settings
     given now that name one are refused, naming it and why."""
-    today = CorrespondenceSettings(matching="features")
+    today = BETWEEN
     recorded = {**today.as_dict(), **REMOVED_KNOBS}
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(recorded))}, "old.npz") == today
     legacy = {"settings_keys": np.asarray(list(recorded)), "settings_values": np.asarray([repr(v) for v in recorded.values()])}

@@ -8,6 +8,7 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings
 from shapegen_core.correspond import CorrespondenceSettings
+from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.models import MODEL_TYPES
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
@@ -17,7 +18,9 @@ from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 def fitted():
     shapes = make_vases(6, seed=1, resolution=(12, 16))
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", latent_dim=2, jobs=1,
-                           correspondence=CorrespondenceSettings(alpha_steps=2, max_iterations=6, groupwise_rounds=0))
+                           correspondence=CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
+                                                                 iterations=IterationSettings(max_iterations=6),
+                                                                 groupwise_rounds=0))
     return fit_meshes([s.mesh for s in shapes], settings)
 
 

@@ -514,12 +514,14 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     optimiser reached ℓ = 0.03 with latents spread 1–4: every new latent decoded to the mean)."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
+    from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
     from shapegen_core.datasets import make_vases
     from shapegen_core.models.gplvm import MIN_LENGTHSCALE
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=1, resolution=(14, 20))], PrepareSettings(n_landmarks=100))
-    Y = correspond(prepared, CorrespondenceSettings(alpha_steps=2, max_iterations=6, groupwise_rounds=0),
-                   jobs=1).landmark_matrix()
+    settings = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
+                                      iterations=IterationSettings(max_iterations=6), groupwise_rounds=0)
+    Y = correspond(prepared, settings, jobs=1).landmark_matrix()
     model = GPLVM(n_components=2).fit(Y)
     assert model.lengthscale_ >= MIN_LENGTHSCALE * (1 - 1e-9)
     between = 0.5 * (model.latents_[0] + model.latents_[1])

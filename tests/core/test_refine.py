@@ -7,13 +7,14 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
+from shapegen_core.correspond.settings import RefinementSettings
 from shapegen_core.correspond.objective import (CompactnessTerm, LandmarkState, PopulationObjective, compactness,
                                                 density, spread)
 from shapegen_core.correspond.refine import interpolated_normals, landmark_state, refine_population
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface
 
-SMALL = dict(refine_iterations=15)
+SMALL = dict(iterations=15)
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +142,8 @@ def test_population_gradient_matches_finite_differences():
 
 def test_refinement_stays_on_surfaces_and_descends(vases):
     shapes, prepared, nicp = vases
-    refined = correspond(prepared, CorrespondenceSettings(refine="population", **SMALL), jobs=1)
+    refined = correspond(prepared, CorrespondenceSettings(refinement=RefinementSettings(method="population", **SMALL)),
+                         jobs=1)
     assert refined.refinement == "population"
     trace = refined.refinement_trace
     assert len(trace) >= 3 and np.all(np.diff(trace[:, 0]) < 0)  # every accepted step lowers E
@@ -162,10 +164,10 @@ def test_refinement_stays_on_surfaces_and_descends(vases):
 
 def test_refine_none_is_nicp_exactly(vases):
     shapes, prepared, nicp = vases
-    assert CorrespondenceSettings().refine == "none"
+    assert CorrespondenceSettings().refinement.method == "none"
     assert nicp.refinement == "none" and nicp.refinement_trace.shape == (0, 3)
     # no refinement step at all: the population run hands NICP's landmarks through untouched
-    still = correspond(prepared, CorrespondenceSettings(refine="population", refine_iterations=0), jobs=1)
+    still = correspond(prepared, CorrespondenceSettings(refinement=RefinementSettings(method="population", iterations=0)), jobs=1)
     for name in ("points", "points_input", "face_index", "barycentric", "template_points", "residuals"):
         assert np.array_equal(getattr(still, name), getattr(nicp, name)), name
     assert still.refinement == "population" and len(still.refinement_trace) == 1
@@ -176,12 +178,12 @@ def test_a_given_compactness_term_replaces_the_settings_one(vases):
     objectives): the settings' own term given this way changes nothing; a term without
     gradient leaves the spread term alone, which is 0 at the start, so nothing moves."""
     shapes, prepared, nicp = vases
-    settings = CorrespondenceSettings(refine="population", **SMALL)
+    settings = CorrespondenceSettings(refinement=RefinementSettings(method="population", **SMALL))
     meshes = [s.mesh for s in prepared.shapes]
     start = (nicp.points, nicp.face_index, nicp.barycentric)
     default = refine_population(meshes, *start, settings, edges=nicp.edges)
     same = refine_population(meshes, *start, settings, edges=nicp.edges, compactness=lambda state: CompactnessTerm(
-        state, settings.refine_regulariser, settings.refine_alignment, settings.refine_normals))
+        state, settings.refinement.regulariser, settings.refinement.alignment, settings.refinement.normals))
     assert len(default.trace) > 2
     assert np.array_equal(same.points, default.points) and np.array_equal(same.trace, default.trace)
 
@@ -202,7 +204,7 @@ def test_identical_shapes_are_left_alone(vases):
     copies = 4
     stack = lambda a: np.repeat(a[None], copies, axis=0)  # noqa: E731
     result = refine_population([mesh] * copies, stack(nicp.points[0]), stack(nicp.face_index[0]),
-                               stack(nicp.barycentric[0]), CorrespondenceSettings(refine="population"))
+                               stack(nicp.barycentric[0]), CorrespondenceSettings(refinement=RefinementSettings(method="population")))
     assert np.array_equal(result.points, stack(nicp.points[0]))
     assert np.array_equal(result.face_index, stack(nicp.face_index[0]))
     assert len(result.trace) == 1 and result.trace[0, 0] == 0.0
@@ -212,7 +214,7 @@ def test_spread_term_alone_keeps_a_uniform_sampling_uniform(vases):
     """Spread only: Prepare's near-uniform landmarks stay where they are; a landmark pushed
     onto its neighbour is pushed back out, the rest stay spread."""
     shapes, prepared, nicp = vases
-    settings = CorrespondenceSettings(refine="population", refine_compactness=0.0, refine_iterations=30)
+    settings = CorrespondenceSettings(refinement=RefinementSettings(method="population", compactness=0.0, iterations=30))
     meshes = [s.mesh for s in prepared.shapes[:3]]
     count = min(len(l) for l in prepared.landmarks[:3])  # Prepare's counts differ by a few
     lms = prepared.landmarks[:3]
@@ -245,9 +247,9 @@ def test_spread_term_alone_keeps_a_uniform_sampling_uniform(vases):
 
 def test_correspondence_file_records_the_refinement(vases, tmp_path):
     shapes, prepared, nicp = vases
-    refined = correspond(prepared, CorrespondenceSettings(refine="population", refine_iterations=3), jobs=1)
+    refined = correspond(prepared, CorrespondenceSettings(refinement=RefinementSettings(method="population", iterations=3)), jobs=1)
     loaded = Correspondence.load(refined.save(tmp_path / "refined.npz"))
-    assert loaded.refinement == "population" and loaded.settings.refine == "population"
+    assert loaded.refinement == "population" and loaded.settings.refinement.method == "population"
     assert np.array_equal(loaded.refinement_trace, refined.refinement_trace)
     assert np.array_equal(loaded.points, refined.points)
     # a file written before issue 13 (no refinement arrays) loads as "none"
@@ -270,7 +272,7 @@ def test_command_line_refine_option():
 
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--refine", "population"])
-        assert settings_from_args(CorrespondenceSettings, args).refine == "population"
+        assert settings_from_args(CorrespondenceSettings, args).refinement.method == "population"
         args = build_parser().parse_args(command)
         assert settings_from_args(CorrespondenceSettings, args) == CorrespondenceSettings()
     with pytest.raises(SystemExit):
@@ -284,7 +286,7 @@ def test_progress_cancel_and_worker_processes(vases):
 
     shapes, prepared, nicp = vases
     seen = []
-    settings = CorrespondenceSettings(refine="population", refine_iterations=4)
+    settings = CorrespondenceSettings(refinement=RefinementSettings(method="population", iterations=4))
     result = correspond(prepared, settings, jobs=1, progress=lambda f, m: seen.append((f, m)))
     fractions = [f for f, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0

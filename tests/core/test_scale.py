@@ -14,6 +14,7 @@ import trimesh
 
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
+from shapegen_core.correspond.settings import IterationSettings
 from shapegen_core.correspond import groupwise
 from shapegen_core.correspond.proxy import PlacementTask, place_on_full_surface
 from shapegen_core.correspond.registration import Registration
@@ -141,7 +142,7 @@ def test_what_a_worker_receives_does_not_grow_with_the_collection(vases, monkeyp
 
     original = groupwise.RegistrationRunner.run
     monkeypatch.setattr(groupwise.RegistrationRunner, "run", recording_run)
-    settings = CorrespondenceSettings(groupwise_rounds=0, max_iterations=2)
+    settings = CorrespondenceSettings(groupwise_rounds=0, iterations=IterationSettings(max_iterations=2))
     base = _collection(vases[:3])
     for copies in (1, 3):
         shapes = [s for _ in range(copies) for s in base.shapes]
@@ -164,7 +165,8 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
     assert "N³" in scaling.size_note("gplvm", 1000) and "bgplvm" in scaling.size_note("gplvm", 1000)
     assert scaling.size_note("bgplvm", 10**5) is None and scaling.size_note("ppca", 10**5) is None
     collection = _collection(vases)
-    corr = correspond(collection, CorrespondenceSettings(groupwise_rounds=0, max_iterations=3), jobs=1)
+    corr = correspond(collection, CorrespondenceSettings(groupwise_rounds=0, iterations=IterationSettings(max_iterations=3)),
+                      jobs=1)
     monkeypatch.setattr(scaling, "CUBIC_NOTE_SHAPES", 3)
     messages = []
     with pytest.warns(scaling.ScaleWarning, match="N³"):

@@ -3,19 +3,40 @@ string, and files written before that (key/value strings) still load."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+import json
+import re
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
+from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, OutlierSettings, RefinementSettings,
+                                               StiffnessSettings)
 from shapegen_core.deform import DeformSettings
 from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
-from shapegen_core.settings import SettingsError
+from shapegen_core.settings import Settings, SettingsError, group, option, recorded_settings
 
 pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
+
+#: the correspondence settings of the `corresponded` fixture as files written before issue 35
+#: record them: one flat JSON object (written by CorrespondenceSettings(alpha_steps=1,
+#: max_iterations=3, groupwise_rounds=0).to_json() at de08ccf)
+FLAT_JSON = (
+    '{"gamma": 2.0, "k_neighbours": 6, "alpha_start": 100.0, "alpha_end": 5.0, "alpha_steps": 1, '
+    '"bidirectional_weight": 1.0, "normal_max_angle": 60.0, "matching": "closest", "feature_between": 1.0, '
+    '"initialisation": "closest", "distance_weights": false, "snap_to_vertices": false, "update_template": false, '
+    '"tolerance": 0.001, "max_iterations_per_alpha": 4, "max_iterations": 3, "ridge": 1e-09, "proxy_faces": 40000, '
+    '"groupwise_rounds": 0, "outlier_mad_factor": 3.0, "outlier_min_ratio": 1.5, "max_residual": 0.05, '
+    '"max_scale_ratio": 3.0, "loo_mad_factor": 3.0, "loo_min_ratio": 4.0, "loo_variance": 0.9, "refine": "none", '
+    '"refine_iterations": 30, "refine_compactness": 1.0, "refine_spread": 1.0, "refine_regulariser": 0.001, '
+    '"refine_normals": 1.0, "refine_smooth_fields": 30, "refine_sigma": 1.0, "refine_step": 0.3, '
+    '"refine_max_move": 0.5, "refine_alignment": "similarity", "refine_tolerance": 1e-06}')
+#: the same settings, nested by subsystem
+SMALL = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=1), iterations=IterationSettings(max_iterations=3),
+                               groupwise_rounds=0)
 
 
 @pytest.fixture(scope="module")
@@ -25,13 +46,14 @@ def prepared(small_vases):
 
 @pytest.fixture(scope="module")
 def corresponded(prepared):
-    return correspond(prepared, CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0), jobs=1)
+    return correspond(prepared, SMALL, jobs=1)
 
 
 @pytest.fixture(scope="module")
 def fitted(small_vases, tmp_path_factory):
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", jobs=1, mesh_template="vase_003",
-                           correspondence=CorrespondenceSettings(alpha_steps=2, max_iterations=6, groupwise_rounds=0))
+                           correspondence=replace(SMALL, stiffness=StiffnessSettings(alpha_steps=2),
+                                                  iterations=IterationSettings(max_iterations=6)))
     model = fit_meshes([s.mesh for s in small_vases[:4]], settings)
     return model, model.save(tmp_path_factory.mktemp("model") / "model.npz")
 
@@ -90,24 +112,30 @@ def test_deform_settings_check_themselves(options, message):
     assert str(caught.value) == message and caught.value.option == next(iter(options))
 
 
-@pytest.mark.parametrize("options,message", [
-    ({"gamma": 0.0}, "gamma must be greater than 0, got 0.0"),
-    ({"k_neighbours": 0}, "k_neighbours must be at least 1, got 0"),
-    ({"alpha_end": 0.0}, "alpha_end must be greater than 0, got 0.0"),
-    ({"alpha_start": 4.0}, "alpha_start must be at least alpha_end (5.0), got 4.0"),
-    ({"alpha_steps": 0}, "alpha_steps must be at least 1, got 0"),
-    ({"bidirectional_weight": -1.0}, "bidirectional_weight must be at least 0, got -1.0"),
-    ({"tolerance": -1e-3}, "tolerance must be at least 0, got -0.001"),
-    ({"ridge": -1.0}, "ridge must be at least 0, got -1.0"),
-    ({"max_iterations": 0}, "max_iterations must be at least 1, got 0"),
-    ({"max_iterations_per_alpha": 0}, "max_iterations_per_alpha must be at least 1, got 0"),
-    ({"groupwise_rounds": -1}, "groupwise_rounds must be at least 0, got -1"),
-    ({"snap_to_vertices": 1}, "snap_to_vertices must be true or false, got 1"),
+@pytest.mark.parametrize("group_name,options,message", [
+    ("stiffness", {"gamma": 0.0}, "gamma must be greater than 0, got 0.0"),
+    ("stiffness", {"k_neighbours": 0}, "k_neighbours must be at least 1, got 0"),
+    ("stiffness", {"alpha_end": 0.0}, "alpha_end must be greater than 0, got 0.0"),
+    ("stiffness", {"alpha_start": 4.0}, "alpha_start must be at least alpha_end (5.0), got 4.0"),
+    ("stiffness", {"alpha_steps": 0}, "alpha_steps must be at least 1, got 0"),
+    ("data_term", {"bidirectional_weight": -1.0}, "bidirectional_weight must be at least 0, got -1.0"),
+    ("data_term", {"snap_to_vertices": 1}, "snap_to_vertices must be true or false, got 1"),
+    ("iterations", {"tolerance": -1e-3}, "tolerance must be at least 0, got -0.001"),
+    ("iterations", {"ridge": -1.0}, "ridge must be at least 0, got -1.0"),
+    ("iterations", {"max_iterations": 0}, "max_iterations must be at least 1, got 0"),
+    ("iterations", {"max_iterations_per_alpha": 0}, "max_iterations_per_alpha must be at least 1, got 0"),
+    ("outliers", {"loo_variance": 1.5}, "loo_variance must be at most 1, got 1.5"),
+    ("refinement", {"sigma": 0.0}, "sigma must be greater than 0, got 0.0"),
 ])
-def test_correspondence_settings_check_themselves(options, message):
+def test_correspondence_settings_check_themselves(group_name, options, message):
+    """Each group checks its own options; nested, an error names the option by its dotted path."""
+    group_class = type(getattr(CorrespondenceSettings(), group_name))
     with pytest.raises(SettingsError) as caught:
-        CorrespondenceSettings(**options)
-    assert str(caught.value) == message and caught.value.option == next(iter(options))
+        CorrespondenceSettings.from_dict({group_name: options})
+    name = next(iter(options))
+    assert str(caught.value) == f"{group_name}.{message}" and caught.value.option == f"{group_name}.{name}"
+    with pytest.raises(SettingsError, match=f"^{re.escape(message)}$"):
+        group_class(**options)
 
 
 def test_from_dict_refuses_unknown_names_and_wrong_types():
@@ -115,8 +143,8 @@ def test_from_dict_refuses_unknown_names_and_wrong_types():
         PrepareSettings.from_dict({"landmarks": 100})
     with pytest.raises(SettingsError, match="^n_landmarks must be an integer"):
         PrepareSettings.from_dict({"n_landmarks": "100"})
-    with pytest.raises(SettingsError, match=r"^correspondence\.gamma must be greater than 0"):  # nested settings
-        FitSettings.from_dict({"correspondence": {"gamma": -1}})
+    with pytest.raises(SettingsError, match=r"^correspondence\.stiffness\.gamma must be greater than 0"):  # nested
+        FitSettings.from_dict({"correspondence": {"stiffness": {"gamma": -1}}})
 
 
 # ---------------------------------------------------------------------------- round trips
@@ -140,14 +168,14 @@ def test_fit_settings_round_trip_nested_and_old_files_flat(fitted):
     nested = FitSettings.from_dict(_nest_prepare(flat))  # how the settings of old model files are read
     assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
                                              seed=3)
-    assert nested.correspondence.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
+    assert nested.correspondence.stiffness.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
     assert FitSettings.from_dict(nested.as_dict()) == nested
 
 
 def test_correspondence_files_record_their_settings_and_the_prepare_settings(prepared, corresponded, tmp_path):
     path = corresponded.save(tmp_path / "corr.npz")
     loaded = Correspondence.load(path)
-    assert loaded.settings == CorrespondenceSettings(alpha_steps=1, max_iterations=3, groupwise_rounds=0)
+    assert loaded.settings == SMALL
     assert loaded.prepare == prepared.settings == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
     with np.load(path) as data:
         assert data["settings"].shape == () and data["prepare_settings"].shape == ()
@@ -178,9 +206,9 @@ def test_prepared_files_of_the_previous_version_still_load(prepared, tmp_path):
 
 
 def test_correspondence_files_of_the_previous_version_still_load(corresponded, tmp_path):
-    """Before: settings as repr() values by key, the Prepare settings not recorded."""
+    """Before: settings as repr() values by (flat) key, the Prepare settings not recorded."""
     path = corresponded.save(tmp_path / "corr.npz")
-    recorded = corresponded.settings.as_dict()
+    recorded = json.loads(FLAT_JSON)
     old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "prepare_settings"),
                    settings_keys=np.asarray(list(recorded)),
                    settings_values=np.asarray([repr(v) for v in recorded.values()]))
@@ -189,16 +217,87 @@ def test_correspondence_files_of_the_previous_version_still_load(corresponded, t
     np.testing.assert_array_equal(loaded.points, corresponded.points)
 
 
+def test_flat_correspondence_settings_of_before_read_into_their_groups(corresponded, tmp_path):
+    """Files written before issue 35 record CorrespondenceSettings flat (one JSON object, or
+    before that key/value strings); `FIELDS_MOVED` reads them into the groups, renamed
+    options (refine_sigma → refinement.sigma) included, and files written now nest them."""
+    assert CorrespondenceSettings.from_json(FLAT_JSON, recorded=True) == SMALL
+    flat = json.loads(FLAT_JSON)
+    legacy = {"settings_keys": np.asarray(list(flat)), "settings_values": np.asarray([repr(v) for v in flat.values()])}
+    assert recorded_settings(CorrespondenceSettings, legacy, "old.npz") == SMALL
+    path = corresponded.save(tmp_path / "corr.npz")
+    old = _rewrite(path, tmp_path / "old.npz", settings=np.asarray(FLAT_JSON))
+    assert Correspondence.load(old).settings == SMALL
+    with np.load(path) as data:  # written now: nested by subsystem
+        assert json.loads(str(data["settings"]))["stiffness"]["alpha_steps"] == 1
+    fit = FitSettings(correspondence=SMALL).as_dict()
+    fit["correspondence"] = flat  # a model file's FitSettings before issue 35
+    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == SMALL
+    renamed = {"refine": "population", "refine_sigma": 2.0, "outlier_mad_factor": 4.0}
+    assert CorrespondenceSettings.from_dict(renamed) == CorrespondenceSettings(
+        refinement=RefinementSettings(method="population", sigma=2.0), outliers=OutlierSettings(residual_mad_factor=4.0))
+
+
+def test_options_given_flat_are_accepted_beside_nested_ones():
+    """The add-on and the worker pass options as flat dicts: accepted beside nested ones; an
+    option named both ways (the panel's flat one, Extra Settings' nested one) takes the
+    nested value."""
+    mixed = CorrespondenceSettings.from_dict({"alpha_end": 10.0, "data_term": {"matching": "features"}, "refine": "none"})
+    assert mixed.stiffness.alpha_end == 10.0 and mixed.data_term.matching == "features"
+    both = CorrespondenceSettings.from_dict({"alpha_end": 10.0, "alpha_steps": 2, "stiffness": {"alpha_end": 3.0}})
+    assert both.stiffness == StiffnessSettings(alpha_end=3.0, alpha_steps=2)
+    with pytest.raises(SettingsError, match=r"^stiffness\.alpha_end must be greater than 0"):  # named where it lives
+        CorrespondenceSettings.from_dict({"alpha_end": 0.0})
+    with pytest.raises(SettingsError, match="has no option 'sigma'"):  # only the names of before, flat
+        CorrespondenceSettings.from_dict({"sigma": 2.0})
+    with pytest.raises(SettingsError, match="^groupwise_rounds must be at least 0, got -1$"):
+        CorrespondenceSettings.from_dict({"groupwise_rounds": -1})
+
+
+@dataclass(frozen=True)
+class _Inner(Settings):
+    FIELDS_ADDED_LATER = {"late": 2}
+    depth: int = option(1, "", minimum=0)
+    late: int = option(3, "")
+
+
+@dataclass(frozen=True)
+class _Middle(Settings):
+    inner: _Inner = group(_Inner)
+
+
+@dataclass(frozen=True)
+class _Outer(Settings):
+    FIELDS_MOVED = {"old_depth": "middle.inner.depth", "kept": "kept"}
+    middle: _Middle = group(_Middle)
+    kept: str = option("a", "")
+
+
+def test_fields_moved_is_a_general_mechanism():
+    """Any depth, renamed or not; the caller's data is left as it was; a file that records
+    the flat name reads the added-later values of the group it moved to."""
+    data = {"old_depth": 4, "middle": {"inner": {}}}
+    assert _Outer.from_dict(data) == _Outer(_Middle(_Inner(depth=4)))
+    assert data == {"old_depth": 4, "middle": {"inner": {}}}
+    assert _Outer.from_dict({"old_depth": 4}, recorded=True).middle.inner == _Inner(depth=4, late=2)
+    assert _Outer.from_dict({}, recorded=True).middle.inner.late == 2  # a group left out entirely: as recorded too
+    assert _Outer.from_dict({"old_depth": 4}).middle.inner.late == 3  # given now: today's default
+    with pytest.raises(SettingsError, match=r"^middle\.inner\.depth must be at least 0"):
+        _Outer.from_dict({"old_depth": -1})
+    with pytest.raises(SettingsError, match="cannot be given flat beside 'middle' given as settings"):
+        _Outer.from_dict({"old_depth": 4, "middle": _Middle()})
+
+
 def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     """Before: settings as repr() values by (dotted) key, deformation settings as numbers."""
     model, path = fitted
     s = model.settings
+    corr = {**json.loads(FLAT_JSON), "alpha_steps": 2, "max_iterations": 6}  # flat, as these files recorded them
     keys = ([f"{k}" for k in s.prepare.as_dict()] + ["model", "latent_dim", "template", "jobs"]
-            + [f"correspondence.{k}" for k in s.correspondence.__dataclass_fields__])
+            + [f"correspondence.{k}" for k in corr])
     values = ([repr(v) for v in s.prepare.as_dict().values()] + [repr(s.model), "None", "None", "1"]
-              + [repr(getattr(s.correspondence, k)) for k in s.correspondence.__dataclass_fields__])
+              + [repr(v) for v in corr.values()])
     deform = s.deform.__dataclass_fields__
-    corr = s.correspondence.as_dict()
     old = _rewrite(path, tmp_path / "old.npz", drop=("settings", "corr__settings", "corr__prepare_settings"),
                    settings_keys=np.asarray(keys), settings_values=np.asarray(values),
                    deform_keys=np.asarray(list(deform)),
@@ -229,8 +328,7 @@ def test_an_unknown_mesh_template_is_refused_before_fitting(small_vases):
 
 def test_a_prepared_collection_fits_with_its_own_settings(prepared):
     """The model records how its shapes were prepared, not FitSettings' defaults."""
-    settings = FitSettings(model="ppca", jobs=1, correspondence=CorrespondenceSettings(
-        alpha_steps=1, max_iterations=3, groupwise_rounds=0))
+    settings = FitSettings(model="ppca", jobs=1, correspondence=SMALL)
     model = fit_meshes(prepared, settings)
     assert model.settings.prepare == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
     unrecorded = PreparedCollection(prepared.shapes, prepared.landmarks)

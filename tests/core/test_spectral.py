@@ -13,6 +13,7 @@ import trimesh
 
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
+from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.correspond.functional_map import spectral_shape, spectral_start
 from shapegen_core.correspond.start import _start_on_shape, _StartItem
 from shapegen_core.geometry.spectral import SpectrumError, cotangent_laplacian, laplace_beltrami_spectrum
@@ -143,25 +144,27 @@ def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_poi
 
 
 def test_initialisation_is_a_checked_recorded_setting_and_old_files_read_closest():
-    settings = CorrespondenceSettings(initialisation="spectral")
+    settings = CorrespondenceSettings(data_term=DataTermSettings(initialisation="spectral"))
     assert CorrespondenceSettings.from_json(settings.to_json()) == settings
     recorded = json.loads(settings.to_json())
-    del recorded["initialisation"]  # a file written before the option existed
-    assert CorrespondenceSettings.from_dict(recorded, recorded=True).initialisation == "closest"
+    del recorded["data_term"]["initialisation"]  # a file written before the option existed
+    assert CorrespondenceSettings.from_dict(recorded, recorded=True).data_term.initialisation == "closest"
     with pytest.raises(SettingsError, match="unknown initialisation 'intrinsic'; choose from closest, spectral"):
-        CorrespondenceSettings(initialisation="intrinsic")
+        DataTermSettings(initialisation="intrinsic")
 
 
 def test_correspond_with_the_spectral_start_reports_every_shape_s_start(small_vases):
     prepared = prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=40, seed=1))
     messages = []
-    result = correspond(prepared, CorrespondenceSettings(initialisation="spectral", alpha_steps=2, max_iterations=4),
-                        jobs=1, progress=lambda fraction, message: messages.append(message))
+    settings = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
+                                      data_term=DataTermSettings(initialisation="spectral"),
+                                      iterations=IterationSettings(max_iterations=4))
+    result = correspond(prepared, settings, jobs=1, progress=lambda fraction, message: messages.append(message))
     others = [n for n in result.names if n != result.template_name]
     for name in others:
         said = [m for m in messages if m.startswith(f"{name}: spectral start") or m.startswith(f"{name}: closest")]
         assert said, f"{name}: no start reported in {messages}"
-    assert result.settings.initialisation == "spectral"
+    assert result.settings.data_term.initialisation == "spectral"
     assert np.isfinite(result.points).all()
 
 
