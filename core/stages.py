@@ -197,22 +197,23 @@ def _recorded_or_asked(group: str, recorded, asked, given: Mapping, label: str):
 
 
 def _leaves(settings, prefix: str = "") -> dict:
-    """Every field of (possibly nested) settings by its name and its dotted path."""
+    """Every field of (possibly nested) settings by its dotted path ("seed",
+    "iterations.max_iterations")."""
     found = {}
     for f in fields(settings):
         value = getattr(settings, f.name)
         if is_dataclass(value):
             found.update(_leaves(value, f"{prefix}{f.name}."))
         else:
-            found.setdefault(f.name, value)
             found[f"{prefix}{f.name}"] = value
     return found
 
 
 def _differences(recorded, wanted, shown: int = 3) -> str:
-    """"seed 0, now 1; n_landmarks 800, now 60": the fields that differ (the first `shown`)."""
+    """"seed 0, now 1; iterations.max_iterations 5, now 30": the fields that differ (the
+    first `shown`), by their dotted paths."""
     had, now = _leaves(recorded), _leaves(wanted)
-    names = [n for n in now if "." not in n and had.get(n) != now[n]]
+    names = [n for n in now if had.get(n) != now[n]]
     text = "; ".join(f"{n} {had.get(n)}, now {now[n]}" for n in names[:shown])
     return text + (f"; and {len(names) - shown} more" if len(names) > shown else "")
 

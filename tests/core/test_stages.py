@@ -67,7 +67,7 @@ def test_changed_correspondence_settings_keep_prepare_and_run_correspondence_aga
     assert plan.run == ("correspond", "fit") and plan.reused == (prepared,)
     assert plan.reason == ("reusing 'vases Prepared': same shapes and Prepare settings; corresponding and fitting: "
                            "the correspondence of model 'vases' was made with other correspondence settings "
-                           f"(max_iterations 5, now {ASKED.correspondence.max_iterations})")
+                           f"(iterations.max_iterations 5, now {ASKED.correspondence.iterations.max_iterations})")
     other_template, _ = found_correspondence(template="vase_003")
     assert "made on template vase_003, now the medoid" in plan_stages(ASKED, [prepared, other_template]).reason
 
@@ -136,8 +136,8 @@ def test_an_option_contradicting_a_given_file_is_a_conflict_naming_both():
                                                                                                    0, 4)
     assert str(caught.value) == "seed 0 conflicts with p.npz, prepared with seed 4; leave it out to use the file's"
     corr = Offered("correspond", "c.npz", prepare=OTHER_PREPARE, correspondence=OTHER_CORRESPONDENCE, given=True)
-    with pytest.raises(SettingsConflict, match="max_iterations 7 conflicts with c.npz, corresponded with"):
-        plan_stages(ASKED, [corr], {"correspondence": {"max_iterations": 7}})
+    with pytest.raises(SettingsConflict, match="iterations.max_iterations 7 conflicts with c.npz, corresponded with"):
+        plan_stages(ASKED, [corr], {"correspondence": {"iterations.max_iterations": 7}})
 
 
 @pytest.fixture(scope="module")
