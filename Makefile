@@ -15,10 +15,14 @@ VALID_TAGS   = $(BPY_DIR)/scripts/modules/_bpy_internal/extensions/tags.py
 export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
-# every tier runs on all cores (pytest-xdist); a test file stays on one worker, so its
-# module-scoped fixtures are built once. TEST_WORKERS=0 runs in this process.
+# the core tiers run on all cores (pytest-xdist); a test file stays on one worker, so its
+# module-scoped fixtures are built once. TEST_WORKERS=0 runs them in this process. The
+# Blender tier runs in one process: some of its tests race a job's worker process (a
+# cancel while the worker starts, a pool worker killed) and lost those races with a
+# second Blender beside them (2 of 116 failed under -n 2 on a loaded machine)
 TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
-PYTEST       := -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
+PYTEST       := -m pytest -q -p no:cacheprovider
+PARALLEL     := -n $(TEST_WORKERS) --dist loadfile
 
 EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
@@ -57,8 +61,8 @@ demo: dist/.built
 	$(PY) scripts/demo.py --output demo_output
 
 test-core: $(VENV)/.installed $(VENV_NP2)/.installed
-	$(PY) $(PYTEST) tests/core
-	$(PY_NP2) $(PYTEST) tests/core -m numpy_sensitive
+	$(PY) $(PYTEST) $(PARALLEL) tests/core
+	$(PY_NP2) $(PYTEST) $(PARALLEL) tests/core -m numpy_sensitive
 
 test-blender: dist/.built
 	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) tests/blender
