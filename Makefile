@@ -15,24 +15,32 @@ VALID_TAGS   = $(BPY_DIR)/scripts/modules/_bpy_internal/extensions/tags.py
 export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
+# the core tiers run on all cores (pytest-xdist); a test file stays on one worker, so its
+# module-scoped fixtures are built once. TEST_WORKERS=0 runs them in this process. The
+# Blender tier runs in one process: some of its tests race a job's worker process (a
+# cancel while the worker starts, a pool worker killed) and lost those races with a
+# second Blender beside them (2 of 116 failed under -n 2 on a loaded machine)
+TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
+PYTEST       := -m pytest -q -p no:cacheprovider
+PARALLEL     := -n $(TEST_WORKERS) --dist loadfile
 
 EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
-.PHONY: all demo test test-core test-blender build wheels clean bench
+.PHONY: all demo test test-core test-blender build wheels clean bench setup
 
 all: test
 
+# --no-compile: Python compiles what the tests import when they first import it (pip would
+# compile all ~6000 files of the two environments, ~25 s of CPU)
 $(VENV)/.installed: requirements/blender.txt requirements/dask.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements/blender.txt
-	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements/dask.txt
+	$(VENV)/bin/pip install --disable-pip-version-check -q --no-compile -r requirements/blender.txt -r requirements/dask.txt
 	$(VENV)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	touch $@
 
 $(VENV_NP2)/.installed: requirements/numpy2.txt requirements/dask.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV_NP2)
-	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q -r requirements/numpy2.txt
-	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q -r requirements/dask.txt
+	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q --no-compile -r requirements/numpy2.txt -r requirements/dask.txt
 	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	touch $@
 
@@ -55,13 +63,19 @@ demo: dist/.built
 	$(PY) scripts/demo.py --output demo_output
 
 test-core: $(VENV)/.installed $(VENV_NP2)/.installed
-	$(PY) -m pytest tests/core -q -p no:cacheprovider
-	$(PY_NP2) -m pytest tests/core -q -p no:cacheprovider -m numpy_sensitive
+	$(PY) $(PYTEST) $(PARALLEL) tests/core
+	$(PY_NP2) $(PYTEST) $(PARALLEL) tests/core -m numpy_sensitive
 
 test-blender: dist/.built
-	timeout $(BLENDER_TEST_TIMEOUT) $(PY) -m pytest tests/blender -q -p no:cacheprovider
+	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) tests/blender
 
-test: test-core test-blender
+# the two environments (and the extension, once .venv is there) are built side by side:
+# mostly download and unpacking, so they overlap well
+setup:
+	$(MAKE) --no-print-directory -j2 dist/.built $(VENV_NP2)/.installed
+
+test: setup
+	$(MAKE) --no-print-directory test-core test-blender
 
 bench: $(VENV)/.installed
 	$(PY) bench/correspondence.py --quick

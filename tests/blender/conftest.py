@@ -86,6 +86,7 @@ def core(extension):
 # ---------------------------------------------------------------- workflow fixtures (issue 6)
 import importlib  # noqa: E402
 import json  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -121,20 +122,28 @@ def add_vase_collection(extension: str, n: int = 6, name: str = "vases", pose: b
 @pytest.fixture(scope="session")
 def model_files(extension, tmp_path_factory):
     """One small fitted model file per model type, fitted in-process with the extension's
-    core (the worker path is tested separately): {"ppca": path, "gplvm": ..., "bgplvm": ...}."""
+    core (the worker path is tested separately): {"ppca": path, "gplvm": ..., "bgplvm": ...}.
+    The three share one correspondence (what fit_meshes would compute for each)."""
+    folder = tmp_path_factory.mktemp("models")
+    return {kind: model.save(folder / f"vases_{kind}.npz")
+            for kind, model in fit_vase_models(extension, ("ppca", "gplvm", "bgplvm"), n=6, latent_dim=2).items()}
+
+
+def fit_vase_models(extension: str, kinds, n: int, latent_dim: int | None) -> dict:
+    """{kind: GenerativeShapeModel} of n procedural vases with the FAST_FIT settings: one
+    prepare and one correspondence, then each model type fitted on it (fit_shape_model,
+    the stage fit_meshes ends with)."""
     datasets = addon_module(extension, "core.datasets")
     pipeline = addon_module(extension, "core.pipeline")
     correspond = addon_module(extension, "core.correspond")
     collection = addon_module(extension, "core.collection")
-    meshes = [s.mesh for s in datasets.make_vases(6, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
-    folder = tmp_path_factory.mktemp("models")
-    files = {}
-    for kind in ("ppca", "gplvm", "bgplvm"):
-        settings = pipeline.FitSettings(
-            prepare=collection.PrepareSettings(n_landmarks=100), model=kind, latent_dim=2, jobs=1,
-            correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
-        files[kind] = pipeline.fit_meshes(meshes, settings).save(folder / f"vases_{kind}.npz")
-    return files
+    meshes = [s.mesh for s in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
+    settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim, jobs=1,
+                                    correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
+    prepared = collection.prepare_meshes(meshes, settings.prepare)
+    corr = correspond.correspond(prepared, settings.correspondence, template=settings.template, jobs=1)
+    shapes = [s.mesh for s in prepared.shapes]
+    return {kind: pipeline.fit_shape_model(shapes, corr, replace(settings, model=kind)) for kind in kinds}
 
 
 def load_model(kind: str, model_files) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 import pytest
-from conftest import FAST_FIT, VASE_RESOLUTION, VASE_SEED, addon_module, load_model
+from conftest import addon_module, fit_vase_models, load_model
 
 MODEL_TYPES = ("ppca", "gplvm", "bgplvm")
 
@@ -32,17 +32,16 @@ def test_randomise_stays_within_three_training_standard_deviations(extension, mo
         np.testing.assert_allclose(units.to_values(z), values, atol=1e-5)
 
 
+@pytest.fixture(scope="module")
+def twenty_vase_models(extension):
+    """PPCA and Bayesian GP-LVM on one correspondence of 20 vases, latent_dim automatic."""
+    return fit_vase_models(extension, ("ppca", "bgplvm"), n=20, latent_dim=None)
+
+
 @pytest.mark.parametrize("kind", ["ppca", "bgplvm"])
-def test_the_automatic_latent_dimension_of_twenty_shapes_gives_few_sliders(extension, tmp_path, kind):
-    datasets = addon_module(extension, "core.datasets")
-    pipeline = addon_module(extension, "core.pipeline")
-    correspond = addon_module(extension, "core.correspond")
+def test_the_automatic_latent_dimension_of_twenty_shapes_gives_few_sliders(extension, twenty_vase_models, tmp_path, kind):
     base = addon_module(extension, "core.models.base")
-    collection = addon_module(extension, "core.collection")
-    meshes = [s.mesh for s in datasets.make_vases(20, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
-    settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), model=kind, latent_dim=None, jobs=1,
-                                    correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
-    path = pipeline.fit_meshes(meshes, settings).save(tmp_path / f"vases20_{kind}.npz")
+    path = twenty_vase_models[kind].save(tmp_path / f"vases20_{kind}.npz")
     assert bpy.ops.shapegen.load_model(filepath=str(path)) == {"FINISHED"}
     model = addon_module(extension, "shapegen_addon.store").get_model(bpy.context.scene)
     Y = model.training_matrix()

@@ -81,6 +81,15 @@ def collection(tmp_path_factory):
     return folder
 
 
+@pytest.fixture(scope="module")
+def model(collection, tmp_path_factory):
+    """`shapegen fit` of the vessels (PPCA, 60 landmarks): the model file the tests below read."""
+    path = tmp_path_factory.mktemp("model") / "model.npz"
+    result = run("fit", collection, "-o", path, "--model", "ppca", "--landmarks", 60, "--jobs", 1)
+    assert result.returncode == 0, result.stderr
+    return path
+
+
 def test_an_obj_with_quads_ngons_and_uvs_is_read_with_its_layout(collection):
     mesh = read_mesh(collection / "vessel_0.obj")
     layout = mesh.report.layout
@@ -117,10 +126,7 @@ def test_layouts_pack_and_unpack():
     assert unpack_layouts({}, 2, "old file") == [None, None]
 
 
-def test_fit_and_sample_write_the_template_faces_and_uvs(collection, tmp_path):
-    model = tmp_path / "model.npz"
-    result = run("fit", collection, "-o", model, "--model", "ppca", "--landmarks", 60, "--jobs", 1)
-    assert result.returncode == 0, result.stderr
+def test_fit_and_sample_write_the_template_faces_and_uvs(collection, model, tmp_path):
     result = run("sample", model, "-n", 3, "-o", tmp_path / "obj", "--seed", 1)
     assert result.returncode == 0, result.stderr
     templates = [str(t) for t in np.load(tmp_path / "obj" / "landmarks.npz")["templates"]]
@@ -147,16 +153,14 @@ def test_fit_and_sample_write_the_template_faces_and_uvs(collection, tmp_path):
             assert sorted({len(p) for p in raw}) == [4, AROUND]
 
 
-def test_a_model_file_keeps_the_layouts_and_older_files_load(collection, tmp_path):
+def test_a_model_file_keeps_the_layouts_and_older_files_load(model, tmp_path):
     from shapegen_core.npzfile import load_npz, save_npz
     from shapegen_core.pipeline import MODEL_FILE_FORMAT, GenerativeShapeModel
 
-    model_path = tmp_path / "model.npz"
-    assert run("fit", collection, "-o", model_path, "--model", "ppca", "--landmarks", 60, "--jobs", 1).returncode == 0
-    model = GenerativeShapeModel.load(model_path)
-    assert all(m.report.layout is not None and m.report.layout.uv is not None for m in model.meshes)
+    fitted = GenerativeShapeModel.load(model)
+    assert all(m.report.layout is not None and m.report.layout.uv is not None for m in fitted.meshes)
     # a version-1 file (before layouts): loads, meshes without layouts
-    arrays = dict(np.load(model_path))
+    arrays = dict(np.load(model))
     old = {k: v for k, v in arrays.items()
            if not k.startswith("mesh_layout_") and k not in ("format", "format_version")}
     save_npz(tmp_path / "old.npz", MODEL_FILE_FORMAT, 1, old)

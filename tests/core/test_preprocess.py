@@ -38,7 +38,7 @@ CASES += [("consensus", "variance", "centroid"), ("consensus", "bbox", "highest"
 
 @pytest.mark.parametrize("align,scale,centre", CASES)
 def test_round_trip_input_normalised_input(small_vases, align, scale, centre):
-    meshes = [s.mesh for s in small_vases]
+    meshes = [s.mesh for s in small_vases[:3]]  # a property of each shape's transform: three show it
     prepared = prepare_collection(meshes, up_axis="y", align=align, scale=scale, centre=centre)
     for mesh, shape in zip(meshes, prepared):
         t = shape.transform
@@ -87,7 +87,7 @@ def test_transform_composition_and_rejection():
 # ---------------------------------------------------------------------------- scaling
 @pytest.mark.parametrize("align", ["pca", "none"])
 def test_scaling_invariants(small_vases, align):
-    meshes = [s.mesh for s in small_vases]
+    meshes = [s.mesh for s in small_vases[:3]]
     variance = prepare_collection(meshes, align=align, scale="variance")
     values = np.array([np.trace(surface_moments(s.mesh)[2]) for s in variance])
     np.testing.assert_allclose(values, values[0], rtol=1e-9)

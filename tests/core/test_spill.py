@@ -56,12 +56,18 @@ def _fit(meshes):
     return prepared, corr, model
 
 
-def test_a_spilled_fit_equals_the_in_memory_fit(folder, tmp_path):
+@pytest.fixture(scope="module")
+def in_memory(folder):
+    """The folder read and fitted in memory: (meshes, prepared, correspondence, model)."""
+    memory = read_folder(folder, jobs=1)
+    return (memory, *_fit(memory))
+
+
+def test_a_spilled_fit_equals_the_in_memory_fit(folder, in_memory, tmp_path):
     """Read, Prepare, correspondence and the model file of meshes kept on disk give the
     same arrays as the same meshes held in memory; a worker that reads a file keeps it
     in the store itself."""
-    memory = read_folder(folder, jobs=1)
-    prepared, corr, model = _fit(memory)
+    memory, prepared, corr, model = in_memory
     with SpillStore(above=ABOVE) as store:
         meshes = read_folder(folder, jobs=2, spill=store)
         assert all(isinstance(m, StoredMesh) for m in meshes)
@@ -88,15 +94,13 @@ def test_a_spilled_fit_equals_the_in_memory_fit(folder, tmp_path):
     assert not store.folder.exists()
 
 
-def test_the_main_process_keeps_handles_not_meshes(folder):
+def test_the_main_process_keeps_handles_not_meshes(folder, in_memory):
     """With a store, what this process keeps from reading to the fitted model is names,
     sizes, summaries, proxies and landmarks: less than one mesh of the 4 (without it:
     every mesh, twice from Prepare on)."""
-    memory = read_folder(folder, jobs=1)
+    memory, prepared, _, _ = in_memory  # the in-memory fit also imported whatever the stages import on first use
     one_mesh = _mesh_bytes(memory) / len(memory)
-    prepared, _, model = _fit(memory)  # also imports whatever the stages import on first use
     assert len(pickle.dumps(prepared)) > 0.9 * _mesh_bytes(memory)
-    del memory, prepared, model
     with SpillStore(above=ABOVE) as store:
         tracemalloc.start()
         try:
