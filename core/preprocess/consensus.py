@@ -15,65 +15,72 @@ clearly so, is flagged with its reason and a suggested turn (`PoseDecision.flag`
 (`collection.PreparedCollection.turn_flagged`). Kept shapes (`keep`) are never turned,
 only flagged.
 
-Evidence over the collection (`CollectionEvidence`): every shape is compared with its
-`references` most similar shapes (all the others in a collection of up to
-`references` + 1), not with its three nearest: for each pair, the Chamfer cost of the
+The decisions are steps over one `ConsensusState` (what Prepare measured of each shape,
+`ShapeEvidence`; the settings; each step's decisions), run in order by
+`consensus_rotations`; the settings below are fields of `ConsensusSettings` by group.
+
+Evidence over the collection (`StandingCosts`): every shape is compared with its
+`costs.references` most similar shapes (all the others in a collection of up to
+`costs.references` + 1), not with its three nearest: for each pair, the Chamfer cost of the
 shape standing on each of its six axis directions (its best turn about up on a 30° grid,
 coarse samples) against the other in its pose.
 
 1. Up (`up_lines`): the shapes whose up line (z) fits most of their references best are
    the upright majority. A shape outside it is stood on another axis of its file only
-   when at least `agreement` of its upright references fit it better standing on that
-   same axis line (by `margin`), the median improvement is at least `margin`, and
-   the new up has no worse symmetry than its own (`symmetry.AxisSymmetry`: a bowl
-   among jugs fits them better on its side, but its up is its axis of symmetry); or
-   when that axis has the symmetries the collection's shapes share about their up
-   clearly more than its up does (`symmetry_gap`, `symmetry_ratio`: a squat closed mug
-   on its side fits upright mugs about as well as standing, but its axis of revolution
-   lies flat) and the references fit it no worse standing on it. Which
-   end of that line is up follows the costs when they tell the two ends apart by
-   `flip_margin`, else the other common file convention (a y-up file among z-up ones
-   stands on its +y; a z-up file among y-up ones on its +z); step 2 then checks it like
-   every shape. Weaker evidence (median improvement above `margin`): flagged "may be on
-   its side".
-   The floor (`floors.FileFloors`): when most upright shapes' files put their lowest
-   point at one height, a shape resting there as given is where its author put it:
-   flagged, never stood on another axis (a rearing cat among standing ones fits them
-   better lying); a shape resting there only after one quarter turn of its file about
-   its origin (and no other turn) was saved turned: stood so, the costs asked only not
-   to object clearly (by `margin`; else flagged).
+   when at least `costs.agreement` of its upright references fit it better standing on
+   that same axis line (by `costs.margin`), the median improvement is at least
+   `costs.margin`, and the new up has no worse symmetry than its own
+   (`symmetry.AxisSymmetry`: a bowl among jugs fits them better on its side, but its up
+   is its axis of symmetry); or when that axis has the symmetries the collection's shapes
+   share about their up clearly more than its up does (`symmetry.gap`,
+   `symmetry.ratio`: a squat closed mug on its side fits upright mugs about as well as
+   standing, but its axis of revolution lies flat) and the references fit it no worse
+   standing on it. Which end of that line is up follows the costs when they tell the two
+   ends apart by `ends.flip_margin`, else the other common file convention (a y-up file
+   among z-up ones stands on its +y; a z-up file among y-up ones on its +z); step 2 then
+   checks it like every shape. Weaker evidence (median improvement above `costs.margin`):
+   flagged "may be on its side".
+   The floor (`floors.FileFloors`, `floor.tolerance`): when most upright shapes' files
+   put their lowest point at one height, a shape resting there as given is where its
+   author put it: flagged, never stood on another axis (a rearing cat among standing ones
+   fits them better lying); a shape resting there only after one quarter turn of its file
+   about its origin (and no other turn) was saved turned: stood so, the costs asked only
+   not to object clearly (by `costs.margin`; else flagged). Step 1 records each shape's
+   floor turn and whether it rests on the floor as given for step 2.
 2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
    agrees on top and bottom and the shape clearly does not:
    - its hollow (`hollow.Hollows`) opens the other way up from at least
-     `hollow_agreement` of the shapes whose hollows tell (at least three), and turning it costs at most
-     `hollow_cost` times its pose; or
-   - at least `agreement` of its references fit it better turned over (by `margin`), by
-     `flip_margin` at the median (`flip_support` when its odd moments say the same as
-     strongly), while the collection's shapes agree with each other (the median shape is
-     asked to turn over by at most 1 − `agreement` of its references). A taper, bulge or
-     lean that varies across the class makes shapes ask each other to turn over; then
-     the costs decide nothing.
+     `hollows.agreement` of the shapes whose hollows tell (at least three), and turning
+     it costs at most `hollows.cost` times its pose; or
+   - at least `costs.agreement` of its references fit it better turned over (by
+     `costs.margin`), by `ends.flip_margin` at the median (`ends.flip_support` when its
+     odd moments say the same as strongly), while the collection's shapes agree with each
+     other (the median shape is asked to turn over by at most 1 − `costs.agreement` of
+     its references). A taper, bulge or lean that varies across the class makes shapes
+     ask each other to turn over; then the costs decide nothing.
    Weaker evidence is a flag "may be upside down": its hollow alone (the cost objecting),
    its odd-moment signature (`signature.Signatures`: its top and bottom match the bottom
    and top of most of its references, the collection's shapes agreeing with each other),
-   or at least half of its references asking for it by `margin`, 0.4 more than the
+   or at least half of its references asking for it by `costs.margin`, 0.4 more than the
    collection's median shape does. A shape stood on another axis in step 1 whose end
    nothing told there and nothing tells clearly here takes the end weak evidence leans
    to (else the file convention's) and is flagged, the other end suggested. The floor
    as in step 1: a shape resting on it as given is flagged, not turned over; one resting
    on it only after a half turn about its origin is turned over unless the costs
    clearly keep it (then flagged).
-3. Facing (`facings`): turns about up only, by the Chamfer cost (where the inputs share
-   a facing: a turn of more than `facing_angle` that at least `agreement` of its
-   `references` settled shapes fit `margin` times better; half of them: a flag "may face
-   another way") and by the facing signature
-   (`signature.Signatures`, exact odd moments: a shared facing differing by more than
-   `facing_angle`), with `_settle`'s majority: the poses most shapes share are the
-   collection's and are never changed. Inputs turned about up at random share no
-   facing (at most `shared_facing` of the votes agree): one shape's facing is then the
-   collection's, and the others are turned to it (beyond the thesis, issue 13).
-4. Last, a shape fitting its nearest shapes `outlier_factor` times worse than the median
-   shape does is flagged (an unusual shape, or a pose no turn fixes).
+3. Facing (`facings`): turns about up only, by the Chamfer cost (`_CostFacing`: where the
+   inputs share a facing, a turn of more than `facing.angle` that at least
+   `costs.agreement` of its `costs.references` settled shapes fit `costs.margin` times
+   better; half of them: a flag "may face another way") and by the facing signature
+   (`_SignatureFacing`, `signature.Signatures`, exact odd moments: a shared facing
+   differing by more than `facing.angle`), with `_settle`'s majority: the poses most
+   shapes share are the collection's and are never changed. Inputs turned about up at
+   random share no facing (at most `facing.shared_facing` of the votes agree): one
+   shape's facing is then the collection's, and the others are turned to it (beyond the
+   thesis, issue 13).
+4. Last (`outlier_flags`), a shape fitting its nearest shapes `outlier_factor` times
+   worse than the median shape does is flagged (an unusual shape, or a pose no turn
+   fixes).
 
 Each turn comes with its reason ("turned 90° about x: 9 of 10 shapes fit it 4.2× better
 standing on its y axis (a file-convention turn)"); each flag with its reason and the
@@ -83,42 +90,60 @@ turn that would put it right.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..progress import Progress, no_progress
+from ..mesh import Mesh
+from ..progress import Progress, sub_range
+from .floors import FileFloors, Floor
 from .hollow import Hollows
 from .posesearch import NearestInPool, PoseSearch
 from .rotations import TILTS, describe_rotation, up_rotation, yaw_rotation
 from .signature import Signatures
-from .floors import FileFloors, Floor
 from .symmetry import AxisSymmetry
 
-__all__ = ["ConsensusSettings", "PoseDecision", "CollectionEvidence", "consensus_rotations", "convention_up"]
+__all__ = ["ConsensusSettings", "CostSettings", "EndSettings", "FacingSettings", "SignatureSettings",
+           "SymmetrySettings", "HollowSettings", "FloorSettings", "PoseDecision", "ShapeEvidence",
+           "StandingCosts", "ConsensusState", "consensus_rotations", "convention_up"]
 
 
 @dataclass(frozen=True)
-class ConsensusSettings:
-    """The constants of the consensus orientation (module docstring)."""
+class CostSettings:
+    """The Chamfer-cost votes of steps 1-3: how many surface samples, how many references
+    each shape asks, and how many of them must ask for a turn, by how much."""
 
     #: surface samples per shape for the Chamfer costs
     points: int = 600
-    #: shapes each shape is compared with for a turn of its up or its ends (all others
-    #: in a smaller collection)
+    #: shapes each shape is compared with for a turn of its up, its ends or its facing
+    #: (all others in a smaller collection)
     references: int = 10
-    #: share of the references that must ask for a turn of up or ends
+    #: share of the references that must ask for a turn of up, ends or facing
     agreement: float = 0.8
     #: cost ratio (its pose / the turned pose) a reference's vote for a turn needs
     margin: float = 1.5
+
+
+@dataclass(frozen=True)
+class EndSettings:
+    """Which end is up by the costs (step 2, and the end of a shape stood on another axis
+    in step 1)."""
+
     #: median cost ratio a turn-over by the costs alone needs (and that tells the ends of
     #: a shape stood on another axis apart)
     flip_margin: float = 3.0
     #: ... or with the odd moments agreeing (as strongly, over the collection) this one
     flip_support: float = 2.0
-    #: nearest settled shapes a shape's facing is compared with (step 3)
+
+
+@dataclass(frozen=True)
+class FacingSettings:
+    """Turns about up (step 3) and the nearest shapes of the pose check (step 4)."""
+
+    #: nearest settled shapes a shape's facing is compared with (step 3), and its fit
+    #: measured against (step 4)
     neighbours: int = 3
     #: grid step of the turn about z, degrees
     yaw_step: float = 15.0
@@ -126,10 +151,8 @@ class ConsensusSettings:
     snap: float = 0.03
     #: relative Chamfer cost increase a turn by the facing signature may cost at most
     tolerance: float = 0.1
-    #: signature coherence above which facings are compared (0..1)
-    coherence: float = 0.5
     #: facing difference (degrees) above which a shape is turned about z
-    facing_angle: float = 30.0
+    angle: float = 30.0
     #: share of the facing votes at or below which the collection shares no input facing
     shared_facing: float = 0.4
     #: facing difference (degrees) above which a shape is turned when no facing is shared
@@ -138,30 +161,73 @@ class ConsensusSettings:
     shared_pose: float = 0.4
     #: cost ratio above which a shape is turned about up when no input pose is shared
     unshared_margin: float = 1.1
+
+
+@dataclass(frozen=True)
+class SignatureSettings:
+    """The exact odd-moment signatures (`signature.Signatures`) of top and bottom (step 2)
+    and of facing (step 3)."""
+
     #: Legendre polynomials in height in the facing signature
-    facing_order: int = 5
-    #: a shape fitting its nearest shapes this many times worse than the median is flagged
-    outlier_factor: float = 3.0
+    order: int = 5
+    #: signature coherence above which facings are compared, and below whose negative a
+    #: reference's top and bottom oppose a shape's (0..1)
+    coherence: float = 0.5
+
+
+@dataclass(frozen=True)
+class SymmetrySettings:
+    """Which axis is up by the symmetries the collection's up axes share
+    (`symmetry.AxisSymmetry`, step 1)."""
+
     #: shapes needed for the symmetry test of a stand on another axis
-    symmetry_shapes: int = 5
+    shapes: int = 5
     #: lowest spread (log units) of a symmetry feature in the up profile
-    symmetry_floor: float = 0.3
+    spread: float = 0.3
     #: score difference (its up − another axis) above which that axis has the collection's
     #: up symmetry clearly more than its up
-    symmetry_gap: float = 0.4
+    gap: float = 0.4
     #: ... and the factor by which the other axis must score better
-    symmetry_ratio: float = 1.3
-    #: voxel grid cells along a shape's longest side for its hollows (`hollow.Hollows`)
-    hollow_grid: int = 40
+    ratio: float = 1.3
+
+
+@dataclass(frozen=True)
+class HollowSettings:
+    """Top and bottom by which way a shape's hollows open (`hollow.Hollows`, step 2)."""
+
+    #: voxel grid cells along a shape's longest side for its hollows
+    grid: int = 40
     #: up component of a hollow's opening vector above which it tells top from bottom
-    hollow_floor: float = 0.1
+    opening: float = 0.1
     #: cost ratio (turned over / its pose) up to which a hollow turns a shape over
-    hollow_cost: float = 1.5
+    cost: float = 1.5
     #: share of the telling hollows that must open the same way for it to be the collection's
-    hollow_agreement: float = 0.6
+    agreement: float = 0.6
+
+
+@dataclass(frozen=True)
+class FloorSettings:
+    """The floor the collection's files share (`floors.FileFloors`, steps 1 and 2)."""
+
     #: a shape's lowest point within this many times the median size (RMS radius) of the
-    #: upright shapes' shared floor rests on it (`floors.FileFloors`)
-    floor_tolerance: float = 0.15
+    #: upright shapes' shared floor rests on it
+    tolerance: float = 0.15
+
+
+@dataclass(frozen=True)
+class ConsensusSettings:
+    """The constants of the consensus orientation (module docstring), by subsystem. Plain
+    constants of the method: not a user option, never saved in a file."""
+
+    costs: CostSettings = field(default_factory=CostSettings)
+    ends: EndSettings = field(default_factory=EndSettings)
+    facing: FacingSettings = field(default_factory=FacingSettings)
+    signature: SignatureSettings = field(default_factory=SignatureSettings)
+    symmetry: SymmetrySettings = field(default_factory=SymmetrySettings)
+    hollows: HollowSettings = field(default_factory=HollowSettings)
+    floor: FloorSettings = field(default_factory=FloorSettings)
+    #: a shape fitting its nearest shapes this many times worse than the median is flagged
+    outlier_factor: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -201,14 +267,40 @@ def convention_up(up_axis: str) -> np.ndarray | None:
     return None if other is None else up_rotation(up_axis) @ other
 
 
-class CollectionEvidence:
+@dataclass(frozen=True)
+class ShapeEvidence:
+    """What Prepare measures of every shape in its base pose (the given up along z) for
+    the consensus: the pose search (Chamfer costs, nearest shapes), the odd-moment
+    signatures, the axis symmetry, the hollows and the files' floors."""
+
+    search: PoseSearch
+    signatures: Signatures
+    symmetry: AxisSymmetry | None = None
+    hollows: Hollows | None = None
+    floors: FileFloors | None = None
+
+    @classmethod
+    def of(cls, meshes: Sequence[Mesh], up: np.ndarray, settings: ConsensusSettings, seed: int,
+           report: Progress) -> "ShapeEvidence":
+        """Measured on `meshes` (pose proxies) turned by `up`; `report` goes 0 to 0.2."""
+        base = [up] * len(meshes)
+        search = PoseSearch.of(meshes, base, settings.costs.points, seed,
+                               sub_range(report, 0.0, 0.15, "pose search: "))
+        signatures = Signatures(meshes, base, settings.signature.order, sub_range(report, 0.15, 0.17))
+        symmetry = AxisSymmetry.of(search, meshes, base, seed, settings.symmetry.spread,
+                                   sub_range(report, 0.17, 0.18))
+        hollows = Hollows.of(meshes, base, settings.hollows.grid, seed, sub_range(report, 0.18, 0.2))
+        return cls(search, signatures, symmetry, hollows, FileFloors.of(meshes, up))
+
+
+class StandingCosts:
     """Pairwise standing costs of a collection (module docstring): for shape j in pose R_j
     against shape i in pose R_i, the cost of j standing on each of its six axis
     directions (TILTS, after R_j), each at its best turn about up on a 30° grid."""
 
     def __init__(self, search: PoseSearch, settings: ConsensusSettings):
         self.search = search
-        self.count = min(settings.references, len(search) - 1)
+        self.count = min(settings.costs.references, len(search) - 1)
         self._costs: dict[tuple[int, int, bytes], np.ndarray] = {}
 
     def references(self, j: int, pool: Sequence[int]) -> list[int]:
@@ -225,111 +317,178 @@ class CollectionEvidence:
             self._costs[key] = costs.min(axis=0)
         return self._costs[key]
 
-
-def consensus_rotations(search: PoseSearch, signatures: Signatures, names: Sequence[str], keep: Sequence[bool],
-                        settings: ConsensusSettings, report: Callable[[float, str], None],
-                        symmetry: AxisSymmetry | None = None, hollows: Hollows | None = None,
-                        up_axis: str = "z", may_turn: bool = True,
-                        floors: FileFloors | None = None) -> list[PoseDecision]:
-    """The pose decision of every shape (the steps of the module docstring). `may_turn`
-    False: nobody is turned (align "none" or "pca"), every step only flags. `floors`:
-    where the files put their lowest points (a shape resting on the collection's floor
-    as given is flagged, never turned over or onto a side)."""
-    n = len(search)
-    frozen = [bool(k) or not may_turn for k in keep]
-    evidence = CollectionEvidence(search, settings)
-    stood, floor = up_lines(evidence, symmetry, names, frozen, settings, convention_up(up_axis),
-                            lambda f, m: report(0.2 + 0.15 * f, f"up axes: {m}"), floors)
-    ends = tops_and_bottoms(evidence, signatures, hollows, frozen, settings, stood,
-                            lambda f, m: report(0.35 + 0.15 * f, f"tops and bottoms: {m}"), floors, floor)
-    if may_turn:
-        # a shape that may lie on its side is left as given (a turn about its up means
-        # nothing); one that may be upside down still lines its facing up (rule b)
-        faced = facings(search, signatures, names, [f or bool(d.flag) for f, d in zip(frozen, stood)], settings,
-                        ends, report)
-    else:
-        faced = [PoseDecision(d.rotation) for d in ends]
-    decisions = [_combined(*stages) for stages in zip(stood, ends, faced)]
-    decisions = _outlier_flags(search, decisions, settings, lambda f, m: report(0.86 + 0.02 * f,
-                                                                                f"checking the poses: {m}"))
-    return [_noted_kept(d) if k else d for d, k in zip(decisions, keep)]
+    def side_ratio(self, j: int, i: int) -> tuple[float, str]:
+        """Shapes j and i as given: j's cost standing on its up line (z, the better end)
+        over its cost on its better side line, and that line ("x" or "y")."""
+        identity = np.eye(3)
+        c = self.standing_costs(j, identity, i, identity)
+        lines = {line: min(c[a], c[b]) for line, (a, b) in _LINES.items()}
+        side = min(("x", "y"), key=lambda line: lines[line])
+        return lines["z"] / max(lines[side], 1e-300), side
 
 
-def up_lines(evidence: CollectionEvidence, symmetry: AxisSymmetry | None, names: Sequence[str],
-             frozen: Sequence[bool], settings: ConsensusSettings,
-             convention: np.ndarray | None, report: Progress = no_progress,
-             floors: FileFloors | None = None) -> tuple[list[PoseDecision], Floor | None]:
-    """Step 1: file-convention turns of the up axis (module docstring). Also the floor
-    the upright shapes' files share, if any (`floors.FileFloors`)."""
-    n, identity = len(evidence.search), np.eye(3)
-    everyone = list(range(n))
-    side_ratio, side_line = {}, {}
+@dataclass
+class ConsensusState:
+    """One collection's consensus orientation in progress: the evidence (`ShapeEvidence`,
+    the pairwise `StandingCosts`), the shapes' names, which poses are kept, the settings,
+    and the decisions each step (module docstring) has made so far, read by the steps
+    after it."""
 
-    def compare(j: int, i: int) -> None:
-        if (j, i) not in side_ratio:
-            c = evidence.standing_costs(j, identity, i, identity)
-            lines = {line: min(c[a], c[b]) for line, (a, b) in _LINES.items()}
-            side = min(("x", "y"), key=lambda line: lines[line])
-            side_ratio[(j, i)], side_line[(j, i)] = lines["z"] / max(lines[side], 1e-300), side
+    evidence: ShapeEvidence
+    costs: StandingCosts
+    names: Sequence[str]
+    #: per shape: its pose is kept by request (flagged, never turned)
+    keep: list[bool]
+    #: False: nobody is turned (align "none" or "pca"), every step only flags
+    may_turn: bool
+    #: per shape: never turned, only flagged (kept, or nobody may turn)
+    frozen: list[bool]
+    settings: ConsensusSettings
+    #: the base-frame up of a file of the other common convention (`convention_up`)
+    convention: np.ndarray | None
+    report: Progress
+    #: step 1: the floor the upright shapes' files share, if any; per shape the TILTS
+    #: index of the one turn of its file after which it rests on it (`_floor_turn`) and
+    #: whether it rests on it as given (`FileFloors.keeps`); x or y axis whose symmetry
+    #: is the collection's up's (`_symmetric_side`); each shape's stand (`up_lines`)
+    floor: Floor | None = None
+    floor_turns: list[int | None] = field(default_factory=list)
+    resting: list[bool] = field(default_factory=list)
+    symmetric_sides: list[tuple[str, float, float] | None] = field(default_factory=list)
+    stood: list[PoseDecision] = field(default_factory=list)
+    #: step 2: after the turn-overs (`tops_and_bottoms`)
+    ends: list[PoseDecision] = field(default_factory=list)
+    #: step 3: after the turns about up (`facings`)
+    faced: list[PoseDecision] = field(default_factory=list)
+    #: step 4: the steps combined, outliers flagged (`outlier_flags`)
+    decisions: list[PoseDecision] = field(default_factory=list)
 
-    profile = symmetry is not None and n >= settings.symmetry_shapes
-    if profile:
-        symmetry.fit_profile([identity] * n, everyone)
-    by_symmetry = {j: _symmetric_side(symmetry, j, settings) if profile else None for j in everyone}
-    upright = []
-    for j in everyone:
-        report((j + 1) / (2 * n), f"{j + 1} of {n}")
-        references = evidence.references(j, everyone)
-        for i in references:
-            compare(j, i)
-        lying = np.mean([side_ratio[(j, i)] > settings.margin for i in references] or [0.0]) > 0.5
-        if not lying and by_symmetry[j] is None:
-            upright.append(j)
-    decisions = [PoseDecision(identity)] * n
+    @classmethod
+    def of(cls, evidence: ShapeEvidence, names: Sequence[str], keep: Sequence[bool], settings: ConsensusSettings,
+           report: Progress, up_axis: str = "z", may_turn: bool = True) -> "ConsensusState":
+        keep = [bool(k) for k in keep]
+        return cls(evidence, StandingCosts(evidence.search, settings), names, keep, may_turn,
+                   [k or not may_turn for k in keep], settings, convention_up(up_axis), report)
+
+    @property
+    def search(self) -> PoseSearch:
+        return self.evidence.search
+
+    @property
+    def n(self) -> int:
+        return len(self.evidence.search)
+
+    @property
+    def symmetry_profile(self) -> bool:
+        """Whether the symmetry test of a stand on another axis applies."""
+        return self.evidence.symmetry is not None and self.n >= self.settings.symmetry.shapes
+
+
+def consensus_rotations(evidence: ShapeEvidence, names: Sequence[str], keep: Sequence[bool],
+                        settings: ConsensusSettings, report: Progress, up_axis: str = "z",
+                        may_turn: bool = True) -> list[PoseDecision]:
+    """The pose decision of every shape: the steps of the module docstring, in order, over
+    one `ConsensusState`. `may_turn` False: nobody is turned (align "none" or "pca"),
+    every step only flags. `evidence.floors`: where the files put their lowest points (a
+    shape resting on the collection's floor as given is flagged, never turned over or
+    onto a side)."""
+    state = ConsensusState.of(evidence, names, keep, settings, report, up_axis, may_turn)
+    for step in (up_lines, tops_and_bottoms, facings, outlier_flags):
+        step(state)
+    return [_noted_kept(d) if k else d for d, k in zip(state.decisions, state.keep)]
+
+
+def _part(report: Progress, start: float, span: float, prefix: str) -> Progress:
+    """`report` for one step: the step's fraction f as start + span · f, its message after `prefix`."""
+    return lambda fraction, message: report(start + span * fraction, f"{prefix}{message}")
+
+
+def up_lines(state: ConsensusState) -> None:
+    """Step 1: file-convention turns of the up axis (module docstring) into `state.stood`.
+    Also the floor the upright shapes' files share, if any (`floors.FileFloors`), and
+    each shape's floor turn and resting flag (`state.floor_turns`, `state.resting`)."""
+    n, floors = state.n, state.evidence.floors
+    report = _part(state.report, 0.2, 0.15, "up axes: ")
+    state.symmetric_sides = _symmetric_sides(state)
+    upright = _upright_majority(state, report)
+    state.stood = [PoseDecision(np.eye(3))] * n
+    state.floor_turns, state.resting = [None] * n, [False] * n
     if 2 * len(upright) <= n or len(upright) < 2:
-        return decisions, None  # no up shared by most shapes: nothing to line up with
-    floor = None if floors is None else floors.shared(upright, settings.floor_tolerance)
-    floor_sides = {j: _side(_floor_turn(floors, j, floor)) for j in everyone}
-    upright = [j for j in upright if floor_sides[j] is None]
-    for j, side in floor_sides.items():
-        if side is not None:
-            decisions[j] = _floor_stand(evidence, j, evidence.references(j, upright), side, frozen[j], settings)
-    for j in (j for j in everyone if j not in upright and floor_sides[j] is None):
-        report(0.5 + (j + 1) / (2 * n), f"standing {names[j]}")
-        references = evidence.references(j, upright)
-        for i in references:
-            compare(j, i)
-        ratios = np.array([side_ratio[(j, i)] for i in references])
-        lines = [side_line[(j, i)] for i in references]
-        line = by_symmetry[j][0] if by_symmetry[j] is not None else max(set(lines), key=lines.count)
-        votes = sum(r > settings.margin and ln == line for r, ln in zip(ratios, lines))
-        median = float(np.median(ratios))
-        d, told = _standing_end(np.array([evidence.standing_costs(j, identity, i, identity) for i in references]),
-                                line, settings, convention)
-        stand = TILTS[d]
-        by_cost = votes >= settings.agreement * len(references) and median >= settings.margin
-        symmetric = not profile or symmetry.score(j, stand) <= symmetry.score(j, identity)
-        words = []
-        if by_cost or median > settings.margin:
-            words.append(f"{votes} of {len(references)} shapes fit it better standing on its {line} axis "
-                         f"({median:.1f}× at the median)")
-        if by_symmetry[j] is not None:
-            words.append(f"its {line} axis has the symmetry the collection's shapes have about their up "
-                         f"(score {by_symmetry[j][1]:.1f} against {by_symmetry[j][2]:.1f} for its up)")
-        clear = (by_cost and symmetric) or (by_symmetry[j] is not None and median >= 1.0)
-        if not words:
-            continue
-        resting = floors is not None and floors.keeps(j, floor)
-        if clear and not frozen[j] and not resting:
-            decisions[j] = PoseDecision(stand, f"{describe_rotation(stand)}: {' and '.join(words)}, "
-                                               "a file-convention turn", end_guessed=not told)
-        else:
-            why = "" if symmetric else "; its own up has the collection's symmetry"
-            if resting:
-                why += f"; {RESTING}"
-            decisions[j] = PoseDecision(identity, flag=f"may be on its side: {' and '.join(words)}{why}",
-                                        flag_rotation=stand)
-    return decisions, floor
+        return  # no up shared by most shapes: nothing to line up with
+    state.floor = None if floors is None else floors.shared(upright, state.settings.floor.tolerance)
+    state.floor_turns = [_floor_turn(floors, j, state.floor) for j in range(n)]
+    state.resting = [floors is not None and floors.keeps(j, state.floor) for j in range(n)]
+    sides = [_side(turn) for turn in state.floor_turns]
+    upright = [j for j in upright if sides[j] is None]
+    for j in range(n):
+        if sides[j] is not None:
+            state.stood[j] = _floor_stand(state, j, state.costs.references(j, upright), sides[j])
+    for j in range(n):
+        if j not in upright and sides[j] is None:
+            report(0.5 + (j + 1) / (2 * n), f"standing {state.names[j]}")
+            decision = _stand(state, j, upright)
+            if decision is not None:
+                state.stood[j] = decision
+
+
+def _symmetric_sides(state: ConsensusState) -> list[tuple[str, float, float] | None]:
+    """Per shape, its side axis that has the collection's up symmetry clearly more than
+    its up (`_symmetric_side`; the profile fitted to every shape as given), else None."""
+    if not state.symmetry_profile:
+        return [None] * state.n
+    state.evidence.symmetry.fit_profile([np.eye(3)] * state.n, list(range(state.n)))
+    return [_symmetric_side(state.evidence.symmetry, j, state.settings) for j in range(state.n)]
+
+
+def _upright_majority(state: ConsensusState, report: Progress) -> list[int]:
+    """The shapes that most of their references (all shapes) fit better standing on
+    their up line than on a side, and whose side axes do not have the collection's up
+    symmetry."""
+    n, upright = state.n, []
+    for j in range(n):
+        report((j + 1) / (2 * n), f"{j + 1} of {n}")
+        references = state.costs.references(j, list(range(n)))
+        ratios = [state.costs.side_ratio(j, i)[0] for i in references]
+        lying = np.mean([r > state.settings.costs.margin for r in ratios] or [0.0]) > 0.5
+        if not lying and state.symmetric_sides[j] is None:
+            upright.append(j)
+    return upright
+
+
+def _stand(state: ConsensusState, j: int, upright: Sequence[int]) -> PoseDecision | None:
+    """Shape j (outside the upright majority, no floor turn) stood on the axis line its
+    `upright` references or its symmetry ask for, or flagged "may be on its side" on
+    weaker evidence; None when nothing asks."""
+    settings, identity, symmetric_side = state.settings, np.eye(3), state.symmetric_sides[j]
+    references = state.costs.references(j, upright)
+    pairs = [state.costs.side_ratio(j, i) for i in references]
+    ratios, lines = np.array([ratio for ratio, _ in pairs]), [line for _, line in pairs]
+    line = symmetric_side[0] if symmetric_side is not None else max(set(lines), key=lines.count)
+    votes = sum(r > settings.costs.margin and ln == line for r, ln in zip(ratios, lines))
+    median = float(np.median(ratios))
+    d, told = _standing_end(np.array([state.costs.standing_costs(j, identity, i, identity) for i in references]),
+                            line, settings, state.convention)
+    stand = TILTS[d]
+    by_cost = votes >= settings.costs.agreement * len(references) and median >= settings.costs.margin
+    symmetric = (not state.symmetry_profile
+                 or state.evidence.symmetry.score(j, stand) <= state.evidence.symmetry.score(j, identity))
+    words = []
+    if by_cost or median > settings.costs.margin:
+        words.append(f"{votes} of {len(references)} shapes fit it better standing on its {line} axis "
+                     f"({median:.1f}× at the median)")
+    if symmetric_side is not None:
+        words.append(f"its {line} axis has the symmetry the collection's shapes have about their up "
+                     f"(score {symmetric_side[1]:.1f} against {symmetric_side[2]:.1f} for its up)")
+    clear = (by_cost and symmetric) or (symmetric_side is not None and median >= 1.0)
+    if not words:
+        return None
+    if clear and not state.frozen[j] and not state.resting[j]:
+        return PoseDecision(stand, f"{describe_rotation(stand)}: {' and '.join(words)}, a file-convention turn",
+                            end_guessed=not told)
+    why = "" if symmetric else "; its own up has the collection's symmetry"
+    if state.resting[j]:
+        why += f"; {RESTING}"
+    return PoseDecision(identity, flag=f"may be on its side: {' and '.join(words)}{why}", flag_rotation=stand)
 
 
 def _floor_turn(floors: FileFloors | None, j: int, floor: Floor | None) -> int | None:
@@ -348,34 +507,34 @@ def _side(turn: int | None) -> int | None:
     return turn if turn is not None and turn >= 2 else None
 
 
-def _floor_stand(evidence: CollectionEvidence, j: int, references: Sequence[int], side: int,
-                 frozen: bool, settings: ConsensusSettings) -> PoseDecision:
+def _floor_stand(state: ConsensusState, j: int, references: Sequence[int], side: int) -> PoseDecision:
     """Shape j stood on the side its file's floor is on (`_floor_turn`) unless its
-    upright references fit it clearly better as given (by `margin`; in a class that
+    upright references fit it clearly better as given (by `costs.margin`; in a class that
     varies in pose they may: a rearing cat fits standing cats better lying). Evidence
     that disagrees so is flagged, the floor's stand suggested."""
-    identity = np.eye(3)
+    identity, margin = np.eye(3), state.settings.costs.margin
     line = next(ln for ln, ends in _LINES.items() if side in ends)
     a, b = _LINES[line]
-    costs = np.array([evidence.standing_costs(j, identity, i, identity) for i in references]).reshape(-1, 6)
+    costs = np.array([state.costs.standing_costs(j, identity, i, identity) for i in references]).reshape(-1, 6)
     ratio = float(np.median(np.minimum(costs[:, 0], costs[:, 1])
                             / np.maximum(np.minimum(costs[:, a], costs[:, b]), 1e-300))) if len(costs) else 0.0
     stand = TILTS[side]
     words = f"{LANDS}, standing on its {line} axis"
-    if ratio * settings.margin >= 1.0 and not frozen:
+    if ratio * margin >= 1.0 and not state.frozen[j]:
         return PoseDecision(stand, f"{describe_rotation(stand)}: {words}, a file-convention turn")
-    if ratio * settings.margin < 1.0:
+    if ratio * margin < 1.0:
         words += f", but its upright references fit it {1.0 / max(ratio, 1e-300):.1f}× better as given (median)"
     return PoseDecision(identity, flag=f"may be on its side: {words}", flag_rotation=stand)
 
 
 def _symmetric_side(symmetry: AxisSymmetry, j: int, settings: ConsensusSettings) -> tuple[str, float, float] | None:
     """(axis, its score, its up's score) when shape j's x or y axis has the symmetry of the
-    collection's up profile clearly more than its up (`symmetry_gap`, `symmetry_ratio`;
+    collection's up profile clearly more than its up (`symmetry.gap`, `symmetry.ratio`;
     `AxisSymmetry.axis_scores`, 0 = the collection's typical up), else None."""
     scores = symmetry.axis_scores(j, np.eye(3))
     other = 1 + int(np.argmin(scores[1:]))
-    if scores[0] - scores[other] > settings.symmetry_gap and scores[0] > settings.symmetry_ratio * scores[other]:
+    if (scores[0] - scores[other] > settings.symmetry.gap
+            and scores[0] > settings.symmetry.ratio * scores[other]):
         return "xy"[other - 1], float(scores[other]), float(scores[0])
     return None
 
@@ -383,12 +542,12 @@ def _symmetric_side(symmetry: AxisSymmetry, j: int, settings: ConsensusSettings)
 def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
                   convention: np.ndarray | None) -> tuple[int, bool]:
     """(TILTS index, told) of the end of `line` a shape stands on: the end the references'
-    median costs (rows of `costs`) prefer by `flip_margin` (told), else the file
+    median costs (rows of `costs`) prefer by `ends.flip_margin` (told), else the file
     convention's end when it lies on the line, else the cheaper one (both guesses)."""
     a, b = _LINES[line]
     ca, cb = float(np.median(costs[:, a])), float(np.median(costs[:, b]))
     cheaper = a if ca <= cb else b
-    if max(ca, cb) >= settings.flip_margin * min(ca, cb):
+    if max(ca, cb) >= settings.ends.flip_margin * min(ca, cb):
         return cheaper, True
     for d in (a, b):
         if convention is not None and (TILTS[d] @ convention)[2] > 0.99:
@@ -396,60 +555,78 @@ def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
     return cheaper, False
 
 
-def tops_and_bottoms(evidence: CollectionEvidence, signatures: Signatures, hollows: Hollows | None,
-                     frozen: Sequence[bool], settings: ConsensusSettings,
-                     stood: Sequence[PoseDecision], report: Progress = no_progress,
-                     floors: FileFloors | None = None, floor: Floor | None = None) -> list[PoseDecision]:
-    """Step 2: turn-overs on evidence that holds over the collection (module docstring).
-    A shape resting as given on the `floor` its collection's files share (`floors`) is
-    flagged, not turned over, unless step 1 stood it on another axis."""
-    n = len(evidence.search)
-    poses = [d.rotation for d in stood]
-    pool = [j for j in range(n) if not stood[j].flag]  # a shape maybe on its side is no reference
-    references, ratios, costs = {}, {}, {}
-    for j in range(n):
-        report((j + 1) / n, f"{j + 1} of {n}")
-        references[j] = evidence.references(j, pool)
-        costs[j] = np.array([evidence.standing_costs(j, poses[j], i, poses[i])
-                             for i in references[j]]).reshape(-1, 6)
-        ratios[j] = costs[j][:, 0] / np.maximum(costs[j][:, 1], 1e-300)
-    asked_votes = {j: ratios[j] > settings.margin for j in range(n)}
-    # the odd-moment signature's votes: a reference whose top and bottom match its bottom and top
-    opposed_votes = {j: np.array([signatures.up_agreement(j, poses[j], [(i, poses[i])]) < -settings.coherence
-                                  for i in references[j]], dtype=bool) for j in range(n)}
-    openings = np.array([hollows.vertical(j, poses[j]) for j in range(n)]) if hollows is not None else np.zeros(n)
-    decisions = []
-    for j in range(n):
-        if not len(ratios[j]):
-            decisions.append(PoseDecision(poses[j]))
-            continue
-        ends = _EndEvidence.of(j, ratios[j], asked_votes, opposed_votes, references, openings, costs[j], settings)
-        # a file saved upside down: its floor is its other end (not a shape stood up in step 1:
-        # its end was chosen there, by the floor where the floor tells)
-        lands = not stood[j].changed and _floor_turn(floors, j, floor) == 1
-        landing = lands and not ends.clear_keep  # the costs clearly keeping it: a flag
-        turning = ((ends.clear_flip or landing) and not frozen[j]) or (stood[j].end_guessed and not ends.clear_keep)
-        if not (turning or ends.some_flip or lands):
-            decisions.append(PoseDecision(poses[j]))
-            continue
-        posed = [(i, poses[i]) for i in references[j]]
-        # turned over about x or about y: the same up, facing the other way; the cheaper one
-        # (full-sample costs, asked only of a shape that is turned or flagged)
-        flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
-                      key=lambda r: evidence.search.cost(j, r, posed))
-        resting = (ends.clear_flip and not stood[j].changed and floors is not None
-                   and floors.keeps(j, floor))
-        if (ends.clear_flip or landing) and not frozen[j] and not resting:
-            why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else "") if w)
-            decisions.append(PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}"))
-        elif stood[j].end_guessed and not ends.clear_keep:
-            decisions.append(_guessed_end(poses[j], flipped, ends))
-        else:
-            doubted = f"{LANDS}, but its references fit it better as given" if lands and not landing else ""
-            why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else doubted, RESTING if resting else "")
-                            if w)
-            decisions.append(PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped))
-    return decisions
+@dataclass(frozen=True)
+class _EndVotes:
+    """Step 2's evidence, per shape j: its references (settled shapes), the standing costs
+    against each (rows of six), their cost ratios (its pose / turned over), which of them
+    ask it to turn over by the costs (`asked`) and by the odd moments (`opposed`), and
+    which way its hollow opens (`openings`, up component)."""
+
+    references: dict[int, list[int]]
+    costs: dict[int, np.ndarray]
+    ratios: dict[int, np.ndarray]
+    asked: dict[int, np.ndarray]
+    opposed: dict[int, np.ndarray]
+    openings: np.ndarray
+
+    @classmethod
+    def of(cls, state: ConsensusState, poses: Sequence[np.ndarray], report: Progress) -> "_EndVotes":
+        n, settings = state.n, state.settings
+        pool = [j for j in range(n) if not state.stood[j].flag]  # a shape maybe on its side is no reference
+        references, ratios, costs = {}, {}, {}
+        for j in range(n):
+            report((j + 1) / n, f"{j + 1} of {n}")
+            references[j] = state.costs.references(j, pool)
+            costs[j] = np.array([state.costs.standing_costs(j, poses[j], i, poses[i])
+                                 for i in references[j]]).reshape(-1, 6)
+            ratios[j] = costs[j][:, 0] / np.maximum(costs[j][:, 1], 1e-300)
+        asked = {j: ratios[j] > settings.costs.margin for j in range(n)}
+        # the odd-moment signature's votes: a reference whose top and bottom match its bottom and top
+        signatures, coherence = state.evidence.signatures, settings.signature.coherence
+        opposed = {j: np.array([signatures.up_agreement(j, poses[j], [(i, poses[i])]) < -coherence
+                                for i in references[j]], dtype=bool) for j in range(n)}
+        hollows = state.evidence.hollows
+        openings = np.array([hollows.vertical(j, poses[j]) for j in range(n)]) if hollows is not None else np.zeros(n)
+        return cls(references, costs, ratios, asked, opposed, openings)
+
+
+def tops_and_bottoms(state: ConsensusState) -> None:
+    """Step 2: turn-overs on evidence that holds over the collection (module docstring),
+    into `state.ends`. A shape resting as given on the floor its collection's files share
+    (`state.resting`) is flagged, not turned over, unless step 1 stood it on another axis."""
+    poses = [d.rotation for d in state.stood]
+    votes = _EndVotes.of(state, poses, _part(state.report, 0.35, 0.15, "tops and bottoms: "))
+    state.ends = [_end_decision(state, j, poses, votes) for j in range(state.n)]
+
+
+def _end_decision(state: ConsensusState, j: int, poses: Sequence[np.ndarray], votes: _EndVotes) -> PoseDecision:
+    """Shape j (in its `poses`, after step 1) turned over, flagged "may be upside down",
+    or left as it is (step 2 of the module docstring)."""
+    stood, frozen = state.stood[j], state.frozen[j]
+    if not len(votes.ratios[j]):
+        return PoseDecision(poses[j])
+    ends = _EndEvidence.of(j, votes, state.settings)
+    # a file saved upside down: its floor is its other end (not a shape stood up in step 1:
+    # its end was chosen there, by the floor where the floor tells)
+    lands = not stood.changed and state.floor_turns[j] == 1
+    landing = lands and not ends.clear_keep  # the costs clearly keeping it: a flag
+    turning = ((ends.clear_flip or landing) and not frozen) or (stood.end_guessed and not ends.clear_keep)
+    if not (turning or ends.some_flip or lands):
+        return PoseDecision(poses[j])
+    posed = [(i, poses[i]) for i in votes.references[j]]
+    # turned over about x or about y: the same up, facing the other way; the cheaper one
+    # (full-sample costs, asked only of a shape that is turned or flagged)
+    flipped = min((_HALF_TURN_X @ poses[j], _HALF_TURN_Y @ poses[j]),
+                  key=lambda r: state.search.cost(j, r, posed))
+    resting = ends.clear_flip and not stood.changed and state.resting[j]
+    if (ends.clear_flip or landing) and not frozen and not resting:
+        why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else "") if w)
+        return PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}")
+    if stood.end_guessed and not ends.clear_keep:
+        return _guessed_end(poses[j], flipped, ends)
+    doubted = f"{LANDS}, but its references fit it better as given" if lands and not landing else ""
+    why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else doubted, RESTING if resting else "") if w)
+    return PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped)
 
 
 def _guessed_end(pose: np.ndarray, flipped: np.ndarray, ends: "_EndEvidence") -> PoseDecision:
@@ -481,21 +658,23 @@ class _EndEvidence:
     flip_reason: str
 
     @classmethod
-    def of(cls, j: int, ratios: np.ndarray, asked_votes: dict, opposed_votes: dict, references: dict,
-           openings: np.ndarray, costs: np.ndarray, settings: ConsensusSettings) -> "_EndEvidence":
-        agreeing = 1.0 - settings.agreement  # the most a collection agreeing with itself asks
-        asked, opposed = float(np.mean(asked_votes[j])), float(np.mean(opposed_votes[j]))
-        cost_background = _background(asked_votes, references, j)
-        moment_background = _background(opposed_votes, references, j)
+    def of(cls, j: int, votes: _EndVotes, settings: ConsensusSettings) -> "_EndEvidence":
+        costs_settings, ends = settings.costs, settings.ends
+        ratios, openings = votes.ratios[j], votes.openings
+        agreeing = 1.0 - costs_settings.agreement  # the most a collection agreeing with itself asks
+        asked, opposed = float(np.mean(votes.asked[j])), float(np.mean(votes.opposed[j]))
+        cost_background = _background(votes.asked, votes.references, j)
+        moment_background = _background(votes.opposed, votes.references, j)
         median = float(np.median(ratios))
-        hollow = _hollow_disagrees(openings, j, settings)
-        hollow_keeps = _hollow_agrees(openings, j, settings)
+        hollow = _hollow_disagrees(openings, j, settings.hollows)
+        hollow_keeps = _hollow_agrees(openings, j, settings.hollows)
         moments_flip = opposed > 0.5 and moment_background <= agreeing
-        moments_strong = opposed >= settings.agreement and moment_background <= agreeing
-        cost_strong = (asked >= settings.agreement and cost_background <= agreeing and not hollow_keeps
-                       and (median >= settings.flip_margin or (moments_strong and median >= settings.flip_support)))
-        cost_flip = asked >= 0.5 and median > settings.margin and asked - cost_background >= 0.4
-        cost_allows = np.median(costs[:, 1]) <= settings.hollow_cost * np.median(costs[:, 0])
+        moments_strong = opposed >= costs_settings.agreement and moment_background <= agreeing
+        cost_strong = (asked >= costs_settings.agreement and cost_background <= agreeing and not hollow_keeps
+                       and (median >= ends.flip_margin or (moments_strong and median >= ends.flip_support)))
+        cost_flip = asked >= 0.5 and median > costs_settings.margin and asked - cost_background >= 0.4
+        costs = votes.costs[j]
+        cost_allows = np.median(costs[:, 1]) <= settings.hollows.cost * np.median(costs[:, 0])
         share = f"{int(round(asked * len(ratios)))} of {len(ratios)} shapes fit it better turned over"
         moments = f"its top and bottom match the bottom and top of {opposed:.0%} of its {len(ratios)} references"
         if hollow:
@@ -513,7 +692,7 @@ class _EndEvidence:
         # a flag needs most references (the odd moments: a minority of the other taper is
         # as opposed as a third of the files upside down, so only a clear majority flags)
         flags = bool(hollow) or cost_strong or cost_flip or moments_strong
-        clear_keep = hollow_keeps or (median <= 1.0 / settings.margin and cost_background <= agreeing)
+        clear_keep = hollow_keeps or (median <= 1.0 / costs_settings.margin and cost_background <= agreeing)
         keeps = clear_keep or (opposed < 0.5 and moment_background <= agreeing and not cost_flip)
         return cls(bool(hollow and cost_allows) or cost_strong, flags, bool(reason), keeps and not hollow,
                    clear_keep and not hollow, reason)
@@ -534,57 +713,90 @@ def _background(votes: dict[int, np.ndarray], references: dict[int, list[int]], 
     return float(np.median(shares)) if shares else 1.0
 
 
-def _hollow_signs(openings: np.ndarray, j: int, settings: ConsensusSettings) -> int:
+def _hollow_signs(openings: np.ndarray, j: int, settings: HollowSettings) -> int:
     """+1 / −1 when the hollows of the other shapes that tell (at least three) open that
-    way up in at least `hollow_agreement` of them; 0 when they do not agree. Which way a
+    way up in at least `hollows.agreement` of them; 0 when they do not agree. Which way a
     hollow opens does not vary across a class as a taper does (a cup opens at its top), so
     a clear majority is the collection's even with a third of its files upside down."""
     others = np.delete(openings, j)
-    telling = others[np.abs(others) > settings.hollow_floor]
+    telling = others[np.abs(others) > settings.opening]
     if len(telling) < 3:
         return 0
     up = float(np.mean(telling > 0))
-    return 1 if up >= settings.hollow_agreement else -1 if 1.0 - up >= settings.hollow_agreement else 0
+    return 1 if up >= settings.agreement else -1 if 1.0 - up >= settings.agreement else 0
 
 
-def _hollow_disagrees(openings: np.ndarray, j: int, settings: ConsensusSettings) -> str:
+def _hollow_disagrees(openings: np.ndarray, j: int, settings: HollowSettings) -> str:
     """Why shape j's hollow says it is upside down ('' when it does not)."""
     sign = _hollow_signs(openings, j, settings)
     own = openings[j]
-    if sign == 0 or abs(own) <= settings.hollow_floor or np.sign(own) == sign:
+    if sign == 0 or abs(own) <= settings.opening or np.sign(own) == sign:
         return ""
     return (f"its hollow opens {'upwards' if own > 0 else 'downwards'} ({own:+.2f}), the collection's "
             f"{'upwards' if sign > 0 else 'downwards'}")
 
 
-def _hollow_agrees(openings: np.ndarray, j: int, settings: ConsensusSettings) -> bool:
+def _hollow_agrees(openings: np.ndarray, j: int, settings: HollowSettings) -> bool:
     sign = _hollow_signs(openings, j, settings)
-    return sign != 0 and abs(openings[j]) > settings.hollow_floor and np.sign(openings[j]) == sign
+    return sign != 0 and abs(openings[j]) > settings.opening and np.sign(openings[j]) == sign
 
 
-def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], frozen: Sequence[bool],
-            settings: ConsensusSettings, ends: Sequence[PoseDecision],
-            report: Callable[[float, str], None]) -> list[PoseDecision]:
-    """Step 3: turns about up only (module docstring)."""
-    n = len(search)
-    k = min(settings.neighbours, n - 1)
-    start = [d.rotation for d in ends]
-    settled = [not d.flag for d in ends]
+def facings(state: ConsensusState) -> None:
+    """Step 3: turns about up only (module docstring), into `state.faced`: first by the
+    Chamfer cost (`_CostFacing`), then by the facing signature (`_SignatureFacing`), each
+    settled by `_settle`. With `may_turn` False nobody is turned here."""
+    if not state.may_turn:
+        state.faced = [PoseDecision(d.rotation) for d in state.ends]
+        return
+    # a shape that may lie on its side is left as given (a turn about its up means
+    # nothing); one that may be upside down still lines its facing up (rule b)
+    frozen = [f or bool(d.flag) for f, d in zip(state.frozen, state.stood)]
+    settled = [not d.flag for d in state.ends]
+    first = _settle(state, _CostFacing(state, [d.rotation for d in state.ends], settled), frozen)
+    second = _settle(state, _SignatureFacing(state, [d.rotation for d in first],
+                                             [s and not d.changed for s, d in zip(settled, first)]), frozen)
+    state.faced = [_combined(a, b) for a, b in zip(first, second)]
 
-    def upright_fit(j: int, references: list[tuple[int, np.ndarray]]):
-        upright, _ = search.best_rotation(j, references, settings.yaw_step, 0, True, settings.snap, start[j])
+
+class _CostFacing:
+    """Step 3's test by the Chamfer cost, for `_settle`: shape j agrees with shape i when
+    it fits i in its pose (`start`) within `costs.margin` of its best turn about up; a
+    shape is decided against the collection's settled shapes (`eligible`), or, when the
+    inputs share no pose, against its nearest shapes by `facing.unshared_margin`."""
+
+    what = "pose"
+    progress, span = 0.5, 0.18  # the share of Prepare's progress it reports in
+
+    def __init__(self, state: ConsensusState, start: Sequence[np.ndarray], eligible: Sequence[bool]):
+        self.state, self.start, self.eligible = state, start, eligible
+        self.shared_votes = state.settings.facing.shared_pose
+
+    def _upright_fit(self, j: int, references: list[tuple[int, np.ndarray]]):
+        facing = self.state.settings.facing
+        upright, _ = self.state.search.best_rotation(j, references, facing.yaw_step, 0, True, facing.snap,
+                                                     self.start[j])
         return upright
 
-    def by_cost_agree(j: int, i: int) -> bool:
-        reference = [(i, start[i])]
-        return search.cost(j, start[j], reference) <= settings.margin * upright_fit(j, reference).cost
+    def agree(self, j: int, i: int) -> bool:
+        reference = [(i, self.start[i])]
+        margin = self.state.settings.costs.margin
+        return self.state.search.cost(j, self.start[j], reference) <= margin * self._upright_fit(j, reference).cost
 
-    def by_cost(j: int, references: list[tuple[int, np.ndarray]], least: float = settings.margin,
-                why: str = "") -> PoseDecision:
+    def share_none(self) -> bool:
+        """The inputs share no pose: from now on the search compares shapes at any turn
+        about up, and a shape turned is a reference like one kept (True)."""
+        self.state.search.compare_turned(self.state.settings.facing.yaw_step)
+        return True
+
+    def decide(self, j: int, references: list[tuple[int, np.ndarray]], why: str = "") -> PoseDecision:
+        """Shape j turned about up, flagged or kept; `why`: the inputs share no pose."""
+        state, search, start = self.state, self.state.search, self.start
+        settings = state.settings
+        least = settings.facing.unshared_margin if why else settings.costs.margin
         if not why:  # the inputs share a facing: a turn needs the collection, not three nearest shapes
-            references = [(i, start[i]) for i in search.nearest(j, [i for i in range(n) if settled[i]],
-                                                                 settings.references)]
-        fit = upright_fit(j, references)
+            references = [(i, start[i]) for i in search.nearest(j, [i for i in range(state.n) if self.eligible[i]],
+                                                                 settings.costs.references)]
+        fit = self._upright_fit(j, references)
         ratio = search.cost(j, start[j], references) / max(fit.cost, 1e-300)
         each = sum(search.cost(j, start[j], [r]) > least * search.cost(j, fit.rotation, [r]) for r in references)
         turn = fit.rotation @ start[j].T
@@ -592,46 +804,61 @@ def facings(search: PoseSearch, signatures: Signatures, names: Sequence[str], fr
             if ratio <= least:
                 return PoseDecision(start[j])
             return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: its {len(references)} nearest shapes "
-                                              f"({_names(names, references)}) fit {ratio:.1f}× better ({why})")
+                                              f"({_names(state.names, references)}) fit {ratio:.1f}× better ({why})")
         share = f"{each} of {len(references)} shapes fit it {ratio:.1f}× better turned about up"
-        if ratio <= least or 2 * each <= len(references) or _angle(turn) <= settings.facing_angle:
+        if ratio <= least or 2 * each <= len(references) or _angle(turn) <= settings.facing.angle:
             return PoseDecision(start[j])
-        if each >= settings.agreement * len(references):
+        if each >= settings.costs.agreement * len(references):
             return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: {share}, the collection facing one way")
         return PoseDecision(start[j], flag=f"may face another way: {share}", flag_rotation=fit.rotation)
 
-    first = _settle(search, k, frozen, start, by_cost_agree, by_cost, report, 0.5, 0.18, settled,
-                    lambda j, references, why: by_cost(j, references, settings.unshared_margin, why),
-                    settings.shared_pose, "pose", unshared_search=lambda: search.compare_turned(settings.yaw_step))
-    turned = [d.rotation for d in first]
 
-    def by_signature(j: int, references: list[tuple[int, np.ndarray]], unshared: str = "") -> PoseDecision:
-        rotation = turned[j]
-        angle, coherence = signatures.facing_turn(j, rotation, references)
-        least = settings.unshared_angle if unshared else settings.facing_angle
-        cost = search.cost(j, rotation, references)
+class _SignatureFacing:
+    """Step 3's test by the facing signature, for `_settle`: shape j agrees with shape i
+    when the signature turns it by at most `facing.angle` towards i (no turn); a turn
+    must cost at most `facing.tolerance` more by the Chamfer cost."""
+
+    what = "facing"
+    progress, span = 0.68, 0.18
+
+    def __init__(self, state: ConsensusState, start: Sequence[np.ndarray], eligible: Sequence[bool]):
+        self.state, self.start, self.eligible = state, start, eligible
+        self.shared_votes = state.settings.facing.shared_facing
+
+    def agree(self, j: int, i: int) -> bool:
+        return not self.decide(j, [(i, self.start[i])]).changed
+
+    def share_none(self) -> bool:
+        """The inputs share no facing: a turned shape stays no reference (False)."""
+        return False
+
+    def decide(self, j: int, references: list[tuple[int, np.ndarray]], why: str = "") -> PoseDecision:
+        """Shape j turned about up to its references' facing, or kept; `why`: the inputs
+        share no facing (then a turn of more than `facing.unshared_angle` is enough)."""
+        state, facing, rotation = self.state, self.state.settings.facing, self.start[j]
+        angle, coherence = state.evidence.signatures.facing_turn(j, rotation, references)
+        least = facing.unshared_angle if why else facing.angle
+        cost = state.search.cost(j, rotation, references)
         candidate = yaw_rotation(angle) @ rotation
-        if (coherence <= settings.coherence or abs(angle) <= least
-                or search.cost(j, candidate, references) > (1.0 + settings.tolerance) * cost):
+        if (coherence <= state.settings.signature.coherence or abs(angle) <= least
+                or state.search.cost(j, candidate, references) > (1.0 + facing.tolerance) * cost):
             return PoseDecision(rotation)
         return PoseDecision(candidate, f"{describe_rotation(candidate @ rotation.T)}: its facing like its "
-                                       f"{len(references)} nearest shapes ({_names(names, references)})"
-                                       + (f" ({unshared})" if unshared else ""))
-
-    second = _settle(search, k, frozen, turned, lambda j, i: not by_signature(j, [(i, turned[i])]).changed,
-                     by_signature, report, 0.68, 0.18, [s and not d.changed for s, d in zip(settled, first)],
-                     lambda j, references, why: by_signature(j, references, why), settings.shared_facing, "facing")
-    return [_combined(a, b) for a, b in zip(first, second)]
+                                       f"{len(references)} nearest shapes ({_names(state.names, references)})"
+                                       + (f" ({why})" if why else ""))
 
 
-def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: ConsensusSettings,
-                   report: Progress = no_progress) -> list[PoseDecision]:
-    """Step 4: a shape not flagged yet that fits its nearest shapes (final poses) over
-    `outlier_factor` times worse than the median shape does is flagged, with no turn."""
-    n = len(search)
+def outlier_flags(state: ConsensusState) -> None:
+    """Step 4: the steps' decisions combined (`_combined`) into `state.decisions`; a shape
+    not flagged yet that fits its nearest shapes (final poses) over `outlier_factor`
+    times worse than the median shape does is flagged, with no turn."""
+    decisions = [_combined(*stages) for stages in zip(state.stood, state.ends, state.faced)]
+    state.decisions = decisions
+    n, search = state.n, state.search
     if n < 3:
-        return decisions
-    k = min(settings.neighbours, n - 1)
+        return
+    report = _part(state.report, 0.86, 0.02, "checking the poses: ")
+    k = min(state.settings.facing.neighbours, n - 1)
     rotations = [d.rotation for d in decisions]
     costs = []
     for j in range(n):
@@ -639,14 +866,13 @@ def _outlier_flags(search: PoseSearch, decisions: list[PoseDecision], settings: 
         costs.append(search.cost(j, rotations[j], [(i, rotations[i]) for i in search.nearest(j, range(n), k)]))
     costs = np.array(costs)
     median = float(np.median(costs))
-    flagged = []
+    state.decisions = []
     for d, cost in zip(decisions, costs):
-        if not d.flag and cost > settings.outlier_factor * median:
+        if not d.flag and cost > state.settings.outlier_factor * median:
             d = PoseDecision(d.rotation, d.reason, d.steps,
                              f"fits its {k} nearest shapes {cost / median:.1f}× worse than the collection's median "
                              "shape does (an unusual shape, or a pose no turn fixes)")
-        flagged.append(d)
-    return flagged
+        state.decisions.append(d)
 
 
 def _noted_kept(decision: PoseDecision) -> PoseDecision:
@@ -685,24 +911,55 @@ def _combined(*stages: PoseDecision) -> PoseDecision:
     return PoseDecision(stages[-1].rotation, reason, tuple(reasons), flag, flag_rotation)
 
 
-def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np.ndarray],
-            agree: Callable[[int, int], bool], decide: Callable[[int, list], PoseDecision],
-            report: Callable[[float, str], None], progress: float, span: float, eligible: Sequence[bool],
-            decide_unshared: Callable[[int, list, str], PoseDecision] | None = None,
-            shared_votes: float = 0.0, what: str = "pose",
-            unshared_search: Callable[[], None] | None = None) -> list[PoseDecision]:
-    """Steps 1–3 with one test: votes of every shape with its k nearest shapes (`agree`),
-    the majority group (of `eligible` shapes) keeps its poses, everyone else is decided
-    (`decide`) against its k nearest settled shapes, closest to the settled ones first;
-    `keep` shapes never move. When at most `shared_votes` of the votes agree, the inputs
-    share no pose that this test could keep (the majority is a chance group): the medoid
-    of the voters alone keeps its pose, and everyone else is decided by `decide_unshared`
-    (given why, for its reason). With `unshared_search` (called first: it makes the
-    search compare shapes at any turn) a shape it turns is then a reference for the
-    shapes after it like one it keeps (no input pose is more to trust than a turned one),
-    so the collection follows the medoid from nearest shape to nearest shape."""
-    n = len(search)
-    voters = [j for j in range(n) if eligible[j]]
+def _settle(state: ConsensusState, test: _CostFacing | _SignatureFacing, keep: Sequence[bool]) -> list[PoseDecision]:
+    """Step 3 with one `test`: votes of every shape with its k nearest shapes
+    (`test.agree`), the majority group (of `test.eligible` shapes) keeps its poses
+    (`test.start`), everyone else is decided (`test.decide`) against its k nearest
+    settled shapes, closest to the settled ones first; `keep` shapes never move. When at
+    most `test.shared_votes` of the votes agree, the inputs share no pose that this test
+    could keep (the majority is a chance group): the medoid of the voters alone keeps its
+    pose, and everyone else is decided given why, for its reason. When the test then
+    trusts turned shapes (`test.share_none`: the cost test makes the search compare
+    shapes at any turn) a shape it turns is a reference for the shapes after it like one
+    it keeps (no input pose is more to trust than a turned one), so the collection
+    follows the medoid from nearest shape to nearest shape."""
+    search, n, report = state.search, state.n, state.report
+    k = min(state.settings.facing.neighbours, n - 1)
+    voters = [j for j in range(n) if test.eligible[j]]
+    votes, nearest = _facing_votes(state, test, voters, k)
+    majority = _majority(search, votes, nearest, voters)
+    agreeing = sum(votes.values())
+    unshared = bool(votes) and agreeing <= test.shared_votes * len(votes)
+    trust_turned = unshared and test.share_none()
+    why = ""
+    if unshared:
+        majority = [_medoid(search, voters)]
+        why = f"no input {test.what} is shared: {agreeing} of {len(votes)} pairs of nearest shapes agree"
+    decisions = {j: PoseDecision(test.start[j]) for j in majority}
+    references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
+    decisions.update({j: PoseDecision(test.start[j]) for j in range(n) if keep[j] and j not in decisions})
+    # the next shape is the one closest to its nearest trusted shape (kept up to date as
+    # the pool grows, not asked of every shape after every decision: issue 15)
+    waiting = NearestInPool(search, references_pool, [r for r in range(n) if r not in decisions])
+    while len(decisions) < n:
+        j = waiting.closest()
+        references = [(i, decisions[i].rotation) for i in search.nearest(j, references_pool, k)]
+        decisions[j] = test.decide(j, references, why)
+        if trust_turned or not decisions[j].changed:  # a turned shape's pose is a guess: no reference
+            references_pool.append(j)
+            waiting.join(j)
+        else:
+            waiting.leave(j)
+        report(test.progress + 0.5 * test.span + 0.5 * test.span * len(decisions) / n,
+               f"orienting {len(decisions)} of {n}")
+    return [decisions[j] for j in range(n)]
+
+
+def _facing_votes(state: ConsensusState, test: _CostFacing | _SignatureFacing, voters: Sequence[int],
+                  k: int) -> tuple[dict[tuple[int, int], bool], dict[int, list[int]]]:
+    """Whether each voter and each of its k nearest voters agree (`test.agree`, each pair
+    asked once), and those nearest voters."""
+    search, n = state.search, state.n
     votes: dict[tuple[int, int], bool] = {}
     # each voter's nearest voters, asked once: above neighbours.EXACT_SHAPES a later query
     # can rank a pair whose exact cost another query computed since (its estimate was
@@ -713,35 +970,9 @@ def _settle(search: PoseSearch, k: int, keep: Sequence[bool], start: Sequence[np
         for i in nearest[j]:
             pair = (min(i, j), max(i, j))
             if pair not in votes:
-                votes[pair] = agree(*pair)
-        report(progress + 0.5 * span * (j + 1) / n, f"comparing {j + 1} of {n}")
-    majority = _majority(search, votes, nearest, voters)
-    agreeing = sum(votes.values())
-    unshared = decide_unshared is not None and bool(votes) and agreeing <= shared_votes * len(votes)
-    trust_turned = unshared and unshared_search is not None
-    if trust_turned:
-        unshared_search()
-    if unshared:
-        majority = [_medoid(search, voters)]
-        why = f"no input {what} is shared: {agreeing} of {len(votes)} pairs of nearest shapes agree"
-        decide = lambda j, references: decide_unshared(j, references, why)  # noqa: E731
-    decisions = {j: PoseDecision(start[j]) for j in majority}
-    references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
-    decisions.update({j: PoseDecision(start[j]) for j in range(n) if keep[j] and j not in decisions})
-    # the next shape is the one closest to its nearest trusted shape (kept up to date as
-    # the pool grows, not asked of every shape after every decision: issue 15)
-    waiting = NearestInPool(search, references_pool, [r for r in range(n) if r not in decisions])
-    while len(decisions) < n:
-        j = waiting.closest()
-        references = [(i, decisions[i].rotation) for i in search.nearest(j, references_pool, k)]
-        decisions[j] = decide(j, references)
-        if trust_turned or not decisions[j].changed:  # a turned shape's pose is a guess: no reference
-            references_pool.append(j)
-            waiting.join(j)
-        else:
-            waiting.leave(j)
-        report(progress + 0.5 * span + 0.5 * span * len(decisions) / n, f"orienting {len(decisions)} of {n}")
-    return [decisions[j] for j in range(n)]
+                votes[pair] = test.agree(*pair)
+        state.report(test.progress + 0.5 * test.span * (j + 1) / n, f"comparing {j + 1} of {n}")
+    return votes, nearest
 
 
 def _majority(search: PoseSearch, agree: dict[tuple[int, int], bool], nearest: dict[int, list[int]],

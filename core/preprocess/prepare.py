@@ -9,17 +9,11 @@ import numpy as np
 
 from ..errors import CollectionError, MeshError
 from ..mesh import FACE_CHUNK, Mesh
-from ..progress import sub_range
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES
 from ..spill import loaded, proxy_of
-from .consensus import ConsensusSettings, PoseDecision, consensus_rotations
-from .floors import FileFloors
-from .hollow import Hollows
+from .consensus import ConsensusSettings, PoseDecision, ShapeEvidence, consensus_rotations
 from .moments import SCALE_MODES, scale_measure, surface_moments
-from .posesearch import PoseSearch
 from .rotations import describe_rotation, horizontal_pca_rotation, up_rotation
-from .signature import Signatures
-from .symmetry import AxisSymmetry
 from .transform import PreparedShape, ShapeTransform
 
 __all__ = ["ALIGN_MODES", "CENTRE_MODES", "prepare_collection", "turn_as_flagged"]
@@ -65,27 +59,19 @@ def prepare_collection(
     report = progress or (lambda fraction, message: None)
 
     up = up_rotation(up_axis)
-    search = signatures = symmetry = hollows = floors = None
+    evidence = None
     if len(meshes) > 2 or (align == "consensus" and len(meshes) > 1):
         posed = [proxy_of(mesh, POSE_PROXY_FACES, dense_faces).mesh for mesh in meshes]
-        search = PoseSearch.of(posed, [up] * len(meshes), consensus.points, seed,
-                               sub_range(report, 0.0, 0.15, "pose search: "))
-        signatures = Signatures(posed, [up] * len(meshes), consensus.facing_order, sub_range(report, 0.15, 0.17))
-        symmetry = AxisSymmetry.of(search, posed, [up] * len(meshes), seed, consensus.symmetry_floor,
-                                   sub_range(report, 0.17, 0.18))
-        hollows = Hollows.of(posed, [up] * len(meshes), consensus.hollow_grid, seed, sub_range(report, 0.18, 0.2))
-        floors = FileFloors.of(posed, up)
+        evidence = ShapeEvidence.of(posed, up, consensus, seed, report)
         del posed
     report(0.2, "surface samples")
     names = [m.name for m in meshes]
-    if align == "consensus" and search is not None:
-        decisions = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
-                                        up_axis, floors=floors)
+    if align == "consensus" and evidence is not None:
+        decisions = consensus_rotations(evidence, names, keep, consensus, report, up_axis)
     else:
         decisions = [_own_decision(mesh, up, align, k) for mesh, k in zip(meshes, keep)]
         if len(meshes) > 2:  # nobody is turned by the consensus, but a pose it doubts is flagged
-            checks = consensus_rotations(search, signatures, names, keep, consensus, report, symmetry, hollows,
-                                         up_axis, may_turn=False, floors=floors)
+            checks = consensus_rotations(evidence, names, keep, consensus, report, up_axis, may_turn=False)
             decisions = [PoseDecision(d.rotation, d.reason, d.steps, c.flag,
                                       None if c.flag_rotation is None else c.flag_rotation @ d.rotation)
                          for d, c in zip(decisions, checks)]

@@ -12,12 +12,13 @@ import pytest
 from shapegen_core.datasets import _revolved_mesh, make_barrels
 from shapegen_core.mesh import Mesh
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
+from shapegen_core.preprocess.consensus import HollowSettings
 from shapegen_core.preprocess.hollow import Hollows, opening_vector
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, yaw_rotation
 
 UPSIDE_DOWN = AXIS_ROTATIONS[4]  # half turn about x
 ON_ITS_SIDE = AXIS_ROTATIONS[9]
-NO_HOLLOWS = ConsensusSettings(hollow_floor=np.inf)
+NO_HOLLOWS = ConsensusSettings(hollows=HollowSettings(opening=np.inf))
 
 
 def _cups(n: int, seed: int) -> list[tuple[Mesh, float]]:
@@ -103,10 +104,10 @@ def test_kept_upside_down_cup_is_flagged_with_its_hollow():
 
 
 def test_flip_the_cost_objects_to_is_flagged_not_made():
-    """When the cost objects to the flip more than hollow_cost allows (0: always), the
+    """When the cost objects to the flip more than hollows.cost allows (0: always), the
     hollow does not turn the cup; the pose check still flags it by its hollow."""
     meshes, flipped = _flipped_widest_topped(5)
-    prepared = prepare_collection(meshes, consensus=ConsensusSettings(hollow_cost=0.0))
+    prepared = prepare_collection(meshes, consensus=ConsensusSettings(hollows=HollowSettings(cost=0.0)))
     assert _up_error(prepared[flipped], UPSIDE_DOWN) > 170.0
     assert "hollow opens downwards" in prepared[flipped].pose_outlier
 

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from shapegen_core.datasets import make_barrels, make_vases
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
-from shapegen_core.preprocess.consensus import PoseDecision, _combined
+from shapegen_core.preprocess.consensus import CostSettings, PoseDecision, _combined
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, yaw_rotation
 from shapegen_core.preprocess.symmetry import AxisSymmetry, tilt_to_z
@@ -62,7 +62,7 @@ def test_flat_shapes_are_not_laid_on_their_side_by_tall_neighbours():
     vases = _vases(11, 9)
     bowls = [m.with_vertices(m.vertices * [1.8, 1.8, 0.3]) for m in vases[8:]]
     meshes = _placed(vases[:8] + bowls, 3)
-    settings = ConsensusSettings(margin=1.0)
+    settings = ConsensusSettings(costs=CostSettings(margin=1.0))
     prepared = prepare_collection(meshes, consensus=settings)
     for shape in prepared[8:]:
         assert _up_error(shape, np.eye(3)) < 1.0, shape.pose_change

@@ -10,6 +10,7 @@ import pytest
 
 from shapegen_core.datasets import make_vases
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
+from shapegen_core.preprocess.consensus import FacingSettings
 from shapegen_core.preprocess.rotations import yaw_rotation
 
 
@@ -75,8 +76,9 @@ def test_a_shared_facing_with_a_few_shapes_turned_keeps_the_others():
 
 
 def test_shared_facing_setting_switches_the_rule_off():
-    # shared_facing 0: a chance majority keeps its poses as before (within facing_angle)
+    # facing.shared_facing 0: a chance majority keeps its poses as before (within facing.angle)
     shapes = make_vases(6, seed=1, resolution=(65, 130))
-    prepared = prepare_collection([s.mesh for s in shapes], consensus=ConsensusSettings(shared_facing=0.0))
+    prepared = prepare_collection([s.mesh for s in shapes],
+                                  consensus=ConsensusSettings(facing=FacingSettings(shared_facing=0.0)))
     assert _spread(_true_yaws(shapes, prepared)) > 5.0
     assert not any("no input facing is shared" in p.pose_change for p in prepared)
