@@ -149,7 +149,7 @@ def task_correspond(arguments: dict, progress, should_cancel) -> str:
 def task_selftest(arguments: dict, progress, should_cancel) -> str:
     """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash, be
     killed (`kill_at`: SIGKILL) or run a step that never checks cancel (`busy_at`, for
-    `busy` seconds)."""
+    `busy` seconds; `import_at`: one that turns the cancel's interrupt into an ImportError)."""
     from .progress import CancelCheck
     from .spill import SpillStore
 
@@ -162,6 +162,15 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     return str(output)
 
 
+def _busy(seconds: float) -> None:
+    """Spin for `seconds` without a cancel check."""
+    import time
+
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
 def _selftest_steps(arguments: dict, steps: int, progress, cancel) -> None:
     import time
 
@@ -169,9 +178,12 @@ def _selftest_steps(arguments: dict, steps: int, progress, cancel) -> None:
 
     for i in range(steps):
         if arguments.get("busy_at") == i:  # a long step that never checks cancel
-            end = time.monotonic() + float(arguments.get("busy", 30.0))
-            while time.monotonic() < end:
-                pass
+            _busy(float(arguments.get("busy", 30.0)))
+        if arguments.get("import_at") == i:  # ... whose library turns the cancel's interrupt into its own
+            try:                             # error, as an import interrupted midway does
+                _busy(float(arguments.get("busy", 30.0)))
+            except KeyboardInterrupt:
+                raise ImportError("numpy.core.multiarray failed to import") from None
         cancel()
         progress((i + 1) / steps, f"step {i + 1} of {steps}")
         time.sleep(float(arguments.get("sleep", 0.01)))
@@ -208,11 +220,14 @@ def main(argv: list[str]) -> int:
     except (Cancelled, KeyboardInterrupt):
         _emit(event="cancelled")
         return 0
-    except ShapeGenError as exc:
-        _emit(event="failed", error=str(exc))
-        return 1
-    except Exception as exc:  # an unexpected bug: report it with its type, keep the trace on stderr
-        traceback.print_exc()
+    except Exception as exc:
+        if cancel.event.is_set():  # the cancel's interrupt broke a step midway (e.g. an import): not a fault
+            _emit(event="cancelled")
+            return 0
+        if isinstance(exc, ShapeGenError):
+            _emit(event="failed", error=str(exc))
+            return 1
+        traceback.print_exc()  # an unexpected bug: report it with its type, keep the trace on stderr
         _emit(event="failed", error=f"{type(exc).__name__}: {exc}")
         return 1
     _emit(event="done", output=output)

@@ -139,6 +139,14 @@ def test_cancel_interrupts_a_step_that_never_checks_it(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+def test_a_step_broken_by_the_cancel_interrupt_is_reported_cancelled_not_failed(tmp_path):
+    """A cancel landing while the worker imported numpy broke the import ("numpy.core.multiarray
+    failed to import"), and the job was reported failed."""
+    job = BackgroundJob("selftest", {"steps": 3, "import_at": 1, "busy": 30.0, "output": str(tmp_path / "x")}).start()
+    assert _cancel_when_running(job) < 15.0
+    assert not (tmp_path / "x").exists()
+
+
 def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
     from shapegen_core.datasets import make_vases
     from shapegen_core.meshset import save_mesh_set
