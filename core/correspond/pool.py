@@ -27,7 +27,7 @@ from ..progress import CancelCheck, Progress
 from .registration import Registration, RegistrationProblem, register
 from .settings import CorrespondenceSettings
 
-__all__ = ["RegistrationRunner", "RegistrationTask"]
+__all__ = ["RegistrationRunner", "RegistrationTask", "dead_worker_task"]
 
 
 @dataclass(frozen=True)
@@ -292,10 +292,9 @@ class RegistrationRunner:
                 time.sleep(0.05)
             ended[pid] = process.exitcode
         unfinished = [(index, pid) for index, pid in self._started.items() if index not in self._finished]
-        killed = [(index, pid) for index, pid in unfinished if (ended.get(pid) or 0) < 0]
         if not unfinished:
             return WorkerDied(f"a worker process ended without a result, {MEMORY_ADVICE}; this run used {self.jobs}")
-        index, pid = (killed or unfinished)[-1]  # a worker runs its tasks one after another
+        index, pid = dead_worker_task(unfinished, ended)
         return WorkerDied(worker_death_message(names[index], ended.get(pid), self.jobs))
 
     def _drain(self, tracker: _RunProgress | None) -> None:
@@ -319,3 +318,15 @@ class RegistrationRunner:
             self.queue.close()
         if self._set_blas_threads:
             os.environ.pop("OPENBLAS_NUM_THREADS", None)
+
+
+def dead_worker_task(unfinished: list[tuple[int, int]], ended: dict[int, int | None]) -> tuple[int, int]:
+    """(task index, worker pid) of the task whose worker's death broke the pool, from the
+    started, unfinished tasks (in start order) and the workers' exit codes: a worker ended by
+    a signal other than SIGTERM first (the pool itself ends the surviving workers of a broken
+    pool with SIGTERM, so those are its siblings), then any ended by a signal, then any. A
+    worker runs its tasks one after another: its last started one is the one it was on."""
+    by_signal = [(index, pid) for index, pid in unfinished if (ended.get(pid) or 0) < 0]
+    not_by_pool = [(index, pid) for index, pid in by_signal if ended.get(pid) != -signal.SIGTERM]
+    return (not_by_pool or by_signal or unfinished)[-1]
+

@@ -63,3 +63,15 @@ def test_a_terminated_command_removes_its_temporary_folders(tmp_path):
     assert process.returncode == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1] == "shapegen fit: cancelled"
     assert list(private_temp.iterdir()) == [] and not output.exists()
+
+
+def test_the_dead_worker_is_told_from_the_siblings_the_broken_pool_terminated():
+    """Under load the message named a sibling the pool had ended with SIGTERM after the
+    killed worker broke it (vase_002, SIGTERM instead of vase_001, SIGKILL)."""
+    from shapegen_core.correspond.pool import dead_worker_task
+
+    started = [(0, 100), (1, 101), (2, 102)]  # task index, worker pid, in start order
+    sigkill, sigterm = -int(signal.SIGKILL), -int(signal.SIGTERM)
+    assert dead_worker_task(started, {100: sigkill, 101: sigterm, 102: sigterm}) == (0, 100)
+    assert dead_worker_task(started, {100: sigterm, 101: sigterm, 102: None}) == (1, 101)  # only the pool's
+    assert dead_worker_task(started, {100: None, 101: 3, 102: None}) == (2, 102)  # no signal: the last started
