@@ -15,11 +15,9 @@ VALID_TAGS   = $(BPY_DIR)/scripts/modules/_bpy_internal/extensions/tags.py
 export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
-# the core tiers run on all cores (pytest-xdist); a test file stays on one worker, so its
-# module-scoped fixtures are built once. TEST_WORKERS=0 runs them in this process. The
-# Blender tier runs in one process: some of its tests race a job's worker process (a
-# cancel while the worker starts, a pool worker killed) and lost those races with a
-# second Blender beside them (2 of 116 failed under -n 2 on a loaded machine)
+# every tier runs on all cores (pytest-xdist); a test file stays on one worker, so its
+# module-scoped fixtures are built once (each Blender worker is its own Blender-as-a-module
+# with its own throwaway user folder). TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
 PYTEST       := -m pytest -q -p no:cacheprovider
 PARALLEL     := -n $(TEST_WORKERS) --dist loadfile
@@ -67,7 +65,7 @@ test-core: $(VENV)/.installed $(VENV_NP2)/.installed
 	$(PY_NP2) $(PYTEST) $(PARALLEL) tests/core -m numpy_sensitive
 
 test-blender: dist/.built
-	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) tests/blender
+	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) $(PARALLEL) tests/blender
 
 # the two environments (and the extension, once .venv is there) are built side by side:
 # mostly download and unpacking, so they overlap well
