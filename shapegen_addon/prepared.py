@@ -22,10 +22,9 @@ from mathutils import Matrix
 
 from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
 from ..core.landmarks import Landmarks
-from ..core.pipeline import FitSettings
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.settings import SettingsError
-from ..core.stages import Offered, plan_stages
+from ..core.stages import Offered
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,
                    KEEP_POSE_KEY,
@@ -37,7 +36,7 @@ from .preview import add_correspondence_markers, add_landmark_markers, landmark_
 
 __all__ = ["PREPARE_SETTINGS", "build_prepared_collection", "prepared_objects", "prepared_collection_for",
            "recorded_prepare_settings", "to_prepared_collection", "PreparedCopies", "offered_prepared",
-           "reusable_prepared", "apply_correspondence",
+           "apply_correspondence",
            "prepared_pose_notes", "turn_flagged_copies", "has_correspondence", "flagged_copies"]
 
 #: the Prepare settings a prepared collection records (Fit reuses it only when they match)
@@ -117,7 +116,7 @@ def prepared_objects(collection: bpy.types.Collection) -> list[bpy.types.Object]
 
 def prepared_collection_for(collection: bpy.types.Collection | None) -> bpy.types.Collection | None:
     """`collection` if it is a prepared one, else its newest "<name> Prepared" sibling
-    (the last by name, as in `reusable_prepared`; None when there is none)."""
+    (the last by name, as Fit offers them; None when there is none)."""
     if collection is None:
         return None
     if collection.get(PREPARED_KEY):
@@ -213,17 +212,6 @@ def offered_prepared(collection, objects, evaluated: bool = True) -> list[Offere
         offered.append(Offered("prepare", f"'{prepared.name}'", prepare=recorded_prepare_settings(prepared),
                                current=current, data=PreparedCopies(prepared, ordered)))
     return offered
-
-
-def reusable_prepared(collection, objects, options: dict, evaluated: bool = True):
-    """The Prepare result of `collection` a fit with `options` (FitSettings as plain data)
-    starts from (core.stages decides: the same Prepare settings and unchanged copies, see
-    `offered_prepared`): (prepared bpy collection, copies in `objects` order), or None (Fit
-    prepares again in the worker)."""
-    plan = plan_stages(FitSettings.from_dict(options), offered_prepared(collection, objects, evaluated),
-                       last="prepare")
-    reused = plan.reused_stage("prepare")
-    return None if reused is None else (reused.data.collection, reused.data.copies)
 
 
 def turn_flagged_copies(collection: bpy.types.Collection) -> list[str]:

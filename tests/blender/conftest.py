@@ -158,5 +158,14 @@ def vertices(obj, evaluated: bool = False) -> np.ndarray:
     return co.reshape(-1, 3)
 
 
+def reused_prepared(extension: str, collection, objects, options: dict, evaluated: bool = True):
+    """The "<name> Prepared" collection Fit would start from (`fitting.plan_fit`, the
+    operator's own decision), or None when Fit prepares again."""
+    plan = addon_module(extension, "shapegen_addon.fitting").plan_fit(bpy.context.scene, collection, objects,
+                                                                        options, evaluated)
+    reused = plan.reused_stage("prepare")
+    return None if reused is None else reused.data.collection
+
+
 def fast_fit_json(**more) -> str:
     return json.dumps({**FAST_FIT, **more})

@@ -9,7 +9,7 @@ import math
 
 import bpy
 import numpy as np
-from conftest import FAST_FIT, add_vase_collection, addon_module
+from conftest import FAST_FIT, add_vase_collection, addon_module, reused_prepared
 from test_panels import _draw_all
 
 
@@ -60,17 +60,16 @@ def test_upside_down_object_is_turned_and_reported_or_kept_and_flagged(extension
     assert any(text.startswith("vase_002: pose looks wrong: may be upside down") for text in labels)
 
     # Fit reuses a Prepare only when it was made with the objects' Keep Pose flags as they are now
-    prepared = addon_module(extension, "shapegen_addon.prepared")
     collection = settings.source_collection
     objects = sorted(collection.objects, key=lambda o: o.name)
-    assert prepared.reusable_prepared(collection, objects, settings.fit_options())[0].name == "vases Prepared.001"
+    assert reused_prepared(extension, collection, objects, settings.fit_options()).name == "vases Prepared.001"
     assert bpy.ops.shapegen.toggle_keep_pose() == {"FINISHED"}
     assert not flipped[keys.KEEP_POSE_KEY]
-    assert prepared.reusable_prepared(collection, objects, settings.fit_options())[0].name == "vases Prepared"
+    assert reused_prepared(extension, collection, objects, settings.fit_options()).name == "vases Prepared"
     bpy.data.collections.remove(bpy.data.collections["vases Prepared"])
     flipped[keys.KEEP_POSE_KEY] = True
     bpy.data.objects["vase_002 prepared.001"][keys.KEEP_POSE_KEY] = False  # as if prepared without the flag
-    assert prepared.reusable_prepared(collection, objects, settings.fit_options()) is None
+    assert reused_prepared(extension, collection, objects, settings.fit_options()) is None
 
 
 def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):

@@ -13,7 +13,7 @@ import bpy
 import numpy as np
 import pytest
 import trimesh
-from conftest import addon_module, vertices
+from conftest import addon_module, reused_prepared, vertices
 
 def _add(convert, collection, name: str, mesh, faces=None):
     data = convert.mesh_data_from_arrays(name, mesh.vertices, mesh.faces if faces is None else faces)
@@ -111,14 +111,13 @@ def test_base_mesh_option_reads_the_cage_and_says_so(shapes):
 
 
 def test_fit_reads_like_prepare_and_a_modifier_change_makes_prepare_stale(extension, shapes):
-    prepared_module = addon_module(extension, "shapegen_addon.prepared")
     fitting = addon_module(extension, "shapegen_addon.fitting")
     settings = bpy.context.scene.shapegen
     assert bpy.ops.shapegen.prepare(wait=True) == {"FINISHED"}
     objects = sorted(shapes.objects, key=lambda o: o.name)
     options = settings.fit_options()
-    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
-    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=False) is None  # read otherwise
+    assert reused_prepared(extension, shapes, objects, options, evaluated=True) is not None
+    assert reused_prepared(extension, shapes, objects, options, evaluated=False) is None  # read otherwise
 
     gathered = {name: (v, f) for name, v, f, _ in fitting.gather_meshes(objects, evaluated=True)}
     subdivided = shapes.objects["subdivided"]
@@ -130,12 +129,12 @@ def test_fit_reads_like_prepare_and_a_modifier_change_makes_prepare_stale(extens
         assert volume > 0 or name == "inverted", name  # the core's intake turns "inverted" in the worker
 
     subdivided.modifiers["Subdivision"].levels = 2  # what the viewport shows changed: stale
-    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is None
+    assert reused_prepared(extension, shapes, objects, options, evaluated=True) is None
     subdivided.modifiers["Subdivision"].levels = 1
-    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is not None
+    assert reused_prepared(extension, shapes, objects, options, evaluated=True) is not None
     displace = subdivided.modifiers.new("Displace", "DISPLACE")  # same vertex count, other shape
     displace.strength = 0.05
-    assert prepared_module.reusable_prepared(shapes, objects, options, evaluated=True) is None
+    assert reused_prepared(extension, shapes, objects, options, evaluated=True) is None
 
 
 def test_objects_of_a_scene_the_context_does_not_show_are_read_evaluated(extension, shapes):
