@@ -9,6 +9,8 @@ The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
 
 from __future__ import annotations
 
+import sys
+
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
@@ -290,6 +292,17 @@ def regroup_flat_settings(settings: ShapeGenSettings) -> list[str]:
 #: the groups before the settings that point to them (Blender registers them in this order)
 CLASSES = (ShapeGenLatent, ShapeGenPrepareSettings, ShapeGenCorrespondenceSettings, ShapeGenFitSettings,
            ShapeGenGenerateSettings, ShapeGenExploreSettings, ShapeGenSettings)
+
+# Blender 4.2 never lets go of a PropertyGroup class, even after unregister_class, and
+# Blender-as-a-module shuts down only when Python frees the `bpy` module at exit. Through
+# their methods and update callbacks these classes hold this module's globals, and with
+# them `bpy`; Python clears the globals of the modules still alive at exit, but this one has
+# died by then (its package is cleared first), so `bpy` outlived Python and the process
+# crashed at exit (SIGSEGV). The classes hold the module itself, so it lives until Python
+# clears its globals. (Blender 5.0 frees unregistered classes.)
+for _cls in CLASSES:
+    _cls._module = sys.modules[__name__]
+del _cls
 
 
 def register_properties():
