@@ -1,17 +1,31 @@
 # ShapeGen: two commands do everything on a fresh machine.
 #   make demo   builds .venv (pinned) + the extension, runs the main job headless -> demo_output/
 #   make test   builds what is missing and runs every test tier
-# Requires python3.11 (Blender 4.2-5.0's Python) on PATH.
-# requirements/dask.txt: the optional Dask engine (pyproject extra "dask"), installed for its tests.
+# Requires python3.11 (Blender 4.2-5.0's Python) on the PATH, and Python 3.13 (Blender 5.1+'s)
+# on the PATH as python3.13 or under ~/.pyenv/versions.
+#
+# Environments, each pinned in requirements/ (refresh the generated ones with `make pins`):
+#   .venv         Python 3.11, Blender 5.0 as a module (blender.txt): builds the extension,
+#                 runs the demo and the Blender tier
+#   .venv-oldest  Python 3.11, the floors of pyproject.toml's ranges (oldest.txt): core tier
+#   .venv-newest  Python 3.13, the newest releases the ranges allow, Blender 5.2 LTS as a
+#                 module (newest.txt): core tier, Blender 5.2 smoke, the README's pip install
+#   .venv-bpy42   Python 3.11, Blender 4.2 LTS as a module (blender-4.2.txt): Blender 4.2 smoke
 
 PYTHON      ?= python3.11
+PYTHON313   ?= $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null || ls -d $$HOME/.pyenv/versions/3.13*/bin/python3.13 2>/dev/null | tail -1)
 VENV        := .venv
-VENV_NP2    := .venv-np2
+VENV_OLDEST := .venv-oldest
+VENV_NEWEST := .venv-newest
+VENV_BPY42  := .venv-bpy42
 PY          := $(VENV)/bin/python
-PY_NP2      := $(VENV_NP2)/bin/python
+PY_OLDEST   := $(VENV_OLDEST)/bin/python
+PY_NEWEST   := $(VENV_NEWEST)/bin/python
+PY_BPY42    := $(VENV_BPY42)/bin/python
 BPY_DIR      = $(VENV)/lib/python3.11/site-packages/bpy/5.0
 BLENDER_EXT  = $(PY) $(BPY_DIR)/scripts/addons_core/bl_pkg/cli/blender_ext.py
 VALID_TAGS   = $(BPY_DIR)/scripts/modules/_bpy_internal/extensions/tags.py
+PIP_INSTALL := bin/pip install --disable-pip-version-check -q --no-compile
 export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
@@ -21,26 +35,44 @@ BLENDER_TEST_TIMEOUT ?= 1800
 TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
 PYTEST       := -m pytest -q -p no:cacheprovider
 PARALLEL     := -n $(TEST_WORKERS) --dist loadfile
+# the interpreters of the Blender smoke tier (tests/blender/test_releases.py): release=python
+export SHAPEGEN_BLENDER_RELEASES := 4.2=$(abspath $(PY_BPY42)) 5.2=$(abspath $(PY_NEWEST))
 
 EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
-.PHONY: all demo test test-core test-blender build wheels clean bench setup
+.PHONY: all demo test test-core test-blender build wheels clean bench setup pins
 
 all: test
 
 # --no-compile: Python compiles what the tests import when they first import it (pip would
-# compile all ~6000 files of the two environments, ~25 s of CPU)
-$(VENV)/.installed: requirements/blender.txt requirements/dask.txt pyproject.toml
+# compile all ~6000 files of the environments, ~25 s of CPU)
+$(VENV)/.installed: requirements/blender.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --disable-pip-version-check -q --no-compile -r requirements/blender.txt -r requirements/dask.txt
-	$(VENV)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+	$(VENV)/$(PIP_INSTALL) -r requirements/blender.txt
+	$(VENV)/$(PIP_INSTALL) --no-deps --no-build-isolation -e .
 	touch $@
 
-$(VENV_NP2)/.installed: requirements/numpy2.txt requirements/dask.txt pyproject.toml
-	$(PYTHON) -m venv $(VENV_NP2)
-	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q --no-compile -r requirements/numpy2.txt -r requirements/dask.txt
-	$(VENV_NP2)/bin/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+$(VENV_OLDEST)/.installed: requirements/oldest.txt pyproject.toml
+	$(PYTHON) -m venv $(VENV_OLDEST)
+	$(VENV_OLDEST)/$(PIP_INSTALL) -r requirements/oldest.txt
+	$(VENV_OLDEST)/$(PIP_INSTALL) --no-deps --no-build-isolation -e .
 	touch $@
+
+$(VENV_NEWEST)/.installed: requirements/newest.txt pyproject.toml
+	@test -n "$(PYTHON313)" || { echo "Python 3.13 not found: put python3.13 on the PATH (or PYTHON313=...)"; exit 2; }
+	$(PYTHON313) -m venv $(VENV_NEWEST)
+	$(VENV_NEWEST)/$(PIP_INSTALL) -r requirements/newest.txt
+	$(VENV_NEWEST)/$(PIP_INSTALL) --no-deps --no-build-isolation -e .
+	touch $@
+
+$(VENV_BPY42)/.installed: requirements/blender-4.2.txt
+	$(PYTHON) -m venv $(VENV_BPY42)
+	$(VENV_BPY42)/$(PIP_INSTALL) -r requirements/blender-4.2.txt
+	touch $@
+
+# requirements/oldest.txt, newest.txt and blender-4.2.txt, resolved anew (scripts/refresh_pins.py)
+pins:
+	$(PYTHON) scripts/refresh_pins.py
 
 wheels/.fetched: blender_manifest.toml scripts/fetch_wheels.py | $(VENV)/.installed
 	$(PY) scripts/fetch_wheels.py
@@ -60,17 +92,19 @@ build: dist/.built
 demo: dist/.built
 	$(PY) scripts/demo.py --output demo_output
 
-test-core: $(VENV)/.installed $(VENV_NP2)/.installed
-	$(PY) $(PYTEST) $(PARALLEL) tests/core
-	$(PY_NP2) $(PYTEST) $(PARALLEL) tests/core -m numpy_sensitive
+# the core tier at both ends of the declared ranges
+test-core: $(VENV_OLDEST)/.installed $(VENV_NEWEST)/.installed
+	$(PY_OLDEST) $(PYTEST) $(PARALLEL) tests/core
+	$(PY_NEWEST) $(PYTEST) $(PARALLEL) tests/core
 
-test-blender: dist/.built
+# the full Blender tier on Blender 5.0, and the smoke on Blender 4.2 and 5.2 LTS
+test-blender: dist/.built $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) $(PARALLEL) tests/blender
 
-# the two environments (and the extension, once .venv is there) are built side by side:
+# the environments (and the extension, once .venv is there) are built side by side:
 # mostly download and unpacking, so they overlap well
 setup:
-	$(MAKE) --no-print-directory -j2 dist/.built $(VENV_NP2)/.installed
+	$(MAKE) --no-print-directory -j2 dist/.built $(VENV_OLDEST)/.installed $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 
 test: setup
 	$(MAKE) --no-print-directory test-core test-blender

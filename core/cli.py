@@ -7,15 +7,16 @@ exit with status 2 and one line naming the file and the problem; no traceback.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import signal
 import sys
 import threading
 import time
 from pathlib import Path
 
-from .cli_common import (turned_on_console, add_keep_pose_option, add_settings_options, console_progress, correspond_on_console,
-                         flag_of, given_options, positive_int, prepare_source, read_source, requested_settings,
-                         settings_from_args)
+from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress,
+                         correspond_on_console, flag_of, given_options, positive_int, prepare_source, read_source,
+                         requested_settings, settings_from_args, turned_on_console)
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
@@ -78,6 +79,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # check the cheap settings before any expensive correspondence work
     models = parse_model_names(args.models)
+    if not args.no_figures and importlib.util.find_spec("matplotlib") is None:
+        raise CommandError("evaluate: the figures need matplotlib (pip install \"shapegen[figures]\"), "
+                           "or pass --no-figures")
     regions = [r.strip() for r in args.regions.split(",") if r.strip()]
     with SpillStore() as spill:
         source = read_source(args.source, args, accepts=("folder", "correspondence"), own=("seed",), spill=spill,

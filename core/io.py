@@ -1,4 +1,4 @@
-"""Mesh files <-> `Mesh`, through trimesh (no hand-written parsers).
+"""Mesh files <-> `Mesh`, through trimesh (OFF, the simplest format, read here: below).
 
 Supported: OBJ, PLY, STL, OFF, GLB/GLTF. Files are read with `process=False` and
 `maintain_order=True` (trimesh neither merges nor reorders), then cleaned by
@@ -18,6 +18,11 @@ file is vertex i of the Mesh" for ordinary exports (and needs PIL as soon as `vt
 present). Only geometry is wanted here, so the text handed to trimesh keeps the `v`
 lines and the `f` lines with each corner reduced to its vertex index; trimesh still
 does the parsing and triangulation.
+
+OFF: read here from the rows core/file_checks.py has already checked against the header
+(`_read_off`), polygons fan-cut from their first corner as trimesh does. trimesh 5's reader
+cuts a file of mixed polygon sizes with numpy string arithmetic that numpy 2.5 refuses, and
+refuses an out-of-range index before intake can name the face.
 
 Faces as the file had them: OBJ polygons and `vt` UVs (parsed from the same lines), PLY
 polygons (trimesh keeps the raw face lists) and per-vertex UVs, glTF per-vertex UVs are
@@ -78,6 +83,8 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
             loaded = _load_geometry(trimesh, io.BytesIO(text), "obj")
+        elif suffix == ".off":
+            loaded, file_faces = _read_off(path)
         else:
             with open(path, "rb") as handle:
                 loaded = _load_geometry(trimesh, handle, suffix[1:])
@@ -161,7 +168,7 @@ def _cyclic_rows(triangles: np.ndarray) -> np.ndarray:
 
 def _load_geometry(trimesh, handle, file_type: str) -> dict:
     """What trimesh's reader of `file_type` gives (vertices, faces, metadata, visual), read
-    with `process=False`: for OFF, PLY and STL straight from trimesh's mesh loader (issue
+    with `process=False`: for PLY and STL straight from trimesh's mesh loader (issue
     15: wrapping the arrays in a Trimesh, a Scene and a merged copy of it costs more than
     parsing a binary PLY of a million vertices), for other formats (OBJ's loader returns a
     scene) and files with several objects through `trimesh.load(force="mesh")`."""
@@ -179,7 +186,7 @@ def _load_geometry(trimesh, handle, file_type: str) -> dict:
 
 
 #: formats read straight from trimesh's mesh loader (`_load_geometry`)
-_DIRECT_FORMATS = ("off", "ply", "stl")
+_DIRECT_FORMATS = ("ply", "stl")
 
 
 def _loaded_faces(loaded: dict, faces: np.ndarray, n_vertices: int):
@@ -264,6 +271,26 @@ def _obj_geometry_text(path: Path, with_faces: bool = False):
     if len(corner_uv) and uvs and corner_uv.min() >= 0 and corner_uv.max() < len(uvs):
         uv = np.asarray(uvs, dtype=np.float64)[corner_uv]
     return data, (np.asarray(sizes, dtype=np.int64), np.asarray(corners, dtype=np.int64), uv)
+
+
+def _read_off(path: Path) -> tuple[dict, tuple]:
+    """An OFF file's vertices (first three values of each vertex line) and triangles (each
+    face's polygon cut into a fan from its first corner), and the file's faces (sizes,
+    corners, no UVs). The file's structure was checked by `check_declared`: a header with
+    counts, as many vertex and face lines as it declares, each face `k i1 .. ik`; comments
+    and anything after the declared lines are left out."""
+    rows = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("utf-8").splitlines()]
+    rows = [words for words in rows if words]
+    counts, body = (rows[0][1:], rows[1:]) if rows[0][1:] else (rows[1], rows[2:])
+    n_vertices, n_faces = int(counts[0]), int(counts[1])
+    vertices = np.array([words[:3] for words in body[:n_vertices]], dtype=np.float64).reshape(n_vertices, 3)
+    face_rows = body[n_vertices:n_vertices + n_faces]
+    sizes = np.array([int(words[0]) for words in face_rows], dtype=np.int64)
+    corners = np.array([index for words in face_rows for index in words[1:1 + int(words[0])]], dtype=np.int64)
+    start = np.repeat(np.cumsum(sizes) - sizes, sizes - 2)  # each fan triangle's polygon's first corner
+    step = np.arange(len(start)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2)
+    triangles = np.stack([corners[start], corners[start + step + 1], corners[start + step + 2]], axis=1)
+    return {"vertices": vertices, "faces": triangles}, (sizes, corners, None)
 
 
 def _holds_points_only(trimesh, path: Path, suffix: str) -> bool:

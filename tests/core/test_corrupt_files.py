@@ -30,8 +30,6 @@ from shapegen_core.datasets import make_vases
 
 from corrupt_corpus import FORMATS, corrupt_cases, file_bytes
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 MIN_CASES = 30
 #: cases read with a note on stderr, and the note: an OBJ cut at a line end between its faces
 REPORTED = {"faces_cut_at_line_end": "vertices used by no face"}

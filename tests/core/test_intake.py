@@ -21,8 +21,6 @@ from shapegen_core.pipeline import FitSettings, fit_meshes
 
 from conftest import random_surface
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 
 @pytest.fixture(scope="module")
 def vase():

@@ -9,8 +9,6 @@ from shapegen_core.errors import ShapeGenError
 from shapegen_core.latent_units import SLIDER_LIMIT, LatentUnits
 from shapegen_core.models import make_model
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 
 def test_units_are_training_standard_deviations_and_cover_every_training_latent():
     rng = np.random.default_rng(0)

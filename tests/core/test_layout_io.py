@@ -16,8 +16,6 @@ from shapegen_core.io import read_mesh, write_mesh
 from shapegen_core.layout import FaceLayout, pack_layouts, unpack_layouts
 from shapegen_core.mesh import Mesh
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 AROUND, RINGS = 12, 6
 

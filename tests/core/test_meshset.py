@@ -9,8 +9,6 @@ from shapegen_core.datasets import make_vases
 from shapegen_core.errors import ModelFileError
 from shapegen_core.meshset import load_mesh_set, pack, save_mesh_set, unpack
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 
 def test_pack_unpack_round_trip_keeps_every_mesh():
     meshes = [s.mesh for s in make_vases(3, seed=0, resolution=(8, 10))]

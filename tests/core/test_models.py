@@ -18,8 +18,6 @@ from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales,
 from shapegen_core.models.gplvm import gplvm_log_likelihood
 from shapegen_core.models.kernels import PsiStatistics, rbf
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 # ----------------------------------------------------------------------------- data
 
 

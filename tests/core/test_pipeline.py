@@ -12,8 +12,6 @@ from shapegen_core.models import PPCA
 from shapegen_core.npzfile import save_npz
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):

@@ -14,8 +14,6 @@ from shapegen_core.pipeline import FitSettings, fit_meshes
 from shapegen_core.quality import MeshQuality, QualitySettings
 from shapegen_core.sampling import TEMPLATES_TRIED, gate_summary, gated_sample, gated_samples, redraw_seed
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 
 @pytest.fixture(scope="module")
 def model():

@@ -19,8 +19,6 @@ from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.settings import Settings, SettingsError, group, option, recorded_settings
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 #: the correspondence settings of the `corresponded` fixture as files written before issue 35
 #: record them: one flat JSON object (written by CorrespondenceSettings(alpha_steps=1,
 #: max_iterations=3, groupwise_rounds=0).to_json() at de08ccf)

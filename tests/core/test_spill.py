@@ -25,8 +25,6 @@ from shapegen_core.spill import SpillStore, StoredMesh
 
 from conftest import subdivided
 
-pytestmark = pytest.mark.numpy_sensitive  # file formats, dtypes or the models' linear algebra: also on numpy 2
-
 #: meshes above this many faces are kept on disk in these tests (the vases below have ~26k)
 ABOVE = 5000
 SETTINGS = PrepareSettings(n_landmarks=200, align="none")

@@ -15,8 +15,6 @@ from shapegen_core.datasets import make_vases
 from shapegen_core.pipeline import FitSettings
 from shapegen_core.stages import Offered, SettingsConflict, plan_stages, read_offered, same_shapes
 
-pytestmark = pytest.mark.numpy_sensitive  # reads a prepared file: also on numpy 2
-
 ASKED = FitSettings(prepare=PrepareSettings(n_landmarks=60), template=None)
 OTHER_PREPARE = PrepareSettings(n_landmarks=60, seed=4)
 OTHER_CORRESPONDENCE = CorrespondenceSettings.from_dict({"max_iterations": 5})
