@@ -50,6 +50,19 @@ def test_import_makes_one_object_per_file_with_vertex_order_kept(vase_folder):
         assert len(obj.data.polygons) == shape.mesh.n_faces
 
 
+def test_import_of_an_off_file_with_text_after_its_data(vase_folder):
+    """Text after an OFF file's declared lines (PSB Vase 361 ends with its exporter's
+    settings) is ignored, on the numpy Blender 4.2-5.0 ship (1.26) as on numpy 2.5, where
+    the core once crashed in the operator on `np.fromstring`."""
+    folder, shapes = vase_folder
+    (off,) = folder.glob("*.off")
+    off.write_text(off.read_text() + "\nexported by SomeTool 2.1\nunits mm scale 1.0\n")
+    assert bpy.ops.shapegen.import_collection(directory=str(folder)) == {"FINISHED"}
+    obj = bpy.context.scene.shapegen.source_collection.objects[off.stem]
+    shape = next(s for s in shapes if s.name == off.stem)
+    np.testing.assert_allclose(_vertices(obj), shape.mesh.vertices, atol=1e-5)
+
+
 def test_import_of_folder_without_meshes_is_a_clear_error(tmp_path):
     (tmp_path / "notes.txt").write_text("not a mesh")
     with pytest.raises(RuntimeError, match="no mesh files"):

@@ -216,6 +216,17 @@ def test_stl_files_are_read_as_connected_outward_surfaces(stl_model):
         assert mesh.is_closed() and tm.body_count == 1 and tm.is_winding_consistent and tm.volume > 0
 
 
+def binary_stl_corners(path) -> np.ndarray:
+    """Every triangle's three corners as a binary STL stores them (80-byte header, a count,
+    then 50-byte records: normal, three corners, attribute), read without trimesh (whose
+    loaders merge corners or not depending on the release)."""
+    data = path.read_bytes()
+    count = int(np.frombuffer(data, "<u4", 1, 80)[0])
+    assert len(data) == 84 + 50 * count, "not a binary STL"
+    record = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+    return np.frombuffer(data, record, count, 84)["corners"].reshape(-1, 3).astype(np.float64)
+
+
 def test_smoothed_samples_of_an_stl_class_have_no_cracks_and_are_written_connected(stl_model, tmp_path):
     """Corners that coincide in the template's STL file stay together (to 1e-9 of the
     diagonal) through sampling and curvature-flow smoothing, and the written files are one
@@ -227,7 +238,7 @@ def test_smoothed_samples_of_an_stl_class_have_no_cracks_and_are_written_connect
         index = model.choose_template(landmarks, "nearest-data")
         template = model.meshes[index]
         mesh = model.mesh_from_landmarks(landmarks, template=model.names[index], smooth=3)
-        in_file = np.asarray(trimesh.load(folder / f"{model.names[index]}.stl", process=False).vertices)
+        in_file = binary_stl_corners(folder / f"{model.names[index]}.stl")
         assert len(in_file) == len(template.report.vertex_map) == 3 * template.n_faces
         _, first, group = np.unique(in_file, axis=0, return_index=True, return_inverse=True)
         at_corners = mesh.vertices[template.report.vertex_map]  # the sample at each file corner
