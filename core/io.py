@@ -55,7 +55,7 @@ from .layout import FaceLayout
 from .mesh import Mesh
 from .spill import SpillStore, keep_dense
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
+__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "read_readable", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
            "ObjWriter", "MeshWriters"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -325,6 +325,41 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
     A folder with fewer than `min_shapes` meshes is a CollectionError.
     """
     folder = Path(folder)
+    files, outcomes = _read_files(folder, jobs, spill)
+    failures = [m for m in outcomes if isinstance(m, str)]
+    if failures:
+        # one line (the CLI prints errors as one line): the failing file first when it is the
+        # only one, so the message starts with the path of the file to fix
+        if len(failures) == 1:
+            raise MeshFileError(f"{failures[0]} (1 of {len(files)} files in {folder})")
+        raise MeshFileError(
+            f"{folder}: {len(failures)} of {len(files)} files could not be read: "
+            + "; ".join(failures)
+        )
+    return _checked_collection(folder, files, outcomes, min_shapes)
+
+
+def read_readable(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None = 1,
+                  spill: "SpillStore | None" = None) -> tuple[list, dict[str, str]]:
+    """`read_folder` that leaves out the files it cannot read instead of refusing the
+    folder, so one damaged download does not stop a collection: (the meshes read, {file
+    name: its MeshFileError's message} of the files left out, in file order). Fewer than
+    `min_shapes` readable meshes is still a CollectionError, naming every file left out."""
+    folder = Path(folder)
+    files, outcomes = _read_files(folder, jobs, spill)
+    unreadable = {path.name: m for path, m in zip(files, outcomes) if isinstance(m, str)}
+    meshes = [m for m in outcomes if not isinstance(m, str)]
+    if unreadable and len(meshes) < min_shapes:
+        raise CollectionError(
+            f"{folder}: a collection needs at least {min_shapes} meshes to learn from, {len(meshes)} of "
+            f"{len(files)} files could be read; unreadable: " + "; ".join(unreadable.values())
+        )
+    return _checked_collection(folder, files, meshes, min_shapes), unreadable
+
+
+def _read_files(folder: Path, jobs: int | None, spill: "SpillStore | None") -> tuple[list[Path], list]:
+    """The mesh files of `folder` and, for each, its mesh or its MeshFileError's message
+    (`_read_or_error`), read in `jobs` worker processes (see `read_folder`)."""
     files = list_mesh_files(folder)
     if not files:
         raise CollectionError(
@@ -347,17 +382,12 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
                              f"this run used {jobs}") from None
     else:
         outcomes = [_read_or_error(path, target) for path in files]
-    meshes = [m for m in outcomes if not isinstance(m, str)]
-    failures = [m for m in outcomes if isinstance(m, str)]
-    if failures:
-        # one line (the CLI prints errors as one line): the failing file first when it is the
-        # only one, so the message starts with the path of the file to fix
-        if len(failures) == 1:
-            raise MeshFileError(f"{failures[0]} (1 of {len(files)} files in {folder})")
-        raise MeshFileError(
-            f"{folder}: {len(failures)} of {len(files)} files could not be read: "
-            + "; ".join(failures)
-        )
+    return files, outcomes
+
+
+def _checked_collection(folder: Path, files: list[Path], meshes: list, min_shapes: int) -> list:
+    """`meshes` (read from `files` of `folder`) when their names are unique and there are
+    at least `min_shapes` of them; else a CollectionError saying why."""
     names = [m.name for m in meshes]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
