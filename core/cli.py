@@ -14,7 +14,8 @@ import threading
 import time
 from pathlib import Path
 
-from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress,
+from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, add_skip_unreadable_option,
+                         console_progress,
                          correspond_on_console, flag_of, given_options, positive_int, prepare_source, read_source,
                          requested_settings, settings_from_args, turned_on_console)
 from .cli_generate import add_generate_commands
@@ -93,7 +94,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     settings = EvaluationSettings(models=models, folds=args.folds, seed=seed, n_samples=args.samples,
                                   latent_dim=args.latent_dim, regions=regions)
     result = run_evaluation(corr.landmark_matrix(), corr.names, settings, progress=console_progress("evaluate"),
-                            extra={"source": source.path.name, "correspondence_outliers": outliers})
+                            extra={"source": source.path.name, "correspondence_outliers": outliers,
+                                   "unreadable_files": corr.unreadable})
     paths = write_report(result, args.output, figures=not args.no_figures)
     total_seconds = time.perf_counter() - start
     per_part: dict[str, float] = {}
@@ -136,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
+    add_skip_unreadable_option(p)
     p.add_argument("--turn-flagged", nargs="*", metavar="NAME", default=None,
                    help="turn the shapes Prepare flagged (all of them, or those named) as their flags suggest; "
                         "Prepare itself never turns a shape over on doubtful evidence")
@@ -146,6 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz")
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
+    add_skip_unreadable_option(p)
     add_settings_options(p, FitSettings, ("template", "jobs", "scheduler"))
     add_settings_options(p, CorrespondenceSettings)
     p.set_defaults(func=cmd_correspond)
@@ -157,6 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=int, default=5, help="k of the k-fold protocol (default %(default)s)")
     add_settings_options(p, PrepareSettings)  # --seed also seeds the evaluation
     add_keep_pose_option(p)
+    add_skip_unreadable_option(p)
     p.add_argument("--samples", type=positive_int, default=100,
                    help="samples per model for novelty / specificity (default %(default)s)")
     p.add_argument("--latent-dim", type=positive_int, default=None,

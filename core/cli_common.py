@@ -14,7 +14,7 @@ from typing import Sequence, Union, get_args, get_origin, get_type_hints
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
 from .errors import CollectionError, ShapeGenError
-from .io import read_folder
+from .io import read_folder, read_readable
 from .mesh import Mesh
 from .pipeline import FitSettings
 from .progress import Progress
@@ -23,7 +23,8 @@ from .spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
-           "settings_from_args", "requested_settings", "add_keep_pose_option", "turned_on_console", "read_source", "prepare_source", "pose_lines",
+           "settings_from_args", "requested_settings", "add_keep_pose_option", "add_skip_unreadable_option",
+           "read_mesh_folder", "turned_on_console", "read_source", "prepare_source", "pose_lines",
            "correspond_on_console", "console_progress"]
 
 
@@ -114,6 +115,28 @@ def add_keep_pose_option(parser: argparse.ArgumentParser) -> None:
                              "the up axis, still flagged when their pose looks wrong")
 
 
+def add_skip_unreadable_option(parser: argparse.ArgumentParser) -> None:
+    """--skip-unreadable: a folder's files that cannot be read are left out (each named with
+    its reason, and recorded in the output) instead of stopping the command."""
+    parser.add_argument("--skip-unreadable", action="store_true",
+                        help="leave out the mesh files that cannot be read (each named on stderr with its reason and "
+                             "recorded in the output) and go on with the rest; without it one unreadable file stops "
+                             "the command")
+
+
+def read_mesh_folder(folder: Path, args: argparse.Namespace, spill: SpillStore | None = None,
+                     jobs: int | None = 1) -> tuple[list[Mesh], dict[str, str]]:
+    """The meshes of `folder` and {file name: message} of the files left out: none unless
+    the command was given --skip-unreadable, which names each one left out on stderr (a
+    "skipped: <the reader's message>" line); without it an unreadable file is an error."""
+    if not getattr(args, "skip_unreadable", False):
+        return read_folder(folder, jobs=jobs, spill=spill), {}
+    meshes, unreadable = read_readable(folder, jobs=jobs, spill=spill)
+    for message in unreadable.values():
+        print(f"skipped: {message}", file=sys.stderr)
+    return meshes, unreadable
+
+
 # ---------------------------------------------------------------------------- sources
 SOURCE_KINDS = ("folder", "prepared", "correspondence")
 _KIND_OF_STAGE = {"prepare": "prepared", "correspond": "correspondence"}
@@ -138,6 +161,7 @@ class Source:
     keep_pose: list[bool] | None = None  # folder: per mesh, keep its pose (--keep-pose)
     prepared: PreparedCollection | None = None  # prepared .npz (or a folder once prepared)
     correspondence: Correspondence | None = None  # correspondence .npz
+    unreadable: dict[str, str] | None = None  # folder: files left out as unreadable, {file name: why}
 
     @property
     def prepare(self) -> PrepareSettings:
@@ -170,7 +194,8 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
     it, but the `own` ones, which the command uses for itself — evaluate's --seed —, and
     for a fit its correspondence options, must agree with the settings it records).
     `requested`: the command's settings (default: its Prepare and correspondence options).
-    `spill`: the run's store for a folder's dense meshes (core/spill.py)."""
+    `spill`: the run's store for a folder's dense meshes (core/spill.py). A folder's
+    unreadable files are an error, or left out with --skip-unreadable (`read_mesh_folder`)."""
     path = Path(path)
     kind = _source_kind(path, accepts)
     if requested is None:
@@ -178,11 +203,12 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
                                 correspondence=settings_from_args(CorrespondenceSettings, args))
     keep_pose = getattr(args, "keep_pose", None)
     if kind == "folder":
-        for mesh in (meshes := read_folder(path, jobs=getattr(args, "jobs", 1), spill=spill)):
+        meshes, unreadable = read_mesh_folder(path, args, spill, jobs=getattr(args, "jobs", 1))
+        for mesh in meshes:
             if mesh.report.summary() != "clean":
                 print(f"{mesh.name}: {mesh.report.summary()}", file=sys.stderr)
         return Source(path, kind, plan_stages(requested, last=last), meshes=meshes,
-                      keep_pose=kept_poses([m.name for m in meshes], keep_pose))
+                      keep_pose=kept_poses([m.name for m in meshes], keep_pose), unreadable=unreadable)
     if keep_pose:
         raise CommandError(f"--keep-pose applies to a folder of meshes; {path} is already prepared (its poses were "
                            "decided then: prepare its folder again with --keep-pose)")
@@ -205,10 +231,12 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
 
 def prepare_source(source: Source) -> PreparedCollection:
     """The prepared collection of a folder (prepared now, with console progress and its
-    pose report, `pose_lines`, on stderr) or of a prepared file."""
+    pose report, `pose_lines`, on stderr; recording the folder's files left out as
+    unreadable) or of a prepared file."""
     if source.prepared is None:
         source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"),
                                          keep_pose=source.keep_pose)
+        source.prepared.unreadable = dict(source.unreadable or {})
         source.meshes = None  # the input meshes are not needed again: free them (dense meshes, issue 15)
         for line in pose_lines(source.prepared):
             print(line, file=sys.stderr)

@@ -23,13 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, console_progress, positive_int,
-                         prepare_source, read_source, requested_settings, settings_from_args)
+from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, add_skip_unreadable_option,
+                         console_progress, positive_int, prepare_source, read_mesh_folder, read_source,
+                         requested_settings, settings_from_args)
 from .child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
-from .io import MeshWriters, read_folder
+from .io import MeshWriters
 from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .spill import SpillStore, loaded
@@ -67,11 +68,18 @@ class _StagedOutput:
 
 
 # ---------------------------------------------------------------------------- fit
-def _meshes_for_correspondence(corr, meshes_dir: Path, spill: SpillStore | None = None):
+def _meshes_for_correspondence(corr, meshes_dir: Path, args: argparse.Namespace, spill: SpillStore | None = None):
     """Normalised training meshes for a correspondence file: re-read the inputs from
-    `meshes_dir` and apply the transforms recorded in the file (dense ones kept in `spill`)."""
-    by_name = {m.name: m for m in read_folder(meshes_dir, spill=spill)}
+    `meshes_dir` and apply the transforms recorded in the file (dense ones kept in `spill`),
+    and the correspondence recording, besides its own, the files of `meshes_dir` left out
+    as unreadable (--skip-unreadable; a shape of the correspondence must still be read)."""
+    read, unreadable = read_mesh_folder(meshes_dir, args, spill)
+    by_name = {m.name: m for m in read}
     missing = [n for n in corr.names if n not in by_name]
+    lost = [message for file, message in unreadable.items() if Path(file).stem in missing]
+    if lost:
+        raise CommandError(f"{meshes_dir}: the file of shape(s) of the correspondence could not be read: "
+                           + "; ".join(lost))
     if missing:
         raise CommandError(f"{meshes_dir}: no mesh file for shape(s) {missing[:5]} of the correspondence")
     meshes = []
@@ -80,7 +88,7 @@ def _meshes_for_correspondence(corr, meshes_dir: Path, spill: SpillStore | None 
         with loaded(mesh) as full:
             vertices = ShapeTransform.from_matrix(matrix).to_normalised(full.vertices)
         meshes.append(mesh.with_vertices(vertices))
-    return meshes
+    return meshes, replace(corr, unreadable={**corr.unreadable, **unreadable})
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -100,8 +108,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if source.correspondence is None:
             model = fit_meshes(prepare_source(source), source.plan.settings, progress=report)
         else:
-            meshes = _meshes_for_correspondence(source.correspondence, args.meshes, spill)
-            model = fit_shape_model(meshes, source.correspondence, source.plan.settings, progress=report)
+            meshes, corr = _meshes_for_correspondence(source.correspondence, args.meshes, args, spill)
+            model = fit_shape_model(meshes, corr, source.plan.settings, progress=report)
         model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
@@ -126,6 +134,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "graph_edges": int(len(corr.edges)),
         "template": corr.template_name,
         "outliers": [n for n, o in zip(model.names, corr.outliers) if o],
+        "unreadable_files": corr.unreadable,
         "median_residual_percent_of_diagonal": round(100 * float(np.median(corr.residuals)), 4),
         "training_mesh_vertices": [m.n_vertices for m in model.meshes],
         "settings": model.settings.as_dict(),
@@ -138,6 +147,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     for key, value in info.items():
         if key == "names":
             value = ", ".join(value[:20]) + (" ..." if len(value) > 20 else "")
+        elif key == "unreadable_files":  # left out of the training folder (--skip-unreadable): file and reason
+            value = "; ".join(value.values()) or "none"
         print(f"{key:>38}: {value}")
     return 0
 
@@ -336,6 +347,7 @@ def add_generate_commands(sub) -> None:
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")
+    add_skip_unreadable_option(p)
     add_settings_options(p, CorrespondenceSettings)
     add_settings_options(p, DeformSettings)
     p.set_defaults(func=cmd_fit)

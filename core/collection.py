@@ -5,13 +5,16 @@ This is the hand-off from intake (§3.4 alignment, §4.2.1 landmarks) to corresp
 persist the result (meshes in the normalised frame, the per-shape transforms back to input
 coordinates, each shape's pose report — `pose_change`, `pose_rotation`, `pose_outlier` —,
 the landmarks and the settings used, as one JSON string). `keep_pose` names the shapes
-whose pose Prepare must not turn (issue 12).
+whose pose Prepare must not turn (issue 12). A collection read from a folder that left
+out files it could not read (`io.read_readable`) records them by file name with the
+reader's message (`unreadable`), so every later file says which inputs it lacks; files
+written before the record load with none.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -29,7 +32,7 @@ from .settings import Settings, option, recorded_settings
 from .spill import REGISTRATION_PROXY, StoredMesh, loaded
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
-           "PREPARED_VERSION"]
+           "PREPARED_VERSION", "unreadable_arrays", "recorded_unreadable"]
 
 PREPARED_FORMAT = "shapegen.prepared"
 PREPARED_VERSION = 1
@@ -74,6 +77,25 @@ _POSE_SPEC = {
 #: none (read as no suggestion).
 _FLAG_SPEC = {"flag_turn": ArraySpec("f", ("M", 3, 3))}
 
+#: The files of the source folder left out because they could not be read: file names and
+#: the reader's messages (optional: files written before the record have none).
+_UNREADABLE_SPEC = {"unreadable_files": ArraySpec("U", ("K",)), "unreadable_reasons": ArraySpec("U", ("K",))}
+
+
+def unreadable_arrays(unreadable: dict[str, str]) -> dict[str, np.ndarray]:
+    """The arrays recording the files left out as unreadable ({file name: message})."""
+    return {"unreadable_files": np.asarray(list(unreadable), dtype=str).reshape(-1),
+            "unreadable_reasons": np.asarray(list(unreadable.values()), dtype=str).reshape(-1)}
+
+
+def recorded_unreadable(arrays, label: str) -> dict[str, str]:
+    """{file name: message} of the files a file records as left out unreadable (none when
+    it has no record); a malformed record is a ModelFileError starting with `label`."""
+    if not any(key in arrays for key in _UNREADABLE_SPEC):
+        return {}
+    validate_arrays(arrays, _UNREADABLE_SPEC, label)
+    return dict(zip(arrays["unreadable_files"].tolist(), arrays["unreadable_reasons"].tolist()))
+
 
 @dataclass
 class PreparedCollection:
@@ -83,6 +105,7 @@ class PreparedCollection:
     shapes: list[PreparedShape]
     landmarks: list[Landmarks]
     settings: PrepareSettings | None = None
+    unreadable: dict[str, str] = field(default_factory=dict)  # files left out of the folder: {file name: why}
 
     @property
     def names(self) -> list[str]:
@@ -115,7 +138,7 @@ class PreparedCollection:
                 marks = Landmarks(step.to_normalised(marks.points), marks.face_index, marks.barycentric, marks.radius)
             shapes.append(shape)
             landmarks.append(marks)
-        return PreparedCollection(shapes, landmarks, self.settings)
+        return PreparedCollection(shapes, landmarks, self.settings, dict(self.unreadable))
 
     def landmarks_input(self, index: int) -> np.ndarray:
         """Landmarks of shape `index` in that input mesh's own coordinates."""
@@ -140,6 +163,7 @@ class PreparedCollection:
             "landmark_offsets": l_off.astype(np.int64),
             "landmark_radius": np.asarray([l.radius for l in self.landmarks]),
             "settings": np.asarray("null" if self.settings is None else self.settings.to_json()),
+            **unreadable_arrays(self.unreadable),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -180,7 +204,8 @@ class PreparedCollection:
                 raise ModelFileError(f"{path}: shape {name!r} has landmark face indices out of range")
             landmarks.append(Landmarks(a["landmarks"][sl], faces, a["landmark_barycentric"][sl],
                                        float(a["landmark_radius"][i])))
-        return cls(shapes, landmarks, recorded_settings(PrepareSettings, a, str(path)))
+        return cls(shapes, landmarks, recorded_settings(PrepareSettings, a, str(path)),
+                   recorded_unreadable(a, str(path)))
 
 
 def prepare_meshes(

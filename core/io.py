@@ -50,12 +50,12 @@ import numpy as np
 from .child_process import MEMORY_ADVICE, exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
 from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces, obj_unterminated
-from .intake import clean_mesh
+from .intake import clean_mesh, weld_vertices
 from .layout import FaceLayout
 from .mesh import Mesh
 from .spill import SpillStore, keep_dense
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "read_folder", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
+__all__ = ["MESH_SUFFIXES", "read_mesh", "check_mesh_file", "read_folder", "read_readable", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
            "ObjWriter", "MeshWriters"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -63,6 +63,48 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
 def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     """Read one mesh file. The mesh is named after the file's stem unless `name` is given."""
+    label, name, suffix, vertices, faces, loaded, file_faces = _parsed(path, name)
+    try:
+        mesh = clean_mesh(vertices, faces, name=name, polygon_of=_polygon_of(file_faces, faces))
+    except MeshError as exc:
+        raise _file_error(label, name, exc) from None
+    welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
+    check_not_repeated(label, welded)
+    unused = mesh.n_vertices - len(np.unique(welded))  # of the file's faces: intake may leave slivers out
+    unterminated = suffix == ".obj" and obj_unterminated(Path(path))
+    if unused or unterminated:  # reported: a file cut short may still read as a mesh (issue 32)
+        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name,
+                    report=replace(mesh.report, vertices_unused=unused, unterminated=unterminated))
+    return _with_layout(mesh, file_faces, len(vertices))
+
+
+def check_mesh_file(path: str | os.PathLike) -> None:
+    """Refuse (MeshFileError starting with the path) a file `read_mesh` refuses as damaged
+    or as no mesh: what it declares against what it holds, coordinates, face indices,
+    every face repeated. Intake's cleaning (winding, twins, walls), the costly part of
+    reading, is left out: for a caller that reads the file's content itself (Blender's
+    importers, which accept damaged files silently) and cleans it later, as Prepare does."""
+    label, name, _, vertices, faces, _, _ = _parsed(path)
+    try:
+        Mesh.from_polygons(vertices, faces, name=name)
+    except MeshError as exc:
+        raise _file_error(label, name, exc) from None
+    check_not_repeated(label, weld_vertices(vertices)[1][faces])
+
+
+def _file_error(label: str, name: str, exc: MeshError) -> MeshFileError:
+    """`exc` about the mesh `name` as an error about the file `label` (the user knows which
+    file to fix)."""
+    message = str(exc)
+    if message.startswith(f"{name}: "):
+        message = message[len(name) + 2:]
+    return MeshFileError(f"{label}: {message}")
+
+
+def _parsed(path: str | os.PathLike, name: str | None = None):
+    """(label, name, suffix, vertices, triangles, what trimesh loaded, the file's faces) of
+    a mesh file, parsed and checked against its declarations (module docstring), before
+    intake: MeshFileError starting with the path for a file that is damaged or no mesh."""
     import trimesh  # imported here: the Blender layer never needs it
 
     path = Path(path)
@@ -109,22 +151,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
             file_faces = _loaded_faces(loaded, faces, len(vertices))
         except (ValueError, TypeError) as exc:  # face lists trimesh kept but cannot be polygons
             raise MeshFileError(f"{label}: its face lists are not polygons ({exc})") from None
-    try:
-        mesh = clean_mesh(vertices, faces, name=name, polygon_of=_polygon_of(file_faces, faces))
-    except MeshError as exc:
-        # replace the mesh label by the file path so the user knows which file to fix
-        message = str(exc)
-        if message.startswith(f"{name}: "):
-            message = message[len(name) + 2:]
-        raise MeshFileError(f"{label}: {message}") from None
-    welded = faces if mesh.report.vertex_map is None else mesh.report.vertex_map[faces]
-    check_not_repeated(label, welded)
-    unused = mesh.n_vertices - len(np.unique(welded))  # of the file's faces: intake may leave slivers out
-    unterminated = suffix == ".obj" and obj_unterminated(path)
-    if unused or unterminated:  # reported: a file cut short may still read as a mesh (issue 32)
-        mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name,
-                    report=replace(mesh.report, vertices_unused=unused, unterminated=unterminated))
-    return _with_layout(mesh, file_faces, len(vertices))
+    return label, name, suffix, vertices, faces, loaded, file_faces
 
 
 def _polygon_of(file_faces, triangles: np.ndarray) -> np.ndarray | None:
@@ -325,6 +352,41 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
     A folder with fewer than `min_shapes` meshes is a CollectionError.
     """
     folder = Path(folder)
+    files, outcomes = _read_files(folder, jobs, spill)
+    failures = [m for m in outcomes if isinstance(m, str)]
+    if failures:
+        # one line (the CLI prints errors as one line): the failing file first when it is the
+        # only one, so the message starts with the path of the file to fix
+        if len(failures) == 1:
+            raise MeshFileError(f"{failures[0]} (1 of {len(files)} files in {folder})")
+        raise MeshFileError(
+            f"{folder}: {len(failures)} of {len(files)} files could not be read: "
+            + "; ".join(failures)
+        )
+    return _checked_collection(folder, files, outcomes, min_shapes)
+
+
+def read_readable(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None = 1,
+                  spill: "SpillStore | None" = None) -> tuple[list, dict[str, str]]:
+    """`read_folder` that leaves out the files it cannot read instead of refusing the
+    folder, so one damaged download does not stop a collection: (the meshes read, {file
+    name: its MeshFileError's message} of the files left out, in file order). Fewer than
+    `min_shapes` readable meshes is still a CollectionError, naming every file left out."""
+    folder = Path(folder)
+    files, outcomes = _read_files(folder, jobs, spill)
+    unreadable = {path.name: m for path, m in zip(files, outcomes) if isinstance(m, str)}
+    meshes = [m for m in outcomes if not isinstance(m, str)]
+    if unreadable and len(meshes) < min_shapes:
+        raise CollectionError(
+            f"{folder}: a collection needs at least {min_shapes} meshes to learn from, {len(meshes)} of "
+            f"{len(files)} files could be read; unreadable: " + "; ".join(unreadable.values())
+        )
+    return _checked_collection(folder, files, meshes, min_shapes), unreadable
+
+
+def _read_files(folder: Path, jobs: int | None, spill: "SpillStore | None") -> tuple[list[Path], list]:
+    """The mesh files of `folder` and, for each, its mesh or its MeshFileError's message
+    (`_read_or_error`), read in `jobs` worker processes (see `read_folder`)."""
     files = list_mesh_files(folder)
     if not files:
         raise CollectionError(
@@ -347,17 +409,12 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
                              f"this run used {jobs}") from None
     else:
         outcomes = [_read_or_error(path, target) for path in files]
-    meshes = [m for m in outcomes if not isinstance(m, str)]
-    failures = [m for m in outcomes if isinstance(m, str)]
-    if failures:
-        # one line (the CLI prints errors as one line): the failing file first when it is the
-        # only one, so the message starts with the path of the file to fix
-        if len(failures) == 1:
-            raise MeshFileError(f"{failures[0]} (1 of {len(files)} files in {folder})")
-        raise MeshFileError(
-            f"{folder}: {len(failures)} of {len(files)} files could not be read: "
-            + "; ".join(failures)
-        )
+    return files, outcomes
+
+
+def _checked_collection(folder: Path, files: list[Path], meshes: list, min_shapes: int) -> list:
+    """`meshes` (read from `files` of `folder`) when their names are unique and there are
+    at least `min_shapes` of them; else a CollectionError saying why."""
     names = [m.name for m in meshes]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:

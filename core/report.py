@@ -99,6 +99,8 @@ def _data_lines(report: dict) -> list[str]:
              + (f" ({source})" if source else "")]
     if data.get("correspondence_outliers"):
         lines += [f"- correspondence outliers (kept): {', '.join(data['correspondence_outliers'])}"]
+    if data.get("unreadable_files"):
+        lines += [f"- files left out as unreadable: {'; '.join(data['unreadable_files'].values())}"]
     lines += [f"- protocol: {settings['folds']}-fold cross-validation, seed {settings['seed']}; "
               f"latent dimension {settings['latent_dim'] if settings['latent_dim'] else 'by the 80 % rule'}; "
               f"{settings['n_samples']} samples per model for novelty / specificity",

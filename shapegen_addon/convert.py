@@ -12,8 +12,10 @@
   `world_mesh_copy`: the same in world coordinates, its winding as the core's Mesh has it
   (the prepared copies); `reverse_polygons` / `winding_to_reverse` turn a copy's polygons.
 * `mesh_data_from_arrays`: a new bpy mesh from vertex / face arrays (`foreach_set`).
-* `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF); OFF,
-  which Blender cannot read, through the core reader (trimesh, bundled).
+* `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF), which
+  keeps what the file holds (polygons, UVs, materials), after the core's damage check
+  (`io.check_mesh_file`, no intake); OFF, which Blender cannot read, through the core
+  reader alone (trimesh, bundled).
 """
 
 from __future__ import annotations
@@ -258,18 +260,20 @@ def import_mesh_file(path: Path, collection: bpy.types.Collection) -> bpy.types.
 
     Raises MeshFileError naming the file when the importer fails or yields no mesh.
     """
-    from ..core.io import read_mesh
+    from ..core.io import check_mesh_file, read_mesh
 
     path = Path(path)
     suffix = path.suffix.lower()
-    # the core reads the file first: a file whose content disagrees with what it declares,
-    # or with coordinates no stage can compute with, is refused here as `shapegen prepare`
-    # refuses it (issue 32), before Blender's importer (which trusts the file) runs
-    mesh = read_mesh(path)
-    if suffix == ".off" or suffix not in BLENDER_IMPORTERS:
+    if suffix == ".off" or suffix not in BLENDER_IMPORTERS:  # the core's read is the only one
+        mesh = read_mesh(path)
         obj = bpy.data.objects.new(path.stem, mesh_data_from_arrays(path.stem, mesh.vertices, mesh.faces))
         collection.objects.link(obj)
         return obj
+    # Blender's importers accept damaged files silently (a NaN or a face past the last vertex
+    # read as something else), so the core checks the file first and refuses what
+    # `shapegen prepare` refuses as damage, naming it; intake's cleaning, the costly part of
+    # the core's read, is left to Prepare, which cleans the object as the artist sees it
+    check_mesh_file(path)
 
     before = set(bpy.data.objects)
     try:

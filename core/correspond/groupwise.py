@@ -197,6 +197,7 @@ def correspond(
         between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
         feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
         plain_shares=np.zeros(0) if outcome.plain_shares is None else outcome.plain_shares,
+        unreadable=dict(collection.unreadable),
     )
 
 

@@ -14,7 +14,9 @@ feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted 
 closest points, groupwise.py `_checked_feature_fits`; `feature_matches_ran` says whether
 they then matched the collection): empty when they were not checked, and in files written
 before. Likewise each shape's share of template points matched plainly because their
-regions merge on it (`plain_shares`, features.merged_regions): empty when not checked."""
+regions merge on it (`plain_shares`, features.merged_regions): empty when not checked.
+Likewise the files its collection's folder left out because they could not be read
+(`unreadable`, carried from the prepared collection): none in files written before."""
 
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..collection import PrepareSettings
+from ..collection import PrepareSettings, recorded_unreadable, unreadable_arrays
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..settings import recorded_settings
@@ -61,6 +63,7 @@ class Correspondence:
     between_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not compared
     feature_fit_worse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (M,) or (0,): not checked
     plain_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not checked
+    unreadable: dict[str, str] = field(default_factory=dict)  # files left out of the folder: {file name: why}
 
     def __len__(self) -> int:
         return len(self.names)
@@ -124,6 +127,7 @@ class Correspondence:
             "between_shares": np.asarray(self.between_shares, dtype=np.float64).reshape(-1),
             "feature_fit_worse": np.asarray(self.feature_fit_worse, dtype=bool).reshape(-1),
             "plain_shares": np.asarray(self.plain_shares, dtype=np.float64).reshape(-1),
+            **unreadable_arrays(self.unreadable),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -172,7 +176,7 @@ class Correspondence:
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
             refinement=refinement, refinement_trace=trace, between_shares=shares,
-            feature_fit_worse=worse, plain_shares=plain,
+            feature_fit_worse=worse, plain_shares=plain, unreadable=recorded_unreadable(a, label),
         )
 
 

@@ -79,6 +79,22 @@ def test_import_reports_a_broken_file_by_name_and_keeps_the_rest(vase_folder):
     assert len(collection.objects) == len(shapes)
 
 
+def test_import_parses_each_file_once_in_the_core_and_leaves_cleaning_to_prepare(extension, vase_folder, monkeypatch):
+    """Blender's importer reads the OBJ and PLY files (keeping what they hold); the core only
+    checks each for damage, parsing it once and never running intake's costly cleaning,
+    which Prepare runs on the object. OFF, which Blender cannot read, is the core's one read."""
+    folder, shapes = vase_folder
+    io = addon_module(extension, "core.io")
+    parsed, cleaned = [], []
+    parse, clean = io._parsed, io.clean_mesh
+    monkeypatch.setattr(io, "_parsed", lambda path, name=None: parsed.append(path.name) or parse(path, name))
+    monkeypatch.setattr(io, "clean_mesh", lambda *args, **kwargs: cleaned.append(kwargs["name"]) or clean(*args, **kwargs))
+    assert bpy.ops.shapegen.import_collection(directory=str(folder)) == {"FINISHED"}
+    assert sorted(parsed) == sorted(p.name for p in folder.iterdir())
+    assert cleaned == [p.stem for p in folder.iterdir() if p.suffix == ".off"] == [shapes[2].name]
+    assert len(bpy.context.scene.shapegen.source_collection.objects) == len(shapes)
+
+
 def test_prepare_aligns_scales_and_landmarks_without_touching_originals(vase_folder):
     folder, shapes = vase_folder
     bpy.ops.shapegen.import_collection(directory=str(folder))

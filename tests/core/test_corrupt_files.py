@@ -27,6 +27,7 @@ import pytest
 from shapegen_core.cli import main
 from shapegen_core.collection import PreparedCollection
 from shapegen_core.datasets import make_vases
+from shapegen_core.errors import MeshFileError
 
 from corrupt_corpus import FORMATS, corrupt_cases, file_bytes
 
@@ -142,3 +143,37 @@ def test_a_repeated_file_is_refused_but_double_sided_faces_are_left_to_intake(tm
         read_mesh(repeated)
     both_sides = read_mesh(double_sided)  # one surface, its back recorded (issue 31)
     assert both_sides.n_faces == len(sphere.faces) and both_sides.report.twin_faces_dropped == len(sphere.faces)
+
+
+@pytest.mark.parametrize("file_format", list(FORMATS))
+def test_the_damage_check_without_intake_refuses_what_the_reader_refuses(file_format, three_vases, tmp_path,
+                                                                        monkeypatch):
+    """`check_mesh_file` (run before Blender's importers, which accept damage silently)
+    refuses every case of the corpus `read_mesh` refuses, with its message, and passes every
+    case it reads, without intake's cleaning."""
+    from shapegen_core import io as mesh_io
+
+    mesh = three_vases[0]
+    path = tmp_path / f"case{FORMATS[file_format]}"
+    refused = 0
+    for name, data in corrupt_cases(file_format, mesh.vertices, mesh.faces):
+        path.write_bytes(data)
+        try:
+            mesh_io.read_mesh(path)
+            expected = None
+        except MeshFileError as exc:
+            expected = str(exc)
+            refused += 1
+        with monkeypatch.context() as patched:
+            patched.setattr(mesh_io, "clean_mesh", _no_intake)
+            try:
+                mesh_io.check_mesh_file(path)
+                found = None
+            except MeshFileError as exc:
+                found = str(exc)
+        assert found == expected, (name, found, expected)
+    assert refused
+
+
+def _no_intake(*args, **kwargs):
+    raise AssertionError("check_mesh_file ran intake's cleaning")
