@@ -33,7 +33,7 @@ BLENDER_TEST_TIMEOUT ?= 1800
 # module-scoped fixtures are built once (each Blender worker is its own Blender-as-a-module
 # with its own throwaway user folder). TEST_WORKERS=0 runs them in this process.
 TEST_WORKERS ?= $(shell nproc 2>/dev/null || echo 2)
-PYTEST       := -m pytest -q -p no:cacheprovider
+PYTEST       := -m pytest -q -p no:cacheprovider --durations=10
 PARALLEL     := -n $(TEST_WORKERS) --dist loadfile
 # the interpreters of the Blender smoke tier (tests/blender/test_releases.py): release=python
 export SHAPEGEN_BLENDER_RELEASES := 4.2=$(abspath $(PY_BPY42)) 5.2=$(abspath $(PY_NEWEST))

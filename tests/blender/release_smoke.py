@@ -18,6 +18,7 @@ import os
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 # before bpy is imported: the extension is installed there, nothing lands in ~/.config
@@ -25,6 +26,10 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="shapege
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import bpy  # noqa: E402
+
+# as in the other tiers (pyproject.toml): a deprecation met in the extension's own code fails
+for _category in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
+    warnings.filterwarnings("error", category=_category, module=r"bl_ext\.user_default\.shapegen")
 
 MODULE = "bl_ext.user_default.shapegen"
 #: a short schedule: the smoke checks that each stage runs on this release, not its quality
