@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import igl
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -312,20 +313,19 @@ def internal_faces(vertices: np.ndarray, faces: np.ndarray, label: str = "mesh")
 
 def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Generalised winding number of the surface at each point (Q,): the solid angle its
-    faces subtend, signed by their winding, over 4π (Van Oosterom & Strackee's formula per
-    triangle). 1 inside a closed outward surface, 0 outside, in between near an open one."""
-    points = np.asarray(points, dtype=np.float64)
-    total = np.zeros(len(points))
-    block = max(1, 2_000_000 // max(len(points), 1))
-    for start in range(0, len(faces), block):
-        corners = vertices[faces[start:start + block]]  # (B, 3, 3)
-        a, b, c = (corners[None, :, k, :] - points[:, None, :] for k in range(3))  # (Q, B, 3)
-        la, lb, lc = (np.linalg.norm(d, axis=2) for d in (a, b, c))
-        numerator = np.einsum("qbi,qbi->qb", a, np.cross(b, c))
-        denominator = (la * lb * lc + np.einsum("qbi,qbi->qb", a, b) * lc
-                       + np.einsum("qbi,qbi->qb", a, c) * lb + np.einsum("qbi,qbi->qb", b, c) * la)
-        total += 2 * np.arctan2(numerator, denominator).sum(axis=1)
-    return total / (4 * np.pi)
+    faces subtend, signed by their winding, over 4π. 1 inside a closed outward surface, 0
+    outside, in between near an open one.
+
+    libigl's fast winding number (Barill et al. 2018): exact for the faces near a point,
+    a second-order expansion of far clusters of faces (a tree over the faces), so the cost
+    grows as (faces + points) × log(faces) instead of faces × points. Its small error is
+    far below the thresholds intake compares against (INSIDE_WINDING)."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(faces)
+    if len(faces) == 0 or len(points) == 0:  # libigl would return uninitialised values for no faces
+        return np.zeros(len(points))
+    return igl.fast_winding_number(np.ascontiguousarray(vertices, dtype=np.float64),
+                                   np.ascontiguousarray(faces, dtype=np.int64), points)
 
 
 def separate_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, float]:
