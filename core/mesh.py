@@ -72,6 +72,8 @@ class MeshReport:
     faces_rewound: int = 0  # faces reversed to agree with their neighbours
     parts_turned_outward: int = 0  # connected parts that faced inwards, reversed whole
     parts_without_inside: int = 0  # open, nearly flat parts: no side is outside, winding kept
+    unorientable_parts: int = 0  # non-orientable parts (no winding makes all neighbours agree)
+    unorientable_faces: int = 0  # their faces, each wound towards its own outside
     vertices_unused: int = 0  # vertices of the file no face uses (a file cut short between faces?)
     unterminated: bool = False  # the file's last line has no line end (valid OBJ, or a file cut short)
     sliver_faces_dropped: int = 0  # faces thinner than SLIVER_RATIO on a border or non-manifold edge
@@ -106,6 +108,9 @@ class MeshReport:
             parts.append(f"{self.faces_rewound} face(s) re-wound to agree with their neighbours")
         if self.parts_without_inside:
             parts.append(f"{self.parts_without_inside} open flat part(s) with no outside: winding kept")
+        if self.unorientable_parts:
+            parts.append(f"{self.unorientable_parts} non-orientable part(s) ({self.unorientable_faces} faces, like a "
+                         "Möbius strip) wound face by face, outward")
         if self.vertices_unused:
             parts.append(f"{self.vertices_unused} vertices used by no face (kept; is the file cut short?)")
         if self.unterminated:
