@@ -50,7 +50,7 @@ from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 from .spill import full_mesh
 
-__all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
+__all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
 
@@ -100,6 +100,25 @@ def _nest_prepare(data: Mapping) -> dict:
     nested = {key: value for key, value in data.items() if key not in names}
     nested["prepare"] = {key: value for key, value in data.items() if key in names}
     return nested
+
+
+@dataclass(frozen=True)
+class PinCompletion:
+    """The most probable shape given pinned landmarks (`GenerativeShapeModel.complete_from_pins`).
+
+    landmarks: (L, 3) posterior mean shape (model frame); std: (L,) each landmark's posterior
+    standard deviation, the root of the summed variances of its x, y and z (the root mean
+    square distance of the landmark from where it is shown); latent: (Q,) the latent point
+    of the shape (PPCA: E[z | pins]), the sliders' position."""
+
+    landmarks: np.ndarray
+    std: np.ndarray
+    latent: np.ndarray
+
+    def distances(self, pins: Mapping[int, np.ndarray]) -> dict[int, float]:
+        """How far the shape stays from each pin (landmark index -> distance)."""
+        return {int(i): float(np.linalg.norm(self.landmarks[int(i)] - np.asarray(p, dtype=np.float64)))
+                for i, p in pins.items()}
 
 
 def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
@@ -210,6 +229,43 @@ class GenerativeShapeModel:
             raise ShapeGenError("a partial shape has no observed landmark at all")
         done = self.model.complete(np.where(mask, flat, 0.0), mask)
         return done.reshape(partial.shape)
+
+    def complete_from_pins(self, pins: Mapping[int, np.ndarray], start: np.ndarray | None = None) -> PinCompletion:
+        """The most probable shape given pinned landmarks {landmark index: position (3,) in
+        the model frame}: §5.5.3's completion made soft, each pin a noisy observation under
+        the model's noise, so a pin the class cannot reach is followed only as far as the
+        model allows (`ShapeModel.posterior`: PPCA's exact conditional Gaussian; the GP-LVMs'
+        MAP latent point, searched from `start` (Q,) when given, e.g. the live object's).
+        Returns the shape, each landmark's posterior standard deviation and the latent."""
+        if not pins:
+            raise ShapeGenError("no pins: pin at least one landmark")
+        y = np.zeros((self.n_landmarks, 3))
+        mask = np.zeros((self.n_landmarks, 3), dtype=bool)
+        for index, position in pins.items():
+            if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
+                    or not 0 <= int(index) < self.n_landmarks:
+                raise ShapeGenError(f"pin landmark {index!r} is not a landmark index of this model "
+                                    f"(0 to {self.n_landmarks - 1})")
+            position = np.asarray(position, dtype=np.float64)
+            if position.shape != (3,) or not np.isfinite(position).all():
+                raise ShapeGenError(f"pin of landmark {index}: position must be 3 finite numbers, got "
+                                    f"{np.asarray(position).tolist()}")
+            y[int(index)], mask[int(index)] = position, True
+        found = self.model.posterior(y.ravel(), mask.ravel(), start=start)
+        std = np.sqrt(np.maximum(found.variance, 0.0).reshape(self.n_landmarks, 3).sum(axis=1))
+        return PinCompletion(found.mean.reshape(self.n_landmarks, 3), std, np.asarray(found.latent, dtype=np.float64))
+
+    def vertex_std(self, landmark_std: np.ndarray, index: int, stiffness: float | None = None) -> np.ndarray:
+        """Per-vertex standard deviation (V,) of template `index`'s mesh from the landmarks'
+        (L,): carried to the vertices by the weights that carry the landmarks' positions in
+        meshing (`LinearMeshMap.linear_part`, §6.2), so a vertex shows the uncertainty of
+        the landmarks that move it; clipped at 0 (the weights may be slightly negative)."""
+        landmark_std = np.asarray(landmark_std, dtype=np.float64)
+        if landmark_std.shape != (self.n_landmarks,):
+            raise ShapeGenError(f"landmark std must have shape ({self.n_landmarks},), got {landmark_std.shape}")
+        directions = np.zeros((1, self.n_landmarks, 3))
+        directions[0, :, 0] = landmark_std
+        return np.maximum(self.linear_map(index, stiffness).linear_part(directions)[0, :, 0], 0.0)
 
     def choose_template(self, landmarks: np.ndarray, template: str | None) -> int:
         """Index of the training shape whose mesh is deformed (§6.2.5). nearest-data and
