@@ -294,8 +294,77 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- complete
+def read_pins(path: Path, model) -> dict[int, np.ndarray]:
+    """A pins file: a JSON list of {"landmark": i, "position": [x, y, z]}, positions in the
+    axes of the model's files (as written samples are); returned in the model frame
+    (`GenerativeShapeModel.file_axes`), by landmark index. Anything else is a CommandError
+    naming the file and the entry."""
+    try:
+        entries = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise CommandError(f"{path}: cannot read the pins file ({exc.strerror or exc})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CommandError(f"{path}: not a JSON pins file ({exc})") from None
+    if not isinstance(entries, list) or not entries:
+        raise CommandError(f'{path}: pins must be a non-empty JSON list of {{"landmark": i, "position": [x, y, z]}}')
+    pins: dict[int, np.ndarray] = {}
+    for number, entry in enumerate(entries):
+        where = f"{path}: pin {number}"
+        if not isinstance(entry, dict) or set(entry) != {"landmark", "position"}:
+            raise CommandError(f'{where}: must be {{"landmark": i, "position": [x, y, z]}}, got {json.dumps(entry)}')
+        index, position = entry["landmark"], entry["position"]
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < model.n_landmarks:
+            raise CommandError(f"{where}: landmark must be an integer from 0 to {model.n_landmarks - 1}, "
+                               f"got {json.dumps(index)}")
+        if (not isinstance(position, list) or len(position) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in position)
+                or not np.isfinite(np.asarray(position, dtype=np.float64)).all()):
+            raise CommandError(f"{where}: position must be 3 finite numbers, got {json.dumps(position)}")
+        if index in pins:
+            raise CommandError(f"{where}: landmark {index} is pinned twice")
+        pins[index] = np.asarray(position, dtype=np.float64) @ model.file_axes.T
+    return pins
+
+
+def _file_vertex_std(model, index: int, std: np.ndarray) -> np.ndarray:
+    """Per-vertex std in the order of the written file's vertices (the template's file
+    layout's vertex map, when it has one)."""
+    layout = model.meshes[index].report.layout
+    return std if layout is None else std[layout.vertex_map]
+
+
+def _complete_from_pins(args: argparse.Namespace, model) -> int:
+    pins = read_pins(args.pins, model)
+    done = model.complete_from_pins(pins)
+    index = model.choose_template(done.landmarks, args.template)
+    distances = done.distances(pins)
+    with _StagedOutput(args.output) as staging:
+        save_npz(staging / "completed.npz", "shapegen.samples", 1,
+                 {"landmarks": done.landmarks[None], "latents": done.latent[None],
+                  "landmark_std": done.std[None], "templates": np.asarray([model.names[index]]),
+                  "pin_landmarks": np.asarray(list(pins), dtype=np.int64),
+                  "pin_distances": np.asarray(list(distances.values()), dtype=np.float64)})
+        _write_meshes(model, done.landmarks[None], model.names[index], args.smooth, staging, ["completed_0000"],
+                      args.format)
+        if args.std:
+            save_npz(staging / "completed_0000_std.npz", "shapegen.vertex_std", 1,
+                     {"vertex_std": _file_vertex_std(model, index, model.vertex_std(done.std, index)),
+                      "landmark_std": done.std})
+    print(f"completed 1 shape from {len(pins)} pin(s) (farthest pin {max(distances.values()):.4g} from the shape"
+          f"{', per-vertex std in completed_0000_std.npz' if args.std else ''}) -> {args.output}")
+    return 0
+
+
 def cmd_complete(args: argparse.Namespace) -> int:
+    if args.pins is not None and args.partial is not None:
+        raise CommandError("give PARTIAL or --pins, not both")
+    if args.pins is None and args.partial is None:
+        raise CommandError("give PARTIAL (a .npz of partial landmark sets) or --pins PINS.json")
+    if args.std and args.pins is None:
+        raise CommandError("--std needs --pins (the standard deviation of the completion from pins)")
     model = GenerativeShapeModel.load(args.model)
+    if args.pins is not None:
+        return _complete_from_pins(args, model)
     arrays = load_npz(args.partial, "shapegen.partial", 1,
                       {"landmarks": ArraySpec("f", (None, None, 3), finite=False)})
     partial = arrays["landmarks"]
@@ -377,10 +446,17 @@ def add_generate_commands(sub) -> None:
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 
-    p = sub.add_parser("complete", help="complete partial landmark sets (NaN where missing) and mesh them")
+    p = sub.add_parser("complete", help="complete partial landmark sets (NaN where missing), or one shape from "
+                       "pinned landmarks, and mesh them")
     p.add_argument("model", type=Path)
-    p.add_argument("partial", type=Path, help=".npz (format shapegen.partial) with 'landmarks' (n, L, 3), NaN = missing")
+    p.add_argument("partial", type=Path, nargs="?", default=None,
+                   help=".npz (format shapegen.partial) with 'landmarks' (n, L, 3), NaN = missing (not with --pins)")
     p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--pins", type=Path, default=None, metavar="PINS.json",
+                   help='the most probable shape given pins: a JSON list of {"landmark": i, "position": [x, y, z]}, '
+                   "in the files' axes")
+    p.add_argument("--std", action="store_true",
+                   help="with --pins: also write completed_0000_std.npz, the posterior standard deviation per vertex")
     mesh_options(p)
     p.set_defaults(func=cmd_complete)
 
