@@ -30,7 +30,8 @@ from .child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
-from .io import MeshWriters
+from .io import MeshWriters, list_mesh_files
+from .labels import PartLabels, labels_beside, write_label_file, written_face_labels
 from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .spill import SpillStore, loaded
@@ -110,15 +111,32 @@ def cmd_fit(args: argparse.Namespace) -> int:
         else:
             meshes, corr = _meshes_for_correspondence(source.correspondence, args.meshes, args, spill)
             model = fit_shape_model(meshes, corr, source.plan.settings, progress=report)
+        folder = args.meshes if source.correspondence is not None else Path(args.source)
+        if folder.is_dir():
+            model.part_labels = _part_labels(model, folder)
         model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
+    labelled = "" if model.part_labels is None else \
+        f"; part labels of {sum(bool((p >= 0).any()) for p in model.part_labels.parts)} shape(s)"
     print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
-          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s); "
+          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}; "
           f"{time.perf_counter() - start:.1f} s")
     return 0
+
+
+def _part_labels(model, folder: Path) -> PartLabels | None:
+    """The part labels beside the training meshes' files in `folder` (`<name>_labels.txt`,
+    core/labels.py), mapped onto the meshes as read; None when no file has them."""
+    files = {path.stem: path for path in list_mesh_files(folder)}
+    found, counts = [], []
+    for name, mesh in zip(model.names, model.meshes):
+        with loaded(mesh) as full:
+            found.append(labels_beside(files[name], full) if name in files else None)
+            counts.append(len(full.faces))
+    return PartLabels.merge(found, counts)
 
 
 # ---------------------------------------------------------------------------- info
@@ -256,12 +274,27 @@ def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSa
     return sorted(samples, key=lambda sample: sample.index)
 
 
+def _write_sample_labels(model, samples, folder: Path, file_format: str) -> None:
+    """`<sample>_labels.txt` for every sample: the parts of its template's faces, in the
+    written file's face order (core/labels.py)."""
+    names, parts = list(model.part_labels.names), model.part_labels.parts
+    by_template: dict[int, np.ndarray] = {}
+    for sample in samples:
+        index = sample.template_index
+        if index not in by_template:
+            by_template[index] = written_face_labels(model.meshes[index], parts[index], file_format)
+        write_label_file(folder / f"{sample.name}_labels.txt", names, by_template[index])
+
+
 def cmd_sample(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.n < 1:
         raise CommandError(f"-n must be at least 1, got {args.n}")
     quality = settings_from_args(QualitySettings, args)
     model = GenerativeShapeModel.load(args.model)
+    if args.labels and model.part_labels is None:
+        raise CommandError(f"{args.model}: --labels: the model records no part labels (fit it from a folder with "
+                           "<name>_labels.txt beside the meshes)")
     if args.template is not None:
         model.template_order(model.correspondence.points[0], args.template)  # an unknown name fails before any work
     run = SampleRun(args.n, args.seed, args.template, "", args.format, args.smooth, args.exact, quality.to_json())
@@ -284,11 +317,14 @@ def cmd_sample(args: argparse.Namespace) -> int:
                   "stiffness": np.asarray([s.stiffness for s in samples], dtype=np.float64),
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
+        if args.labels:
+            _write_sample_labels(model, samples, staging, args.format)
     print(gate_summary(samples))
     for line in rejection_lines(samples):
         print(f"  {line}")
     seconds = time.perf_counter() - start
-    print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz -> {args.output} "
+    print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz{' + part labels' if args.labels else ''} -> "
+          f"{args.output} "
           f"({seconds:.1f} s, {1000 * seconds / args.n:.1f} ms per sample)")
     return 0
 
@@ -438,6 +474,8 @@ def add_generate_commands(sub) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (must be new or empty)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
+    p.add_argument("--labels", action="store_true",
+                   help="also write sample_XXXX_labels.txt: the part of every face, from the template's labels")
     p.add_argument("--jobs", type=positive_int, default=None,
                    help="worker processes for 64+ samples (default: all cores)")
     add_settings_options(p, QualitySettings)

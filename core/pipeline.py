@@ -11,6 +11,9 @@ versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
 * the fit's settings (`FitSettings`, one JSON string) and metadata;
+* optionally the training meshes' part labels (`labels.PartLabels`: `label_names` (P,) and
+  `mesh_face_labels`, the part of every face of every mesh in order, -1 for none), read
+  beside the files a model is fitted from; files without them load with none;
 * what Blender needs at once when a model is installed, computed where the model is
   fitted (the worker), so installing it costs no encoding on Blender's main thread: the
   training shapes' latent vectors `training_latents` (N, Q; the latent map's points, Snap's
@@ -38,6 +41,7 @@ from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import CollectionError, ModelFileError, ShapeGenError
+from .labels import PartLabels
 from .latent_units import LatentUnits
 from . import meshset
 from .layout import pack_layouts, unpack_layouts
@@ -135,9 +139,15 @@ class GenerativeShapeModel:
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
                  settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None,
-                 training_latents: np.ndarray | None = None, latent_units: LatentUnits | None = None):
+                 training_latents: np.ndarray | None = None, latent_units: LatentUnits | None = None,
+                 part_labels: PartLabels | None = None):
         if len(meshes) != len(correspondence.names):
             raise ShapeGenError(f"{len(meshes)} meshes for {len(correspondence.names)} corresponded shapes")
+        if part_labels is not None and len(part_labels.parts) != len(meshes):
+            raise ShapeGenError(f"part labels of {len(part_labels.parts)} meshes for {len(meshes)} meshes")
+        #: the training meshes' part labels (core/labels.py), None when the files had none;
+        #: a sample's faces have the parts of its template's
+        self.part_labels = part_labels
         self.meshes = meshes
         self.correspondence = correspondence
         self.model = model
@@ -378,6 +388,9 @@ class GenerativeShapeModel:
         arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
+        if self.part_labels is not None:
+            arrays["label_names"] = np.asarray(self.part_labels.names, dtype=str)
+            arrays["mesh_face_labels"] = np.concatenate(self.part_labels.parts).astype(np.int32)
         units = self.latent_units()
         arrays["training_latents"] = self.training_latents()
         arrays["latent_centre"], arrays["latent_scale"] = units.centre, units.scale
@@ -411,7 +424,8 @@ class GenerativeShapeModel:
                                  f"the correspondence {3 * correspondence.n_landmarks}")
         loaded = cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
                      metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())),
-                     **_load_latents(arrays, path, len(meshes), model.latent_dim))
+                     **_load_latents(arrays, path, len(meshes), model.latent_dim),
+                     part_labels=_load_part_labels(arrays, path, [len(m.faces) for m in meshes]))
         loaded.latent_units()  # a file from before the arrays existed: computed now, on load
         return loaded
 
@@ -427,6 +441,19 @@ def _with_layouts(meshes: list[Mesh], layouts: list, path) -> list[Mesh]:
             mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=MeshReport(layout=layout))
         found.append(mesh)
     return found
+
+
+def _load_part_labels(arrays: dict, path, n_faces: list[int]) -> PartLabels | None:
+    """The training meshes' part labels a model file records (None when it has none:
+    fitted without labels, or written before they were saved)."""
+    if "label_names" not in arrays and "mesh_face_labels" not in arrays:
+        return None
+    validate_arrays(arrays, {"label_names": ArraySpec("U", ("P",)),
+                             "mesh_face_labels": ArraySpec("i", (int(sum(n_faces)),))}, str(path))
+    parts = arrays["mesh_face_labels"].astype(np.int64)
+    if parts.size and (parts.min() < -1 or parts.max() >= len(arrays["label_names"])):
+        raise ModelFileError(f"{path}: array 'mesh_face_labels' names a part the model does not have")
+    return PartLabels(tuple(arrays["label_names"].tolist()), tuple(np.split(parts, np.cumsum(n_faces)[:-1])))
 
 
 def _load_latents(arrays: dict, path, n_shapes: int, latent_dim: int) -> dict:

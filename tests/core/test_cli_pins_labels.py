@@ -40,6 +40,7 @@ def vase(tmp_path_factory):
     result = run("fit", data, "-o", folder / "model.npz", "--model", "ppca", "--landmarks", 40, "--up", "y",
                  "--jobs", 1)
     assert result.returncode == 0, result.stderr
+    assert "part labels of 8 shape(s)" in result.stdout
     return folder / "model.npz", data, GenerativeShapeModel.load(folder / "model.npz")
 
 
@@ -109,3 +110,46 @@ def test_partial_and_pins_exclude_each_other_and_std_needs_pins(vase, tmp_path):
     std = run("complete", vase[0], tmp_path / "partial.npz", "--std", "-o", tmp_path / "c")
     for result, message in ((both, "not both"), (neither, "give PARTIAL"), (std, "--std needs --pins")):
         assert result.returncode == 2 and message in result.stderr
+
+
+# ----------------------------------------------------------------------------- --labels
+
+def test_sample_labels_cover_every_face_with_the_templates_parts(vase, tmp_path):
+    model_file, data, model = vase
+    assert model.part_labels is not None and set(model.part_labels.names) >= {"body"}
+    out = tmp_path / "samples"
+    result = run("sample", model_file, "-n", 3, "-o", out, "--seed", 2, "--labels")
+    assert result.returncode == 0, result.stderr
+    templates = [str(t) for t in np.load(out / "landmarks.npz")["templates"]]
+    for i, template in enumerate(templates):
+        _, faces = _obj(out / f"sample_{i:04d}.obj")
+        written = _labels(out / f"sample_{i:04d}_labels.txt")
+        ids = np.sort(np.concatenate(list(written.values())))
+        np.testing.assert_array_equal(ids, np.arange(1, len(faces) + 1))        # every face, once
+        # independently: each written face is a face of the template's file, whose labels say its part
+        lines = (data / f"{template}.off").read_text().split("\n")
+        n_vertices, n_faces = map(int, lines[1].split()[:2])
+        file_faces = np.array([[int(v) for v in line.split()[1:4]] for line in lines[2 + n_vertices: 2 + n_vertices + n_faces]])
+        part_of = {}
+        for name, file_ids in _labels(data / f"{template}_labels.txt").items():
+            for face in file_faces[file_ids - 1]:
+                part_of[tuple(sorted(face))] = name
+        for name, face_ids in written.items():
+            for face in faces[face_ids - 1]:
+                assert part_of[tuple(sorted(face))] == name
+
+
+def test_models_without_labels_load_and_refuse_sample_labels(vase, tmp_path):
+    """A model file written before part labels were saved (no label arrays) still loads;
+    asking it for labels is a one-line error."""
+    model_file = vase[0]
+    with np.load(model_file, allow_pickle=False) as stored:
+        arrays = {key: stored[key] for key in stored.files
+                  if key not in ("label_names", "mesh_face_labels", "format", "format_version")}
+        version = int(stored["format_version"])
+    old = tmp_path / "old.npz"
+    save_npz(old, "shapegen.model", version, arrays)
+    assert GenerativeShapeModel.load(old).part_labels is None
+    result = run("sample", old, "-n", 1, "-o", tmp_path / "out", "--labels")
+    assert result.returncode == 2 and "records no part labels" in result.stderr
+    assert not (tmp_path / "out").exists()
