@@ -138,7 +138,13 @@ def apply_pins(scene: bpy.types.Scene, force: bool = False) -> bool:
     model = store.require_model(scene)
     done = model.complete_from_pins(pins, start=latent.current_latent(scene))
     _APPLIED[scene.name] = signature
-    latent.set_latent(scene, done.latent)
+    # as a slider drag: the sliders, one re-mesh, and the quality gate only once the drag pauses
+    values = latent.slider_units(scene).to_values(done.latent)
+    with latent.sliders_batch():
+        for item, value in zip(scene.shapegen.latents, values):
+            item.value = float(value)
+    if latent.update_live(scene, full_check=False):
+        latent._schedule_full_check(scene)
     distances = done.distances(pins)
     for pin in pin_objects(scene):
         pin[PIN_DISTANCE_KEY] = distances.get(int(pin[PIN_KEY]), 0.0)
