@@ -30,7 +30,8 @@ from .child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
-from .io import MeshWriters
+from .io import MeshWriters, list_mesh_files
+from .labels import PartLabels, labels_beside, write_label_file, written_face_labels
 from .npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .spill import SpillStore, loaded
@@ -110,15 +111,32 @@ def cmd_fit(args: argparse.Namespace) -> int:
         else:
             meshes, corr = _meshes_for_correspondence(source.correspondence, args.meshes, args, spill)
             model = fit_shape_model(meshes, corr, source.plan.settings, progress=report)
+        folder = args.meshes if source.correspondence is not None else Path(args.source)
+        if folder.is_dir():
+            model.part_labels = _part_labels(model, folder)
         model.save(args.output)
     outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
+    labelled = "" if model.part_labels is None else \
+        f"; part labels of {sum(bool((p >= 0).any()) for p in model.part_labels.parts)} shape(s)"
     print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
-          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s); "
+          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}; "
           f"{time.perf_counter() - start:.1f} s")
     return 0
+
+
+def _part_labels(model, folder: Path) -> PartLabels | None:
+    """The part labels beside the training meshes' files in `folder` (`<name>_labels.txt`,
+    core/labels.py), mapped onto the meshes as read; None when no file has them."""
+    files = {path.stem: path for path in list_mesh_files(folder)}
+    found, counts = [], []
+    for name, mesh in zip(model.names, model.meshes):
+        with loaded(mesh) as full:
+            found.append(labels_beside(files[name], full) if name in files else None)
+            counts.append(len(full.faces))
+    return PartLabels.merge(found, counts)
 
 
 # ---------------------------------------------------------------------------- info
@@ -256,12 +274,27 @@ def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSa
     return sorted(samples, key=lambda sample: sample.index)
 
 
+def _write_sample_labels(model, samples, folder: Path, file_format: str) -> None:
+    """`<sample>_labels.txt` for every sample: the parts of its template's faces, in the
+    written file's face order (core/labels.py)."""
+    names, parts = list(model.part_labels.names), model.part_labels.parts
+    by_template: dict[int, np.ndarray] = {}
+    for sample in samples:
+        index = sample.template_index
+        if index not in by_template:
+            by_template[index] = written_face_labels(model.meshes[index], parts[index], file_format)
+        write_label_file(folder / f"{sample.name}_labels.txt", names, by_template[index])
+
+
 def cmd_sample(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.n < 1:
         raise CommandError(f"-n must be at least 1, got {args.n}")
     quality = settings_from_args(QualitySettings, args)
     model = GenerativeShapeModel.load(args.model)
+    if args.labels and model.part_labels is None:
+        raise CommandError(f"{args.model}: --labels: the model records no part labels (fit it from a folder with "
+                           "<name>_labels.txt beside the meshes)")
     if args.template is not None:
         model.template_order(model.correspondence.points[0], args.template)  # an unknown name fails before any work
     run = SampleRun(args.n, args.seed, args.template, "", args.format, args.smooth, args.exact, quality.to_json())
@@ -284,18 +317,90 @@ def cmd_sample(args: argparse.Namespace) -> int:
                   "stiffness": np.asarray([s.stiffness for s in samples], dtype=np.float64),
                   "seed": np.asarray(args.seed), "model_type": np.asarray(model.model_type)}
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1, arrays)
+        if args.labels:
+            _write_sample_labels(model, samples, staging, args.format)
     print(gate_summary(samples))
     for line in rejection_lines(samples):
         print(f"  {line}")
     seconds = time.perf_counter() - start
-    print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz -> {args.output} "
+    print(f"wrote {args.n} {args.format.upper()} meshes + landmarks.npz{' + part labels' if args.labels else ''} -> "
+          f"{args.output} "
           f"({seconds:.1f} s, {1000 * seconds / args.n:.1f} ms per sample)")
     return 0
 
 
 # ---------------------------------------------------------------------------- complete
+def read_pins(path: Path, model) -> dict[int, np.ndarray]:
+    """A pins file: a JSON list of {"landmark": i, "position": [x, y, z]}, positions in the
+    axes of the model's files (as written samples are); returned in the model frame
+    (`GenerativeShapeModel.file_axes`), by landmark index. Anything else is a CommandError
+    naming the file and the entry."""
+    try:
+        entries = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise CommandError(f"{path}: cannot read the pins file ({exc.strerror or exc})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CommandError(f"{path}: not a JSON pins file ({exc})") from None
+    if not isinstance(entries, list) or not entries:
+        raise CommandError(f'{path}: pins must be a non-empty JSON list of {{"landmark": i, "position": [x, y, z]}}')
+    pins: dict[int, np.ndarray] = {}
+    for number, entry in enumerate(entries):
+        where = f"{path}: pin {number}"
+        if not isinstance(entry, dict) or set(entry) != {"landmark", "position"}:
+            raise CommandError(f'{where}: must be {{"landmark": i, "position": [x, y, z]}}, got {json.dumps(entry)}')
+        index, position = entry["landmark"], entry["position"]
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < model.n_landmarks:
+            raise CommandError(f"{where}: landmark must be an integer from 0 to {model.n_landmarks - 1}, "
+                               f"got {json.dumps(index)}")
+        if (not isinstance(position, list) or len(position) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in position)
+                or not np.isfinite(np.asarray(position, dtype=np.float64)).all()):
+            raise CommandError(f"{where}: position must be 3 finite numbers, got {json.dumps(position)}")
+        if index in pins:
+            raise CommandError(f"{where}: landmark {index} is pinned twice")
+        pins[index] = np.asarray(position, dtype=np.float64) @ model.file_axes.T
+    return pins
+
+
+def _file_vertex_std(model, index: int, std: np.ndarray) -> np.ndarray:
+    """Per-vertex std in the order of the written file's vertices (the template's file
+    layout's vertex map, when it has one)."""
+    layout = model.meshes[index].report.layout
+    return std if layout is None else std[layout.vertex_map]
+
+
+def _complete_from_pins(args: argparse.Namespace, model) -> int:
+    pins = read_pins(args.pins, model)
+    done = model.complete_from_pins(pins)
+    index = model.choose_template(done.landmarks, args.template)
+    distances = done.distances(pins)
+    with _StagedOutput(args.output) as staging:
+        save_npz(staging / "completed.npz", "shapegen.samples", 1,
+                 {"landmarks": done.landmarks[None], "latents": done.latent[None],
+                  "landmark_std": done.std[None], "templates": np.asarray([model.names[index]]),
+                  "pin_landmarks": np.asarray(list(pins), dtype=np.int64),
+                  "pin_distances": np.asarray(list(distances.values()), dtype=np.float64)})
+        _write_meshes(model, done.landmarks[None], model.names[index], args.smooth, staging, ["completed_0000"],
+                      args.format)
+        if args.std:
+            save_npz(staging / "completed_0000_std.npz", "shapegen.vertex_std", 1,
+                     {"vertex_std": _file_vertex_std(model, index, model.vertex_std(done.std, index)),
+                      "landmark_std": done.std})
+    print(f"completed 1 shape from {len(pins)} pin(s) (farthest pin {max(distances.values()):.4g} from the shape"
+          f"{', per-vertex std in completed_0000_std.npz' if args.std else ''}) -> {args.output}")
+    return 0
+
+
 def cmd_complete(args: argparse.Namespace) -> int:
+    if args.pins is not None and args.partial is not None:
+        raise CommandError("give PARTIAL or --pins, not both")
+    if args.pins is None and args.partial is None:
+        raise CommandError("give PARTIAL (a .npz of partial landmark sets) or --pins PINS.json")
+    if args.std and args.pins is None:
+        raise CommandError("--std needs --pins (the standard deviation of the completion from pins)")
     model = GenerativeShapeModel.load(args.model)
+    if args.pins is not None:
+        return _complete_from_pins(args, model)
     arrays = load_npz(args.partial, "shapegen.partial", 1,
                       {"landmarks": ArraySpec("f", (None, None, 3), finite=False)})
     partial = arrays["landmarks"]
@@ -369,6 +474,8 @@ def add_generate_commands(sub) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (must be new or empty)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exact", action="store_true", help="full stiffness relaxation instead of the linear fast path")
+    p.add_argument("--labels", action="store_true",
+                   help="also write sample_XXXX_labels.txt: the part of every face, from the template's labels")
     p.add_argument("--jobs", type=positive_int, default=None,
                    help="worker processes for 64+ samples (default: all cores)")
     add_settings_options(p, QualitySettings)
@@ -377,10 +484,17 @@ def add_generate_commands(sub) -> None:
     mesh_options(p)
     p.set_defaults(func=cmd_sample)
 
-    p = sub.add_parser("complete", help="complete partial landmark sets (NaN where missing) and mesh them")
+    p = sub.add_parser("complete", help="complete partial landmark sets (NaN where missing), or one shape from "
+                       "pinned landmarks, and mesh them")
     p.add_argument("model", type=Path)
-    p.add_argument("partial", type=Path, help=".npz (format shapegen.partial) with 'landmarks' (n, L, 3), NaN = missing")
+    p.add_argument("partial", type=Path, nargs="?", default=None,
+                   help=".npz (format shapegen.partial) with 'landmarks' (n, L, 3), NaN = missing (not with --pins)")
     p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--pins", type=Path, default=None, metavar="PINS.json",
+                   help='the most probable shape given pins: a JSON list of {"landmark": i, "position": [x, y, z]}, '
+                   "in the files' axes")
+    p.add_argument("--std", action="store_true",
+                   help="with --pins: also write completed_0000_std.npz, the posterior standard deviation per vertex")
     mesh_options(p)
     p.set_defaults(func=cmd_complete)
 

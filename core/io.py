@@ -55,10 +55,17 @@ from .layout import FaceLayout
 from .mesh import Mesh
 from .spill import SpillStore, keep_dense
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "check_mesh_file", "read_folder", "read_readable", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
+__all__ = ["MESH_SUFFIXES", "file_faces", "read_mesh", "check_mesh_file", "read_folder", "read_readable", "list_mesh_files", "write_mesh", "obj_bytes", "ply_bytes",
            "ObjWriter", "MeshWriters"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+
+
+def file_faces(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The faces of a mesh file as it stores them: (sizes (P,), corners (C,) in file vertex
+    indices), the polygons its face ids number (part labels, core/labels.py)."""
+    sizes, corners = _parsed(path)[6][:2]
+    return np.asarray(sizes, dtype=np.int64), np.asarray(corners, dtype=np.int64)
 
 
 def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:

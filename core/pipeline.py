@@ -11,6 +11,9 @@ versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
   §6.2.2), residuals and outlier flags;
 * the shape model's arrays (PPCA / GP-LVM / Bayesian GP-LVM, §5.3), prefixed `model__`;
 * the fit's settings (`FitSettings`, one JSON string) and metadata;
+* optionally the training meshes' part labels (`labels.PartLabels`: `label_names` (P,) and
+  `mesh_face_labels`, the part of every face of every mesh in order, -1 for none), read
+  beside the files a model is fitted from; files without them load with none;
 * what Blender needs at once when a model is installed, computed where the model is
   fitted (the worker), so installing it costs no encoding on Blender's main thread: the
   training shapes' latent vectors `training_latents` (N, Q; the latent map's points, Snap's
@@ -38,6 +41,7 @@ from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import CollectionError, ModelFileError, ShapeGenError
+from .labels import PartLabels
 from .latent_units import LatentUnits
 from . import meshset
 from .layout import pack_layouts, unpack_layouts
@@ -50,7 +54,7 @@ from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
 from .spill import full_mesh
 
-__all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
+__all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
            "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
 
@@ -102,6 +106,25 @@ def _nest_prepare(data: Mapping) -> dict:
     return nested
 
 
+@dataclass(frozen=True)
+class PinCompletion:
+    """The most probable shape given pinned landmarks (`GenerativeShapeModel.complete_from_pins`).
+
+    landmarks: (L, 3) posterior mean shape (model frame); std: (L,) each landmark's posterior
+    standard deviation, the root of the summed variances of its x, y and z (the root mean
+    square distance of the landmark from where it is shown); latent: (Q,) the latent point
+    of the shape (PPCA: E[z | pins]), the sliders' position."""
+
+    landmarks: np.ndarray
+    std: np.ndarray
+    latent: np.ndarray
+
+    def distances(self, pins: Mapping[int, np.ndarray]) -> dict[int, float]:
+        """How far the shape stays from each pin (landmark index -> distance)."""
+        return {int(i): float(np.linalg.norm(self.landmarks[int(i)] - np.asarray(p, dtype=np.float64)))
+                for i, p in pins.items()}
+
+
 def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
     """The default meshing template must be a choice or one of the training shapes."""
     if settings.mesh_template not in TEMPLATE_CHOICES and settings.mesh_template not in names:
@@ -116,9 +139,15 @@ class GenerativeShapeModel:
 
     def __init__(self, meshes: list[Mesh], correspondence: Correspondence, model,
                  settings: FitSettings = FitSettings(), metadata: dict[str, str] | None = None,
-                 training_latents: np.ndarray | None = None, latent_units: LatentUnits | None = None):
+                 training_latents: np.ndarray | None = None, latent_units: LatentUnits | None = None,
+                 part_labels: PartLabels | None = None):
         if len(meshes) != len(correspondence.names):
             raise ShapeGenError(f"{len(meshes)} meshes for {len(correspondence.names)} corresponded shapes")
+        if part_labels is not None and len(part_labels.parts) != len(meshes):
+            raise ShapeGenError(f"part labels of {len(part_labels.parts)} meshes for {len(meshes)} meshes")
+        #: the training meshes' part labels (core/labels.py), None when the files had none;
+        #: a sample's faces have the parts of its template's
+        self.part_labels = part_labels
         self.meshes = meshes
         self.correspondence = correspondence
         self.model = model
@@ -210,6 +239,43 @@ class GenerativeShapeModel:
             raise ShapeGenError("a partial shape has no observed landmark at all")
         done = self.model.complete(np.where(mask, flat, 0.0), mask)
         return done.reshape(partial.shape)
+
+    def complete_from_pins(self, pins: Mapping[int, np.ndarray], start: np.ndarray | None = None) -> PinCompletion:
+        """The most probable shape given pinned landmarks {landmark index: position (3,) in
+        the model frame}: §5.5.3's completion made soft, each pin a noisy observation under
+        the model's noise, so a pin the class cannot reach is followed only as far as the
+        model allows (`ShapeModel.posterior`: PPCA's exact conditional Gaussian; the GP-LVMs'
+        MAP latent point, searched from `start` (Q,) when given, e.g. the live object's).
+        Returns the shape, each landmark's posterior standard deviation and the latent."""
+        if not pins:
+            raise ShapeGenError("no pins: pin at least one landmark")
+        y = np.zeros((self.n_landmarks, 3))
+        mask = np.zeros((self.n_landmarks, 3), dtype=bool)
+        for index, position in pins.items():
+            if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
+                    or not 0 <= int(index) < self.n_landmarks:
+                raise ShapeGenError(f"pin landmark {index!r} is not a landmark index of this model "
+                                    f"(0 to {self.n_landmarks - 1})")
+            position = np.asarray(position, dtype=np.float64)
+            if position.shape != (3,) or not np.isfinite(position).all():
+                raise ShapeGenError(f"pin of landmark {index}: position must be 3 finite numbers, got "
+                                    f"{np.asarray(position).tolist()}")
+            y[int(index)], mask[int(index)] = position, True
+        found = self.model.posterior(y.ravel(), mask.ravel(), start=start)
+        std = np.sqrt(np.maximum(found.variance, 0.0).reshape(self.n_landmarks, 3).sum(axis=1))
+        return PinCompletion(found.mean.reshape(self.n_landmarks, 3), std, np.asarray(found.latent, dtype=np.float64))
+
+    def vertex_std(self, landmark_std: np.ndarray, index: int, stiffness: float | None = None) -> np.ndarray:
+        """Per-vertex standard deviation (V,) of template `index`'s mesh from the landmarks'
+        (L,): carried to the vertices by the weights that carry the landmarks' positions in
+        meshing (`LinearMeshMap.linear_part`, §6.2), so a vertex shows the uncertainty of
+        the landmarks that move it; clipped at 0 (the weights may be slightly negative)."""
+        landmark_std = np.asarray(landmark_std, dtype=np.float64)
+        if landmark_std.shape != (self.n_landmarks,):
+            raise ShapeGenError(f"landmark std must have shape ({self.n_landmarks},), got {landmark_std.shape}")
+        directions = np.zeros((1, self.n_landmarks, 3))
+        directions[0, :, 0] = landmark_std
+        return np.maximum(self.linear_map(index, stiffness).linear_part(directions)[0, :, 0], 0.0)
 
     def choose_template(self, landmarks: np.ndarray, template: str | None) -> int:
         """Index of the training shape whose mesh is deformed (§6.2.5). nearest-data and
@@ -322,6 +388,9 @@ class GenerativeShapeModel:
         arrays["settings"] = np.asarray(self.settings.to_json())
         arrays["metadata_keys"] = np.asarray(list(self.metadata), dtype=str)
         arrays["metadata_values"] = np.asarray(list(self.metadata.values()), dtype=str)
+        if self.part_labels is not None:
+            arrays["label_names"] = np.asarray(self.part_labels.names, dtype=str)
+            arrays["mesh_face_labels"] = np.concatenate(self.part_labels.parts).astype(np.int32)
         units = self.latent_units()
         arrays["training_latents"] = self.training_latents()
         arrays["latent_centre"], arrays["latent_scale"] = units.centre, units.scale
@@ -355,7 +424,8 @@ class GenerativeShapeModel:
                                  f"the correspondence {3 * correspondence.n_landmarks}")
         loaded = cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
                      metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())),
-                     **_load_latents(arrays, path, len(meshes), model.latent_dim))
+                     **_load_latents(arrays, path, len(meshes), model.latent_dim),
+                     part_labels=_load_part_labels(arrays, path, [len(m.faces) for m in meshes]))
         loaded.latent_units()  # a file from before the arrays existed: computed now, on load
         return loaded
 
@@ -371,6 +441,19 @@ def _with_layouts(meshes: list[Mesh], layouts: list, path) -> list[Mesh]:
             mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name, report=MeshReport(layout=layout))
         found.append(mesh)
     return found
+
+
+def _load_part_labels(arrays: dict, path, n_faces: list[int]) -> PartLabels | None:
+    """The training meshes' part labels a model file records (None when it has none:
+    fitted without labels, or written before they were saved)."""
+    if "label_names" not in arrays and "mesh_face_labels" not in arrays:
+        return None
+    validate_arrays(arrays, {"label_names": ArraySpec("U", ("P",)),
+                             "mesh_face_labels": ArraySpec("i", (int(sum(n_faces)),))}, str(path))
+    parts = arrays["mesh_face_labels"].astype(np.int64)
+    if parts.size and (parts.min() < -1 or parts.max() >= len(arrays["label_names"])):
+        raise ModelFileError(f"{path}: array 'mesh_face_labels' names a part the model does not have")
+    return PartLabels(tuple(arrays["label_names"].tolist()), tuple(np.split(parts, np.cumsum(n_faces)[:-1])))
 
 
 def _load_latents(arrays: dict, path, n_shapes: int, latent_dim: int) -> dict:

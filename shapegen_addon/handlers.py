@@ -2,7 +2,8 @@
 
 Closing: a running job belongs to the file being closed, so it is stopped. Opening: the
 process caches (decoded models, latent meshers) belong to the old file and are dropped,
-every scene's packed model is decoded again, a job state left at RUNNING when the file
+every scene's packed model is decoded again, pins are re-applied only once they move
+(depsgraph_update_post, pins.py), a job state left at RUNNING when the file
 was saved (its worker is gone) is reset, and panel settings saved before they were grouped
 by section are moved into their groups (ui.properties.regroup_flat_settings).
 """
@@ -13,7 +14,7 @@ import bpy
 from bpy.app.handlers import persistent
 
 from ..core.errors import ShapeGenError
-from . import latent, store
+from . import latent, pins, store
 from .jobs import MANAGER
 from .ui.properties import regroup_flat_settings
 
@@ -51,6 +52,7 @@ def _load_post(*_args):
 
 
 def register_handlers() -> None:
+    pins.register_pin_handler()
     if _load_post not in bpy.app.handlers.load_post:
         bpy.app.handlers.load_post.append(_load_post)
     if _load_pre not in bpy.app.handlers.load_pre:
@@ -58,6 +60,7 @@ def register_handlers() -> None:
 
 
 def unregister_handlers() -> None:
+    pins.unregister_pin_handler()
     for handlers, function in ((bpy.app.handlers.load_post, _load_post), (bpy.app.handlers.load_pre, _load_pre)):
         while function in handlers:
             handlers.remove(function)

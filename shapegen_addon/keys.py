@@ -74,3 +74,9 @@ VERTEX_MAP_KEY = "shapegen_vertex_map"  # the live object: core template vertex 
 # ------------------------------------------------------------------ the latent-map image (and MODEL_ID_KEY)
 MAP_DIMS_KEY = "shapegen_dims"  # latent dimensions on x and y
 MAP_BOUNDS_KEY = "shapegen_bounds"  # x0, x1, y0, y1 of the drawn latent window
+
+# ---- pins of the live object (pins.py)
+PIN_KEY = "shapegen_pin"  # a pin (Empty): the landmark index it pins; with MODEL_ID_KEY
+PIN_DISTANCE_KEY = "shapegen_pin_distance"  # a pin: how far the live object stays from it (object units)
+PINS_START_KEY = "shapegen_pins_start"  # the live object: its latent vector before the first pin (Clear Pins restores it)
+STD_ATTRIBUTE = "shapegen_std"  # the live object's colour attribute: posterior std per vertex (Show Uncertainty)

@@ -5,7 +5,8 @@
 - `BayesianGPLVM`  variational sparse Bayesian GP-LVM, ARD RBF (§5.3.4, Titsias & Lawrence 2010)
 
 All share (base.ShapeModel): fit(Y, progress=None), sample(n, rng), sample_with_latents(n, rng),
-sample_latents(n, rng), encode(Y), decode(Z), complete(Y_partial, observed_mask), score(Y),
+sample_latents(n, rng), encode(Y), decode(Z), complete(Y_partial, observed_mask),
+posterior(y, observed_mask, start) (the most probable shape given pinned coordinates), score(Y),
 latent_dim, get_params(), clone(), to_arrays(), from_arrays(d). The two GP-LVMs share their fit
 and row search (latent_variable.LatentVariableModel). `make_model` builds any of them by name.
 

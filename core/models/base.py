@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -34,6 +35,7 @@ __all__ = [
     "default_latent_dim",
     "pca_latents",
     "standardised_pca_latents",
+    "ShapePosterior",
 ]
 
 
@@ -220,6 +222,23 @@ def standardised_pca_latents(Yc: np.ndarray, q: int) -> np.ndarray:
     return Z / np.maximum(Z.std(0), 1e-12)
 
 
+# ----------------------------------------------------------------------------- posterior
+
+@dataclass(frozen=True)
+class ShapePosterior:
+    """The most probable shape given some observed coordinates (soft: they are noisy
+    observations under the model's noise, so the shape need not pass through them), how
+    uncertain each coordinate stays, and the latent point it comes from (`ShapeModel.posterior`).
+
+    mean: (D,) posterior mean of the noise-free shape f (for the GP-LVMs, f at the most
+    probable latent point); variance: (D,) posterior variance of f per coordinate; latent: (Q,).
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray
+    latent: np.ndarray
+
+
 # ----------------------------------------------------------------------------- common API
 
 #: Integer codes of the non-integer choices of a parameter in model files.
@@ -233,8 +252,8 @@ class ShapeModel:
     (scikit-learn's convention): `get_params` reads them through the signature, and `clone`
     and the model files (`to_arrays`, `from_arrays`) build on it.
 
-    Subclasses implement `fit`, `encode`, `decode`, `sample_latents`, `complete`, `score`,
-    `decode_features`, `decode_basis` and `_prepare` (caches derived from the fitted
+    Subclasses implement `fit`, `encode`, `decode`, `sample_latents`, `complete`, `posterior`,
+    `score`, `decode_features`, `decode_basis` and `_prepare` (caches derived from the fitted
     attributes), and declare `_ARRAY_SPEC`: the arrays of `to_arrays` as npzfile ArraySpecs,
     i.e. "model_type", "param_<name>" per saved parameter and the fitted attributes (names
     ending in "_"). Equal dimension names ('N', 'D', 'Q', 'M', ...) must agree across arrays.
@@ -310,6 +329,20 @@ class ShapeModel:
         if not np.all(np.isfinite(Y[mask])):
             raise ModelInputError("Y_partial has NaN or infinite values at observed coordinates")
         return Y, mask
+
+    def _check_observed(self, y, observed_mask) -> tuple[np.ndarray, np.ndarray]:
+        """One row y (D,) and its mask (D,) for `posterior`: finite where observed, at least
+        one coordinate observed."""
+        Y, mask = self._check_partial(np.asarray(y, dtype=np.float64).reshape(1, -1),
+                                      np.asarray(observed_mask).reshape(1, -1))
+        return Y[0], mask[0]
+
+    def posterior(self, y, observed_mask, start=None) -> ShapePosterior:
+        """The most probable shape given the coordinates of y where observed_mask is True,
+        each a noisy observation under the model's noise (thesis §5.5.3, completion, made
+        soft), with its per-coordinate posterior variance; `start` (Q,) is where a latent
+        search starts (the GP-LVMs; ignored by PPCA's closed form)."""
+        raise NotImplementedError
 
     # ---- sampling
     def training_latents(self, Y, progress=None) -> np.ndarray:

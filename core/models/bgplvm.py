@@ -404,6 +404,17 @@ class BayesianGPLVM(LatentVariableModel):
                             self.inverse_lengthscales_)
         return self.mean_ + psi.psi1 @ self.B_
 
+    def _feature_jacobian(self, z):
+        """d k(z, Z_m) / dz_q = -k(z, Z_m) a_q (z_q - Z_mq), (M, Q)."""
+        k = self.decode_features(z[None, :])[0]
+        return -k[:, None] * self.inverse_lengthscales_ * (z[None, :] - self.inducing_)
+
+    def _predictive_variance(self, z):
+        """s_f^2 - k^T (K_mm^-1 - A^-1) k at a point z (the variance of the optimal q(u)'s
+        prediction, without the noise)."""
+        k = self.decode_features(z[None, :])[0]
+        return max(self.kernel_variance_ + float(k @ self._posterior_term @ k), 0.0)
+
     def _row_bound(self, x, c, R, rest, H, d_o):
         """-L(y*) for one row and its gradient w.r.t. [mu*, log S*] (args from `_row_setup`)."""
         q = self.latent_dim

@@ -227,6 +227,17 @@ class GPLVM(LatentVariableModel):
     def _predict_rows(self, found):
         return self.decode(found)
 
+    def _feature_jacobian(self, z):
+        """d k(z, Z_n) / dz = -k(z, Z_n) (z - Z_n) / l^2, (N, Q)."""
+        diff = z[None, :] - self.latents_
+        k = rbf_from_sq_dists(np.sum(diff**2, 1), self.kernel_variance_, self.lengthscale_**2)
+        return -k[:, None] * diff / self.lengthscale_**2
+
+    def _predictive_variance(self, z):
+        """s_f^2 - k^T (K + beta^-1 I)^-1 k at z (eq. 5.42's variance, without the noise)."""
+        k = self._kernel(z[None, :], self.latents_)[0]
+        return max(self.kernel_variance_ - float(k @ self._K_inv @ k), 0.0)
+
     def _row_terms(self, z, c, R):
         """k(z), the residual |y_o - m_o(z)|^2 (minus `rest`), d resid / dk and dk / dz."""
         diff = z[None, :] - self.latents_

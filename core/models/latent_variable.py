@@ -8,6 +8,14 @@ local optima and neither of two starting points wins on all data, so each starti
 `_START_ITERS` L-BFGS-B iterations (at most a quarter of `max_iter`) and the better one
 continues for the rest of `max_iter` (progress: starting points 0-0.1, final run 0.1-0.95).
 
+Posterior given pins (`posterior`): the latent point z that best explains a few observed
+coordinates under the latent prior, the MAP of p(y_o | z) p(z) with p(y_o | z) = N(m_o(z),
+beta^-1 I) and p(z) = N(0, I), found by L-BFGS from a given latent (the live object's, so
+a dragged pin moves the shape continuously) or from the training latents that explain the
+observations best; the shape is the prediction m(z), its variance the GP's predictive
+variance at z plus the latent uncertainty of the Laplace approximation carried through m
+(Gauss-Newton: Cov z = (J^T J beta + I)^-1, J = d m_o / dz).
+
 Row search: a new, possibly partial, row is explained by the latent point (GP-LVM) or the
 q(x*) (Bayesian GP-LVM) that maximises a per-row objective of its observed coordinates.
 L-BFGS-B starts from the `n_restarts` training points that score best and the best end point
@@ -25,7 +33,7 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
 from ..progress import Progress
-from .base import (ModelInputError, ShapeModel, check_latent_dim, check_rows, check_training_data,
+from .base import (ModelInputError, ShapeModel, ShapePosterior, check_latent_dim, check_rows, check_training_data,
                    default_latent_dim)
 from .scaling import ENCODE_SEARCH_SHAPES
 
@@ -276,6 +284,49 @@ class LatentVariableModel(ShapeModel):
         self._check_fitted()
         Y = check_rows(Y, self.n_features_)
         return float(np.mean(self._search_rows(Y, np.ones(Y.shape, bool), scoring=True)[1]))
+
+    # ------------------------------------------------------------------ posterior given pins
+    def _feature_jacobian(self, z: np.ndarray) -> np.ndarray:
+        """d decode_features(z) / dz at one latent z (Q,): (K, Q)."""
+        raise NotImplementedError
+
+    def _predictive_variance(self, z: np.ndarray) -> float:
+        """The GP's predictive variance of the noise-free f at latent z (the same for every coordinate)."""
+        raise NotImplementedError
+
+    def pin_objective(self, z: np.ndarray, c: np.ndarray, R: np.ndarray) -> tuple[float, np.ndarray]:
+        """-log p(y_o | z) - log p(z) up to a constant, and its gradient in z: with the row
+        constants c, R of `_row_setup` (|y_o - m_o(z)|^2 = |c - R f(z)|^2 + const),
+        E(z) = beta / 2 |c - R f(z)|^2 + |z|^2 / 2."""
+        f = self.decode_features(z[None, :])[0]
+        e = c - R @ f
+        beta = 1.0 / self.noise_variance_
+        value = 0.5 * beta * float(e @ e) + 0.5 * float(z @ z)
+        grad = -beta * (self._feature_jacobian(z).T @ (R.T @ e)) + z
+        return value, grad
+
+    def posterior(self, y, observed_mask, start=None) -> ShapePosterior:
+        """The MAP latent of the observed coordinates under the N(0, I) prior (module
+        docstring), from `start` (Q,) alone when given, else from the `n_restarts` training
+        latents that explain them best; the prediction there and its variance."""
+        self._check_fitted()
+        y, mask = self._check_observed(y, observed_mask)
+        basis = self.decode_basis()
+        c, R, _, _ = LatentVariableModel._row_setup(basis[:, mask], y[mask] - self.mean_[mask])
+        q = self.latent_dim
+        if start is not None:
+            starts = [self._check_latents(start)[0]]
+        else:
+            latents = self._row_candidates[:, :q]
+            beta = 1.0 / self.noise_variance_
+            misfit = 0.5 * beta * np.sum((c[:, None] - R @ self.decode_features(latents).T) ** 2, 0)
+            starts = [latents[j] for j in np.argsort(misfit + 0.5 * np.sum(latents**2, 1))[: max(1, self.n_restarts)]]
+        z, _ = best_start(self.pin_objective, starts, (c, R))
+        J = R @ self._feature_jacobian(z)                                   # d m_o / dz in the QR basis
+        covariance = np.linalg.inv(J.T @ J / self.noise_variance_ + np.eye(q))
+        root = basis.T @ (self._feature_jacobian(z) @ np.linalg.cholesky(covariance))   # (D, Q)
+        variance = self._predictive_variance(z) + np.sum(root**2, 1)
+        return ShapePosterior(self.decode(z[None, :])[0], variance, z)
 
     def complete(self, Y_partial, observed_mask) -> np.ndarray:
         """Search each row against its observed coordinates, predict there, keep the observed."""

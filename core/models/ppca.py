@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec
 from ..progress import Progress
-from .base import (ModelInputError, ShapeModel, as_generator, check_latent_dim,
+from .base import (ModelInputError, ShapeModel, ShapePosterior, as_generator, check_latent_dim,
                    check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
                    principal_axes, shrunk_spectrum)
 
@@ -234,6 +234,25 @@ class PPCA(ShapeModel):
         z = np.linalg.solve(M_rows, (R @ W)[:, :, None])[:, :, 0]          # (n, q)
         out = self.mean_ + z @ W.T
         return np.where(mask, Y, out)
+
+    def posterior(self, y, observed_mask, start=None) -> ShapePosterior:
+        """The exact conditional Gaussian of the noise-free shape f = mu + W z given the
+        observed coordinates y_o = f_o + eps (the soft form of `complete`, §5.5.3):
+
+          z | y_o ~ N(M_o^-1 W_o^T (y_o - mu_o), s^2 M_o^-1),   M_o = W_o^T W_o + s^2 I,
+          E[f | y_o] = mu + W E[z | y_o],   Cov[f | y_o] = W s^2 M_o^-1 W^T,
+
+        i.e. E[y_m | y_o] = mu_m + C_mo C_oo^-1 (y_o - mu_o) with C = W W^T + s^2 I on the
+        hidden coordinates (their variance adds s^2 for a noisy y_m). Observed coordinates
+        are not kept: the shape passes as near them as the model allows. `start` is unused."""
+        self._check_fitted()
+        y, mask = self._check_observed(y, observed_mask)
+        W, s2, q = self.components_, self.noise_variance_, self.latent_dim
+        W_o = W[mask]
+        M_o = W_o.T @ W_o + s2 * np.eye(q)
+        z = np.linalg.solve(M_o, W_o.T @ (y[mask] - self.mean_[mask]))
+        root = W @ np.linalg.cholesky(s2 * np.linalg.inv(M_o))              # Cov f = root root^T
+        return ShapePosterior(self.mean_ + W @ z, np.sum(root**2, 1), z)
 
     # ------------------------------------------------------------------ arrays
     @classmethod

@@ -1,8 +1,8 @@
-"""Operators, one module per panel section, each exporting its `CLASSES` (registration order)."""
+"""Operators, one module per panel section (pins: Explore's pins), each exporting its `CLASSES` (registration order)."""
 
-from . import cancel, correspondence, data, explore, fit, generate, outliers
+from . import cancel, correspondence, data, explore, fit, generate, outliers, pins
 
 CLASSES = (*data.CLASSES, *correspondence.CLASSES, *outliers.CLASSES, *fit.CLASSES, *cancel.CLASSES,
-           *generate.CLASSES, *explore.CLASSES)
+           *generate.CLASSES, *explore.CLASSES, *pins.CLASSES)
 
 __all__ = ["CLASSES"]

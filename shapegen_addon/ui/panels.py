@@ -16,7 +16,8 @@ import bpy
 
 from ..exclusion import excluded_names, outliers, training_collection
 from ..jobs import MANAGER
-from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MATCHING_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
+from ..keys import (KEEP_POSE_KEY, LATENT_DIM_KEY, LIVE_KEY, MATCHING_KEY, MODEL_ID_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
+                    PIN_DISTANCE_KEY, PIN_KEY,
                    N_LANDMARKS_KEY, N_SHAPES_KEY, OUTLIERS_KEY, QUALITY_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 from ..prepared import flagged_copies, prepared_collection_for, prepared_objects, prepared_pose_notes
 
@@ -290,6 +291,15 @@ class SHAPEGEN_PT_explore(_SubPanel, bpy.types.Panel):
             row.operator("shapegen.explore_reset", icon="LOOP_BACK")
             row.operator("shapegen.explore_snap", text="Snap", icon="SNAP_ON")
             layout.operator("shapegen.explore_bake", icon="CHECKMARK")
+            box = layout.box()  # pins: the live object takes the most probable shape given them (pins.py)
+            row = box.row(align=True)
+            row.operator("shapegen.pin_add", icon="PINNED")
+            row.operator("shapegen.pins_clear", icon="X")
+            box.prop(settings.explore, "show_uncertainty")
+            key = live.get(MODEL_ID_KEY)
+            for pin in context.scene.objects:
+                if PIN_KEY in pin and pin.get(MODEL_ID_KEY) == key:
+                    box.label(text=f"{pin.name}: {float(pin.get(PIN_DISTANCE_KEY, 0.0)):.4g} from the shape")
         layout.separator()
         row = layout.row(align=True)
         row.prop(settings.explore, "map_size")

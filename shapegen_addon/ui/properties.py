@@ -199,6 +199,9 @@ class ShapeGenExploreSettings(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Change it for another random shape")
     map_size: IntProperty(name="Map Size", default=256, min=64, max=2048,
                           description="Size of the latent map picture, in pixels")
+    show_uncertainty: BoolProperty(name="Show Uncertainty", default=False,
+                                   description="While pins shape the live object, colour it by how unsure the "
+                                   "model is of each point (attribute 'shapegen_std': white = least sure)")
 
 
 class ShapeGenSettings(bpy.types.PropertyGroup):
