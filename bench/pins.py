@@ -89,13 +89,17 @@ def main() -> None:
         rng = np.random.default_rng(0)
         size = float(np.ptp(model.correspondence.points, axis=(0, 1)).max())
         first = live.data.vertices[0].co.copy()
-        times = []
+        times, remeshed = [], 0
         for _ in range(args.moves):
             pin.location = tuple(home + rng.normal(scale=0.05 * size, size=3))
+            updates = latent._UPDATES[0]
             t = time.perf_counter()
             bpy.context.view_layer.update()   # the handler: posterior, sliders, vertex write
             bpy.context.view_layer.update()   # the written mesh evaluated, as the viewport shows it
             times.append(1000 * (time.perf_counter() - t))
+            remeshed += latent._UPDATES[0] > updates  # the handler re-meshed within the timed span
+        if remeshed != args.moves:
+            sys.exit(f"{kind}: only {remeshed} of {args.moves} pin moves re-meshed the live object in the timed span")
         moved = (live.data.vertices[0].co - first).length > 0
         times_arr = np.array(times)
         results[kind] = {"vertices": len(live.data.vertices), "median_ms": float(np.median(times_arr)),
