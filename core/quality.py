@@ -75,8 +75,13 @@ class QualitySettings(Settings):
         samples stay below it).
     max_coincident_faces: face pairs on top of each other a sample may have. 0: each pair
         z-fights (a checkerboard of dark triangles in a viewport).
-    max_redraws: draws of one sample after its first before giving up on the gate (the
-        last draw is kept and reported as failing).
+    max_redraws: redraws per requested sample, pooled over the run: a run of n samples
+        makes at most n·(1 + max_redraws) draws in all (core/sampling.py, `draw_budget`),
+        each sample first getting 1 + max_redraws and those still failing sharing what the
+        passing ones left. 20: a class where a draw passes half the time fails a sample of
+        21 draws once in two million runs, and a run that cannot pass stops within 21
+        draws per sample. A run in which a sample still fails when they are spent writes
+        nothing (`shapegen sample` exits 2) or, in Blender, adds only the passing ones.
     """
 
     max_flipped: int = option(0, "flipped or collapsed faces a sample may have", minimum=0)
@@ -93,8 +98,8 @@ class QualitySettings(Settings):
     max_roughness_ratio: float = option(1.5, "largest roughness (mean angle between adjacent face normals) "
                                         "over the template's", above=0)
     max_coincident_faces: int = option(0, "face pairs on top of each other (z-fighting)", minimum=0)
-    max_redraws: int = option(20, "redraws of one failing sample before keeping it with a warning",
-                              flag="--max-redraws", minimum=0)
+    max_redraws: int = option(20, "redraws per requested sample, pooled over the run: at most N x (1 + this) "
+                              "draws in all before the run fails", flag="--max-redraws", minimum=0)
 
 
 @dataclass(frozen=True)

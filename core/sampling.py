@@ -14,9 +14,17 @@ fails:
    final α (a stiffer mesh follows the landmarks less closely but does not fold; the
    sample records the α it was meshed with);
 3. otherwise the sample is redrawn with seed S + r·n + i for redraw r = 1, 2, ... (unique
-   in the run, independent of the order samples are made), up to
-   `QualitySettings.max_redraws` times; the last draw is kept when every one fails, and
-   says so.
+   in the run, independent of the order samples are made).
+
+A run of n samples has a budget of `draw_budget` = n·(1 + `QualitySettings.max_redraws`)
+draws, pooled over its samples (`pooled_samples`): every sample first gets 1 + max_redraws
+draws (so a run whose samples all pass within them is what it was when the budget was per
+sample); draws its passing samples left unused then go, in rounds, to the samples still
+failing, shared equally (lowest index first). A class where most draws fold can still give
+n good samples, and a run that cannot costs at most the budget. A sample still failing
+when the budget is spent is a failure of the run: it is returned with its last mesh and
+the gate's reasons, and callers must not use it as a good sample (`shapegen sample` writes
+nothing and exits 2; Blender's Sample adds only the passing ones).
 
 Every rejected mesh is recorded with its seed, template and the gate's reasons
 (`Rejection`), so a run can say how many it redrew and why (`gate_summary`).
@@ -25,8 +33,8 @@ Every rejected mesh is recorded with its seed, template and the gate's reasons
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
-from typing import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -34,7 +42,8 @@ from .mesh import Mesh
 from .quality import CRITERIA, MeshQuality, QualityGate, QualitySettings, training_extents
 
 __all__ = ["Rejection", "GatedSample", "TEMPLATES_TRIED", "quality_gate", "redraw_seed", "gated_sample",
-           "gated_samples", "gate_summary", "rejection_lines", "sample_name"]
+           "gated_samples", "gated_slots", "draw_budget", "pooled_samples", "gate_summary", "failed_reasons",
+           "shortfall", "rejection_lines", "sample_name"]
 
 #: Templates a sample's landmarks are meshed on (nearest first) before the sample is redrawn.
 TEMPLATES_TRIED = 3
@@ -81,6 +90,12 @@ class GatedSample:
         """Draws with a new seed (re-meshing on another template is not a redraw)."""
         return len({r.seed for r in self.rejected if r.seed != self.seed})
 
+    @property
+    def draws(self) -> int:
+        """Draws this sample used (its kept draw and every refused one; seeds are unique in
+        a run)."""
+        return len({r.seed for r in self.rejected} | {self.seed})
+
 
 def quality_gate(model, settings: QualitySettings = QualitySettings()) -> QualityGate:
     """The gate of `model`'s samples: its training meshes as templates and their extents
@@ -108,15 +123,22 @@ def _draw(model, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return landmarks[0], np.asarray(latent, dtype=np.float64)
 
 
+def draw_budget(count: int, settings: QualitySettings = QualitySettings()) -> int:
+    """Draws a run of `count` samples may make in all: 1 + max_redraws per sample, pooled."""
+    return int(count) * (int(settings.max_redraws) + 1)
+
+
 def gated_sample(model, index: int, first_seed: int, count: int, template: str | None = None,
                  settings: QualitySettings = QualitySettings(), smooth: int = 0, exact: bool = False,
-                 name: str = "sample") -> GatedSample:
-    """Sample `index` of a run of `count` from `first_seed`, gated (module docstring)."""
+                 name: str = "sample", redraws: range | None = None) -> GatedSample:
+    """Sample `index` of a run of `count` from `first_seed`, gated (module docstring), with
+    the draws `redraws` (0: the first; default 0 to max_redraws). When every draw fails the
+    last mesh tried is returned, failing (its `quality` says why)."""
     gate = quality_gate(model, settings)
     alpha = model.deform_settings.final_alpha
     stiffnesses = [alpha] + ([alpha * settings.stiffer_remesh] if settings.stiffer_remesh > 1 else [])
     rejected: list[Rejection] = []
-    for redraw in range(settings.max_redraws + 1):
+    for redraw in (range(settings.max_redraws + 1) if redraws is None else redraws):
         seed = redraw_seed(first_seed, count, index, redraw)
         landmarks, latent = _draw(model, seed)
         order = model.template_order(landmarks, template)[:TEMPLATES_TRIED]
@@ -134,13 +156,56 @@ def gated_sample(model, index: int, first_seed: int, count: int, template: str |
     return kept
 
 
+def gated_slots(model, count: int, first_seed: int, slots: Sequence[tuple[int, range]], template: str | None = None,
+                settings: QualitySettings = QualitySettings(), smooth: int = 0, exact: bool = False) -> list[GatedSample]:
+    """One round of a run of `count` from `first_seed`: sample i of each (i, redraws) in
+    `slots` gated with those draws (`gated_sample`), in the order of `slots`."""
+    return [gated_sample(model, index, first_seed, count, template, settings, smooth, exact, name=sample_name(index),
+                         redraws=redraws) for index, redraws in slots]
+
+
+def pooled_samples(count: int, budget: int, gate: Callable[[list[tuple[int, range]]], list[GatedSample]]
+                   ) -> list[GatedSample]:
+    """Samples 0..count-1 of a run, each passing or failing once `budget` draws are spent
+    (module docstring), in index order. `gate(slots)` gates one round: for each (i, draws)
+    of `slots`, sample i with those draws (a `GatedSample` for each, passing or not; a
+    process pool or cluster may do them in any order). Round 0 gives every sample
+    budget // count draws; each later round shares the draws left among the samples still
+    failing, at least one each, lowest index first. A sample's refused meshes of every
+    round are kept, in order."""
+    if count < 1:
+        return []
+    if budget < count:
+        raise ValueError(f"a run of {count} samples needs a budget of at least {count} draws, got {budget}")
+    kept: dict[int, GatedSample] = {}
+    next_draw = [0] * count
+    failing = list(range(count))
+    used = 0
+    while failing and used < budget:
+        left = budget - used
+        share = max(1, left // len(failing))
+        slots = []
+        for index in failing[:left]:
+            slots.append((index, range(next_draw[index], next_draw[index] + share)))
+            next_draw[index] += share
+        for sample in gate(slots):
+            earlier = kept.get(sample.index)
+            if earlier is not None:
+                sample = replace(sample, rejected=earlier.rejected + sample.rejected)
+            kept[sample.index] = sample
+        failing = [i for i in failing if not kept[i].quality.ok]
+        used = sum(sample.draws for sample in kept.values())
+    return [kept[i] for i in range(count)]
+
+
 def gated_samples(model, count: int, first_seed: int, template: str | None = None,
-                  settings: QualitySettings = QualitySettings(), smooth: int = 0, exact: bool = False,
-                  indices: Sequence[int] | None = None, names: Sequence[str] | None = None) -> list[GatedSample]:
-    """Samples `indices` (default: all `count`) of a run from `first_seed`, gated."""
-    indices = range(count) if indices is None else indices
-    return [gated_sample(model, i, first_seed, count, template, settings, smooth, exact,
-                         name=names[i] if names is not None else sample_name(i)) for i in indices]
+                  settings: QualitySettings = QualitySettings(), smooth: int = 0, exact: bool = False
+                  ) -> list[GatedSample]:
+    """The `count` samples of a run from `first_seed`, gated with the run's pooled draw
+    budget (`pooled_samples`), in this process; failing ones included (check `quality.ok`)."""
+    return pooled_samples(count, draw_budget(count, settings),
+                          lambda slots: gated_slots(model, count, first_seed, slots, template, settings, smooth,
+                                                    exact))
 
 
 def _criterion(reason: str) -> str:
@@ -150,7 +215,7 @@ def _criterion(reason: str) -> str:
 
 def gate_summary(samples: Sequence[GatedSample]) -> str:
     """One line: how many first meshes failed and why, how many were re-meshed on another
-    template, redrawn, and still fail."""
+    template, redrawn, and still fail when the run's draws were spent."""
     first_failed = [s for s in samples if s.rejected]
     if not first_failed:
         return f"quality gate: all {len(samples)} passed at the first draw"
@@ -163,9 +228,27 @@ def gate_summary(samples: Sequence[GatedSample]) -> str:
             f"{len(first_failed) - len(redrawn) - len(stiffer)} passed on another template, {len(stiffer)} meshed "
             f"stiffer, {len(redrawn)} redrawn ({sum(s.redraws for s in samples)} redraws)")
     if failing:
-        text += f"; {len(failing)} still fail after every redraw (kept: " + ", ".join(
-            f"{s.name}: {s.quality.summary()}" for s in failing[:3]) + (", ..." if len(failing) > 3 else "") + ")"
+        text += (f"; {len(failing)} still fail after {sum(s.draws for s in samples)} draws in all (" + ", ".join(
+            f"{s.name}: {s.quality.summary()}" for s in failing[:3]) + (", ..." if len(failing) > 3 else "") + ")")
     return text
+
+
+def failed_reasons(samples: Sequence[GatedSample]) -> Counter:
+    """The gate's criteria over every mesh refused for the samples that still fail: how
+    often each was a reason (a mesh may fail several)."""
+    return Counter(_criterion(reason) for s in samples if not s.quality.ok for r in s.rejected for reason in r.reasons)
+
+
+def shortfall(samples: Sequence[GatedSample], budget: int) -> str:
+    """One line for a run whose samples do not all pass: how many passed within the budget
+    of draws, how many still fail and the commonest reasons ("" when all pass)."""
+    failing = [s for s in samples if not s.quality.ok]
+    if not failing:
+        return ""
+    meshes = sum(len(s.rejected) for s in failing)
+    why = ", ".join(f"{name} {n}" for name, n in failed_reasons(samples).most_common(3))
+    return (f"{len(samples) - len(failing)} of {len(samples)} samples passed the quality gate within the budget of "
+            f"{budget} draws; {len(failing)} still fail (commonest reasons over their {meshes} refused meshes: {why})")
 
 
 def rejection_lines(samples: Sequence[GatedSample]) -> list[str]:

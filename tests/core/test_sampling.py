@@ -1,6 +1,7 @@
-"""Gated sampling (issue 14): a sample whose mesh fails the quality gate is re-meshed on the
-next-nearest template or redrawn, and every refused mesh is recorded with its seed,
-template and reasons."""
+"""Gated sampling: a sample whose mesh fails the quality gate is re-meshed on the
+next-nearest template or redrawn within the run's pooled draw budget, every refused mesh
+is recorded with its seed, template and reasons, and a sample still failing when the
+budget is spent is returned failing, never as a good one."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from shapegen_core.collection import PrepareSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.pipeline import FitSettings, fit_meshes
 from shapegen_core.quality import MeshQuality, QualitySettings
-from shapegen_core.sampling import TEMPLATES_TRIED, gate_summary, gated_sample, gated_samples, redraw_seed
+from shapegen_core.sampling import (TEMPLATES_TRIED, GatedSample, draw_budget, failed_reasons, gate_summary,
+                                   gated_sample, gated_samples, pooled_samples, redraw_seed, shortfall)
 
 
 @pytest.fixture(scope="module")
@@ -94,10 +96,79 @@ def test_a_named_template_is_kept_and_the_sample_redrawn(model, monkeypatch):
     assert sample.seed == 5 and sample.template_index == 2
 
 
-def test_when_every_redraw_fails_the_last_is_kept_and_reported(model):
+def test_when_every_draw_fails_the_last_mesh_is_returned_failing_with_its_reasons(model):
     strict = QualitySettings(max_edge_stretch_p99=1e-9, max_redraws=1)
     sample = gated_sample(model, 0, 0, 3, settings=strict)
     assert not sample.quality.ok and sample.quality.reasons[0].startswith("edge stretch:")
     assert len(sample.rejected) == 2 * 2 * min(TEMPLATES_TRIED, len(model.template_candidates()))
-    assert {r.seed for r in sample.rejected} == {0, 3} and sample.seed == 3
-    assert "1 still fail after every redraw (kept: sample: edge stretch:" in gate_summary([sample])
+    assert {r.seed for r in sample.rejected} == {0, 3} and sample.seed == 3 and sample.draws == 2
+    assert "1 still fail after 2 draws in all (sample: edge stretch:" in gate_summary([sample])
+
+
+def _stub(index, draw, passes):
+    """A GatedSample of draw `draw` of sample `index` (run of 10 from seed 0): passing or
+    failing on flipped faces, with the refused meshes of this draw's failures."""
+    quality = MeshQuality(0, 0.0, 0.1, 0.05, 0, 1.0, 1.0, () if passes else ("flipped: 3 face(s)",))
+    return GatedSample(index, sampling.sample_name(index), redraw_seed(0, 10, index, draw), np.zeros((2, 3)),
+                       np.zeros(1), 0, None, quality, 1.0)
+
+
+def pooled(count, budget, passes):
+    """`pooled_samples` with a gate passing draw d of sample i when passes(i, d); returns
+    the samples and each round's slots as (index, first draw, draws) triples."""
+    rounds = []
+
+    def gate(slots):
+        rounds.append([(i, draws.start, len(draws)) for i, draws in slots])
+        out = []
+        for index, draws in slots:
+            refused = []
+            for draw in draws:
+                sample = _stub(index, draw, passes(index, draw))
+                sample.rejected = list(refused)
+                if sample.quality.ok:
+                    break
+                refused.append(sampling.Rejection(sample.seed, "t", sample.quality.reasons, 1.0))
+            sample.rejected = refused
+            out.append(sample)
+        return out[::-1]  # a pool may return them in any order
+
+    return pooled_samples(count, budget, gate), rounds
+
+
+def test_the_draw_budget_is_pooled_over_the_run():
+    """Sample 1 fails its own 1 + max_redraws draws; the draws samples 0 and 2 left unused
+    go to it, and it passes on its 4th draw."""
+    assert draw_budget(3, QualitySettings(max_redraws=1)) == 6 and draw_budget(8) == 8 * 21
+    samples, rounds = pooled(3, 6, lambda i, d: i != 1 or d == 3)
+    assert rounds == [[(0, 0, 2), (1, 0, 2), (2, 0, 2)], [(1, 2, 2)]]
+    assert all(s.quality.ok for s in samples) and [s.index for s in samples] == [0, 1, 2]
+    assert samples[1].seed == redraw_seed(0, 10, 1, 3) and samples[1].draws == 4
+    assert [r.seed for r in samples[1].rejected] == [redraw_seed(0, 10, 1, d) for d in range(3)]  # every round's
+    assert sum(s.draws for s in samples) == 6
+    assert shortfall(samples, 6) == ""
+
+
+def test_a_run_stops_when_its_budget_is_spent_and_says_how_many_passed_and_why():
+    samples, rounds = pooled(4, 8, lambda i, d: i % 2 == 0)
+    assert rounds == [[(i, 0, 2) for i in range(4)], [(1, 2, 1), (3, 2, 1)]]  # 2 draws left: one each
+    assert [s.quality.ok for s in samples] == [True, False, True, False]
+    assert [s.draws for s in samples] == [1, 3, 1, 3]
+    assert shortfall(samples, 8) == ("2 of 4 samples passed the quality gate within the budget of 8 draws; 2 still "
+                                     "fail (commonest reasons over their 6 refused meshes: flipped 6)")
+    assert "2 still fail after 8 draws in all (sample_0001: flipped: 3 face(s), sample_0003: " in gate_summary(samples)
+
+
+def test_draws_too_few_for_every_failing_sample_go_to_the_lowest_index_first():
+    samples, rounds = pooled(3, 4, lambda i, d: False)
+    assert rounds == [[(0, 0, 1), (1, 0, 1), (2, 0, 1)], [(0, 1, 1)]]
+    assert [s.draws for s in samples] == [2, 1, 1] and not any(s.quality.ok for s in samples)
+
+
+def test_a_model_whose_draws_all_fail_spends_the_budget_and_returns_them_failing(model):
+    strict = QualitySettings(max_edge_stretch_p99=1e-9, max_redraws=0, stiffer_remesh=1.0)
+    samples = gated_samples(model, 2, 0, settings=strict)
+    assert [s.seed for s in samples] == [0, 1] and not any(s.quality.ok for s in samples)
+    assert sum(s.draws for s in samples) == draw_budget(2, strict) == 2
+    assert failed_reasons(samples)["edge stretch"] == sum(len(s.rejected) for s in samples) > 0
+    assert shortfall(samples, 2).startswith("0 of 2 samples passed the quality gate within the budget of 2 draws")
