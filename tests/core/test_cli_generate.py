@@ -67,6 +67,94 @@ def test_sample_reports_the_quality_gate_and_records_seeds(model_file, tmp_path)
     assert result.returncode == 2 and "--max-redraws must be at least 0" in result.stderr
 
 
+@pytest.fixture(scope="module")
+def exploding_model_file(model_file):
+    """The vase model drawing every shape five times the class's size (its mean and modes
+    scaled): no draw can pass the quality gate's extent check, as with a model gone wrong."""
+    from shapegen_core.pipeline import GenerativeShapeModel
+
+    model = GenerativeShapeModel.load(model_file)
+    model.model.mean_ = model.model.mean_ * 5.0
+    model.model.components_ = model.model.components_ * 5.0
+    model.model.noise_variance_ = model.model.noise_variance_ * 25.0
+    model.model._prepare()
+    return model.save(model_file.parent / "exploding.npz")
+
+
+def test_a_run_whose_samples_fail_the_gate_writes_nothing_and_exits_2(exploding_model_file, tmp_path):
+    """It wrote the last failing draw among the good samples and exited 0."""
+    out = tmp_path / "broken"
+    result = run("sample", exploding_model_file, "-n", 2, "-o", out, "--max-redraws", 1)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()]  # one line
+    assert ("shapegen sample: error: 0 of 2 samples passed the quality gate within the budget of 4 draws; 2 still "
+            "fail (commonest reasons over their ") in result.stderr
+    assert "extent " in result.stderr and "nothing written" in result.stderr
+    assert "2 still fail after 4 draws in all" in result.stdout  # what the gate did, on stdout as for a good run
+    assert not out.exists() and not list(tmp_path.glob(".broken*"))
+
+
+def test_keep_failed_writes_only_the_failing_samples_with_their_reasons(exploding_model_file, tmp_path):
+    out = tmp_path / "kept"
+    result = run("sample", exploding_model_file, "-n", 2, "-o", out, "--max-redraws", 1, "--keep-failed",
+                 "--seed", 5)
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert f"the failing ones are in {out / 'failed'}" in result.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["failed"]
+    failed = out / "failed"
+    assert sorted(p.name for p in failed.iterdir()) == ["landmarks.npz", "reasons.txt", "sample_0000.obj",
+                                                         "sample_0001.obj"]
+    saved = np.load(failed / "landmarks.npz")
+    assert saved["names"].tolist() == ["sample_0000", "sample_0001"]
+    assert saved["seeds"].tolist() == [5 + 2, 6 + 2]  # each sample's last draw (redraw 1: seed + n)
+    assert all(reason.startswith("extent: ") for reason in saved["quality"])
+    assert set(saved["rejected_sample"].tolist()) == {0, 1} and len(saved["rejected_reasons"]) == \
+        len(saved["rejected_seed"]) == len(saved["rejected_template"])
+    lines = (failed / "reasons.txt").read_text().splitlines()
+    assert [line.split(":")[0] for line in lines] == ["sample_0000", "sample_0001"]
+    stiffness = f"{saved['stiffness'][0]:g}"  # its last mesh: the stiffer re-mesh on its last template
+    assert lines[0].startswith(f"sample_0000: seed 7 on {saved['templates'][0]} (stiffness {stiffness}) after 2 "
+                               "draw(s): extent: ")
+    mesh = trimesh.load(failed / "sample_0000.obj", process=False)
+    source = trimesh.load(exploding_model_file.parent / "data" / f"{saved['templates'][0]}.obj", process=False)
+    assert len(mesh.faces) == len(source.faces)
+
+
+def test_a_short_run_writes_none_of_its_passing_samples(model_file, tmp_path, monkeypatch, capsys):
+    """One of three samples fails on every draw (a gate refusing its seeds): the two that
+    pass are not written either, and --keep-failed writes only the failing one."""
+    from shapegen_core import sampling
+    from shapegen_core.cli import main
+    from shapegen_core.quality import MeshQuality
+
+    draw, seeds = sampling._draw, []
+
+    def recording(model, seed):
+        seeds.append(seed)
+        return draw(model, seed)
+
+    class Gate:
+        def check(self, mesh, template_index):
+            bad = (seeds[-1] - 1) % 3 == 0  # sample 1 of a run of 3 from seed 0, on every redraw
+            return MeshQuality(9 if bad else 0, 0.1, 0.1, 0.05, 0, 1.0, 1.0, ("flipped: 9 face(s)",) if bad else ())
+
+    monkeypatch.setattr(sampling, "_draw", recording)
+    monkeypatch.setattr(sampling, "quality_gate", lambda model, settings: Gate())
+    assert main(["sample", str(model_file), "-n", "3", "-o", str(tmp_path / "short"), "--max-redraws", "2",
+                 "--jobs", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "2 of 3 samples passed the quality gate within the budget of 9 draws; 1 still fail (commonest reasons " \
+           "over their " in err and "flipped " in err
+    assert not (tmp_path / "short").exists()
+    assert main(["sample", str(model_file), "-n", "3", "-o", str(tmp_path / "kept"), "--max-redraws", "2",
+                 "--jobs", "1", "--keep-failed"]) == 2
+    assert sorted(p.relative_to(tmp_path / "kept").as_posix() for p in (tmp_path / "kept").rglob("*")) == \
+        ["failed", "failed/landmarks.npz", "failed/reasons.txt", "failed/sample_0001.obj"]
+    assert (tmp_path / "kept" / "failed" / "reasons.txt").read_text().startswith(
+        "sample_0001: seed 19 on ")  # its 7th draw: 3 of its own, then the 4 the others left
+    assert "after 7 draw(s): flipped: 9 face(s)" in (tmp_path / "kept" / "failed" / "reasons.txt").read_text()
+
+
 def test_sample_refuses_a_non_empty_folder_and_unknown_template_writes_nothing(model_file, tmp_path):
     busy = tmp_path / "busy"
     busy.mkdir()
@@ -240,6 +328,8 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
     from concurrent.futures import Future
 
     from shapegen_core import cli_generate
+    from shapegen_core.quality import MeshQuality
+    from shapegen_core.sampling import GatedSample, sample_name
 
     submitted, seen = [], {}
 
@@ -256,15 +346,21 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
         def submit(self, fn, run, chunk):
             submitted.append(chunk)
             future = Future()
-            future.set_result([])
+            future.set_result([passing(index) for index, _ in chunk])
             return future
+
+    def passing(index):
+        quality = MeshQuality(0, 0.0, 0.1, 0.05, 0, 1.0, 1.0)
+        return GatedSample(index, sample_name(index), index, np.zeros((2, 3)), np.zeros(1), 0, None, quality, 1.0)
 
     monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
     templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
     args = argparse.Namespace(jobs=3, model=tmp_path / "model.npz", scheduler=None)
     run = cli_generate.SampleRun(90, 0, None, str(tmp_path), "obj", 0, False, "{}")
-    cli_generate._write_samples(args, None, run, templates)
+    samples = cli_generate._write_samples(args, None, run, templates)
     assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
-    assert [sorted({templates[i] for i in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
-    assert sorted(i for chunk in submitted for i in chunk) == list(range(90))
+    assert [sorted({templates[i] for i, _ in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
+    assert sorted(i for chunk in submitted for i, _ in chunk) == list(range(90))
+    assert {draws for chunk in submitted for _, draws in chunk} == {range(21)}  # round 0: 1 + max_redraws each
+    assert [s.index for s in samples] == list(range(90))
