@@ -7,11 +7,12 @@ core (`GenerativeShapeModel.sample`, `mesh_from_landmarks`, `LatentMesher`), the
 around them is a copy of the template's own (template_mesh.TemplateMeshes; a plain
 triangle mesh, said in the report, when the template's object is gone); nothing here is
 an algorithm. Samples pass the core's quality gate (core/sampling.py: a failing mesh is
-re-meshed on the next-nearest template, then stiffer, or redrawn with a new seed); the
-report says how many were redrawn and why, and each sample records the meshes refused on
-its way (keys.REJECTED_KEY), the stiffness it was meshed with when stiffer than the
-model's (keys.STIFFNESS_KEY) and, if every redraw failed, why it still fails
-(keys.QUALITY_KEY).
+re-meshed on the next-nearest template, then stiffer, or redrawn with a new seed, within
+the run's pooled draw budget); the report says how many were redrawn and why, and each
+sample records the meshes refused on its way (keys.REJECTED_KEY) and the stiffness it was
+meshed with when stiffer than the model's (keys.STIFFNESS_KEY). A sample still failing
+when the budget is spent is not added (a broken mesh in the scene passes for a good one):
+the report says how many passed and failed and the commonest reasons.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from ...core.errors import ShapeGenError
-from ...core.sampling import gate_summary, gated_samples
+from ...core.quality import QualitySettings
+from ...core.sampling import draw_budget, gate_summary, gated_samples, shortfall
 from .. import store
-from ..keys import INTERPOLATION_KEY, QUALITY_KEY, REJECTED_KEY, STIFFNESS_KEY
+from ..keys import INTERPOLATION_KEY, REJECTED_KEY, STIFFNESS_KEY
 from ..latent import object_latent, tag_object
 from ..placement import grid_offsets, place, place_one, vertex_box
 from ..preview import ensure_collection
@@ -64,16 +66,23 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
             first_seed = settings.prepare.seed if self.seed < 0 else self.seed
             # everything that can fail runs before the scene is touched; sample i is drawn
             # with seed first_seed + i (redraws: core.sampling.redraw_seed)
-            results = gated_samples(model, count, first_seed, template=settings.generate.sample_template)
+            quality = QualitySettings()
+            results = gated_samples(model, count, first_seed, template=settings.generate.sample_template,
+                                    settings=quality)
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        spacing = settings.prepare.preview_spacing * shape_size(model)
-        locations = place(scene, [vertex_box(s.mesh.vertices) for s in results], grid_offsets(count, spacing))
-        collection = ensure_collection(scene, SAMPLES_COLLECTION)
         name = store.model_name(scene)
+        passed = [s for s in results if s.quality.ok]
+        failure = shortfall(results, draw_budget(count, quality))
+        if not passed:
+            self.report({"ERROR"}, f"No shape sampled from '{name}': {failure}; none added. {gate_summary(results)}.")
+            return {"CANCELLED"}
+        spacing = settings.prepare.preview_spacing * shape_size(model)
+        locations = place(scene, [vertex_box(s.mesh.vertices) for s in passed], grid_offsets(len(passed), spacing))
+        collection = ensure_collection(scene, SAMPLES_COLLECTION)
         meshes = TemplateMeshes(scene, model)
-        for sample, location in zip(results, locations):
+        for sample, location in zip(passed, locations):
             obj = meshes.new_object(f"{name} sample {first_seed + sample.index}", sample.template_index,
                                     sample.mesh.vertices)
             obj.location = location
@@ -82,12 +91,14 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
                 obj[REJECTED_KEY] = [r.describe() for r in sample.rejected]
             if sample.stiffer:
                 obj[STIFFNESS_KEY] = float(sample.stiffness)
-            if not sample.quality.ok:
-                obj[QUALITY_KEY] = sample.quality.summary()
             collection.objects.link(obj)
-        self.report({"WARNING"} if any(not s.quality.ok for s in results) else {"INFO"},
-                    f"Sampled {count} shape(s) from '{name}' into '{collection.name}' "
-                    f"(seeds {first_seed}-{first_seed + count - 1}); {gate_summary(results)}.{meshes.note}")
+        added = f"Sampled {len(passed)} shape(s) from '{name}' into '{collection.name}' " \
+                f"(seeds {first_seed}-{first_seed + count - 1})"
+        if failure:
+            self.report({"WARNING"}, f"{added}; {failure}; the failing ones were not added. "
+                        f"{gate_summary(results)}.{meshes.note}")
+        else:
+            self.report({"INFO"}, f"{added}; {gate_summary(results)}.{meshes.note}")
         return {"FINISHED"}
 
 

@@ -1,6 +1,6 @@
-"""The quality gate in Blender (issue 14): Sample refuses an exploded mesh, says so in its
-message and records it on the sample; Explore keeps the gate's reasons on the live object
-and the panel shows them."""
+"""The quality gate in Blender: Sample refuses an exploded mesh, says so in its message and
+records it on the sample, and never adds a sample that still fails once the run's draws
+are spent; Explore keeps the gate's reasons on the live object and the panel shows them."""
 
 from __future__ import annotations
 
@@ -48,6 +48,55 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
     assert all("shapegen_quality" not in o and "shapegen_stiffness" not in o for o in samples)
     largest = max(np.ptp(m.vertices, axis=0).max() for m in model.meshes)
     assert all(np.ptp(vertices(o), axis=0).max() < 1.5 * largest for o in samples)
+
+
+def _explode_draws(extension, model, monkeypatch, broken):
+    """Every mesh of a draw whose seed satisfies `broken(seed)` comes out a flat disc five
+    times the class's size (the real gate refuses it on extent); other draws mesh as usual."""
+    sampling = addon_module(extension, "core.sampling")
+    draw, real, seeds = sampling._draw, model.mesh_from_landmarks, []
+
+    def recording(model, seed):
+        seeds.append(seed)
+        return draw(model, seed)
+
+    def exploding(landmarks, template=None, **options):
+        mesh = real(landmarks, template=template, **options)
+        return mesh.with_vertices(mesh.vertices * np.array([5.0, 5.0, 0.05])) if broken(seeds[-1]) else mesh
+
+    monkeypatch.setattr(sampling, "_draw", recording)
+    monkeypatch.setattr(model, "mesh_from_landmarks", exploding, raising=False)
+
+
+def test_sample_adds_only_passing_shapes_and_reports_the_failing_ones(extension, model_files, store, monkeypatch,
+                                                                      capfd):
+    """Sample 1 of 3 (seed 5, redraws 5 + 3r) explodes on every draw: it was added with
+    its reasons in shapegen_quality; now it is not added and the report says why."""
+    load_model("ppca", model_files)
+    model = store.get_model(bpy.context.scene)
+    _explode_draws(extension, model, monkeypatch, lambda seed: (seed - 5) % 3 == 0)
+    capfd.readouterr()
+    assert bpy.ops.shapegen.sample(count=3, seed=4) == {"FINISHED"}
+    out = capfd.readouterr().out
+    assert "Sampled 2 shape(s) from " in out
+    assert "2 of 3 samples passed the quality gate within the budget of 63 draws; 1 still fail (commonest reasons " \
+           "over their " in out and "extent " in out and "the failing ones were not added" in out
+    samples = sorted(bpy.data.collections["ShapeGen Samples"].objects, key=lambda o: o["shapegen_seed"])
+    assert [o["shapegen_seed"] for o in samples] == [4, 6]
+    assert all("shapegen_quality" not in o for o in samples)
+    largest = max(np.ptp(m.vertices, axis=0).max() for m in model.meshes)
+    assert all(np.ptp(vertices(o), axis=0).max() < 1.5 * largest for o in samples)
+
+
+def test_sample_adds_nothing_when_no_shape_passes(extension, model_files, store, monkeypatch):
+    load_model("ppca", model_files)
+    model = store.get_model(bpy.context.scene)
+    before = set(bpy.data.objects)
+    _explode_draws(extension, model, monkeypatch, lambda seed: True)
+    with pytest.raises(RuntimeError, match=r"0 of 2 samples passed the quality gate within the budget of 42 draws; "
+                       r"2 still fail \(commonest reasons over their \d+ refused meshes: .*extent .*\); none added"):
+        bpy.ops.shapegen.sample(count=2, seed=0)
+    assert set(bpy.data.objects) == before and "ShapeGen Samples" not in bpy.data.collections
 
 
 def test_explore_keeps_the_gate_warning_on_the_live_object_and_the_panel_shows_it(extension, model_files, store,
