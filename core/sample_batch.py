@@ -1,4 +1,4 @@
-"""Gated sampling on a Dask cluster (issue 15): `shapegen sample --scheduler tcp://host:8786`
+"""Gated sampling on a Dask cluster: `shapegen sample --scheduler tcp://host:8786`
 (or local:N). The model file's bytes go to every worker once; in each round of the run's
 pooled draw budget (core/sampling.py, `pooled_samples`) each worker draws, gates and meshes
 a contiguous run of the round's samples (sorted by template so it builds few mesh maps) and

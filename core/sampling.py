@@ -1,4 +1,4 @@
-"""Gated sampling (issue 14): draw, mesh, check with the quality gate, and try again.
+"""Gated sampling: draw, mesh, check with the quality gate, and try again.
 
 Sample i of a run with first seed S draws its latent vector from `default_rng(S + i)`, so a
 sample is reproducible alone (the CLI, Blender's Sample and the benchmark give the same
