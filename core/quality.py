@@ -78,9 +78,9 @@ class QualitySettings(Settings):
     max_redraws: redraws per requested sample, pooled over the run: a run of n samples
         makes at most n·(1 + max_redraws) draws in all (core/sampling.py, `draw_budget`),
         each sample first getting 1 + max_redraws and those still failing sharing what the
-        passing ones left. 20: a class where a draw passes half the time fails a sample of
-        21 draws once in two million runs, and a run that cannot pass stops within 21
-        draws per sample. A run in which a sample still fails when they are spent writes
+        passing ones left. 20: where half the draws pass, a sample's own 21 draws all
+        fail about once in two million (0.5^21), and a run that cannot pass stops after
+        21 draws per sample. A run in which a sample still fails when they are spent writes
         nothing (`shapegen sample` exits 2) or, in Blender, adds only the passing ones.
     """
 
