@@ -21,12 +21,17 @@ Scenarios per class:
             about up that leaves the surface in place counts as the same pose), how many
             are flagged instead, how many others move;
   half      the same with half turns about x or y (files upside down);
+  mixed     mixed file conventions: every third file re-saved in the other common
+            convention (a quarter turn about x: a z-up class's files saved y-up, a y-up
+            class's saved z-up): how many shapes of all end within 5° of where the same
+            file ends in the single-convention run (as given), with no Turn Flagged, and
+            how many shapes the mixed run flags;
   hand      one shape at a time turned by hand (upside down, on its side, 120° about up),
             three shapes per class: detected (flagged, or turned back to within 5°),
             turned back, turned wrong (turned but not back), others moved.
 
     python bench/orientation_policy.py [--n 10] [--seeds 2] [--classes ...] [--blender] [--floor]
-        [--revisions main=a833ff8]
+        [--revisions main=a833ff8] [--scenarios given mixed]
 
 Prints one table; every revision given runs beside the working tree ("now").
 """
@@ -60,6 +65,9 @@ if not DATA.is_dir():
 QUARTERS = [np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([[0, 0, 1.0], [0, 1, 0], [-1, 0, 0]]),
             np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]), np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]])]
 HALVES = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])]
+#: the re-save of a file in the other common convention, by the up axis given: a quarter
+#: turn about x taking the given up to the other convention's (z-up → y-up, y-up → z-up)
+MIXED = {"z": QUARTERS[2], "y": QUARTERS[0]}
 HAND = {"upside down": HALVES[0], "on its side": QUARTERS[0], "120° about up": yaw_rotation(120.0)}
 SAME_DEGREES = 5.0
 VISIBLE = 0.01  # RMS surface distance (share of the RMS radius) below which a turn leaves the surface in place
@@ -168,8 +176,11 @@ def flagged(shape) -> bool:
     return bool(getattr(shape, "pose_outlier", ""))
 
 
-def measure(name: str, prepare, meshes, up: str) -> dict:
-    """Every scenario of one class for one version: the row's counts."""
+SCENARIOS = ("given", "quarter", "half", "mixed", "hand")
+
+
+def measure(name: str, prepare, meshes, up: str, scenarios=SCENARIOS) -> dict:
+    """The `scenarios` of one class for one version (the as-given run always): the row's counts."""
     n = len(meshes)
     given, seconds = run(prepare, meshes, up, {})
     row = {"shapes": n, "seconds": seconds,
@@ -177,13 +188,23 @@ def measure(name: str, prepare, meshes, up: str) -> dict:
            "yawed": sum(up_angle(s.transform.rotation @ up_rotation(up).T) <= 45.0
                         and angle(s.transform.rotation @ up_rotation(up).T) > 0.5 for s in given),
            "flagged": sum(flagged(s) for s in given)}
+    if "mixed" in scenarios:
+        turns = {i: MIXED[up] for i in range(1, n, 3)}
+        prepared, _ = run(prepare, meshes, up, turns)
+        same = compare(prepared, given, turns)
+        row["mixed same"] = f"{sum(same)}/{n}"
+        row["mixed flagged"] = sum(flagged(s) for s in prepared)
     for label, kinds in (("quarter", QUARTERS), ("half", HALVES)):
+        if label not in scenarios:
+            continue
         turns = {i: kinds[k % len(kinds)] for k, i in enumerate(range(1, n, 3))}
         prepared, _ = run(prepare, meshes, up, turns)
         same = compare(prepared, given, turns)
         row[f"{label} same"] = f"{sum(same[i] for i in turns)}/{len(turns)}"
         row[f"{label} flagged"] = sum(flagged(prepared[i]) and not same[i] for i in turns)
         row[f"{label} moved"] = sum(not same[i] for i in range(n) if i not in turns)
+    if "hand" not in scenarios:
+        return row
     detected = back = wrong = moved = total = 0
     for i in (0, n // 3, (2 * n) // 3):
         for turn in HAND.values():
@@ -200,7 +221,8 @@ def measure(name: str, prepare, meshes, up: str) -> dict:
 
 
 COLUMNS = ("shapes", "over", "yawed", "flagged", "quarter same", "quarter flagged", "quarter moved", "half same",
-           "half flagged", "half moved", "hand detected", "hand back", "hand wrong", "hand moved", "seconds")
+           "half flagged", "half moved", "mixed same", "mixed flagged", "hand detected", "hand back", "hand wrong",
+           "hand moved", "seconds")
 
 
 def main(argv=None) -> int:
@@ -214,6 +236,8 @@ def main(argv=None) -> int:
     parser.add_argument("--revisions", nargs="*", default=[], metavar="NAME=REV",
                         help="other versions of the core to run beside the working tree")
     parser.add_argument("--without-now", action="store_true", help="only the revisions given, not the working tree")
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS,
+                        help="scenarios to run (the as-given run always runs)")
     args = parser.parse_args(argv)
     methods = {} if args.without_now else {"now": prepare_collection}
     for item in args.revisions:
@@ -228,12 +252,12 @@ def main(argv=None) -> int:
         for seed in seeds:
             meshes, up = collection(name, args.n, seed)
             for version, prepare in methods.items():
-                row = {"class": f"{name} #{seed}", "version": version, **measure(name, prepare, meshes, up)}
+                row = {"class": f"{name} #{seed}", "version": version, **measure(name, prepare, meshes, up, args.scenarios)}
                 rows.append(row)
                 print("  ".join(f"{k}={v:.1f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
                       flush=True)
     print()
-    header = ["class", "version", *COLUMNS]
+    header = ["class", "version", *[c for c in COLUMNS if any(c in row for row in rows)]]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for row in rows:
