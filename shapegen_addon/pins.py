@@ -155,11 +155,11 @@ def apply_pins(scene: bpy.types.Scene, force: bool = False) -> bool:
 
 def write_uncertainty(obj: bpy.types.Object, model, landmark_std: np.ndarray) -> None:
     """The live object's colour attribute STD_ATTRIBUTE: posterior std per vertex, as grey
-    levels scaled to the largest (white: least sure)."""
+    levels from the smallest (black: surest, at the pins) to the largest (white: least sure)."""
     std = model.vertex_std(landmark_std, int(obj[TEMPLATE_INDEX_KEY]))
     if VERTEX_MAP_KEY in obj:
         std = std[np.asarray(obj[VERTEX_MAP_KEY], dtype=np.int64)]
-    level = std / max(float(std.max()), 1e-12)
+    level = (std - std.min()) / max(float(np.ptp(std)), 1e-12)
     mesh = obj.data
     attribute = mesh.color_attributes.get(STD_ATTRIBUTE)
     if attribute is None or attribute.domain != "POINT" or attribute.data_type != "FLOAT_COLOR":
