@@ -1,6 +1,7 @@
 """Correspondence across classes against the truth (issue 34): one table, method × class.
 
     python bench/correspondence_truth.py [--quick] [--method NAME:key=value,...] [--classes a,b]
+                                         [--rows closest,spectral,auto] [--psb-shapes N]
 
 Writes bench_output/correspondence_truth.{json,txt}. Not part of the tests.
 
@@ -16,17 +17,24 @@ per class):
   (`corres/<name>.vts`), whose point on shape m is the truth. The template landmark's own
   distance to its common point is the protocol's floor (logged). horse7.off is cut short
   mid-line and refused by the reader: left out (said in the log).
+* TOSCA people (man + woman, one collection) and TOSCA gorilla (shared/data/tosca/people):
+  the truth runs across individuals (900 common points), scored as the animals. For every
+  TOSCA class also the mirrored shapes (error against `.sym.vts` below MIRRORED × the error
+  against `.vts`) and the field's unit: mean geodesic error ÷ √(surface area) × 100, the
+  geodesic by Dijkstra on the mesh's edge graph (an approximation from above).
 * PSB Vase, Cup, Fish, Airplane (shared/data/psb, up axis y): label transfer = share of
   landmarks whose part label on shape m is the label of landmark i on the template.
 
-Shapes: --quick 5 per procedural class, 4 cats, 5 PSB vases; full 10 per procedural class,
-every TOSCA shape, the first 10 of each PSB class. 800 landmarks (the default).
+Shapes: --quick 5 per procedural class, 4 cats, 3 men + 3 women, 4 gorillas, 5 PSB vases;
+full 10 per procedural class, every TOSCA shape, the first 10 of each PSB class
+(--psb-shapes: another count). 800 landmarks (the default).
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
 shapes other than the template ("mean") and the worst shape's ("max"). Time is the
 correspondence wall time per shape in this process (jobs=1).
 
 Methods:
-* closest: today's default, `CorrespondenceSettings()`;
+* one row per choice of the start (`initialisation`: closest, spectral, auto), the
+  default's first, marked "(default)", `CorrespondenceSettings()`;
 * features: `matching="features"`;
 * population: the default's result refined by `refine_population` with `refine="population"`
   (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
@@ -35,10 +43,8 @@ Methods:
   from cheap), compared with closest points on the same pairs;
 * (kernel warps, core/correspond/warps.py, had a row until they were removed: their
   figures are in docs/results.md, the code at bfbd68b;)
-* any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words),
-  and every choice of an `initialisation` setting other than its default when the
-  installed settings have one (issue 34's spectral start), e.g.
-  `--method spectral:initialisation=spectral`.
+* any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words).
+`--rows` runs only the rows named (population and nricp_amberg only when named).
 """
 
 from __future__ import annotations
