@@ -1,6 +1,7 @@
 """Correspondence across classes against the truth (issue 34): one table, method × class.
 
     python bench/correspondence_truth.py [--quick] [--method NAME:key=value,...] [--classes a,b]
+                                         [--rows closest,spectral,auto] [--psb-shapes N]
 
 Writes bench_output/correspondence_truth.{json,txt}. Not part of the tests.
 
@@ -16,17 +17,24 @@ per class):
   (`corres/<name>.vts`), whose point on shape m is the truth. The template landmark's own
   distance to its common point is the protocol's floor (logged). horse7.off is cut short
   mid-line and refused by the reader: left out (said in the log).
+* TOSCA people (man + woman, one collection) and TOSCA gorilla (shared/data/tosca/people):
+  the truth runs across individuals (900 common points), scored as the animals. For every
+  TOSCA class also the mirrored shapes (error against `.sym.vts` below MIRRORED × the error
+  against `.vts`) and the field's unit: mean geodesic error ÷ √(surface area) × 100, the
+  geodesic by Dijkstra on the mesh's edge graph (an approximation from above).
 * PSB Vase, Cup, Fish, Airplane (shared/data/psb, up axis y): label transfer = share of
   landmarks whose part label on shape m is the label of landmark i on the template.
 
-Shapes: --quick 5 per procedural class, 4 cats, 5 PSB vases; full 10 per procedural class,
-every TOSCA shape, the first 10 of each PSB class. 800 landmarks (the default).
+Shapes: --quick 5 per procedural class, 4 cats, 3 men + 3 women, 4 gorillas, 5 PSB vases;
+full 10 per procedural class, every TOSCA shape, the first 10 of each PSB class
+(--psb-shapes: another count). 800 landmarks (the default).
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
 shapes other than the template ("mean") and the worst shape's ("max"). Time is the
 correspondence wall time per shape in this process (jobs=1).
 
 Methods:
-* closest: today's default, `CorrespondenceSettings()`;
+* one row per choice of the start (`initialisation`: closest, spectral, auto), the
+  default's first, marked "(default)", `CorrespondenceSettings()`;
 * features: `matching="features"`;
 * population: the default's result refined by `refine_population` with `refine="population"`
   (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
@@ -35,10 +43,8 @@ Methods:
   from cheap), compared with closest points on the same pairs;
 * (kernel warps, core/correspond/warps.py, had a row until they were removed: their
   figures are in docs/results.md, the code at bfbd68b;)
-* any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words),
-  and every choice of an `initialisation` setting other than its default when the
-  installed settings have one (issue 34's spectral start), e.g.
-  `--method spectral:initialisation=spectral`.
+* any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words).
+`--rows` runs only the rows named (population and nricp_amberg only when named).
 """
 
 from __future__ import annotations
@@ -75,6 +81,9 @@ DATA = Path(os.environ.get("SHAPEGEN_SHARED_DATA") or next(
     (p / "shared" / "data" for p in ROOT.parents if (p / "shared" / "data").is_dir()), ROOT.parent / "shared" / "data"))
 LANDMARKS = 800
 JOBS = 1
+#: a shape came out mirrored when its error against the mirrored truth (`.sym.vts`) is below
+#: this times its error against the truth
+MIRRORED = 0.8
 
 
 # ---------------------------------------------------------------------------- classes
@@ -109,29 +118,92 @@ def procedural_class(name: str, shapes) -> BenchClass:
     return BenchClass(name, [s.mesh for s in shapes], score)
 
 
-def tosca_class(animal: str, limit: int | None) -> BenchClass:
-    folder = DATA / "tosca" / animal
-    meshes, common, notes = [], [], []
-    for path in sorted(folder.glob("*.off"), key=lambda p: int(p.stem[len(animal):])):
+def _edge_graph(mesh):
+    """The mesh's edge graph (n × n, symmetric, weights the edge lengths)."""
+    from scipy import sparse
+    edges = np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]])
+    lengths = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
+    n = len(mesh.vertices)
+    graph = sparse.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    return graph.maximum(graph.T)
+
+
+def geodesic_errors(mesh, truth_vertices, points, graph=None) -> np.ndarray:
+    """Geodesic distance on `mesh` from each truth vertex to the vertex nearest the
+    predicted point, by Dijkstra on the mesh's edge graph (an approximation from above of
+    the surface geodesic: paths run along edges), one search per distinct truth vertex."""
+    from scipy.sparse.csgraph import dijkstra
+    graph = _edge_graph(mesh) if graph is None else graph
+    nearest = cKDTree(mesh.vertices).query(np.asarray(points))[1]
+    sources, inverse = np.unique(truth_vertices, return_inverse=True)
+    distances = dijkstra(graph, directed=False, indices=sources)
+    return distances[inverse, nearest]
+
+
+def tosca_class(name: str, stems, folder: Path, limit: int | None) -> BenchClass:
+    """TOSCA shapes `stems` of `folder` (ground truth `corres/<stem>.vts`, mirrored truth
+    `corres/<stem>.sym.vts` where present): true error against the template landmark's
+    nearest common point; beside it (`extras`) the error against the mirrored truth and the
+    geodesic error ÷ √(surface area) × 100 (edge-graph geodesics)."""
+    meshes, common, mirrored, notes = [], [], [], []
+    for stem in stems:
+        path = folder / f"{stem}.off"
         try:
             mesh = read_mesh(path)
         except MeshFileError as exc:
             notes.append(f"left out: {exc}")
             continue
         meshes.append(mesh)
-        common.append(np.loadtxt(folder / "corres" / f"{path.stem}.vts", dtype=np.int64) - 1)
-    meshes, common = meshes[:limit], common[:limit]
-    floors = []
+        common.append(np.loadtxt(folder / "corres" / f"{stem}.vts", dtype=np.int64) - 1)
+        sym = folder / "corres" / f"{stem}.sym.vts"
+        mirrored.append(np.loadtxt(sym, dtype=np.int64) - 1 if sym.is_file() else None)
+    meshes, common, mirrored = meshes[:limit], common[:limit], mirrored[:limit]
+    floors, graphs = [], {}
+
+    def truth_points(t, reference):
+        distance, k = cKDTree(meshes[t].vertices[common[t]]).query(reference)
+        return distance, k
 
     def score(t, reference, m, points):
-        distance, k = cKDTree(meshes[t].vertices[common[t]]).query(reference)
+        distance, k = truth_points(t, reference)
         floors.append(100 * distance.mean() / meshes[t].bbox_diagonal())
         truth = meshes[m].vertices[common[m][k]]
         return 100 * np.linalg.norm(points - truth, axis=1) / meshes[m].bbox_diagonal()
 
-    made = BenchClass(f"TOSCA {animal}", meshes, score, notes=notes)
+    def extras(t, reference, m, points) -> dict:
+        _, k = truth_points(t, reference)
+        out = {}
+        if mirrored[m] is not None:
+            truth = meshes[m].vertices[mirrored[m][k]]
+            out["mirror_error"] = float((100 * np.linalg.norm(points - truth, axis=1) / meshes[m].bbox_diagonal()).mean())
+        if m not in graphs:
+            graphs[m] = _edge_graph(meshes[m])
+        geodesic = geodesic_errors(meshes[m], common[m][k], points, graphs[m])
+        out["geodesic"] = float(100 * geodesic.mean() / np.sqrt(meshes[m].area()))
+        return out
+
+    made = BenchClass(name, meshes, score, notes=notes)
     made.floors = floors
+    made.extras = extras
     return made
+
+
+def tosca_animal(animal: str, limit: int | None) -> BenchClass:
+    """One TOSCA animal in many poses (shared/data/tosca/<animal>)."""
+    folder = DATA / "tosca" / animal
+    stems = sorted((p.stem for p in folder.glob("*.off")), key=lambda s: int(s[len(animal):]))
+    return tosca_class(f"TOSCA {animal}", stems, folder, limit)
+
+
+def tosca_people(kinds: tuple[str, ...], name: str, limit: int | None) -> BenchClass:
+    """TOSCA's people (shared/data/tosca/people): the shapes whose names hold one of
+    `kinds` ("man", "woman", "gorilla"), truth across individuals (900 common points)."""
+    folder = DATA / "tosca" / "people"
+    stems = sorted(p.stem for p in folder.glob("*.off") if p.stem.split("_")[1] in kinds)
+    if limit is not None:  # a quick run keeps every kind
+        by_kind = [[s for s in stems if s.split("_")[1] == kind] for kind in kinds]
+        stems = sorted(s for group in by_kind for s in group[:max(2, limit // len(kinds))])
+    return tosca_class(name, stems, folder, None)
 
 
 def psb_class(folder: Path, limit: int | None) -> BenchClass:
@@ -145,18 +217,21 @@ def psb_class(folder: Path, limit: int | None) -> BenchClass:
     return BenchClass(f"PSB {folder.name}", meshes, score, measure="labels", up_axis="y")
 
 
-def classes(quick: bool, only: set | None) -> list:
+def classes(quick: bool, only: set | None, psb_shapes: int | None = None) -> list:
     """(name, maker) of every class, the small procedural ones first, then the TOSCA
     animals, then PSB (the report is written after every class: a run cut short keeps
     what it measured)."""
-    n, psb_shapes = (5, 5) if quick else (10, 10)
+    n, psb_default = (5, 5) if quick else (10, 10)
+    psb_shapes = psb_default if psb_shapes is None else psb_shapes
     makers = {
         "vases": lambda: procedural_class("vases", make_vases(n, seed=11, resolution=(40, 80))),
         "handled mugs": lambda: procedural_class("handled mugs", make_handled_mugs(n, seed=11)),
         "quadrupeds": lambda: procedural_class("quadrupeds", make_quadrupeds(n, seed=11)),
     }
     for animal in (["cat"] if quick else ["cat", "centaur", "dog", "horse"]):
-        makers[f"TOSCA {animal}"] = lambda animal=animal: tosca_class(animal, 4 if quick else None)
+        makers[f"TOSCA {animal}"] = lambda animal=animal: tosca_animal(animal, 4 if quick else None)
+    makers["TOSCA people"] = lambda: tosca_people(("man", "woman"), "TOSCA people", 6 if quick else None)
+    makers["TOSCA gorilla"] = lambda: tosca_people(("gorilla",), "TOSCA gorilla", 4 if quick else None)
     for folder in (["Vase"] if quick else ["Vase", "Cup", "Fish", "Airplane"]):
         makers[f"PSB {folder}"] = lambda folder=folder: psb_class(DATA / "psb" / folder, psb_shapes)
     return [(name, make) for name, make in makers.items() if only is None or name in only]
@@ -181,15 +256,27 @@ def parse_method(text: str) -> tuple[str, dict]:
 
 
 def settings_methods(extra: list) -> dict:
-    """Name → CorrespondenceSettings options of the methods run through `correspond`."""
-    methods = {"closest (default)": {}, "features": {"matching": "features"}}
-    for f in fields(DataTermSettings):
-        if f.name == "initialisation":
-            for choice in f.metadata.get("choices") or ("spectral",):
-                if choice != f.default:
-                    methods[f"initialisation={choice}"] = {"initialisation": choice}
+    """Name → CorrespondenceSettings options of the methods run through `correspond`: one
+    row per choice of the start (`data_term.initialisation`), the default's first and
+    marked, then feature matches and the `extra` methods."""
+    default = CorrespondenceSettings().data_term.initialisation
+    choices = next(f.metadata.get("choices") or (f.default,) for f in fields(DataTermSettings)
+                   if f.name == "initialisation")
+    methods = {f"{default} (default)": {}}
+    methods.update({choice: {"initialisation": choice} for choice in choices if choice != default})
+    methods["features"] = {"matching": "features"}
     methods.update(parse_method(text) for text in extra)
     return methods
+
+
+def chosen_rows(methods: dict, rows: str | None) -> tuple[dict, bool, bool]:
+    """(the methods named in `rows`, comma-separated names or their first words, e.g.
+    "closest,spectral,auto"; whether population and nricp_amberg run). None: all."""
+    if rows is None:
+        return methods, True, True
+    wanted = [r.strip() for r in rows.split(",") if r.strip()]
+    kept = {name: options for name, options in methods.items() if name in wanted or name.split()[0] in wanted}
+    return kept, "population" in wanted, "nricp_amberg" in wanted
 
 
 REFINED = CorrespondenceSettings.from_dict({"refine": "population"})
@@ -216,12 +303,23 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
     per_shape = [float(bench.score(t, reference, m, points_input[m]).mean()) for m in shapes]
     if bench.measure == "labels":
         per_shape = [100.0 - e for e in per_shape]
-    return {"mean": float(np.mean(per_shape)), "max": float(np.max(per_shape)) if bench.measure == "error"
-            else float(np.min(per_shape)), "per_shape": per_shape, "seconds_per_shape": float(seconds),
-            "shapes": shapes}
+    out = {"mean": float(np.mean(per_shape)), "max": float(np.max(per_shape)) if bench.measure == "error"
+           else float(np.min(per_shape)), "per_shape": per_shape, "seconds_per_shape": float(seconds),
+           "shapes": shapes}
+    extras = getattr(bench, "extras", None)
+    if extras is not None:
+        found = [extras(t, reference, m, points_input[m]) for m in shapes]
+        out["geodesic_per_shape"] = [f["geodesic"] for f in found]
+        out["geodesic"] = float(np.mean(out["geodesic_per_shape"]))
+        if all("mirror_error" in f for f in found):
+            out["mirror_error_per_shape"] = [f["mirror_error"] for f in found]
+            out["mirrored_shapes"] = [bench.meshes[m].name for m, f, e in zip(shapes, found, per_shape)
+                                      if f["mirror_error"] < MIRRORED * e]
+            out["mirrored"] = len(out["mirrored_shapes"])
+    return out
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, population: bool = True) -> dict:
     start = time.perf_counter()
     prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=0))
     vertices = [m.n_vertices for m in bench.meshes]
@@ -230,7 +328,9 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
     rows, template = {}, None
     for name, options in methods.items():
         start = time.perf_counter()
-        result = correspond(prepared, CorrespondenceSettings.from_dict(options), template=template, jobs=JOBS)
+        messages = []
+        result = correspond(prepared, CorrespondenceSettings.from_dict(options), template=template, jobs=JOBS,
+                            progress=lambda fraction, message: messages.append(message))
         seconds = (time.perf_counter() - start) / len(bench.meshes)
         if template is None:
             template = result.template_name
@@ -239,8 +339,9 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log) -> dict:
             default = result, seconds
         rows[name] = summary(bench, t, reference, result.points_input, seconds)
         rows[name]["outliers"] = int(result.outliers.sum())
+        rows[name]["starts"] = [m for m in messages if "start" in m and ": " in m]
         log(row_text(name, rows[name], bench.measure))
-    for name, (points_input, seconds) in refined_rows(prepared, *default).items():
+    for name, (points_input, seconds) in (refined_rows(prepared, *default) if population else {}).items():
         rows[name] = summary(bench, t, reference, points_input, seconds)
         log(row_text(name, rows[name], bench.measure))
     if nricp_pairs and bench.measure == "error":
@@ -268,8 +369,14 @@ def row_text(name: str, row: dict, measure: str) -> str:
     if measure == "labels":
         return f"  {name:26s} label transfer {row['mean']:5.1f} % (worst shape {row['max']:5.1f} %)   " \
                f"{row['seconds_per_shape']:6.2f} s/shape"
-    return f"  {name:26s} true error {row['mean']:6.2f} % (worst shape {row['max']:6.2f} %)   " \
+    text = f"  {name:26s} true error {row['mean']:6.2f} % (worst shape {row['max']:6.2f} %)   " \
            f"{row['seconds_per_shape']:6.2f} s/shape"
+    if "geodesic" in row:
+        text += f"   geodesic/√area {row['geodesic']:5.2f}"
+    if "mirrored" in row:
+        text += f"   mirrored {row['mirrored']} of {len(row['per_shape'])}" + \
+            (f" ({', '.join(row['mirrored_shapes'])})" if row["mirrored"] else "")
+    return text
 
 
 # ---------------------------------------------------------------------------- the table
@@ -303,6 +410,21 @@ def table(report: dict) -> list[str]:
                 cells.append(f"{row['mean']:.2f}/{row['max']:.1f} {row['seconds_per_shape']:.1f}s".rjust(width))
         rank = f"{np.mean(ranks[m]):.2f}" if ranks[m] else "—"
         lines.append(m[:20].ljust(20) + "".join(cells) + rank.rjust(12))
+    truth = [n for n in names if any("geodesic" in r for r in report["classes"][n]["methods"].values())]
+    if truth:
+        lines += ["", "geodesic error ÷ √(surface area) × 100 (edge-graph geodesics) / mirrored shapes "
+                      f"(error against .sym.vts below {MIRRORED} × against .vts)",
+                  "method".ljust(20) + "".join(n.rjust(width) for n in truth)]
+        for m in methods:
+            cells = []
+            for n in truth:
+                row = report["classes"][n]["methods"].get(m)
+                if row is None or "geodesic" not in row:
+                    cells.append("—".rjust(width))
+                else:
+                    mirrored = f"{row['mirrored']} of {len(row['per_shape'])}" if "mirrored" in row else "–"
+                    cells.append(f"{row['geodesic']:.2f} / {mirrored}".rjust(width))
+            lines.append(m[:20].ljust(20) + "".join(cells))
     return lines
 
 
@@ -312,21 +434,26 @@ def main() -> int:
     parser.add_argument("--method", action="append", default=[], metavar="NAME:key=value,...",
                         help="another row: CorrespondenceSettings fields (repeatable)")
     parser.add_argument("--classes", default=None, help="comma-separated class names (default: all)")
+    parser.add_argument("--rows", default=None, metavar="NAMES",
+                        help="comma-separated rows to run (e.g. closest,spectral,auto; population and nricp_amberg "
+                             "only when named; default: all)")
+    parser.add_argument("--psb-shapes", type=int, default=None, help="shapes per PSB class (default 10, --quick 5)")
     parser.add_argument("--table", metavar="JSON", help="only print the table of a report (a run cut short too)")
     args = parser.parse_args()
     if args.table:
         print("\n".join(table(json.loads(Path(args.table).read_text()))))
         return 0
-    methods = settings_methods(args.method)
+    methods, population, nricp = chosen_rows(settings_methods(args.method), args.rows)
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
     report = {"quick": args.quick, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
               "load_average_start": os.getloadavg()[0], "classes": {}}
-    log(f"methods: {', '.join(methods)}, population, nricp_amberg; {LANDMARKS} landmarks; jobs {JOBS}")
+    log(f"methods: {', '.join([*methods, *['population'][:population], *['nricp_amberg'][:nricp]])}; "
+        f"{LANDMARKS} landmarks; jobs {JOBS}")
     only = None if args.classes is None else set(args.classes.split(","))
-    for name, make in classes(args.quick, only):
-        pairs = 1 if args.quick or name.startswith("TOSCA") else 2
-        report["classes"][name] = run_class(make(), methods, pairs, log)
+    for name, make in classes(args.quick, only, args.psb_shapes):
+        pairs = (1 if args.quick or name.startswith("TOSCA") else 2) if nricp else 0
+        report["classes"][name] = run_class(make(), methods, pairs, log, population)
         (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "

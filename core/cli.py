@@ -62,10 +62,12 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
+    chosen = (f"{result.start_used} start ({result.start_reason}); "
+              if result.start_reason and result.start_reason != "asked for" else "")  # initialisation auto
     print(
         f"corresponded {len(result)} shapes x {result.n_landmarks} landmarks -> {args.output}; "
         f"template {result.template_name}; median residual {100 * float(np.median(result.residuals)):.2f} % "
-        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {result.matching_summary()}; "
+        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {result.matching_summary()}; {chosen}"
         f"{time.perf_counter() - start:.1f} s"
     )
     return 0

@@ -277,12 +277,14 @@ def correspond_on_console(prepared: PreparedCollection, template: str | None = N
 
 # ---------------------------------------------------------------------------- progress
 def console_progress(prefix: str) -> Progress:
-    """A progress printing one line per 10 % step (or per new message at the end)."""
+    """A progress printing one line per 10 % step, and every new message at the end or that
+    states something about one shape ("<name>: <what happened>", e.g. which start its
+    registration took and why), which a step would otherwise hide."""
     state = {"last": -1, "message": None}
 
     def report(fraction: float, message: str) -> None:
         step = int(fraction * 10)
-        if step > state["last"] or (message != state["message"] and fraction >= 1.0):
+        if step > state["last"] or (message != state["message"] and (fraction >= 1.0 or ": " in message)):
             print(f"[{prefix}] {100 * fraction:5.1f} %  {message}", file=sys.stderr, flush=True)
             state["last"] = step
             state["message"] = message

@@ -27,7 +27,7 @@ from .features import agreement_weights, checks_fit, checks_regions, keeps_featu
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
-from .start import checked_spectral_fits, signature_error, spectral_starts
+from .start import checked_spectral_fits, chosen_start, pose_evidence, signature_error, spectral_starts
 
 __all__ = ["chamfer_medoid", "correspond"]
 
@@ -144,8 +144,17 @@ def correspond(
         # dense shapes: proxies first (0-5 % of NICP), exact placement on their full surfaces last (95-100 %)
         surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(nicp_report, 0.0, 0.05))
         rounds_report = sub_range(nicp_report, 0.05, 0.95) if dense else nicp_report
-        outcome = _run_rounds(collection, start, settings, runner, rounds_report,
-                              stop_if_template_flagged=template is None, surfaces=surfaces)
+        initialisation, start_reason = settings.data_term.initialisation, "asked for"
+        if initialisation == "auto":
+            evidence = pose_evidence([s.mesh for s in surfaces], landmark_sets, start, runner,
+                                     sub_range(rounds_report, 0.0, EVIDENCE_SHARE))
+            initialisation, start_reason = chosen_start(evidence)
+            rounds_report(EVIDENCE_SHARE, f"{'intrinsic (spectral)' if initialisation == 'spectral' else 'closest-point'}"
+                                          f" start chosen for the collection: {start_reason}")
+            rounds_report = sub_range(rounds_report, EVIDENCE_SHARE, 1.0)
+        settings_run = replace(settings, data_term=replace(settings.data_term, initialisation=initialisation))
+        outcome = _run_rounds(collection, start, settings_run, runner, rounds_report,
+                              stop_if_template_flagged=template is None, surfaces=surfaces, start_reason=start_reason)
         if template is None and outcome.reasons[start]:
             fits = np.flatnonzero(outcome.keep)
             if len(fits):
@@ -153,8 +162,8 @@ def correspond(
                 done = outcome.rounds_run / rounds
                 rounds_report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
                                     f"{outcome.reasons[outcome.start]})")
-                outcome = _run_rounds(collection, start, settings, runner, sub_range(rounds_report, done, 1.0),
-                                      stop_if_template_flagged=False, surfaces=surfaces)
+                outcome = _run_rounds(collection, start, settings_run, runner, sub_range(rounds_report, done, 1.0),
+                                      stop_if_template_flagged=False, surfaces=surfaces, start_reason=start_reason)
         if dense:
             registrations = place_dense(outcome.registrations, collection, surfaces, dense, settings, outcome.centre,
                                        outcome.scale, runner, sub_range(nicp_report, 0.95, 1.0))
@@ -198,6 +207,8 @@ def correspond(
         feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
         plain_shares=np.zeros(0) if outcome.plain_shares is None else outcome.plain_shares,
         unreadable=dict(collection.unreadable),
+        start=initialisation,
+        start_reason=start_reason,
     )
 
 
@@ -205,6 +216,8 @@ def correspond(
 REFINE_START = 0.8
 #: with the spectral start, the intrinsic maps fill this share of the rounds' progress
 SPECTRAL_SHARE = 0.2
+#: with the automatic start, the evidence (the shapes' spectra) fills this share of it
+EVIDENCE_SHARE = 0.05
 
 
 def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
@@ -223,12 +236,15 @@ def _refined(collection, keep, points, face_index, barycentric, edges, settings,
 
 
 def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,
-                report: Progress, stop_if_template_flagged: bool, surfaces: Sequence | None = None) -> _Rounds:
+                report: Progress, stop_if_template_flagged: bool, surfaces: Sequence | None = None,
+                start_reason: str = "asked for") -> _Rounds:
     """The R = groupwise_rounds + 1 rounds from the landmarks of shape `start` (§4.2.7):
     register the template to every shape, flag outliers, replace the template by the mean
     landmark cloud of the shapes that fit, again. With `stop_if_template_flagged`, stops
     after the first round that flags shape `start`. `surfaces`: per shape, the mesh to
-    register against (a dense shape's proxy; default each shape's own mesh)."""
+    register against (a dense shape's proxy; default each shape's own mesh). `settings`
+    name the start ("closest" or "spectral", "auto" resolved by the caller); `start_reason`
+    says why, in each shape's message."""
     surfaces = [Proxy(s.mesh) for s in collection.shapes] if surfaces is None else surfaces
     names = list(collection.names)
     template_points = np.asarray(collection.landmarks[start].points, dtype=np.float64)
@@ -248,6 +264,10 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             if spectral is not None:
                 report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
         report = sub_range(report, SPECTRAL_SHARE, 1.0)
+    else:
+        for index, name in enumerate(names):
+            if index != start:
+                report(0.0, f"{name}: closest-point start ({start_reason})")
     outcome = None
     current_template, current_normals, current_between = template_points, template_normals, None
     round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check

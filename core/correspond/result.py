@@ -16,7 +16,10 @@ they then matched the collection): empty when they were not checked, and in file
 before. Likewise each shape's share of template points matched plainly because their
 regions merge on it (`plain_shares`, features.merged_regions): empty when not checked.
 Likewise the files its collection's folder left out because they could not be read
-(`unreadable`, carried from the prepared collection): none in files written before."""
+(`unreadable`, carried from the prepared collection): none in files written before.
+Likewise the start registration took (`start`: "closest" or "spectral", what
+`initialisation="auto"` chose, and `start_reason`): empty in files written before, which
+took the start their settings name (`start_used`)."""
 
 from __future__ import annotations
 
@@ -64,6 +67,16 @@ class Correspondence:
     feature_fit_worse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (M,) or (0,): not checked
     plain_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not checked
     unreadable: dict[str, str] = field(default_factory=dict)  # files left out of the folder: {file name: why}
+    start: str = ""  # the start registration took ("closest" or "spectral"; "": not recorded)
+    start_reason: str = ""  # why ("asked for", or the evidence `initialisation="auto"` read)
+
+    @property
+    def start_used(self) -> str:
+        """The start the correspondence took: as recorded, else (files written before the
+        record) the one its settings name, "closest" when they name none."""
+        if self.start:
+            return self.start
+        return "closest" if self.settings is None else self.settings.data_term.initialisation
 
     def __len__(self) -> int:
         return len(self.names)
@@ -128,6 +141,8 @@ class Correspondence:
             "feature_fit_worse": np.asarray(self.feature_fit_worse, dtype=bool).reshape(-1),
             "plain_shares": np.asarray(self.plain_shares, dtype=np.float64).reshape(-1),
             **unreadable_arrays(self.unreadable),
+            "start": np.asarray(self.start, dtype=str),
+            "start_reason": np.asarray(self.start_reason, dtype=str),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -177,6 +192,7 @@ class Correspondence:
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
             refinement=refinement, refinement_trace=trace, between_shares=shares,
             feature_fit_worse=worse, plain_shares=plain, unreadable=recorded_unreadable(a, label),
+            start=_optional_text(a, "start", label), start_reason=_optional_text(a, "start_reason", label),
         )
 
 
@@ -189,6 +205,14 @@ def _optional_shares(a: dict, key: str, label: str) -> np.ndarray:
         raise ModelFileError(f"{label}: {key} must be empty or one share in [0, 1] per shape "
                              f"({len(a['names'])}), got {len(shares)} values")
     return shares
+
+
+def _optional_text(a: dict, key: str, label: str) -> str:
+    """An optional text of a correspondence file ("" when absent: files written before it)."""
+    if key not in a:
+        return ""
+    validate_arrays({key: np.asarray(a[key])}, {key: ArraySpec("U", ())}, label)
+    return str(a[key])
 
 
 def _json(settings) -> str:

@@ -26,7 +26,7 @@ MATCHING_METHODS = ("closest", "features")
 FEATURE_STIFFNESS = 0.4
 
 #: `data_term.initialisation`: where each shape's registration starts (start.py)
-INITIALISATIONS = ("closest", "spectral")
+INITIALISATIONS = ("auto", "closest", "spectral")
 
 #: `refinement.method`: "population" slides the landmarks on their surfaces after NICP (refine.py)
 REFINE_METHODS = ("population", "none")
@@ -113,7 +113,12 @@ class DataTermSettings(Settings):
       worse or its landmarks match the template's wave-kernel signatures no clearly better
       (start.py), the closest-point start is used and the shape's message says so. Rounds
       after the first start every shape from its previous landmarks (a mean template of
-      shapes in different poses is no start).
+      shapes in different poses is no start). "auto": the collection chooses one of the
+      two from how its shapes differ (start.py `chosen_start`: far more in space than in
+      their Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every
+      shape and records it in the correspondence (`Correspondence.start`). Not the default:
+      it misses where closest points fail for reasons other than pose, and where the
+      spectral start mirrors (docs/results.md).
     """
 
     #: files written before these fields existed ran with these values (settings.Settings);
@@ -128,7 +133,8 @@ class DataTermSettings(Settings):
     feature_between: float = option(1.0, "features: weight of a point's position between the turning lines of its "
                                     "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
     initialisation: str = option("closest", "where registration starts: closest (the template as it is, the "
-                                 "thesis); spectral (an intrinsic map, for shapes that differ in pose)",
+                                 "thesis); spectral (an intrinsic map, for shapes that differ in pose); auto (chosen "
+                                 "from how the collection's shapes differ)",
                                  flag="--initialisation", choices=INITIALISATIONS)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")

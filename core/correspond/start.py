@@ -8,7 +8,10 @@ points so the stiffness keeps the start's layout (a limb that moved stays matche
 limb). A shape whose spectrum is not trusted, whose spectral fit is clearly worse than the
 closest-point fit, or whose spectral landmarks do not match the template's wave-kernel
 signatures clearly better than the closest-point ones, is registered from the
-closest-point start instead, and the per-shape message says so."""
+closest-point start instead, and the per-shape message says so. "auto": one of the two
+for the whole collection, from how its shapes differ (`pose_evidence`, `chosen_start`):
+the intrinsic start where they differ in pose, closest points where they differ in
+proportion."""
 
 from __future__ import annotations
 
@@ -18,13 +21,14 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry.spectral import SpectrumError
+from ..geometry import chamfer_distance
+from ..geometry.spectral import SpectrumError, laplace_beltrami_spectrum
 from ..progress import Progress
-from .functional_map import SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
+from .functional_map import MIN_PART_SHARE, SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
 from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration
 
-__all__ = ["spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
+__all__ = ["pose_evidence", "PoseEvidence", "chosen_start", "POSE_RATIO", "EVIDENCE_FUNCTIONS", "spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
            "SPECTRAL_SIGNATURE_MARGIN"]
 
 #: a spectral start whose registration's residual is more than this times the closest-point
@@ -120,3 +124,98 @@ def checked_spectral_fits(spectral: list[RegistrationTask], closest: list[Regist
         if reasons[index]:
             registrations[index] = alternative
     return registrations, reasons
+
+
+#: eigenvalues (after the constant one) compared by `pose_evidence`
+EVIDENCE_FUNCTIONS = 12
+
+
+@dataclass(frozen=True)
+class PoseEvidence:
+    """What a collection says about how its shapes differ, each against the template shape.
+
+    intrinsic: (M,) mean |log ratio| of the first EVIDENCE_FUNCTIONS non-zero
+      Laplace–Beltrami eigenvalues of the unit-area surfaces (shape DNA, Reuter et al.
+      2006): bending without stretching leaves it near 0, a change of proportion does not;
+      NaN where the spectrum is not trusted (0 for the template).
+    extrinsic: (M,) RMS symmetric Chamfer distance of the prepared landmark clouds over the
+      template cloud's RMS radius: how far apart the shapes lie in space after Prepare.
+    degenerate: share of the template's consecutive eigenvalue pairs within 5 % of each
+      other (a body of revolution has pairs: its spectrum cannot say which turn is right).
+    """
+
+    template: int
+    intrinsic: np.ndarray
+    extrinsic: np.ndarray
+    degenerate: float
+
+    def summary(self) -> dict:
+        others = np.arange(len(self.intrinsic)) != self.template
+        intrinsic, extrinsic = self.intrinsic[others], self.extrinsic[others]
+        trusted = np.isfinite(intrinsic)
+        median_int = float(np.median(intrinsic[trusted])) if trusted.any() else float("nan")
+        median_ext = float(np.median(extrinsic))
+        return {"intrinsic_median": median_int, "extrinsic_median": median_ext,
+                "ratio": median_ext / median_int if median_int > 0 else float("inf"),
+                "trusted": int(trusted.sum()), "shapes": int(others.sum()), "degenerate": self.degenerate}
+
+    def describe(self) -> str:
+        s = self.summary()
+        return (f"intrinsic {s['intrinsic_median']:.3f}, extrinsic {s['extrinsic_median']:.3f}, ratio "
+                f"{s['ratio']:.2f}, spectra trusted {s['trusted']} of {s['shapes']}, degenerate {s['degenerate']:.2f}")
+
+
+def _eigenvalues(mesh) -> np.ndarray | None:
+    """The first EVIDENCE_FUNCTIONS non-zero eigenvalues of a mesh (unit area), or None."""
+    try:
+        spectrum = laplace_beltrami_spectrum(mesh.vertices, mesh.faces, EVIDENCE_FUNCTIONS + 1)
+    except SpectrumError:
+        return None
+    if spectrum.largest_part_share < MIN_PART_SHARE:
+        return None
+    return spectrum.values[1:]
+
+
+def pose_evidence(meshes: Sequence, landmark_sets: Sequence[np.ndarray], template_index: int, runner=None,
+                  report: Progress | None = None) -> PoseEvidence:
+    """`PoseEvidence` of a collection: `meshes` (the surfaces registered against, any frame:
+    the spectra are of unit-area surfaces), `landmark_sets` (prepared frame)."""
+    if runner is None:
+        values = [_eigenvalues(mesh) for mesh in meshes]
+    else:
+        values = runner.map(_eigenvalues, list(meshes), report, lambda i: f"spectrum of {meshes[i].name}")
+    reference = values[template_index]
+    intrinsic = np.full(len(meshes), np.nan)
+    if reference is not None:
+        for index, v in enumerate(values):
+            if v is not None:
+                intrinsic[index] = float(np.mean(np.abs(np.log(np.maximum(v, 1e-12) / np.maximum(reference, 1e-12)))))
+    template = np.asarray(landmark_sets[template_index], dtype=np.float64)
+    radius = float(np.sqrt(((template - template.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    extrinsic = np.array([np.sqrt(chamfer_distance(template, points)) / radius for points in landmark_sets])
+    degenerate = float(np.mean(reference[1:] < 1.05 * reference[:-1])) if reference is not None else float("nan")
+    return PoseEvidence(template_index, intrinsic, extrinsic, degenerate)
+
+
+#: the collection differs in pose when its shapes lie this many times farther apart in
+#: space than in their spectra (`PoseEvidence.summary` "ratio", medians over the shapes):
+#: bending moves a shape in space but hardly changes its spectrum, a change of proportion
+#: changes both alike. The value lies between the ratios of classes that differ in
+#: proportion and of classes that differ in pose (bench/start_evidence.py; docs/results.md,
+#: "People, the gorilla and the automatic start")
+POSE_RATIO = 5.0
+
+
+def chosen_start(evidence: PoseEvidence) -> tuple[str, str]:
+    """("spectral" or "closest", why) for a collection, from its `PoseEvidence`: the
+    intrinsic start where its shapes differ far more in space than in their spectra
+    (POSE_RATIO: they differ in pose), closest points where they differ about as much in
+    both (in proportion: an intrinsic map then has no better claim than the surfaces'
+    positions) or where most spectra are not trusted (several parts: the start would fall
+    back anyway)."""
+    s = evidence.summary()
+    if s["trusted"] < s["shapes"] / 2:
+        return "closest", f"the spectra of {s['shapes'] - s['trusted']} of {s['shapes']} shapes are not trusted"
+    said = (f"the shapes lie {s['ratio']:.1f}× farther apart in space ({s['extrinsic_median']:.3f}) than in their "
+            f"spectra ({s['intrinsic_median']:.3f}), threshold {POSE_RATIO:g}×")
+    return ("spectral" if s["ratio"] > POSE_RATIO else "closest"), said

@@ -54,6 +54,17 @@ MATCHING_ITEMS = [
                              "between a shape's bellies and necks. Better on vases, less compact models on "
                              "other classes; falls back to Closest Points where it fits badly"),
 ]
+#: Shapes Differ in Pose: the item numbers keep .blend files of the checkbox it was reading
+#: as before (Blender stores an enum by its number: off 0, on 1); Auto is new
+POSE_ITEMS = [
+    ("AUTO", "Auto", "The collection decides: the intrinsic start where its shapes differ in pose more than in "
+                     "proportion (recommended)", 2),
+    ("ON", "On", "Every shape starts from a map along its surface (animals, people, hands)", 1),
+    ("OFF", "Off", "Every shape starts from the template as it is (vases, mugs, cars)", 0),
+]
+#: the core's `data_term.initialisation` of each item and back
+INITIALISATION_OF = {"AUTO": "auto", "ON": "spectral", "OFF": "closest"}
+POSE_ITEM_OF = {value: key for key, value in INITIALISATION_OF.items()}
 REFINE_ITEMS = [
     ("none", "None", "Use the landmarks as matched (recommended)"),
     ("population", "Population", "Experimental: afterwards slide the landmarks over the surfaces to make the "
@@ -144,19 +155,21 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
                            description="What each landmark is matched to on every shape")
     refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refinement.method,
                          description="An extra pass after matching")
-    differ_in_pose: BoolProperty(
-        name="Shapes Differ in Pose", default=CORE_DEFAULTS.correspondence.data_term.initialisation == "spectral",
-        description="Animals, people, hands: shapes that bend at joints. Each shape's landmarks then start where "
+    differ_in_pose: EnumProperty(
+        name="Shapes Differ in Pose", items=POSE_ITEMS,
+        default=POSE_ITEM_OF[CORE_DEFAULTS.correspondence.data_term.initialisation],
+        description="Animals, people, hands: shapes that bend at joints. On: each shape's landmarks start where "
                     "a map along its surface puts them, which a moved limb does not change (slower; where that map "
-                    "cannot be trusted the shape starts as usual and its message says so)",
+                    "cannot be trusted the shape starts as usual and its message says so). Auto: the collection "
+                    "decides, and the messages say which start it chose and why",
     )
 
     def options(self) -> dict:
         """CorrespondenceSettings options by their flat names (`CorrespondenceSettings.FIELDS_MOVED`
         reads them into its groups): the stiffness schedule ends at `stiffness`; `matching`,
-        `refine`; `initialisation` spectral where the shapes differ in pose."""
+        `refine`; `initialisation` from Shapes Differ in Pose (Auto / On: spectral / Off: closest)."""
         return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
-                "refine": self.refine, "initialisation": "spectral" if self.differ_in_pose else "closest"}
+                "refine": self.refine, "initialisation": INITIALISATION_OF[self.differ_in_pose]}
 
 
 class ShapeGenFitSettings(bpy.types.PropertyGroup):

@@ -177,10 +177,10 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         panel = scene.shapegen
         received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
         assert received == pipeline.FitSettings()
-        panel.correspondence.differ_in_pose = True  # "Shapes Differ in Pose": the intrinsic start
-        received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
-        assert received.correspondence.data_term.initialisation == "spectral"
-        panel.correspondence.differ_in_pose = False
+        for item, initialisation in (("ON", "spectral"), ("OFF", "closest"), ("AUTO", "auto")):
+            panel.correspondence.differ_in_pose = item  # "Shapes Differ in Pose": Auto / On / Off
+            received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
+            assert received.correspondence.data_term.initialisation == initialisation
         assert panel.generate.sample_template == pipeline.FitSettings().mesh_template
         assert panel.fit.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
     finally:

@@ -109,7 +109,24 @@ def test_panel_settings_saved_before_they_were_grouped_move_into_their_sections(
     prepare, fit = settings.prepare, settings.fit
     assert (prepare.n_landmarks, prepare.up_axis, prepare.use_base_mesh) == (77, "y", True)
     assert (fit.model, fit.latent_dim, settings.correspondence.stiffness) == ("ppca", 3, 7.5)
-    assert settings.correspondence.differ_in_pose and settings.generate.interpolate_steps == 9
+    assert settings.correspondence.differ_in_pose == "ON" and settings.generate.interpolate_steps == 9
     assert settings.explore.seed == 4 and settings.explore.map_size == 64  # clamped to its minimum, as Blender does
     assert settings.generate.sample_count == 6  # text where a number belongs: dropped, the default stays
     assert not set(old) & set(settings.keys()) and settings.source_collection.name == "vases"
+
+
+def test_shapes_differ_in_pose_saved_as_a_checkbox_reads_as_on_or_off(extension, tmp_path):
+    """Shapes Differ in Pose was a checkbox (stored 0/1) before it became Auto / On / Off: a
+    .blend saved with it ticked opens On, unticked Off; one that never set it has the default."""
+    for stored, expected in ((1, "ON"), (0, "OFF")):
+        bpy.ops.wm.read_homefile(use_empty=True)
+        bpy.context.scene.shapegen.correspondence["differ_in_pose"] = stored  # as the checkbox saved it
+        blend = tmp_path / f"checkbox_{stored}.blend"
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+        bpy.ops.wm.open_mainfile(filepath=str(blend))
+        correspondence = bpy.context.scene.shapegen.correspondence
+        assert correspondence.differ_in_pose == expected
+        assert correspondence.options()["initialisation"] == {"ON": "spectral", "OFF": "closest"}[expected]
+    bpy.ops.wm.read_homefile(use_empty=True)
+    default = addon_module(extension, "core.correspond").CorrespondenceSettings().data_term.initialisation
+    assert bpy.context.scene.shapegen.correspondence.options()["initialisation"] == default

@@ -149,7 +149,7 @@ def test_initialisation_is_a_checked_recorded_setting_and_old_files_read_closest
     recorded = json.loads(settings.to_json())
     del recorded["data_term"]["initialisation"]  # a file written before the option existed
     assert CorrespondenceSettings.from_dict(recorded, recorded=True).data_term.initialisation == "closest"
-    with pytest.raises(SettingsError, match="unknown initialisation 'intrinsic'; choose from closest, spectral"):
+    with pytest.raises(SettingsError, match="unknown initialisation 'intrinsic'; choose from auto, closest, spectral"):
         DataTermSettings(initialisation="intrinsic")
 
 
@@ -166,6 +166,54 @@ def test_correspond_with_the_spectral_start_reports_every_shape_s_start(small_va
         assert said, f"{name}: no start reported in {messages}"
     assert result.settings.data_term.initialisation == "spectral"
     assert np.isfinite(result.points).all()
+
+
+def _evidence_of(meshes, landmarks: int = 300):
+    """The automatic start's choice for `meshes`, prepared as correspondence sees them."""
+    from shapegen_core.correspond.groupwise import chamfer_medoid
+    from shapegen_core.correspond.start import chosen_start, pose_evidence
+
+    prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=landmarks, seed=0))
+    sets = [l.points for l in prepared.landmarks]
+    return chosen_start(pose_evidence([s.mesh for s in prepared.shapes], sets, chamfer_medoid(sets)))
+
+
+@pytest.mark.skipif(not TOSCA.exists(), reason="the shared TOSCA data is not on this machine")
+def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
+    from shapegen_core.io import read_mesh
+
+    choice, why = _evidence_of([read_mesh(TOSCA / "cat" / f"cat{i}.off") for i in range(4)])
+    assert choice == "spectral", why
+
+
+def test_auto_takes_closest_points_for_vases_that_differ_in_proportion():
+    from shapegen_core.datasets import make_vases
+
+    choice, why = _evidence_of([s.mesh for s in make_vases(5, seed=11, resolution=(30, 60))])
+    assert choice == "closest", why
+
+
+def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vases, tmp_path):
+    from shapegen_core.correspond import Correspondence
+
+    prepared = prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=40, seed=1))
+    messages = []
+    settings = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
+                                      data_term=DataTermSettings(initialisation="auto"),
+                                      iterations=IterationSettings(max_iterations=4))
+    result = correspond(prepared, settings, jobs=1, progress=lambda fraction, message: messages.append(message))
+    assert result.start in ("closest", "spectral") and result.start_reason
+    for name in (n for n in result.names if n != result.template_name):
+        assert any(m.startswith(f"{name}: ") and "start" in m for m in messages), messages
+    loaded = Correspondence.load(result.save(tmp_path / "auto.npz"))
+    assert (loaded.start, loaded.start_reason, loaded.settings.data_term.initialisation) == \
+        (result.start, result.start_reason, "auto")
+    # a file written before the record and the option: the start its settings name, closest
+    arrays = {k: v for k, v in result.to_arrays().items() if k not in ("start", "start_reason")}
+    recorded = json.loads(settings.to_json())
+    del recorded["data_term"]["initialisation"]
+    old = Correspondence.from_arrays({**arrays, "settings": np.asarray(json.dumps(recorded))})
+    assert old.start == "" and old.start_used == "closest"
 
 
 @dataclass(frozen=True)
@@ -206,3 +254,4 @@ def test_a_spectral_fit_worse_or_no_closer_to_the_signatures_falls_back_to_close
     assert reasons[1] == "closest-point start: the spectral start fit 2.0× worse"
     assert reasons[2].startswith("closest-point start: the spectral start does not match the intrinsic geometry "
                                  "clearly better (signature error 0.95 against 1.00)")
+
