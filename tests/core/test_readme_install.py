@@ -82,8 +82,8 @@ def test_fit_and_sample_a_procedural_class(installed, tmp_path):
     """Procedural mugs written as OBJ files by the installed package itself."""
     write = ("import sys\nfrom pathlib import Path\nfrom shapegen_core.datasets import make_handled_mugs\n"
              "from shapegen_core.io import write_mesh\n"
-             "for mesh in make_handled_mugs(8, seed=2, resolution=(16, 24)):\n"
-             "    write_mesh(mesh, Path(sys.argv[1]) / f'{mesh.name}.obj')\n")
+             "for shape in make_handled_mugs(8, seed=2, resolution=(16, 24)):\n"
+             "    write_mesh(shape.mesh, Path(sys.argv[1]) / f'{shape.mesh.name}.obj')\n")
     (tmp_path / "mugs").mkdir()
     subprocess.run([str(installed / "python"), "-c", write, str(tmp_path / "mugs")], check=True)
     samples = fit_and_sample(installed, tmp_path / "mugs", tmp_path)
