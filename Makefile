@@ -13,7 +13,7 @@
 #   .venv-bpy42   Python 3.11, Blender 4.2 LTS as a module (blender-4.2.txt): Blender 4.2 smoke
 
 PYTHON      ?= python3.11
-PYTHON313   ?= $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null || ls -d $$HOME/.pyenv/versions/3.13*/bin/python3.13 2>/dev/null | tail -1)
+PYTHON313   ?= $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null || ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.13*/bin/python3.13 2>/dev/null | tail -1)
 VENV        := .venv
 VENV_OLDEST := .venv-oldest
 VENV_NEWEST := .venv-newest
