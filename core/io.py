@@ -161,6 +161,17 @@ def _parsed(path: str | os.PathLike, name: str | None = None):
     return label, name, suffix, vertices, faces, loaded, file_faces
 
 
+def _fans(sizes: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each polygon (`sizes[p]` corners, concatenated in `corners`) cut into a fan from its
+    first corner, as trimesh's readers cut them: the (T, 3) triangles, polygon by polygon,
+    and the polygon each came from (T,)."""
+    polygon = np.repeat(np.arange(len(sizes)), sizes - 2)
+    first = (np.cumsum(sizes) - sizes)[polygon]
+    step = np.arange(len(polygon)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2)
+    triangles = np.stack([corners[first], corners[first + step + 1], corners[first + step + 2]], axis=1)
+    return triangles, polygon
+
+
 def _polygon_of(file_faces, triangles: np.ndarray) -> np.ndarray | None:
     """(T,) the file polygon each triangle trimesh read was cut from, or None when the file
     holds triangles only or a triangle is not one of its polygons' fans. Intake needs the
@@ -173,11 +184,7 @@ def _polygon_of(file_faces, triangles: np.ndarray) -> np.ndarray | None:
     triangles = np.asarray(triangles, dtype=np.int64)
     if len(sizes) == 0 or np.all(sizes == 3) or sizes.min() < 3 or int(np.sum(sizes - 2)) != len(triangles):
         return None
-    start = np.cumsum(sizes) - sizes
-    polygon = np.repeat(np.arange(len(sizes)), sizes - 2)
-    step = np.arange(len(polygon)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2)
-    first = start[polygon]
-    fans = np.stack([corners[first], corners[first + step + 1], corners[first + step + 2]], axis=1)
+    fans, polygon = _fans(sizes, corners)
     fan_keys, read_keys = _cyclic_rows(fans), _cyclic_rows(triangles)
     keys = np.concatenate([fan_keys, read_keys])
     n = int(keys.max()) + 1
@@ -321,10 +328,7 @@ def _read_off(path: Path) -> tuple[dict, tuple]:
     face_rows = body[n_vertices:n_vertices + n_faces]
     sizes = np.array([int(words[0]) for words in face_rows], dtype=np.int64)
     corners = np.array([index for words in face_rows for index in words[1:1 + int(words[0])]], dtype=np.int64)
-    start = np.repeat(np.cumsum(sizes) - sizes, sizes - 2)  # each fan triangle's polygon's first corner
-    step = np.arange(len(start)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2)
-    triangles = np.stack([corners[start], corners[start + step + 1], corners[start + step + 2]], axis=1)
-    return {"vertices": vertices, "faces": triangles}, (sizes, corners, None)
+    return {"vertices": vertices, "faces": _fans(sizes, corners)[0]}, (sizes, corners, None)
 
 
 def _holds_points_only(trimesh, path: Path, suffix: str) -> bool:
