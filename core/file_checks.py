@@ -24,7 +24,8 @@ import numpy as np
 
 from .errors import MeshFileError
 
-__all__ = ["MAX_COORDINATE", "check_declared", "check_read_faces", "check_coordinates", "check_not_repeated"]
+__all__ = ["MAX_COORDINATE", "check_declared", "check_read_faces", "check_coordinates", "check_not_repeated",
+           "data_rows", "off_sections"]
 
 #: the largest coordinate magnitude read (1e12: a kilometre-wide scene in nanometres). Far
 #: below the float64 overflow of squared distances (~1e154), far above any real model.
@@ -96,15 +97,13 @@ def _check_off(path: Path, data: bytes) -> None:
     """An OFF file: header `OFF` then `V F E`, V vertex lines of at least 3 values, F face
     lines `k i1 .. ik` (and colours). Fewer lines than declared, or more lines of numbers:
     refused. Text after them is not the mesh's and is ignored, as readers do (PSB Vase 361
-    ends with the settings of the tool that wrote it). (trimesh parses the values and refuses ones that
-    are not numbers.)"""
-    rows = _data_rows(_decoded(path, data, "OFF"))
+    ends with the settings of the tool that wrote it). (io's reader parses the values and
+    refuses ones that are not numbers.)"""
+    rows = data_rows(_decoded(path, data, "OFF"))
     if not rows or not re.fullmatch(r"C?N?OFF", rows[0][0]):
         return  # not recognisable as OFF: trimesh's refusal says so
-    counts = rows[0][1:] or (rows[1] if len(rows) > 1 else [])
-    body = rows[1:] if rows[0][1:] else rows[2:]
     try:
-        n_vertices, n_faces = int(counts[0]), int(counts[1])
+        n_vertices, n_faces, body = off_sections(rows)
     except (IndexError, ValueError):
         raise MeshFileError(f"{path}: the OFF header has no vertex and face counts") from None
     after = [row for row in body[n_vertices + n_faces:] if _all_numbers(" ".join(row))]
@@ -150,7 +149,7 @@ def _check_ply_ascii(path: Path, data: bytes) -> None:
     body = _decoded(path, data[end + len(b"end_header"):], "PLY")
     if not _all_numbers(body):
         raise MeshFileError(f"{path}: the PLY data holds a value that is not a number (a damaged file)")
-    rows = _data_rows(body)
+    rows = data_rows(body)
     declared = sum(count for _, count, _ in elements)
     if len(rows) != declared:
         raise MeshFileError(f"{path}: the PLY header declares {declared} records "
@@ -312,7 +311,16 @@ _CONTROL = re.compile(r"[\x00-\x08\x0b-\x0c\x0e-\x1f\x7f]")
 _CONTROL_BYTES = bytes([*range(0x00, 0x09), 0x0b, 0x0c, *range(0x0e, 0x20), 0x7f])
 
 
-def _data_rows(text: str) -> list[list[str]]:
+def off_sections(rows: list[list[str]]) -> tuple[int, int, list[list[str]]]:
+    """(vertex count, face count, the rows after the header) of an OFF file's data rows
+    (`data_rows`): the counts stand on the `OFF` line or on the next. IndexError or
+    ValueError when they are missing."""
+    counts = rows[0][1:] or (rows[1] if len(rows) > 1 else [])
+    body = rows[1:] if rows[0][1:] else rows[2:]
+    return int(counts[0]), int(counts[1]), body
+
+
+def data_rows(text: str) -> list[list[str]]:
     """The words of each line that has any, `#` comments left out."""
     lines = text.splitlines()
     if "#" in text:

@@ -49,7 +49,8 @@ import numpy as np
 
 from .child_process import MEMORY_ADVICE, exit_with_parent
 from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
-from .file_checks import check_coordinates, check_declared, check_not_repeated, check_read_faces, obj_unterminated
+from .file_checks import (check_coordinates, check_declared, check_not_repeated, check_read_faces, data_rows,
+                          obj_unterminated, off_sections)
 from .intake import clean_mesh, weld_vertices
 from .layout import FaceLayout
 from .mesh import Mesh
@@ -320,10 +321,7 @@ def _read_off(path: Path) -> tuple[dict, tuple]:
     corners, no UVs). The file's structure was checked by `check_declared`: a header with
     counts, as many vertex and face lines as it declares, each face `k i1 .. ik`; comments
     and anything after the declared lines are left out."""
-    rows = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("utf-8").splitlines()]
-    rows = [words for words in rows if words]
-    counts, body = (rows[0][1:], rows[1:]) if rows[0][1:] else (rows[1], rows[2:])
-    n_vertices, n_faces = int(counts[0]), int(counts[1])
+    n_vertices, n_faces, body = off_sections(data_rows(path.read_bytes().decode("utf-8")))
     vertices = np.array([words[:3] for words in body[:n_vertices]], dtype=np.float64).reshape(n_vertices, 3)
     face_rows = body[n_vertices:n_vertices + n_faces]
     sizes = np.array([int(words[0]) for words in face_rows], dtype=np.int64)
