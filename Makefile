@@ -72,7 +72,7 @@ $(VENV_BPY42)/.installed: requirements/blender-4.2.txt
 
 # requirements/oldest.txt, newest.txt and blender-4.2.txt, resolved anew (scripts/refresh_pins.py)
 pins:
-	$(PYTHON) scripts/refresh_pins.py
+	$(PYTHON) scripts/refresh_pins.py --python313 $(PYTHON313)
 
 wheels/.fetched: blender_manifest.toml scripts/fetch_wheels.py | $(VENV)/.installed
 	$(PY) scripts/fetch_wheels.py

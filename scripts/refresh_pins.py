@@ -1,6 +1,6 @@
 """Write the pinned requirements of the tiers that test the ends of pyproject.toml's ranges.
 
-    python3.11 scripts/refresh_pins.py        (what `make pins` runs)
+    python3.11 scripts/refresh_pins.py --python313 PATH   (what `make pins` runs)
 
 - `requirements/oldest.txt`: Python 3.11 with each core dependency at the floor
   pyproject.toml declares (`numpy>=1.26` installs numpy 1.26.0), plus the `test` extra.
@@ -30,16 +30,6 @@ REQUIREMENTS = ROOT / "requirements"
 NEWEST_BLENDER = "bpy>=5.2,<5.3"
 #: Blender 4.2 LTS, the oldest Blender the manifest claims, and the numpy it ships
 OLDEST_BLENDER = ["bpy==4.2.23", "numpy==1.26.4"]
-
-
-def python_313() -> str:
-    """Python 3.13: on PATH, else the newest of pyenv's."""
-    found = subprocess.run(["sh", "-c", "python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null || "
-                            "ls -d $HOME/.pyenv/versions/3.13*/bin/python3.13 2>/dev/null | tail -1"],
-                           capture_output=True, text=True).stdout.strip()
-    if not found:
-        sys.exit("Python 3.13 not found (on PATH as python3.13, or under ~/.pyenv/versions)")
-    return found.splitlines()[-1]
 
 
 def floors() -> list[str]:
@@ -79,7 +69,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("tiers", nargs="*", default=["oldest", "newest", "blender-4.2"],
                         choices=["oldest", "newest", "blender-4.2"])
-    tiers = parser.parse_args().tiers
+    parser.add_argument("--python313", default="python3.13",
+                        help="Python 3.13 for the newest tier (make passes the one it found)")
+    args = parser.parse_args()
+    tiers = args.tiers
     note = "# Written by `make pins` (scripts/refresh_pins.py): a pip freeze of a fresh venv. Do not edit.\n"
     if "oldest" in tiers:
         pins = floors()
@@ -89,7 +82,7 @@ def main() -> int:
     if "newest" in tiers:
         write("newest.txt", note + "# Newest tier: Python 3.13, the newest releases pyproject.toml allows, the test "
               f"extra, Blender's newest LTS as a module ({NEWEST_BLENDER}).\n",
-              frozen(python_313(), [".[test]", NEWEST_BLENDER, "setuptools", "wheel"], True))
+              frozen(args.python313, [".[test]", NEWEST_BLENDER, "setuptools", "wheel"], True))
     if "blender-4.2" in tiers:
         write("blender-4.2.txt", note + "# Blender 4.2 LTS as a module (Python 3.11) with the numpy Blender 4.2 ships; "
               "the extension brings scipy and trimesh.\n", frozen("python3.11", OLDEST_BLENDER, False))
