@@ -76,3 +76,13 @@ def psb_class(name: str) -> Path:
     if not folder.is_dir() or not any(folder.glob("*.off")):
         pytest.skip(f"real data folder {folder} is absent")
     return folder
+
+
+def central_diff(f, x, h=1e-5):
+    """Fourth-order central differences, one coordinate at a time."""
+    out = np.empty_like(x)
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
+    return out

@@ -18,6 +18,8 @@ from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales,
 from shapegen_core.models.gplvm import gplvm_log_likelihood
 from shapegen_core.models.kernels import PsiStatistics, rbf
 
+from conftest import central_diff
+
 # ----------------------------------------------------------------------------- data
 
 
@@ -36,16 +38,6 @@ def curve_data(rng, n, d=12, noise=0.02):
         t = rng.uniform(-2, 2, k)
         return np.sin(t[:, None] * freq + phase) + noise * rng.standard_normal((k, d))
     return draw
-
-
-def central_diff(f, x, h=1e-5):
-    """Fourth-order central differences, one coordinate at a time."""
-    out = np.empty_like(x)
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = h
-        out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
-    return out
 
 
 def rel_err(a, b):

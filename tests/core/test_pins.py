@@ -15,21 +15,14 @@ from shapegen_core.models import GPLVM, PPCA, BayesianGPLVM
 from shapegen_core.models.latent_variable import LatentVariableModel
 from shapegen_core.pipeline import FitSettings, fit_meshes
 
+from conftest import central_diff
+
 
 def curve_rows(rng, n, d=12, noise=0.02):
     """Rows from a 1-D latent through smooth sines, plus noise."""
     freq, phase = rng.uniform(0.5, 1.5, d), rng.uniform(0, 2 * np.pi, d)
     t = rng.uniform(-2, 2, n)
     return np.sin(t[:, None] * freq + phase) + noise * rng.standard_normal((n, d))
-
-
-def central_diff(f, x, h=1e-5):
-    out = np.empty_like(x)
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e[i] = h
-        out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
-    return out
 
 
 @pytest.fixture(scope="module")
