@@ -34,8 +34,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import igl
-import igl.embree
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -331,6 +329,8 @@ def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray)
     faces = np.asarray(faces)
     if len(faces) == 0 or len(points) == 0:  # libigl would return uninitialised values for no faces
         return np.zeros(len(points))
+    import igl  # here, not at the top: the add-on imports this module when it is enabled
+
     return igl.fast_winding_number(np.ascontiguousarray(vertices, dtype=np.float64),
                                    np.ascontiguousarray(faces, dtype=np.int64), points)
 
@@ -394,6 +394,8 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     unorientable = np.zeros(n_parts, dtype=bool)
     unorientable[part[as_given == as_reversed]] = True
     if unorientable.any():
+        import igl  # here: only a non-orientable part needs it
+
         rewound = rewound.copy()
         for index in np.flatnonzero(unorientable):
             members = np.flatnonzero(part == index)
@@ -450,6 +452,8 @@ def outside_sides(vertices: np.ndarray, faces: np.ndarray, which: np.ndarray) ->
     offset = PROBE_OFFSET * float(np.linalg.norm(np.ptp(vertices, axis=0)))
     centre = local[faces[which]].mean(axis=1)
     directions = _sphere_directions(SIDE_RAY_DIRECTIONS)
+    import igl.embree  # here: only non-orientable parts cast rays
+
     intersector = igl.embree.EmbreeIntersector()
     intersector.init(np.asfortranarray(local, dtype=np.float32), np.asfortranarray(faces, dtype=np.int32))
     odd = np.zeros((len(which), 2))
