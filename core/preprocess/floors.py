@@ -11,9 +11,11 @@ shape is flagged, never turned onto a side or over. A file re-saved a quarter or
 turn about its origin has its old floor on a side and its lowest point elsewhere, so the
 costs restore it, and the floor backs them: it rests on the floor only once turned back
 (`lands`). Where nothing rests on one floor, the floor tells nothing and the costs decide
-alone. (Files all centred in one box share a "floor" too; there a squat shape saved on
-its side may rest on it and is then flagged rather than turned: the safe way to be
-wrong.)
+alone. Files all centred in one box (each file's middle at its origin, as PSB's are)
+share a "floor" only by the normalisation: their lowest points meet at minus half their
+common height. That is no ground plane, and a shape turned about the centre lands on it
+whenever another of its extents matches, so there the floor is not used at all and the
+costs decide alone (`FileFloors.shared`).
 """
 
 from __future__ import annotations
@@ -74,7 +76,25 @@ class FileFloors:
         floor = Floor(float(np.median(lows)), tolerance * float(np.median(self.sizes[members])))
         if np.mean(np.abs(lows - floor.level) <= floor.reach) <= 0.5:
             return None
+        if self._centred(members, floor):
+            return None
         return floor
+
+    def middle(self, j: int) -> float:
+        """Height of the middle of shape j's extent along up, as given."""
+        heights = self.points[j][:, 2]
+        return float((heights.min() + heights.max()) / 2.0)
+
+    def _centred(self, members: Sequence[int], floor: Floor) -> bool:
+        """Whether the members' lowest points meet only because their files are centred in
+        one box: most have the middle of their extent at their file's origin height while
+        the floor lies below it. Such a "floor" is where the normalisation put half of the
+        shape's height, not a ground plane: a shape turned about the centre lands on it
+        whenever another extent of it happens to match, so it tells nothing of how the
+        file was saved (a flat airplane turned a quarter turn lands on the upright
+        airplanes' "floor" by chance)."""
+        middles = np.array([self.middle(j) for j in members])
+        return bool(np.mean(np.abs(middles) <= floor.reach) > 0.5 and abs(floor.level) > floor.reach)
 
     def keeps(self, j: int, floor: Floor | None) -> bool:
         """Whether the floor tells that shape j is posed as its author put it: it rests on

@@ -1,0 +1,137 @@
+"""Prepare's orientation decisions on whole collections: the shared PSB Airplane and Cup
+classes as filed (every shape's decision pinned; no airplane laid on its side), a class
+whose files mix the two common up conventions (it ends as the single-convention class
+does), and upright shapes on one floor (never turned).
+
+A change to a pinned decision updates PINNED in the same commit, with the part-label
+transfer before and after (bench/label_transfer_regression.py) in its message."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import psb_class
+from shapegen_core.datasets import make_mugs, make_vases
+from shapegen_core.io import read_folder
+from shapegen_core.mesh import Mesh
+from shapegen_core.preprocess import ShapeTransform, prepare_collection
+from shapegen_core.preprocess.rotations import describe_rotation
+
+#: a y-up file among z-up ones (the other common convention): a quarter turn about x
+Y_UP_FILE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+#: Prepare's decision for each shape as filed (up y): "kept", or the turn made; "flagged"
+#: when its pose is flagged as doubtful
+#: (Airplane 62, 63, 64 and 77 and Cup 26, 27, 29, 34 and 37 lie on their sides in their files)
+PINNED = {
+    "Airplane": {
+        "61": "kept", "62": "turned 125° about (0.52, -0.60, -0.60), flagged",
+        "63": "turned 124° about (0.53, -0.60, -0.60), flagged", "64": "turned 90° about x, flagged", "65": "kept",
+        "66": "kept", "67": "kept, flagged", "68": "kept", "69": "kept", "70": "kept", "71": "kept", "72": "kept",
+        "73": "kept", "74": "kept", "75": "kept", "76": "kept",
+        "77": "turned 120° about (0.58, 0.58, 0.58), flagged", "78": "kept", "79": "kept", "80": "kept, flagged",
+    },
+    "Cup": {
+        "21": "turned 180° about z", "22": "kept", "23": "turned 179° about z", "24": "kept", "25": "kept",
+        "26": "turned 90° about -y", "27": "turned 90° about -y", "28": "turned 180° about z",
+        "29": "turned 90° about -y", "30": "turned 141° about z, flagged", "31": "kept", "32": "kept",
+        "33": "kept", "34": "turned 120° about (0.58, -0.57, 0.58), flagged", "35": "kept", "36": "kept",
+        "37": "turned 121° about (-0.57, -0.58, 0.58)", "38": "turned 180° about -z", "39": "kept",
+        "40": "kept",
+    },
+}
+
+
+def _decision(shape) -> str:
+    words = describe_rotation(shape.pose_rotation) if shape.pose_change else "kept"
+    return words + (", flagged" if shape.pose_outlier else "")
+
+
+def _angle(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@pytest.fixture(scope="module")
+def psb_prepared():
+    cache = {}
+
+    def prepared(name: str):
+        if name not in cache:
+            cache[name] = prepare_collection(read_folder(psb_class(name)), up_axis="y")
+        return cache[name]
+
+    return prepared
+
+
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_psb_decisions_as_filed_are_pinned(psb_prepared, name):
+    decisions = {shape.name: _decision(shape) for shape in psb_prepared(name)}
+    assert decisions == PINNED[name]
+
+
+#: the PSB airplanes lying on their sides in their files (y up): every other one stands upright
+#: as filed, as the part-label transfer of the version before the floor rule showed (94 %)
+AIRPLANES_LYING = {"62", "63", "64", "77"}
+
+
+def test_no_psb_airplane_is_laid_on_its_side(psb_prepared):
+    """Every airplane upright in its file keeps its file's up (none laid on its side or
+    turned over by the floor the centred files seem to share); those lying in their files
+    are stood up."""
+    for shape in psb_prepared("Airplane"):
+        up = shape.pose_rotation[2, 2]  # the file's up (z after the up rotation) against the prepared up
+        if shape.name in AIRPLANES_LYING:
+            assert abs(up) < np.cos(np.radians(45.0)), (shape.name, shape.pose_change)
+        else:
+            assert up > np.cos(np.radians(1.0)), (shape.name, shape.pose_change)
+
+
+def _placed(meshes, seed: int) -> list[Mesh]:
+    rng = np.random.default_rng(seed)
+    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
+                            .to_normalised(m.vertices)) for m in meshes]
+
+
+def _on_floor(meshes, seed: int) -> list[Mesh]:
+    """Every shape's lowest point on z = 0, its origin near the middle of its base."""
+    rng = np.random.default_rng(seed)
+    placed = []
+    for mesh in meshes:
+        vertices = mesh.vertices * rng.uniform(0.5, 2.0)
+        low = vertices.min(axis=0)
+        middle = (low + vertices.max(axis=0)) / 2
+        placed.append(mesh.with_vertices(vertices - [middle[0], middle[1], low[2]] + [*rng.uniform(-0.05, 0.05, 2), 0]))
+    return placed
+
+
+MIXED_CLASSES = {
+    "vases": lambda: _placed([v.mesh for v in make_vases(12, seed=3, resolution=(12, 16), pose=False)], 1),
+    "open mugs on a floor": lambda: _on_floor(make_mugs(12, 2, closed=False, handle_height=(0.3, 0.7), pose=False), 2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MIXED_CLASSES))
+def test_mixed_file_conventions_end_as_one_convention_does(name):
+    """Every third file re-saved y-up (a quarter turn about x about its origin): every
+    shape ends within 5° of where the single-convention collection puts it, none
+    flagged, without Turn Flagged."""
+    meshes = MIXED_CLASSES[name]()
+    single = prepare_collection(meshes)
+    turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
+    mixed = prepare_collection([m.with_vertices(m.vertices @ turns[i].T) if i in turns else m
+                                for i, m in enumerate(meshes)])
+    for i, (a, b) in enumerate(zip(mixed, single)):
+        apart = _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T)
+        assert apart <= 5.0, (i, apart, a.pose_change, a.pose_outlier)
+        assert a.pose_outlier == "", (i, a.pose_outlier)
+
+
+def test_upright_shapes_on_a_floor_are_never_turned():
+    """Mugs and vases standing on one ground plane as their author put them (origins under
+    their bases): nobody is turned over or onto a side."""
+    for meshes in (_on_floor(make_mugs(10, 4, closed=True, handle_height=(0.3, 0.7), pose=False), 5),
+                   _on_floor([v.mesh for v in make_vases(10, seed=6, resolution=(12, 16), pose=False)], 6)):
+        for shape in prepare_collection(meshes):
+            up = shape.pose_rotation[2, 2]
+            assert up > np.cos(np.radians(1.0)), (shape.name, shape.pose_change)
