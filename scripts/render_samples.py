@@ -13,9 +13,10 @@ From scratch, step by step (each step skipped when its output is already in --wo
    (a run that falls short of 8 passing samples writes only its failing ones, to failed/:
    the row then shows those, in red);
 4. Blender as a module, headless: one row per class and start, the model's correspondence
-   template (a training shape, grey) first, then the samples (blue), seen from the side and
-   a little in front and above (each row turned so its training shape's long horizontal axis
-   runs across the picture). Camera and light are the demo's (scripts/demo.py).
+   template (a training shape, grey) first, then the samples (blue), each row turned so its
+   template's long horizontal axis runs across the picture, then --azimuth (30°) towards the
+   camera, seen a little from above. Camera and light are the demo's (scripts/demo.py); the
+   PNG is cut to 128 colours (~600 KB).
 The fits run one after the other, each with --jobs (default 1: the machine is shared).
 """
 
