@@ -457,8 +457,8 @@ def _on_convention_line(state: ConsensusState, rotation: np.ndarray | None) -> b
 def _mixed_conventions(state: ConsensusState) -> None:
     """Files of both common conventions in one collection (a y-up file among z-up ones):
     when at least `costs.convention_files` shapes are clearly stood on the other
-    convention's up line, and none on another side, the collection evidently holds files
-    saved in it. That is
+    convention's up line (where the files share a floor: landing on it so), and none on
+    another side, the collection evidently holds files saved in it. That is
     evidence no single shape carries: a shape that step 1 only flagged "may be on its
     side" on that same line (its symmetry or most references say so, another measure
     objecting) is stood there too, and every such shape stands on the end that
@@ -467,7 +467,11 @@ def _mixed_conventions(state: ConsensusState) -> None:
     if state.convention is None:
         return
     stands = [j for j, d in enumerate(state.stood) if d.changed and not d.flag]
-    clear = [j for j in stands if _on_convention_line(state, state.stood[j].rotation)]
+    # where the files share a floor, a file saved in the other convention also lands on it
+    # once turned back: a stand the costs alone made (a sitting dog saved upside down,
+    # stood on a side) is no sign of a convention there
+    clear = [j for j in stands if _on_convention_line(state, state.stood[j].rotation)
+             and (state.floor is None or _side(state.floor_turns[j]) is not None)]
     if len(clear) < state.settings.costs.convention_files or len(clear) < len(stands):
         return  # too few, or files turned onto other sides too: turns, not one convention
     convention_end = next(TILTS[d] for d in range(len(TILTS)) if (TILTS[d] @ state.convention)[2] > 0.99)
