@@ -36,7 +36,7 @@ PINNED = {
         "21": "turned 180° about z", "22": "kept", "23": "turned 179° about z", "24": "kept", "25": "kept",
         "26": "turned 90° about -y", "27": "turned 90° about -y", "28": "turned 180° about z",
         "29": "turned 90° about -y", "30": "turned 141° about z, flagged", "31": "kept", "32": "kept",
-        "33": "kept", "34": "turned 120° about (0.58, -0.57, 0.58)", "35": "kept", "36": "kept",
+        "33": "kept", "34": "turned 120° about (0.58, -0.57, 0.58), flagged", "35": "kept", "36": "kept",
         "37": "turned 121° about (-0.57, -0.58, 0.58)", "38": "turned 180° about -z", "39": "kept",
         "40": "kept",
     },
