@@ -45,8 +45,14 @@ coarse samples) against the other in its pose.
    author put it: flagged, never stood on another axis (a rearing cat among standing ones
    fits them better lying); a shape resting there only after one quarter turn of its file
    about its origin (and no other turn) was saved turned: stood so, the costs asked only
-   not to object clearly (by `costs.margin`; else flagged). Step 1 records each shape's
-   floor turn and whether it rests on the floor as given for step 2.
+   not to object clearly (by `costs.margin`; else flagged), or not asked at all when that
+   turn is the other common convention's. Step 1 records each shape's floor turn and
+   whether it rests on the floor as given for step 2.
+   Both conventions in one collection (`_mixed_conventions`): when at least
+   `costs.convention_files` shapes are clearly stood on the other convention's up line and
+   none on another side, a shape flagged "may be on its side" on that line is stood too,
+   and step 2 keeps each of them on the end that convention puts up unless the costs
+   clearly turn it over.
 2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
    agrees on top and bottom and the shape clearly does not:
    - its hollow (`hollow.Hollows`) opens the other way up from at least
@@ -124,6 +130,9 @@ class CostSettings:
     agreement: float = 0.8
     #: cost ratio (its pose / the turned pose) a reference's vote for a turn needs
     margin: float = 1.5
+    #: shapes clearly stood on the other common convention's up line (by these votes or
+    #: their symmetry) that show a collection mixes the two file conventions
+    convention_files: int = 2
 
 
 @dataclass(frozen=True)
@@ -212,6 +221,9 @@ class FloorSettings:
     #: a shape's lowest point within this many times the median size (RMS radius) of the
     #: upright shapes' shared floor rests on it
     tolerance: float = 0.15
+    #: lowest points within this many times the median size of each other (at least three
+    #: and a third of the upright shapes) make a floor where fewer than half rest on one
+    exact: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -356,6 +368,9 @@ class ConsensusState:
     resting: list[bool] = field(default_factory=list)
     symmetric_sides: list[tuple[str, float, float] | None] = field(default_factory=list)
     stood: list[PoseDecision] = field(default_factory=list)
+    #: step 1: the shapes stood on the other common convention's up in a collection that
+    #: evidently mixes the two conventions (`_mixed_conventions`); step 2 keeps their end
+    convention_files: list[int] = field(default_factory=list)
     #: step 2: after the turn-overs (`tops_and_bottoms`)
     ends: list[PoseDecision] = field(default_factory=list)
     #: step 3: after the turns about up (`facings`)
@@ -415,7 +430,8 @@ def up_lines(state: ConsensusState) -> None:
     state.floor_turns, state.resting = [None] * n, [False] * n
     if 2 * len(upright) <= n or len(upright) < 2:
         return  # no up shared by most shapes: nothing to line up with
-    state.floor = None if floors is None else floors.shared(upright, state.settings.floor.tolerance)
+    state.floor = None if floors is None else floors.shared(upright, state.settings.floor.tolerance,
+                                                               state.settings.floor.exact)
     state.floor_turns = [_floor_turn(floors, j, state.floor) for j in range(n)]
     state.resting = [floors is not None and floors.keeps(j, state.floor) for j in range(n)]
     sides = [_side(turn) for turn in state.floor_turns]
@@ -429,6 +445,47 @@ def up_lines(state: ConsensusState) -> None:
             decision = _stand(state, j, upright)
             if decision is not None:
                 state.stood[j] = decision
+    _mixed_conventions(state)
+
+
+def _on_convention_line(state: ConsensusState, rotation: np.ndarray | None) -> bool:
+    """Whether `rotation` stands a shape on the line of the other common convention's up."""
+    return (state.convention is not None and rotation is not None
+            and abs(float((rotation @ state.convention)[2])) > 0.99)
+
+
+def _mixed_conventions(state: ConsensusState) -> None:
+    """Files of both common conventions in one collection (a y-up file among z-up ones):
+    when at least `costs.convention_files` shapes are clearly stood on the other
+    convention's up line (where the files share a floor: landing on it so), and none on
+    another side, the collection evidently holds files saved in it. That is
+    evidence no single shape carries: a shape that step 1 only flagged "may be on its
+    side" on that same line (its symmetry or most references say so, another measure
+    objecting) is stood there too, and every such shape stands on the end that
+    convention puts up (+y of a y-up file) unless its costs clearly tell the other
+    (step 2). A shape resting on the files' floor as given, or kept, is not moved."""
+    if state.convention is None:
+        return
+    stands = [j for j, d in enumerate(state.stood) if d.changed and not d.flag]
+    # where the files share a floor, a file saved in the other convention also lands on it
+    # once turned back: a stand the costs alone made (a sitting dog saved upside down,
+    # stood on a side) is no sign of a convention there
+    clear = [j for j in stands if _on_convention_line(state, state.stood[j].rotation)
+             and (state.floor is None or _side(state.floor_turns[j]) is not None)]
+    if len(clear) < state.settings.costs.convention_files or len(clear) < len(stands):
+        return  # too few, or files turned onto other sides too: turns, not one convention
+    convention_end = next(TILTS[d] for d in range(len(TILTS)) if (TILTS[d] @ state.convention)[2] > 0.99)
+    files = f"{len(clear)} files of the collection are clearly saved in it"
+    for j, decision in enumerate(state.stood):
+        if j in clear:
+            state.convention_files.append(j)
+        elif (decision.flag.startswith("may be on its side") and _on_convention_line(state, decision.flag_rotation)
+              and not state.frozen[j] and not state.resting[j]):
+            evidence = decision.flag.removeprefix("may be on its side: ")
+            state.stood[j] = PoseDecision(
+                convention_end, f"{describe_rotation(convention_end)}: {evidence}; the other common file "
+                                f"convention's up ({files}), a file-convention turn", end_guessed=True)
+            state.convention_files.append(j)
 
 
 def _symmetric_sides(state: ConsensusState) -> list[tuple[str, float, float] | None]:
@@ -520,8 +577,13 @@ def _floor_stand(state: ConsensusState, j: int, references: Sequence[int], side:
                             / np.maximum(np.minimum(costs[:, a], costs[:, b]), 1e-300))) if len(costs) else 0.0
     stand = TILTS[side]
     words = f"{LANDS}, standing on its {line} axis"
-    if ratio * margin >= 1.0 and not state.frozen[j]:
-        return PoseDecision(stand, f"{describe_rotation(stand)}: {words}, a file-convention turn")
+    # the turn that lands it is the other common convention's (its file's +y up among z-up
+    # files): two facts of the file agree, which a pose differing from the references'
+    # (a sitting dog among standing ones fits them better lying) does not outweigh
+    convention = state.convention is not None and (stand @ state.convention)[2] > 0.99
+    if (ratio * margin >= 1.0 or convention) and not state.frozen[j]:
+        why = ", the other common file convention's up" if ratio * margin < 1.0 else ""
+        return PoseDecision(stand, f"{describe_rotation(stand)}: {words}{why}, a file-convention turn")
     if ratio * margin < 1.0:
         words += f", but its upright references fit it {1.0 / max(ratio, 1e-300):.1f}× better as given (median)"
     return PoseDecision(identity, flag=f"may be on its side: {words}", flag_rotation=stand)
@@ -622,11 +684,27 @@ def _end_decision(state: ConsensusState, j: int, poses: Sequence[np.ndarray], vo
     if (ends.clear_flip or landing) and not frozen and not resting:
         why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else "") if w)
         return PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}")
+    if stood.end_guessed and j in state.convention_files:
+        return _convention_end(state, j, poses[j], flipped, ends)
     if stood.end_guessed and not ends.clear_keep:
         return _guessed_end(poses[j], flipped, ends)
     doubted = f"{LANDS}, but its references fit it better as given" if lands and not landing else ""
     why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else doubted, RESTING if resting else "") if w)
     return PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped)
+
+
+def _convention_end(state: ConsensusState, j: int, pose: np.ndarray, flipped: np.ndarray,
+                    ends: "_EndEvidence") -> PoseDecision:
+    """A shape stood on the other common convention's up line in a collection that
+    evidently mixes the conventions (`_mixed_conventions`), its end told by nothing clear:
+    the end that convention puts up (its file's +y among z-up files), not flagged. Weak
+    evidence against it (odd moments, a minority of references) does not outweigh files
+    that share a convention; clear evidence turned it over before this point."""
+    if (pose @ state.convention)[2] > 0.99:
+        return PoseDecision(pose)
+    return PoseDecision(flipped, f"{describe_rotation(flipped @ pose.T)}: the end the other common file "
+                                 f"convention puts up, as {len(state.convention_files)} files of the collection "
+                                 f"are saved")
 
 
 def _guessed_end(pose: np.ndarray, flipped: np.ndarray, ends: "_EndEvidence") -> PoseDecision:

@@ -64,19 +64,24 @@ class FileFloors:
         direction = np.array([0.0, 0.0, 1.0]) if turn is None else np.asarray(turn)[2]
         return float((self.points[j] @ direction).min())
 
-    def shared(self, members: Sequence[int], tolerance: float) -> Floor | None:
+    def shared(self, members: Sequence[int], tolerance: float, exact: float = 0.0) -> Floor | None:
         """The floor the `members` (the upright shapes) share: more than half of at least
         three have their lowest point within `tolerance` × their median size of the
         median lowest point (a majority, so that a third of the files saved turned over
-        and a shape that jumps leave it standing). None: no shared floor."""
+        and a shape that jumps leave it standing). Where fewer than half do (a third of a
+        small class saved in another convention and one shape jumping), at least three
+        and a third of them with their lowest points within `exact` × their median size of
+        each other share one: random heights do not meet that closely. None: no shared
+        floor, or one only the files' centring makes (`_centred`)."""
         members = list(members)
         if len(members) < 3:
             return None
         lows = np.array([self.lowest(j) for j in members])
-        floor = Floor(float(np.median(lows)), tolerance * float(np.median(self.sizes[members])))
+        size = float(np.median(self.sizes[members]))
+        floor = Floor(float(np.median(lows)), tolerance * size)
         if np.mean(np.abs(lows - floor.level) <= floor.reach) <= 0.5:
-            return None
-        if self._centred(members, floor):
+            floor = _exact_floor(lows, size, tolerance, exact)
+        if floor is None or self._centred(members, floor):
             return None
         return floor
 
@@ -110,3 +115,16 @@ class FileFloors:
 
     def _rests(self, j: int, turn: np.ndarray | None, floor: Floor) -> bool:
         return abs(self.lowest(j, turn) - floor.level) <= floor.reach
+
+
+def _exact_floor(lows: np.ndarray, size: float, tolerance: float, exact: float) -> Floor | None:
+    """The height most `lows` meet at within `exact` × `size` of each other, when at least
+    three and a third of them do (its reach the usual `tolerance` × `size`); else None."""
+    if exact <= 0.0:
+        return None
+    meets = np.abs(lows[:, None] - lows[None, :]) <= exact * size
+    counts = meets.sum(axis=1)
+    best = int(np.argmax(counts))
+    if counts[best] < max(3.0, len(lows) / 3.0):
+        return None
+    return Floor(float(np.median(lows[meets[best]])), tolerance * size)

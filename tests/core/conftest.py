@@ -71,6 +71,13 @@ def subdivided(mesh: Mesh, steps: int, name: str | None = None) -> Mesh:
     return Mesh(vertices, faces, name=name or mesh.name)
 
 
+def tosca_class(name: str) -> Path:
+    folder = PSB.parent / "tosca" / name
+    if not folder.is_dir() or not any(folder.glob("*.off")):
+        pytest.skip(f"real data folder {folder} is absent")
+    return folder
+
+
 def psb_class(name: str) -> Path:
     folder = PSB / name
     if not folder.is_dir() or not any(folder.glob("*.off")):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import psb_class
+from conftest import psb_class, tosca_class
 from shapegen_core.datasets import make_mugs, make_vases
 from shapegen_core.io import read_folder
 from shapegen_core.mesh import Mesh
@@ -106,6 +106,9 @@ def _on_floor(meshes, seed: int) -> list[Mesh]:
 
 
 MIXED_CLASSES = {
+    # solid mugs: no hollow tells top from bottom, and a re-saved file's odd moments lean to
+    # the wrong end; the files clearly saved in the other convention tell it instead
+    "closed mugs": lambda: _placed(make_mugs(10, 0, closed=True, handle_height=(0.3, 0.7), pose=False), 7000),
     "vases": lambda: _placed([v.mesh for v in make_vases(12, seed=3, resolution=(12, 16), pose=False)], 1),
     "open mugs on a floor": lambda: _on_floor(make_mugs(12, 2, closed=False, handle_height=(0.3, 0.7), pose=False), 2),
 }
@@ -114,8 +117,9 @@ MIXED_CLASSES = {
 @pytest.mark.parametrize("name", sorted(MIXED_CLASSES))
 def test_mixed_file_conventions_end_as_one_convention_does(name):
     """Every third file re-saved y-up (a quarter turn about x about its origin): every
-    shape ends within 5° of where the single-convention collection puts it, none
-    flagged, without Turn Flagged."""
+    shape ends within 5° of where the single-convention collection puts it, without Turn
+    Flagged, and is flagged only where the single-convention run flags it too (an unusual
+    shape)."""
     meshes = MIXED_CLASSES[name]()
     single = prepare_collection(meshes)
     turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
@@ -124,7 +128,23 @@ def test_mixed_file_conventions_end_as_one_convention_does(name):
     for i, (a, b) in enumerate(zip(mixed, single)):
         apart = _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T)
         assert apart <= 5.0, (i, apart, a.pose_change, a.pose_outlier)
-        assert a.pose_outlier == "", (i, a.pose_outlier)
+        assert bool(a.pose_outlier) == bool(b.pose_outlier), (i, a.pose_outlier, b.pose_outlier)
+
+
+def test_mixed_file_conventions_of_a_tosca_class_end_as_one_convention_does():
+    """TOSCA's centaurs stand on z = 0 in one pose each; two of six files re-saved y-up (a
+    quarter turn about their origin): no majority rests on one floor any more, the costs
+    hardly tell a centaur lying from one standing, and every shape still ends within 5° of
+    where the single-convention collection puts it (the files' floor, met to a hair by the
+    others, and the convention's turn that lands them on it tell)."""
+    meshes = read_folder(tosca_class("centaur"))
+    single = prepare_collection(meshes)
+    turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
+    mixed = prepare_collection([m.with_vertices(m.vertices @ turns[i].T) if i in turns else m
+                                for i, m in enumerate(meshes)])
+    for i, (a, b) in enumerate(zip(mixed, single)):
+        apart = _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T)
+        assert apart <= 5.0, (a.name, apart, a.pose_change, a.pose_outlier)
 
 
 def test_upright_shapes_on_a_floor_are_never_turned():

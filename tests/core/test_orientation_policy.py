@@ -163,6 +163,26 @@ def test_file_floors_closed_forms():
     assert not floors.keeps(0, None) and not floors.lands(3, half_turn, None)
 
 
+def test_file_floors_of_a_small_collection_and_of_centred_files():
+    """Three of six shapes on z = 0 to a hair (the others saved turned, or jumping) make a
+    floor where no majority rests on one; random heights do not meet so closely. Files
+    each centred in one box meet at minus half their common height: no floor."""
+    box = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-2.0, 2.0) for z in (0.0, 3.0)])
+    lying = box[:, [0, 2, 1]] - [0.0, 0.0, 5.0]
+    shapes = [box, box + [4.0, 0.0, 0.001], box + [0.0, 3.0, -0.002], lying, lying, box + [0.0, 0.0, 4.0]]
+    floors = FileFloors(shapes, [2.0] * 6)
+    everyone = list(range(6))
+    assert floors.shared(everyone, tolerance=0.15) is None  # three of six: no majority
+    floor = floors.shared(everyone, tolerance=0.15, exact=0.02)
+    assert floor is not None and abs(floor.level) <= 0.002 and floor.reach == pytest.approx(0.3)
+    assert floors.keeps(0, floor) and not floors.keeps(3, floor)
+    spread = FileFloors([box + [0.0, 0.0, h] for h in (0.0, 0.5, 1.0, 1.5, 2.0, 2.5)], [2.0] * 6)
+    assert spread.shared(everyone, tolerance=0.15, exact=0.02) is None
+    centred = FileFloors([box - [0.0, 0.0, 1.5]] * 4 + [box[:, [2, 1, 0]] * [1, 1, 1.0] - [0.0, 0.0, 1.0]], [2.0] * 5)
+    assert centred.shared(list(range(5)), tolerance=0.15) is None
+    assert FileFloors([box] * 4, [2.0] * 4).shared(list(range(4)), tolerance=0.15) == Floor(0.0, 0.3)
+
+
 def test_on_a_shared_floor_the_floor_decides_what_the_file_says():
     """Barrels on one floor: one saved upside down about its origin is turned over (the
     odd moments alone only flag it, previous test), one laid on its side on the floor by
