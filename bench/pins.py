@@ -87,7 +87,7 @@ def main() -> None:
         pin = pins.pin_objects(scene)[0]
         home = np.array(pin.location)
         rng = np.random.default_rng(0)
-        size = float(np.ptp(model.correspondence.points, axis=(0, 1)).max())
+        size = float(np.ptp(model.training_points, axis=(0, 1)).max())
         first = live.data.vertices[0].co.copy()
         times, remeshed = [], 0
         for _ in range(args.moves):

@@ -64,10 +64,11 @@ def cmd_correspond(args: argparse.Namespace) -> int:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
     chosen = (f"{result.start_used} start ({result.start_reason}); "
               if result.start_reason and result.start_reason != "asked for" else "")  # initialisation auto
+    posed = f"{result.pose_summary()}; " if result.pose_summary() else ""
     print(
         f"corresponded {len(result)} shapes x {result.n_landmarks} landmarks -> {args.output}; "
         f"template {result.template_name}; median residual {100 * float(np.median(result.residuals)):.2f} % "
-        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {result.matching_summary()}; {chosen}"
+        f"of the diagonal; {int(result.outliers.sum())} outlier(s); {result.matching_summary()}; {chosen}{posed}"
         f"{time.perf_counter() - start:.1f} s"
     )
     return 0

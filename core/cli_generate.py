@@ -71,8 +71,9 @@ class _StagedOutput:
 
 # ---------------------------------------------------------------------------- fit
 def _meshes_for_correspondence(corr, meshes_dir: Path, args: argparse.Namespace, spill: SpillStore | None = None):
-    """Normalised training meshes for a correspondence file: re-read the inputs from
-    `meshes_dir` and apply the transforms recorded in the file (dense ones kept in `spill`),
+    """Training meshes in the model frame for a correspondence file: re-read the inputs from
+    `meshes_dir` and apply each shape's transform to the model frame (Prepare's, then the
+    pose the correspondence gave it, `Correspondence.model_transforms`; dense ones kept in `spill`),
     and the correspondence recording, besides its own, the files of `meshes_dir` left out
     as unreadable (--skip-unreadable; a shape of the correspondence must still be read)."""
     read, unreadable = read_mesh_folder(meshes_dir, args, spill)
@@ -85,7 +86,7 @@ def _meshes_for_correspondence(corr, meshes_dir: Path, args: argparse.Namespace,
     if missing:
         raise CommandError(f"{meshes_dir}: no mesh file for shape(s) {missing[:5]} of the correspondence")
     meshes = []
-    for name, matrix in zip(corr.names, corr.transforms):
+    for name, matrix in zip(corr.names, corr.model_transforms()):
         mesh = by_name[name]
         with loaded(mesh) as full:
             vertices = ShapeTransform.from_matrix(matrix).to_normalised(full.vertices)
@@ -120,10 +121,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for name, reason in zip(model.names, model.correspondence.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
+    posed = f"; {model.correspondence.pose_summary()}" if model.correspondence.pose_summary() else ""
     labelled = "" if model.part_labels is None else \
         f"; part labels of {sum(bool((p >= 0).any()) for p in model.part_labels.parts)} shape(s)"
     print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
-          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}; "
+          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}{posed}; "
           f"{time.perf_counter() - start:.1f} s")
     return 0
 
@@ -358,7 +360,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.model}: --labels: the model records no part labels (fit it from a folder with "
                            "<name>_labels.txt beside the meshes)")
     if args.template is not None:
-        model.template_order(model.correspondence.points[0], args.template)  # an unknown name fails before any work
+        model.template_order(model.training_points[0], args.template)  # an unknown name fails before any work
     run = SampleRun(args.n, args.seed, args.template, "", args.format, args.smooth, args.exact, quality.to_json())
     budget = draw_budget(args.n, quality)
     samples = failure = None

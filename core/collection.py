@@ -5,10 +5,12 @@ This is the hand-off from intake (§3.4 alignment, §4.2.1 landmarks) to corresp
 persist the result (meshes in the normalised frame, the per-shape transforms back to input
 coordinates, each shape's pose report — `pose_change`, `pose_rotation`, `pose_outlier` —,
 the landmarks and the settings used, as one JSON string). `keep_pose` names the shapes
-whose pose Prepare must not turn (issue 12). A collection read from a folder that left
-out files it could not read (`io.read_readable`) records them by file name with the
-reader's message (`unreadable`), so every later file says which inputs it lacks; files
-written before the record load with none.
+whose pose Prepare must not turn (issue 12), recorded per shape (`pose_kept`, so the
+correspondence does not pose them by their landmarks either; files written before read as
+not kept). A collection read from a folder that left out files it could not read
+(`io.read_readable`) records them by file name with the reader's message (`unreadable`),
+so every later file says which inputs it lacks; files written before the record load
+with none.
 """
 
 from __future__ import annotations
@@ -72,6 +74,9 @@ _POSE_SPEC = {
     "pose_rotation": ArraySpec("f", ("M", 3, 3)),
     "pose_outlier": ArraySpec("U", ("M",)),
 }
+
+#: Keep Pose per shape (optional: files written before the record read as not kept).
+_KEPT_SPEC = {"pose_kept": ArraySpec("b", ("M",))}
 
 #: The turn each flag suggests (identity: none); files written before Turn Flagged have
 #: none (read as no suggestion).
@@ -157,6 +162,7 @@ class PreparedCollection:
             "pose_rotation": np.stack([s.pose_rotation for s in self.shapes]),
             "pose_outlier": np.asarray([s.pose_outlier for s in self.shapes], dtype=str),
             "flag_turn": np.stack([np.eye(3) if s.flag_turn is None else s.flag_turn for s in self.shapes]),
+            "pose_kept": np.asarray([s.pose_kept for s in self.shapes], dtype=bool),
             "landmarks": np.concatenate([l.points for l in self.landmarks]),
             "landmark_faces": np.concatenate([l.face_index for l in self.landmarks]),
             "landmark_barycentric": np.concatenate([l.barycentric for l in self.landmarks]),
@@ -184,6 +190,10 @@ class PreparedCollection:
             validate_arrays(a, _SPEC | _FLAG_SPEC, str(path))
             if not np.all(np.isfinite(turns)) or not np.allclose(turns @ np.swapaxes(turns, 1, 2), np.eye(3), atol=1e-6):
                 raise ModelFileError(f"{path}: array 'flag_turn' holds a matrix that is not a rotation")
+        kept = np.zeros(m, dtype=bool)
+        if "pose_kept" in a:
+            validate_arrays(a, _SPEC | _KEPT_SPEC, str(path))
+            kept = a["pose_kept"]
         lo = a["landmark_offsets"]
         if len(lo) != m + 1 or lo[0] != 0 or lo[-1] != len(a["landmarks"]) or np.any(np.diff(lo) < 0):
             raise ModelFileError(f"{path}: array 'landmark_offsets' is inconsistent with the data it indexes")
@@ -197,7 +207,8 @@ class PreparedCollection:
                 raise ModelFileError(f"{path}: shape {name!r} is invalid: {exc}") from None
             turn = None if np.allclose(turns[i], np.eye(3)) else turns[i]
             shapes.append(PreparedShape(mesh, transform, bool(a["orientation_changed"][i]), pose["pose_rotation"][i],
-                                        str(pose["pose_change"][i]), str(pose["pose_outlier"][i]), turn))
+                                        str(pose["pose_change"][i]), str(pose["pose_outlier"][i]), turn,
+                                        bool(kept[i])))
             sl = slice(lo[i], lo[i + 1])
             faces = a["landmark_faces"][sl]
             if faces.size and (faces.min() < 0 or faces.max() >= mesh.n_faces):

@@ -3,8 +3,10 @@
 This is the single artefact passed between the CLI, the tests and Blender, saved as one
 versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 
-* the training shapes' meshes in the normalised frame and their transforms to input
-  coordinates (so any result maps back, §3.4), and, for meshes read from files with
+* the training shapes' meshes in the model frame: the normalised frame, each shape moved
+  by its pose from its landmarks where the correspondence posed it (core/correspond/
+  posing.py); their transforms to input coordinates are the correspondence's
+  `model_transforms` (so any result maps back, §3.4), and, for meshes read from files with
   polygons or UVs, their files' layouts (`layout.FaceLayout`: polygons, UVs per corner;
   arrays `mesh_layout_*`, version 2; version-1 files load without them);
 * the correspondence: landmarks (M, L, 3), the template's k-NN graph (kept for meshing,
@@ -39,6 +41,7 @@ import numpy as np
 
 from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
+from .correspond.posing import apply_pose
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .errors import CollectionError, ModelFileError, ShapeGenError
 from .labels import PartLabels
@@ -52,11 +55,11 @@ from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess.rotations import up_rotation
 from .progress import CancelCheck, Progress, no_progress, sub_range
 from .settings import Settings, SettingsError, legacy_settings, option
-from .spill import full_mesh
+from .spill import full_mesh, loaded
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
-           "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model"]
+           "TEMPLATE_CHOICES", "fit_meshes", "fit_shape_model", "posed_meshes"]
 
 MODEL_FILE_FORMAT = "shapegen.model"
 MODEL_FILE_VERSION = 2
@@ -157,6 +160,7 @@ class GenerativeShapeModel:
         self._deformers: dict[tuple[int, float], EmbeddedDeformer] = {}
         self._training_latents = training_latents
         self._latent_units = latent_units
+        self._training_points: np.ndarray | None = None
 
     # ------------------------------------------------------------------ basics
     @property
@@ -188,8 +192,16 @@ class GenerativeShapeModel:
         return self.model.model_type
 
     def training_matrix(self) -> np.ndarray:
-        """Y: training landmarks, N × 3L (normalised frame)."""
+        """Y: training landmarks, N × 3L (model frame)."""
         return self.correspondence.landmark_matrix()
+
+    @property
+    def training_points(self) -> np.ndarray:
+        """(N, L, 3) the training landmarks in the model frame, on `meshes` (the
+        correspondence's `model_points`, computed once)."""
+        if self._training_points is None:
+            self._training_points = self.correspondence.model_points()
+        return self._training_points
 
     def training_latents(self) -> np.ndarray:
         """The training shapes' latent vectors (N, Q): encoded once (a search per shape for
@@ -303,7 +315,7 @@ class GenerativeShapeModel:
             return np.array([self.shape_index(template)])
         candidates = self.template_candidates()
         if template == "nearest-data":
-            distances = ((self.correspondence.points[candidates] - landmarks[None]) ** 2).sum(axis=(1, 2))
+            distances = ((self.training_points[candidates] - landmarks[None]) ** 2).sum(axis=(1, 2))
         else:
             z = self.encode(landmarks[None])[0]
             distances = ((self.training_latents()[candidates] - z) ** 2).sum(axis=1)
@@ -332,7 +344,7 @@ class GenerativeShapeModel:
         key = (int(index), alpha)
         if key not in self._deformers:
             self._deformers[key] = EmbeddedDeformer(
-                full_mesh(self.meshes[index]), self.correspondence.points[index], self.correspondence.edges,
+                full_mesh(self.meshes[index]), self.training_points[index], self.correspondence.edges,
                 replace(self.deform_settings, final_alpha=alpha))
         return self._deformers[key]
 
@@ -564,8 +576,22 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
                       progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel,
                       scheduler=settings.scheduler)
     cancel()
-    return fit_shape_model([s.mesh for s in prepared.shapes], corr, settings,
+    return fit_shape_model(posed_meshes([s.mesh for s in prepared.shapes], corr), corr, settings,
                            progress=sub_range(progress, 0.75, 1.0), should_cancel=cancel, started=start)
+
+
+def posed_meshes(meshes: list[Mesh], corr: Correspondence) -> list[Mesh]:
+    """Prepared meshes (prepared frame) in the model frame: each shape the correspondence
+    posed by its landmarks (core/correspond/posing.py) moved by its pose, the others as
+    they are (the same objects). A stored dense mesh (core/spill.py) stays stored."""
+    posed = []
+    for mesh, pose, moved in zip(meshes, corr.model_poses, corr.posed):
+        if moved:
+            with loaded(mesh) as full:
+                vertices = apply_pose(pose, full.vertices)
+            mesh = mesh.with_vertices(vertices)
+        posed.append(mesh)
+    return posed
 
 
 #: largest vertex difference between prepared shapes, as a share of their size, below
@@ -594,9 +620,10 @@ def _check_variation(meshes: list[Mesh]) -> None:
 def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSettings = FitSettings(),
                     progress: Progress | None = None, should_cancel=None,
                     started: float | None = None) -> GenerativeShapeModel:
-    """The shape-model stage (§5.3) on a finished correspondence of `meshes` (normalised
-    frame): fit `settings.model` to the landmark matrix, encode the training shapes (saved
-    with the model, so nobody encodes them again) and bundle the fitted whole.
+    """The shape-model stage (§5.3) on a finished correspondence of `meshes` (model frame:
+    prepared meshes moved by the correspondence's poses, `posed_meshes`): fit
+    `settings.model` to the landmark matrix, encode the training shapes (saved with the
+    model, so nobody encodes them again) and bundle the fitted whole.
     `progress` and `should_cancel` as in core/progress.py (cancel is checked at every
     progress step of the model fit); `started` (perf_counter) dates the fit's start."""
     report = progress or no_progress

@@ -38,6 +38,7 @@ import numpy as np
 
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings
+from .correspond.posing import apply_pose
 from .errors import ShapeGenError
 from .npzfile import read_format
 from .pipeline import FitSettings
@@ -228,14 +229,17 @@ def _doing(stages: Sequence[str]) -> str:
 
 def same_shapes(model, prepared) -> bool:
     """Whether a fitted model's training shapes are exactly a prepared collection's: the
-    same names in order, faces, vertices (to 1e-5 of the shape's size) and transforms back
-    to the inputs (to 1e-6), so its correspondence is one of those shapes."""
+    same names in order, faces, vertices (to 1e-5 of the shape's size; the model's are in
+    the model frame, so each prepared mesh is first moved by the pose the correspondence
+    gave its shape, core/correspond/posing.py) and transforms back to the inputs (to 1e-6;
+    the correspondence's, to the prepared frame), so its correspondence is one of those shapes."""
     if model.names != prepared.names:
         return False
-    for mesh, shape, transform in zip(model.meshes, prepared.shapes, model.correspondence.transforms):
+    corr = model.correspondence
+    for mesh, shape, transform, pose in zip(model.meshes, prepared.shapes, corr.transforms, corr.model_poses):
         size = max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-12)
         if (mesh.vertices.shape != shape.mesh.vertices.shape or not np.array_equal(mesh.faces, shape.mesh.faces)
-                or np.abs(mesh.vertices - shape.mesh.vertices).max() > 1e-5 * size
+                or np.abs(mesh.vertices - apply_pose(pose, shape.mesh.vertices)).max() > 1e-5 * size
                 or np.abs(transform - shape.transform.matrix).max() > 1e-6 * max(1.0, np.abs(transform).max())):
             return False
     return True

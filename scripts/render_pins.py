@@ -86,7 +86,7 @@ def main() -> int:
     # three landmarks the class moves much (a vase's floor centre never moves), far apart
     spread = np.linalg.norm(np.asarray(model.model.decode_basis()).reshape(-1, model.n_landmarks, 3), axis=(0, 2))
     candidates = np.argsort(-spread)[:model.n_landmarks // 4]
-    points = model.correspondence.points.mean(axis=0)
+    points = model.training_points.mean(axis=0)
     chosen = [int(candidates[0])]
     while len(chosen) < 3:
         gaps = np.min(np.linalg.norm(points[candidates][:, None] - points[chosen][None], axis=2), axis=1)

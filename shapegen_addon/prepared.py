@@ -138,7 +138,8 @@ def recorded_prepare_settings(collection: bpy.types.Collection) -> PrepareSettin
 
 
 def to_prepared_collection(objects) -> PreparedCollection:
-    """Core data of prepared objects: their (normalised) meshes, transforms, landmarks."""
+    """Core data of prepared objects: their (normalised) meshes, transforms, landmarks and
+    Keep Pose (as Prepare was told: the correspondence does not pose those by their landmarks)."""
     shapes, landmarks = [], []
     for obj in objects:
         mesh = object_to_mesh(obj, world=False, evaluated=False)
@@ -158,7 +159,7 @@ def to_prepared_collection(objects) -> PreparedCollection:
         turn = obj.get(FLAG_TURN_KEY)
         turn = None if turn is None else np.asarray(turn, dtype=np.float64).reshape(3, 3)
         shapes.append(PreparedShape(mesh, transform, bool(change), rotation, change,
-                                    str(obj.get(POSE_OUTLIER_KEY, "")), turn))
+                                    str(obj.get(POSE_OUTLIER_KEY, "")), turn, bool(obj.get(KEEP_POSE_KEY, False))))
         landmarks.append(Landmarks(points, faces, bary, float(obj.get(LANDMARK_RADIUS_KEY, 0.0))))
     return PreparedCollection(shapes, landmarks)
 

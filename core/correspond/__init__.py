@@ -50,6 +50,8 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   objective.py     the population objective of refinement: compactness + spread, gradients
   refine.py        `refine_population`: projected, backtracking descent on the surfaces
   shards.py        refinement's per-shape state (surfaces, moves, spread) in worker processes
+  posing.py        each intrinsically started shape's rigid pose in the model frame from its
+                   landmarks (Procrustes onto the template shape's); Keep Pose shapes kept
   result.py        `Correspondence` and its .npz file
 """
 

@@ -1,7 +1,9 @@
 """Groupwise correspondence over a prepared collection (thesis §4.2.7): choose a template
 (the Chamfer medoid), register it to every shape, flag shapes that fit badly
 (outliers.py), replace the template by the mean landmark cloud of the shapes that fit,
-register again. A medoid the first round flags gives way to the medoid of the rest."""
+register again. A medoid the first round flags gives way to the medoid of the rest.
+Last, the shapes registered from the intrinsic start are posed in the model frame by their
+landmarks (posing.py), and each shape's start and pose are recorded."""
 
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
+from .posing import landmark_poses
 from .refine import refine_population
 from .features import agreement_weights, checks_fit, checks_regions, keeps_features, merged_regions, uses_between, \
     worse_fits
@@ -84,6 +87,7 @@ class _Rounds:
     between_shares: np.ndarray | None = None  # (M,) each shape's share of feature_between (None: not compared)
     feature_fit_worse: np.ndarray | None = None  # (M,) bool: feature matches fitted worse (None: not checked)
     plain_shares: np.ndarray | None = None  # (M,) share of template points matched plainly (None: not checked)
+    shape_starts: list[str] | None = None  # per shape, its start: "spectral", "closest" or "template"
 
     @property
     def keep(self) -> np.ndarray:
@@ -107,7 +111,8 @@ def correspond(
     of the next round shows it), the medoid of the shapes that round did not flag
     becomes the template and the rounds start again from it (a template given by name
     is kept). Outliers cannot be left out of the first medoid choice: they are known
-    only after a round of registrations.
+    only after a round of registrations. Last, each shape registered from the intrinsic
+    start gets its pose in the model frame from its landmarks (`_posed`, posing.py).
     jobs: worker processes (None: all cores; 1: in this process).
     progress: fractions over the R = groupwise_rounds + 1 rounds of registrations, each
     round an equal share filled as its shapes' ICP iterations run (core/progress.py);
@@ -183,6 +188,7 @@ def correspond(
         points, face_index, barycentric, trace = _refined(collection, outcome.keep, points, face_index, barycentric,
                                                           outcome.edges, settings,
                                                           sub_range(report, REFINE_START, 1.0), should_cancel, jobs)
+    poses, pose_notes = _posed(collection, names, points, outcome, report)
     report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
     transforms = [shape.transform for shape in collection.shapes]
     return Correspondence(
@@ -209,7 +215,24 @@ def correspond(
         unreadable=dict(collection.unreadable),
         start=initialisation,
         start_reason=start_reason,
+        shape_starts=list(outcome.shape_starts),
+        poses=poses,
+        pose_notes=pose_notes,
     )
+
+
+def _posed(collection, names: list[str], points: np.ndarray, outcome: _Rounds, report: Progress
+           ) -> tuple[np.ndarray, list[str]]:
+    """The step from corresponded landmarks to the model frame (posing.py): each shape
+    registered from the intrinsic start, not kept by request, is posed by the rigid fit of
+    its landmarks onto the template shape's; the others stay as Prepare left them. Each
+    shape posed or kept says so in one line."""
+    poses, notes = landmark_poses(points, outcome.start, outcome.shape_starts,
+                                  [shape.pose_kept for shape in collection.shapes])
+    for name, note in zip(names, notes):
+        if note:
+            report(1.0, f"{name}: {note}")
+    return poses, notes
 
 
 #: with refinement, NICP's progress fills [0, REFINE_START] and the refinement the rest
@@ -269,6 +292,7 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             if index != start:
                 report(0.0, f"{name}: closest-point start ({start_reason})")
     outcome = None
+    shape_starts = ["template" if index == start else "closest" for index in range(len(names))]
     current_template, current_normals, current_between = template_points, template_normals, None
     round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
     plain = None  # per shape, the template points matched plainly (features.merged_regions), from round 2 on
@@ -297,8 +321,9 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
         ]
         if starts is not None:
-            registrations = _from_spectral_starts(tasks, starts, template_signatures, outcome, to_frame, runner,
-                                                  round_report, label)
+            registrations, taken = _from_spectral_starts(tasks, starts, template_signatures, outcome, to_frame,
+                                                         runner, round_report, label)
+            shape_starts = taken or shape_starts
         elif round_index == 0 and checks_fit(settings):
             registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
         else:
@@ -309,24 +334,28 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
                           round_index + 1, centre, scale, shares, worse,
-                          None if plain is None else np.array([p.mean() for p in plain]))
+                          None if plain is None else np.array([p.mean() for p in plain]), list(shape_starts))
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
 
 
 def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_signatures, previous: _Rounds | None,
-                          to_frame, runner: RegistrationRunner, report: Progress, label: str) -> list[Registration]:
+                          to_frame, runner: RegistrationRunner, report: Progress, label: str
+                          ) -> tuple[list[Registration], list[str] | None]:
     """(the spectral start, **beyond** the thesis; start.py) the round's registrations. The
     first round registers every shape from its spectral start (`starts[i]`, None for the
     template's own shape) beside the closest-point start, which replaces it where the
     spectrum was not trusted, the spectral fit is clearly worse or its landmarks do not
     match the template's signatures clearly better (start.py; said per shape). Later
     rounds start every shape from its previous round's landmarks: the mean template of
-    shapes in different poses is no start, and the affines then act on those landmarks."""
+    shapes in different poses is no start, and the affines then act on those landmarks.
+    Returns the registrations and, from the first round, the start each shape kept
+    ("spectral", "closest", "template" for the template's own shape; None in later rounds,
+    which keep the first's)."""
     if previous is not None:
         return runner.run([replace(task, template=r.placed.points, template_normals=r.normals)
-                           for task, r in zip(tasks, previous.registrations)], report, label)
+                           for task, r in zip(tasks, previous.registrations)], report, label), None
     spectral = [task if s is None or s.points is None else
                 replace(task, template=to_frame(s.points), template_normals=s.normals)
                 for task, s in zip(tasks, starts)]
@@ -339,7 +368,9 @@ def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_
     for task, reason in zip(tasks, reasons):
         if reason:
             report(1.0, f"{task.name}: {reason}")
-    return registrations
+    taken = ["template" if s is None else "spectral" if s.points is not None and not reason else "closest"
+             for s, reason in zip(starts, reasons)]
+    return registrations, taken
 
 
 def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: RegistrationRunner, report: Progress,

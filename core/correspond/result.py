@@ -19,7 +19,19 @@ Likewise the files its collection's folder left out because they could not be re
 (`unreadable`, carried from the prepared collection): none in files written before.
 Likewise the start registration took (`start`: "closest" or "spectral", what
 `initialisation="auto"` chose, and `start_reason`): empty in files written before, which
-took the start their settings name (`start_used`)."""
+took the start their settings name (`start_used`). Likewise the start each shape's
+registration took (`shape_starts`: "spectral", "closest", or "template" for the template's
+own shape; a spectral start falls back per shape, start.py), and each shape's pose in the
+model frame from its landmarks (`poses`, rigid, prepared → model frame, posing.py) with a
+note saying how it was posed or why not (`pose_notes`): files written before hold none,
+and their shapes enter the model as Prepare left them.
+
+Frames: `points`, `transforms`, `face_index` and `barycentric` stay in the prepared frame,
+where the correspondence was made on the prepared meshes (Blender marks them on the
+prepared copies). The shape model learns `model_points` (`landmark_matrix`), each shape
+moved by its pose, and its meshes are the prepared meshes moved likewise; so anything that
+maps model-frame results back to a shape's input takes `model_transforms` (the pose after
+Prepare's transform), never `transforms` alone."""
 
 from __future__ import annotations
 
@@ -33,6 +45,7 @@ from ..collection import PrepareSettings, recorded_unreadable, unreadable_arrays
 from ..errors import ModelFileError
 from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..settings import recorded_settings
+from .posing import apply_pose
 from .features import FALLBACK_SHARE, keeps_features, uses_features
 from .settings import REFINE_METHODS, CorrespondenceSettings
 
@@ -69,6 +82,38 @@ class Correspondence:
     unreadable: dict[str, str] = field(default_factory=dict)  # files left out of the folder: {file name: why}
     start: str = ""  # the start registration took ("closest" or "spectral"; "": not recorded)
     start_reason: str = ""  # why ("asked for", or the evidence `initialisation="auto"` read)
+    shape_starts: list[str] = field(default_factory=list)  # per shape, its start ([]: not recorded)
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # (M, 4, 4) prepared → model, or (0,)
+    pose_notes: list[str] = field(default_factory=list)  # per shape, how it was posed or why not ([]: not recorded)
+
+    @property
+    def model_poses(self) -> np.ndarray:
+        """(M, 4, 4) each shape's rigid pose, prepared → model frame (identity for every
+        shape of a file that records none)."""
+        if len(self.poses):
+            return np.asarray(self.poses, dtype=np.float64)
+        return np.tile(np.eye(4), (len(self.names), 1, 1))
+
+    @property
+    def posed(self) -> np.ndarray:
+        """(M,) bool: the shapes whose pose moves them (not the identity)."""
+        return np.array([not np.array_equal(pose, np.eye(4)) for pose in self.model_poses], dtype=bool)
+
+    def model_points(self) -> np.ndarray:
+        """(M, L, 3) the landmarks in the model frame: each posed shape's moved by its pose,
+        the others' exactly as corresponded (posing.py)."""
+        points = np.array(self.points, dtype=np.float64)
+        for index in np.flatnonzero(self.posed):
+            points[index] = apply_pose(self.poses[index], points[index])
+        return points
+
+    def model_transforms(self) -> np.ndarray:
+        """(M, 4, 4) each shape's similarity from its input coordinates to the model frame:
+        its pose after Prepare's transform (`transforms`, where it is not posed)."""
+        transforms = np.array(self.transforms, dtype=np.float64)
+        for index in np.flatnonzero(self.posed):
+            transforms[index] = self.poses[index] @ transforms[index]
+        return transforms
 
     @property
     def start_used(self) -> str:
@@ -114,9 +159,18 @@ class Correspondence:
                         "and normal")
         return summary
 
+    def pose_summary(self) -> str:
+        """"12 of 19 shapes posed by their landmarks, 1 kept by request" (posing.py; "" when
+        no shape was posed or kept)."""
+        posed = int(self.posed.sum())
+        kept = sum(note.startswith("pose kept by request") for note in self.pose_notes)
+        if not posed and not kept:
+            return ""
+        return f"{posed} of {len(self)} shapes posed by their landmarks" + (f", {kept} kept by request" if kept else "")
+
     def landmark_matrix(self) -> np.ndarray:
-        """Y = N × 3L (docs/method.md §4), rows in the normalised frame."""
-        return self.points.reshape(len(self.names), -1)
+        """Y = N × 3L (docs/method.md §4), rows in the model frame (`model_points`)."""
+        return self.model_points().reshape(len(self.names), -1)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {
@@ -143,6 +197,9 @@ class Correspondence:
             **unreadable_arrays(self.unreadable),
             "start": np.asarray(self.start, dtype=str),
             "start_reason": np.asarray(self.start_reason, dtype=str),
+            "shape_starts": np.asarray(self.shape_starts, dtype=str).reshape(-1),
+            "poses": np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4),
+            "pose_notes": np.asarray(self.pose_notes, dtype=str).reshape(-1),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -193,6 +250,7 @@ class Correspondence:
             refinement=refinement, refinement_trace=trace, between_shares=shares,
             feature_fit_worse=worse, plain_shares=plain, unreadable=recorded_unreadable(a, label),
             start=_optional_text(a, "start", label), start_reason=_optional_text(a, "start_reason", label),
+            **_optional_poses(a, label),
         )
 
 
@@ -213,6 +271,32 @@ def _optional_text(a: dict, key: str, label: str) -> str:
         return ""
     validate_arrays({key: np.asarray(a[key])}, {key: ArraySpec("U", ())}, label)
     return str(a[key])
+
+
+def _optional_poses(a: dict, label: str) -> dict:
+    """The optional per-shape start and pose record of a correspondence file (none in files
+    written before it): `shape_starts` and `pose_notes`, one text per shape or none;
+    `poses`, one rigid motion (rotation with det +1, last row 0 0 0 1) per shape or none."""
+    n = len(a["names"])
+    found = {}
+    for key in ("shape_starts", "pose_notes"):
+        texts = np.asarray(a[key]) if key in a else np.zeros(0, dtype=str)
+        validate_arrays({key: texts}, {key: ArraySpec("U", ("S",))}, label)
+        if len(texts) not in (0, n):
+            raise ModelFileError(f"{label}: {key} must be empty or one text per shape ({n}), got {len(texts)}")
+        found[key] = texts.tolist()
+    poses = np.asarray(a["poses"]) if "poses" in a else np.zeros((0, 4, 4))
+    validate_arrays({"poses": poses}, {"poses": ArraySpec("f", ("S", 4, 4))}, label)
+    if len(poses) not in (0, n):
+        raise ModelFileError(f"{label}: poses must be empty or one per shape ({n}), got {len(poses)}")
+    rotations = poses[:, :3, :3]
+    if len(poses) and (not np.all(np.isfinite(poses))
+                       or not np.allclose(rotations @ np.swapaxes(rotations, 1, 2), np.eye(3), atol=1e-6)
+                       or not np.allclose(np.linalg.det(rotations), 1.0, atol=1e-6)
+                       or not np.allclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0])):
+        raise ModelFileError(f"{label}: array 'poses' holds a matrix that is not a rigid motion")
+    found["poses"] = poses.astype(np.float64)
+    return found
 
 
 def _json(settings) -> str:

@@ -85,8 +85,8 @@ def prepare_collection(
                 measures.append(_measure(full, transforms[-1], scale))
     if scale != "none":
         transforms = _equal_size(transforms, measures, scale)
-    prepared = [PreparedShape(_normalised(mesh, t), t, d.changed, d.rotation, d.reason, d.flag, _flag_turn(d))
-                for mesh, t, d in zip(meshes, transforms, decisions)]
+    prepared = [PreparedShape(_normalised(mesh, t), t, d.changed, d.rotation, d.reason, d.flag, _flag_turn(d), k)
+                for mesh, t, d, k in zip(meshes, transforms, decisions, keep)]
     report(1.0, "prepared")
     return prepared
 
@@ -171,5 +171,5 @@ def turn_as_flagged(shape: PreparedShape, centre: str = "centroid") -> tuple[Pre
     if shape.pose_change:
         reason = f"{describe_rotation(rotation)} in all ({shape.pose_change}; then {reason})"
     turned = PreparedShape(shape.mesh.with_vertices(step.to_normalised(shape.mesh.vertices)), transform, True,
-                           rotation, reason, "", None)
+                           rotation, reason, "", None, shape.pose_kept)
     return turned, step

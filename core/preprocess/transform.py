@@ -84,6 +84,9 @@ class PreparedShape:
     #: the turn (after `pose_rotation`, in the normalised frame) the flag suggests, applied by
     #: `turn_flagged`; None: no suggestion
     flag_turn: np.ndarray | None = None
+    #: the user asked to keep its pose (Keep Pose, `--keep-pose`): Prepare never turns it
+    #: beyond the up axis, nor does the correspondence pose it by its landmarks
+    pose_kept: bool = False
 
     @property
     def name(self) -> str:

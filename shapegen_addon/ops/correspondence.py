@@ -46,7 +46,9 @@ def _finish(status: JobStatus, result) -> None:
     outliers = [n for n, o in zip(result.names, result.outliers) if o]
     report_outcome(settings, "DONE", f"Corresponded {len(result.names)} shapes x {result.n_landmarks} landmarks "
                    f"(template {result.template_name}); "
-                   + (f"outliers: {', '.join(outliers)}" if outliers else "no outliers"), "corresponded")
+                   + (f"outliers: {', '.join(outliers)}" if outliers else "no outliers")
+                   + (f"; {result.pose_summary()} (each shape's line says how)" if result.pose_summary() else ""),
+                   "corresponded")
 
 
 def _check_correspondence_settings(options: dict) -> None:

@@ -152,12 +152,13 @@ def test_read_offered_records_a_files_settings(prepared, tmp_path):
 
 
 class _Model:
-    """What `same_shapes` reads of a fitted model."""
+    """What `same_shapes` reads of a fitted model (no shape posed by its landmarks)."""
 
     def __init__(self, prepared):
         self.names = list(prepared.names)
         self.meshes = [s.mesh for s in prepared.shapes]
-        self.correspondence = type("C", (), {"transforms": np.stack([s.transform.matrix for s in prepared.shapes])})
+        self.correspondence = type("C", (), {"transforms": np.stack([s.transform.matrix for s in prepared.shapes]),
+                                             "model_poses": np.tile(np.eye(4), (len(prepared), 1, 1))})
 
 
 def test_same_shapes_compares_names_meshes_and_transforms(prepared):
