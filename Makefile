@@ -40,7 +40,7 @@ export SHAPEGEN_BLENDER_RELEASES := 4.2=$(abspath $(PY_BPY42)) 5.2=$(abspath $(P
 
 EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
-.PHONY: all demo test test-core test-blender build wheels clean bench setup pins
+.PHONY: all demo test test-core test-core-oldest test-core-newest test-blender build wheels clean bench setup pins
 
 all: test
 
@@ -93,8 +93,12 @@ demo: dist/.built
 	$(PY) scripts/demo.py --output demo_output
 
 # the core tier at both ends of the declared ranges
-test-core: $(VENV_OLDEST)/.installed $(VENV_NEWEST)/.installed
+test-core: test-core-oldest test-core-newest
+
+test-core-oldest: $(VENV_OLDEST)/.installed
 	$(PY_OLDEST) $(PYTEST) $(PARALLEL) tests/core
+
+test-core-newest: $(VENV_NEWEST)/.installed
 	$(PY_NEWEST) $(PYTEST) $(PARALLEL) tests/core
 
 # the full Blender tier on Blender 5.0, and the smoke on Blender 4.2 and 5.2 LTS
@@ -106,8 +110,12 @@ test-blender: dist/.built $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 setup:
 	$(MAKE) --no-print-directory -j2 dist/.built $(VENV_OLDEST)/.installed $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 
+# the three tiers side by side, each on all cores: one after another, each tier's startup
+# (Blender's import in every worker) and its tail (the last file on one worker, the release
+# smokes' subprocesses) left cores idle. -Otarget prints each tier's output in one piece
+# when it ends.
 test: setup
-	$(MAKE) --no-print-directory test-core test-blender
+	$(MAKE) --no-print-directory -j3 -Otarget test-core-oldest test-core-newest test-blender
 
 bench: $(VENV)/.installed
 	$(PY) bench/correspondence.py --quick

@@ -115,10 +115,12 @@ def _true_error(shapes, prepared, result) -> float:
 
 
 def test_feature_matches_lower_the_true_error_of_a_procedural_class():
-    # measured 2.74 % (closest points), 2.46 % (sides only), 2.23 % (with positions between
-    # turning lines, the default); how each step got there: docs/results.md, Correspondence
+    # measured with 150 landmarks: 3.65 % (closest points), 2.86 % (sides only, 0.78 of
+    # closest), 2.65 % (with positions between turning lines, the default; 0.93 of sides
+    # only); with 300 landmarks 2.74, 2.46 (0.90), 2.23 % (0.90), at 1.6 times the CPU.
+    # How each step got there: docs/results.md, Correspondence
     shapes = make_vases(5, seed=11, resolution=(33, 64))
-    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=300, seed=0))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
     error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
     closest = error(CorrespondenceSettings())
     sides_only = error(FEATURES)
@@ -186,9 +188,17 @@ def test_the_first_registration_reports_positions_between_turning_lines():
     assert closest.between is None
 
 
-def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monkeypatch):
+@pytest.fixture(scope="module")
+def four_vases():
+    """Four vases (seed 2) prepared with 150 landmarks."""
     shapes = make_vases(4, seed=2, resolution=(20, 28))
-    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
+    return prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
+
+
+@pytest.fixture(scope="module")
+def four_vases_between(four_vases):
+    """Their correspondence with positions between turning lines (BETWEEN), and every
+    registration task it ran with that task's result, in order."""
     seen = []
     original = pool.register_task
 
@@ -197,8 +207,21 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
         seen.append((task, result))
         return result
 
-    monkeypatch.setattr(pool, "register_task", recording)
-    result = correspond(prepared, BETWEEN, jobs=1)
+    with pytest.MonkeyPatch.context() as patched:
+        patched.setattr(pool, "register_task", recording)
+        return correspond(four_vases, BETWEEN, jobs=1), seen
+
+
+@pytest.fixture(scope="module")
+def three_vases():
+    """Three vases (seed 2) prepared with 100 landmarks, and their BETWEEN correspondence."""
+    shapes = make_vases(3, seed=2, resolution=(20, 28))
+    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=100, seed=0))
+    return prepared, correspond(prepared, BETWEEN, jobs=1)
+
+
+def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(four_vases_between):
+    result, seen = four_vases_between
     # the first round by feature matches, then by closest points for the fit check
     first_round, checked, second_round = seen[:4], seen[4:8], seen[8:]
     assert [task.settings.data_term.matching for task, _ in checked] == ["closest"] * 4 and not result.feature_fit_worse.any()
@@ -217,10 +240,8 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(monke
     np.testing.assert_array_equal(result.between_shares, shares)  # recorded with the correspondence
 
 
-def test_correspondence_files_record_each_shapes_share_of_the_positions(tmp_path):
-    shapes = make_vases(3, seed=2, resolution=(20, 28))
-    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=100, seed=0))
-    result = correspond(prepared, BETWEEN, jobs=1)
+def test_correspondence_files_record_each_shapes_share_of_the_positions(three_vases, tmp_path):
+    prepared, result = three_vases
     assert result.between_shares.shape == (3,) and ((result.between_shares >= 0) & (result.between_shares <= 1)).all()
     loaded = Correspondence.load(result.save(tmp_path / "c.npz"))
     np.testing.assert_array_equal(loaded.between_shares, result.between_shares)
@@ -342,10 +363,8 @@ def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_pa
     assert loaded.matching_summary() == checked.matching_summary()
 
 
-def test_the_fit_check_changes_nothing_where_feature_matches_fit(monkeypatch):
-    shapes = make_vases(4, seed=2, resolution=(20, 28))
-    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
-    checked = correspond(prepared, BETWEEN, jobs=1)
+def test_the_fit_check_changes_nothing_where_feature_matches_fit(four_vases, four_vases_between, monkeypatch):
+    prepared, (checked, _) = four_vases, four_vases_between
     unchecked = _unchecked(prepared, BETWEEN, monkeypatch)
     np.testing.assert_array_equal(checked.points, unchecked.points)
     np.testing.assert_array_equal(checked.between_shares, unchecked.between_shares)
@@ -357,10 +376,8 @@ def test_the_fit_check_changes_nothing_where_feature_matches_fit(monkeypatch):
     assert not closest.feature_matches_ran
 
 
-def test_files_before_the_fit_check_load_and_bad_records_are_refused():
-    shapes = make_vases(3, seed=2, resolution=(20, 28))
-    prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=100, seed=0))
-    arrays = correspond(prepared, BETWEEN, jobs=1).to_arrays()
+def test_files_before_the_fit_check_load_and_bad_records_are_refused(three_vases):
+    arrays = three_vases[1].to_arrays()
     del arrays["feature_fit_worse"]
     old = Correspondence.from_arrays(arrays, "old")
     assert old.feature_fit_worse.shape == (0,) and old.feature_matches_ran
