@@ -36,11 +36,13 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["face_gradients", "orientation_operators", "orientation_score", "facing_agreement",
-           "DESCRIPTOR_CHANNELS"]
+           "DESCRIPTOR_CHANNELS", "DESCRIPTOR_FUNCTIONS"]
 
 #: the wave kernel signature channels (indices into the signature's log-energies, from the
-#: lowest) whose smoothed versions serve as the descriptors f of the orientation operators
+#: lowest) whose smoothed versions serve as the descriptors f of the orientation operators,
+#: smoothed by projection onto the first DESCRIPTOR_FUNCTIONS eigenfunctions
 DESCRIPTOR_CHANNELS = (0, 5, 10, 15, 20)
+DESCRIPTOR_FUNCTIONS = 16
 
 
 def face_gradients(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -90,6 +90,20 @@ class _RelayItem:
     shared_frame: bool
 
 
+@dataclass(frozen=True)
+class _LastItem:
+    """One shape's last resort (picklable, for a worker)."""
+
+    name: str
+    template: SpectralShape
+    template_points: np.ndarray
+    shape: SpectralShape
+
+
+def _last_resort(item: _LastItem) -> SpectralStart:
+    return spectral_start(item.template, item.template_points, item.shape, by_triangles=True)
+
+
 def _relay_on_shape(item: _RelayItem) -> SpectralStart:
     return spectral_start(item.template, item.template_points, item.shape, shared_frame=item.shared_frame,
                           via=(item.via_name, item.via, item.via_map))
@@ -114,8 +128,9 @@ def relayed_starts(names: Sequence[str], template: SpectralShape, template_point
     in the frame before those reached without it); rounds repeat while a shape without a
     start is reached, at most RELAY_ROUNDS. Of a shape's direct and relayed maps that pass,
     the one with the highest orientation score is kept (the right map's operators commute
-    best: a half turn is no exact isometry of a body). A shape still without a start keeps
-    its message, with the relays tried."""
+    best: a half turn is no exact isometry of a body). A shape still without a start gets
+    the last resort (`functional_map.MIN_TRIANGLE_SHARE`: the triangles' orientation,
+    without the facing) or keeps its message, with the relays tried."""
     starts, tried = list(starts), [[] for _ in names]
     has_start = lambda i: starts[i] is not None and starts[i].points is not None and starts[i].c is not None  # noqa: E731
     for round_index in range(RELAY_ROUNDS):
@@ -143,6 +158,15 @@ def relayed_starts(names: Sequence[str], template: SpectralShape, template_point
                 starts[item.index] = replace(outcome, spectral=current.spectral)
         if not newly:
             break
+    last = [i for i, start in enumerate(starts) if start is not None and start.points is None
+            and start.spectral is not None]
+    if last:  # the test used before the operator's, where no map passes the operator's
+        items = [_LastItem(names[i], template, template_points, starts[i].spectral) for i in last]
+        for index, outcome in zip(last, runner.map(_last_resort, items, report,
+                                                   lambda i: f"intrinsic map to {items[i].name}, last resort")):
+            if outcome.points is not None:
+                starts[index] = replace(outcome, message=f"{outcome.message}: {starts[index].message}",
+                                        spectral=starts[index].spectral)
     for index, start in enumerate(starts):
         if start is not None and start.points is None:
             relays = f"; no relay through {', '.join(tried[index])} passed either" if tried[index] else ""

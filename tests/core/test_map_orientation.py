@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.correspond.functional_map import functional_map, shape_operators, spectral_shape, spectral_start
+from shapegen_core.correspond.functional_map import (functional_map, shape_operators, spectral_shape, spectral_start,
+                                                     triangle_share)
 from shapegen_core.correspond.map_orientation import (face_gradients, facing_agreement, orientation_operators,
                                                   orientation_score)
 
@@ -90,6 +91,27 @@ def test_a_mirror_scores_minus_one_and_a_rigid_copy_plus_one():
     kept = orientation_score(operators, shape_operators(turned, 16), _map_of(template, turned, identity))
     reversed_ = orientation_score(operators, shape_operators(mirrored, 16), _map_of(template, mirrored, identity))
     assert kept > 0.95 and reversed_ < -0.95, (kept, reversed_)
+
+
+def test_the_last_resort_counts_triangle_images_facing_out():
+    """The test used before the operator's (the last resort): a map that keeps the
+    orientation vertex by vertex keeps nearly every triangle facing out, a mirror nearly
+    none."""
+    sphere = trimesh.creation.icosphere(3)
+    vertices, faces = _bumpy(sphere.vertices, mirror_symmetric=False), np.asarray(sphere.faces)
+    template = spectral_shape(vertices, faces)
+    mirrored = spectral_shape(vertices * np.array([-1.0, 1.0, 1.0]), faces[:, ::-1])
+    identity = np.arange(len(vertices))
+    every = np.arange(len(vertices))
+    same = functional_map(template, template, every, template.spectrum.mass, identity, 40)
+    mirror = functional_map(template, mirrored, every, template.spectrum.mass, identity, 40)
+    assert triangle_share(template, template, same) > 0.9
+    assert triangle_share(template, mirrored, mirror) < 0.1
+    start = spectral_start(template, vertices[:20], mirrored, by_triangles=True)
+    assert start.points is None or start.message.startswith("spectral start by the triangles' orientation")
+    start = spectral_start(template, vertices[:20], template, by_triangles=True)
+    assert start.message.startswith("spectral start by the triangles' orientation (")
+    np.testing.assert_allclose(start.points, vertices[:20], atol=1e-9)
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.7, 2.0, np.pi])
