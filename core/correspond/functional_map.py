@@ -16,15 +16,21 @@ other; the steps:
    scales); and orthogonal Procrustes fits of the signatures' spectral coefficients, one
    block per run of close eigenvalues (whose eigenfunctions may swap or mix between two
    shapes), with the directions the signatures say least about tried both ways.
-2. **Orientation.** A left–right mirror of the right map matches the signatures as well as
-   the map itself (the animal is bilaterally symmetric), so signatures cannot choose. A
-   mirror reverses the surface's orientation: the image of a template triangle, in the
-   order of its corners, faces into the shape instead of out of it. Intake orients every
-   mesh consistently (outward), so the share of template triangles whose images agree with
-   the shape's normals tells the map from its mirror whatever the pose
-   (`orientation_agreement`). Every candidate is refined by ZoomOut to
-   ORIENTATION_FUNCTIONS; among those that keep the orientation, the one whose matched
-   points' signatures differ least is kept.
+2. **Orientation and facing** (map_orientation.py). A body is nearly symmetric left–right
+   and, at low frequencies, front–back, so the map's left–right mirror, its front–back
+   flip and both at once (a half turn) match the signatures about as well as the map
+   itself. Every candidate is refined by ZoomOut to ORIENTATION_FUNCTIONS and kept only
+   when it keeps the surface's orientation by the orientation-preserving term of Ren et
+   al. 2018 (BCICP: the operator ⟨n, ∇f × ∇·⟩ of corresponding descriptors f commutes
+   with C; a mirror or a flip reverses its sign; `orientation_score` above
+   MIN_ORIENTATION) and, where template and shape lie in a frame the collection shares
+   (`shared_frame`: Prepare's), when it keeps their facing (`facing_agreement` above
+   MIN_FACING: no half turn). There, closest points in that frame give one more
+   candidate. Among the kept, the one whose operators commute best (the highest score)
+   wins: measured on TOSCA, choosing the least signature error instead left dog and cat
+   0.3 points worse, the centaur 0.7 better. Where none passes, the caller reaches the shape through others
+   (start.relayed_starts, `relayed_map`) and, last, by the share of template triangles
+   whose images face out (`by_triangles`, `triangle_share`).
 3. **ZoomOut** (Melzi et al. 2019): C is re-estimated from the point map and the point map
    from C with more eigenfunctions each time (one at a time up to FINE_FUNCTIONS, where
    the map's layout is decided, then FINE_STEP), from a few (smooth, pose-free) to
@@ -39,7 +45,7 @@ other; the steps:
 Where the spectrum cannot be trusted the start says so and the caller falls back to closest
 points: a mesh whose largest part holds less than MIN_PART_SHARE of its area (the low
 eigenfunctions then describe how parts are split, not shape), an eigen-solve that fails, no
-orientation-preserving candidate."""
+map that passes the tests nor the last resort."""
 
 from __future__ import annotations
 
@@ -50,9 +56,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry.spectral import Spectrum, SpectrumError, laplace_beltrami_spectrum, wave_kernel_signature
+from .map_orientation import DESCRIPTOR_CHANNELS, DESCRIPTOR_FUNCTIONS, facing_agreement, orientation_operators, \
+    orientation_score
 
-__all__ = ["SpectralShape", "SpectralStart", "spectral_shape", "spectral_start", "orientation_agreement",
-           "zoom_out", "SPECTRUM_SIZE"]
+__all__ = ["SpectralShape", "SpectralStart", "spectral_shape", "spectral_start", "spectral_map", "relayed_map",
+           "shape_operators", "triangle_share", "zoom_out", "SPECTRUM_SIZE"]
 
 #: eigenpairs computed per shape; ZoomOut ends at ZOOM_FUNCTIONS of them
 SPECTRUM_SIZE = 40
@@ -74,20 +82,34 @@ FINE_STEP = 3
 #: the final ZoomOut estimates C on SAMPLE_VERTICES template vertices (a mass-weighted
 #: sample: C is an integral over the template) matched into SHAPE_VERTICES of the shape's;
 #: sign patterns are scored on SEARCH_VERTICES; candidates are refined (TRIAL_STEP
-#: eigenfunctions per step) and compared on TRIAL_VERTICES matched into TRIAL_TARGETS;
-#: ORIENTATION_FACES template triangles vote on the orientation
+#: eigenfunctions per step) and compared on TRIAL_VERTICES matched into TRIAL_TARGETS
 SAMPLE_VERTICES = 1500
 SHAPE_VERTICES = 2500
 SEARCH_VERTICES = 400
 TRIAL_VERTICES = 1000
 TRIAL_TARGETS = 2000
 TRIAL_STEP = 2
+#: the last resort where no map passes those tests (poses too far apart for the descriptors
+#: to correspond, a shape Prepare turned without a flag): a map keeps the orientation when
+#: the images of more than this share of ORIENTATION_FACES template triangles face the way
+#: the shape's normals do (the test used before the operator's; it held on the TOSCA
+#: animals, mirrors at 0.25–0.37, but not between different people)
+MIN_TRIANGLE_SHARE = 0.6
 ORIENTATION_FACES = 600
+#: the best kept candidates taken through the final ZoomOut in turn until one still passes
+FINAL_TRIES = 2
+#: the closest-point candidate (shared frame) enters ZoomOut at this many eigenfunctions
+EXTRINSIC_FUNCTIONS = 4
 #: the largest part must hold at least this share of a mesh's area
 MIN_PART_SHARE = 0.9
-#: an orientation-preserving map agrees with the shape's normals on more than this share of
-#: triangles (a mirror on about 0.3, maps that fold the surface about 0.5)
-MIN_ORIENTATION = 0.6
+#: a map keeps the orientation when its `orientation_score` exceeds this (measured on TOSCA
+#: people at ORIENTATION_FUNCTIONS: right maps +0.37 to +1, mirrors and flips −0.5 to −1,
+#: maps right on some parts and mirrored on others −0.5 to +0.5; 0.5 left the man whose
+#: right map scored +0.37 to closest points, 8 % of the diagonal off)
+MIN_ORIENTATION = 0.3
+#: and its facing when its `facing_agreement` exceeds this (a turn of less than 90°; half
+#: turns measured at −0.9 to −1, right maps +0.65 to +1)
+MIN_FACING = 0.0
 #: log-energies of the wave kernel signature
 SIGNATURE_ENERGIES = 40
 
@@ -131,10 +153,13 @@ class SpectralStart:
     points: np.ndarray | None  # (L, 3) in the shape's coordinates; None: fall back to closest points
     message: str  # what was done or why not (per-shape message of the correspondence)
     normals: np.ndarray | None = None  # (L, 3) the shape's vertex normals there
-    orientation: float = float("nan")  # share of template triangles the map keeps facing out
+    orientation: float = float("nan")  # the map's orientation score (map_orientation.py: +1 kept, −1 reversed)
     signature_error: float = float("nan")  # mean signature distance of matched points
     signature_vertices: np.ndarray | None = None  # (n, 3) the shape's (part's) vertices, its coordinates
     signature: np.ndarray | None = None  # (n, E) their wave kernel signatures
+    facing: float = float("nan")  # its facing agreement in the shared frame (NaN: no shared frame)
+    c: np.ndarray | None = None  # the map (shape → template coefficients), for relays through this shape
+    spectral: SpectralShape | None = None  # the shape's spectrum and descriptors, for relays to and through it
 
 
 def landmark_signatures(template: SpectralShape, template_points: np.ndarray) -> np.ndarray:
@@ -211,20 +236,47 @@ def zoom_out(template: SpectralShape, shape: SpectralShape, matches: np.ndarray,
     return matches, c
 
 
-def orientation_agreement(shape: SpectralShape, triangle_images: np.ndarray) -> float:
-    """Area share of template triangles whose images (`triangle_images`: (F, 3) shape
-    vertices of their corners under a point map), taken in the order of their corners,
-    face the way the shape's normals do there (degenerate images do not vote). About 1 for
-    a map that keeps the surface's orientation, about 0 for a mirror."""
+def shape_operators(spectral: SpectralShape, k: int) -> np.ndarray:
+    """(d, k, k) the orientation operators (map_orientation.py) of a shape's descriptors on
+    its first k eigenfunctions: the DESCRIPTOR_CHANNELS of its wave kernel signature,
+    smoothed by projection onto its first DESCRIPTOR_FUNCTIONS eigenfunctions (the same
+    band on both shapes, so they correspond). Measured: smoother descriptors (8
+    eigenfunctions) separate the true map from TOSCA's standing dog to a sitting one from
+    its mirror better (+0.73 against −0.73; +0.11 against −0.16 at 16) but let maps that
+    are wrong in parts pass too (TOSCA centaur and horse lost 4–8 points of error)."""
+    basis = spectral.spectrum.vectors[:, :k]
+    smooth = min(DESCRIPTOR_FUNCTIONS, k)
+    descriptors = spectral.spectrum.vectors[:, :smooth] @ spectral.spectrum.project(
+        spectral.signature[:, list(DESCRIPTOR_CHANNELS)], smooth)
+    return orientation_operators(spectral.vertices, spectral.faces, basis, descriptors)
+
+
+def _closest_in_frame(template: SpectralShape, shape: SpectralShape, vertices: np.ndarray, targets: np.ndarray
+                      ) -> np.ndarray:
+    """Shape vertex (among `targets`) nearest each template vertex of `vertices` in their
+    shared frame, both centred on their mass centre and scaled to unit RMS radius."""
+    def normalised(spectral: SpectralShape) -> np.ndarray:
+        share = spectral.spectrum.mass / spectral.spectrum.mass.sum()
+        centred = spectral.vertices - share @ spectral.vertices
+        return centred / np.sqrt(share @ (centred**2).sum(axis=1))
+    return targets[cKDTree(normalised(shape)[targets]).query(normalised(template)[vertices])[1]]
+
+
+def triangle_share(template: SpectralShape, shape: SpectralShape, c: np.ndarray) -> float:
+    """Area share of ORIENTATION_FACES template triangles (seeded) whose images under the
+    point map of `c`, taken in the order of their corners, face the way the shape's
+    normals do there (degenerate images do not vote): about 1 for a map that keeps the
+    surface's orientation, about 0 for a mirror, when the map is right vertex by vertex."""
+    voters = template.faces[np.random.default_rng(2).choice(len(template.faces), min(ORIENTATION_FACES,
+                                                                                    len(template.faces)), replace=False)]
+    corners, corner_index = np.unique(voters, return_inverse=True)
+    triangle_images = point_map(template, shape, corners, c)[corner_index.reshape(voters.shape)]
     images = shape.vertices[triangle_images]  # (F, 3, 3)
     normal = np.cross(images[:, 1] - images[:, 0], images[:, 2] - images[:, 0])
     size = np.linalg.norm(normal, axis=1)
-    reference = shape.normals[triangle_images].sum(axis=1)
-    agree = np.einsum("fd,fd->f", normal, reference) > 0
+    agree = np.einsum("fd,fd->f", normal, shape.normals[triangle_images].sum(axis=1)) > 0
     voting = size > 0
-    if not voting.any():
-        return float("nan")
-    return float(size[voting & agree].sum() / size[voting].sum())
+    return float(size[voting & agree].sum() / size[voting].sum()) if voting.any() else float("nan")
 
 
 def _signature_error(template: SpectralShape, shape: SpectralShape, sample: np.ndarray, weights: np.ndarray,
@@ -292,42 +344,128 @@ def _descriptor_candidates(template: SpectralShape, shape: SpectralShape, k: int
     return candidates
 
 
-def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: SpectralShape) -> SpectralStart:
-    """Where the template's landmarks (`template_points`, (L, 3) on the template's surface,
-    in its coordinates) start on the shape: coarse candidates, orientation, ZoomOut
-    (module docstring). Points are returned in the shape's coordinates (at its vertices)."""
+@dataclass(frozen=True)
+class _Tested:
+    """A map C (shape → template coefficients) with the tests it is chosen by."""
+
+    c: np.ndarray
+    signature_error: float
+    orientation: float
+    facing: float
+
+    def kept(self, shared_frame: bool) -> bool:
+        return self.orientation > MIN_ORIENTATION and (not shared_frame or self.facing > MIN_FACING)
+
+    def said(self, shared_frame: bool) -> str:
+        return f"orientation {self.orientation:+.2f}" + (f", facing {self.facing:+.2f}" if shared_frame else "")
+
+
+def _tested(template: SpectralShape, shape: SpectralShape, c: np.ndarray, matches: np.ndarray, sample: np.ndarray,
+            weights: np.ndarray, operators: tuple[np.ndarray, np.ndarray], shared_frame: bool) -> _Tested:
+    """`c` (k × k, k ≥ the operators' size) and the point map of `sample` it gave, tested."""
+    k = operators[0].shape[1]
+    facing = (facing_agreement(template.vertices[sample], shape.vertices[matches], weights) if shared_frame
+              else float("nan"))
+    return _Tested(c, _signature_error(template, shape, sample, weights, matches),
+                   orientation_score(*operators, c[:k, :k]), facing)
+
+
+def spectral_map(template: SpectralShape, shape: SpectralShape, shared_frame: bool = False,
+                 by_triangles: bool = False) -> tuple[_Tested | None, str]:
+    """The map from the template to the shape (C of ZOOM_FUNCTIONS, tested) or None, and
+    what was done: coarse candidates, orientation and facing, ZoomOut (module docstring).
+    `shared_frame`: template and shape lie in one frame that the collection shares
+    (Prepare's), so their facing is evidence. The final map is tested again (ZoomOut may
+    drift); the FINAL_TRIES kept candidates with the highest orientation scores are taken
+    to the end in turn.
+    `by_triangles`: the last resort (MIN_TRIANGLE_SHARE) instead of those tests."""
     sample, weights = _sample(template, SAMPLE_VERTICES)
     targets, _ = _sample(shape, SHAPE_VERTICES)
     trial, trial_weights = _sample(template, TRIAL_VERTICES, seed=3)
     trial_targets, _ = _sample(shape, TRIAL_TARGETS, seed=3)
-    voters = template.faces[np.random.default_rng(2).choice(len(template.faces), min(ORIENTATION_FACES,
-                                                                                    len(template.faces)), replace=False)]
-    corners, corner_index = np.unique(voters, return_inverse=True)
     k_orient = min(ORIENTATION_FUNCTIONS, len(shape.spectrum.values), len(template.spectrum.values))
-    refined = []
+    operators = shape_operators(template, k_orient), shape_operators(shape, k_orient)
     search, search_weights = _sample(template, SEARCH_VERTICES, seed=1)
-    for c in (_sign_candidates(template, shape, search, search_weights, SIGN_FUNCTIONS + 1)
-              + _descriptor_candidates(template, shape, COARSE_FUNCTIONS)):
-        matches = point_map(template, shape, trial, c, trial_targets)
-        matches, c = zoom_out(template, shape, matches, trial, trial_weights, len(c) + 1, k_orient, trial_targets,
+    starts = [(point_map(template, shape, trial, c, trial_targets), len(c) + 1)
+              for c in (_sign_candidates(template, shape, search, search_weights, SIGN_FUNCTIONS + 1)
+                        + _descriptor_candidates(template, shape, COARSE_FUNCTIONS))]
+    if shared_frame:
+        starts.append((_closest_in_frame(template, shape, trial, trial_targets), EXTRINSIC_FUNCTIONS))
+    refined = []
+    for matches, k_from in starts:
+        matches, c = zoom_out(template, shape, matches, trial, trial_weights, k_from, k_orient, trial_targets,
                               TRIAL_STEP)
-        images = point_map(template, shape, corners, c)[corner_index.reshape(voters.shape)]
-        refined.append((_signature_error(template, shape, trial, trial_weights, matches),
-                        orientation_agreement(shape, images), c))
-    kept = [r for r in refined if r[1] > MIN_ORIENTATION]
+        refined.append(_tested(template, shape, c, matches, trial, trial_weights, operators, shared_frame))
+    if by_triangles:
+        shares = [triangle_share(template, shape, r.c) for r in refined]
+        kept = [i for i, share in enumerate(shares) if share > MIN_TRIANGLE_SHARE]
+        if not kept:
+            return None, f"no spectral map keeps {100 * MIN_TRIANGLE_SHARE:.0f} % of the triangles facing out " \
+                         f"either (the best {100 * max(shares):.0f} %)"
+        best = min(kept, key=lambda i: refined[i].signature_error)
+        chosen, share = refined[best], shares[best]
+        matches, c = zoom_out(template, shape, point_map(template, shape, sample, chosen.c, targets), sample, weights,
+                              k_orient, min(ZOOM_FUNCTIONS, len(shape.spectrum.values), len(template.spectrum.values)),
+                              targets)
+        return (_tested(template, shape, c, matches, sample, weights, operators, False),
+                f"spectral start by the triangles' orientation ({100 * share:.0f} % facing out)")
+    kept = sorted((r for r in refined if r.kept(shared_frame)), key=lambda r: -r.orientation)
+    tests = "orientation" + " and the facing" * shared_frame
     if not kept:
-        best = max(r[1] for r in refined)
-        return SpectralStart(None, f"no orientation-preserving spectral map among {len(refined)} candidates "
-                                   f"(the best keeps {100 * best:.0f} % of the triangles facing out)", orientation=best)
-    _, agreement, c = min(kept, key=lambda r: r[0])
-    matches = point_map(template, shape, sample, c, targets)
+        best = max(refined, key=lambda r: r.orientation + (r.facing if shared_frame else 0.0))
+        return None, f"no spectral map that keeps the {tests} among {len(refined)} candidates " \
+                     f"(the best: {best.said(shared_frame)})"
     k_end = min(ZOOM_FUNCTIONS, len(shape.spectrum.values), len(template.spectrum.values))
-    matches, c = zoom_out(template, shape, matches, sample, weights, k_orient, k_end, targets)
+    for chosen in kept[:FINAL_TRIES]:
+        matches, c = zoom_out(template, shape, point_map(template, shape, sample, chosen.c, targets), sample, weights,
+                              k_orient, k_end, targets)
+        final = _tested(template, shape, c, matches, sample, weights, operators, shared_frame)
+        if final.kept(shared_frame):
+            return final, f"spectral start ({final.said(shared_frame)})"
+    return None, f"the spectral map lost the {tests} on refinement ({final.said(shared_frame)})"
+
+
+def relayed_map(template: SpectralShape, via: SpectralShape, via_map: np.ndarray, shape: SpectralShape,
+                shared_frame: bool = False) -> tuple[_Tested | None, str]:
+    """The map from the template to the shape through another shape of the collection
+    (`via`, whose map from the template `via_map` passed the tests): the via → shape map
+    (`spectral_map`) composed with it (C_T←S = C_T←V C_V←S: pull back twice), then
+    ZoomOut on the template and the shape from ORIENTATION_FUNCTIONS (the composition's
+    errors add; refining on the pair itself removes them) and tested again."""
+    second, message = spectral_map(via, shape, shared_frame)
+    if second is None:
+        return None, message
+    k = min(len(via_map), len(second.c))
+    sample, weights = _sample(template, SAMPLE_VERTICES)
+    targets, _ = _sample(shape, SHAPE_VERTICES)
+    k_orient = min(ORIENTATION_FUNCTIONS, k)
+    matches = point_map(template, shape, sample, via_map[:k, :k] @ second.c[:k, :k], targets)
+    matches, c = zoom_out(template, shape, matches, sample, weights, k_orient, k, targets)
+    operators = shape_operators(template, k_orient), shape_operators(shape, k_orient)
+    final = _tested(template, shape, c, matches, sample, weights, operators, shared_frame)
+    if not final.kept(shared_frame):
+        return None, f"the relayed map does not keep the orientation{' and the facing' * shared_frame} " \
+                     f"({final.said(shared_frame)})"
+    return final, f"spectral start through {{via}} ({final.said(shared_frame)})"
+
+
+def spectral_start(template: SpectralShape, template_points: np.ndarray, shape: SpectralShape,
+                   shared_frame: bool = False, via: tuple[str, SpectralShape, np.ndarray] | None = None,
+                   by_triangles: bool = False) -> SpectralStart:
+    """Where the template's landmarks (`template_points`, (L, 3) on the template's surface,
+    in its coordinates) start on the shape, by `spectral_map` (or, with `via` = (name,
+    shape, its map from the template), by `relayed_map`; `by_triangles`: the last
+    resort of `spectral_map`). Points are returned in the
+    shape's coordinates (at its vertices); `SpectralStart.c` holds the map."""
+    if via is None:
+        found, message = spectral_map(template, shape, shared_frame, by_triangles)
+    else:
+        found, message = relayed_map(template, via[1], via[2], shape, shared_frame)
+        message = message.replace("{via}", via[0])
+    if found is None:
+        return SpectralStart(None, message, spectral=shape)
     _, nearest = cKDTree(template.vertices).query(np.asarray(template_points, dtype=np.float64))
-    landmark_matches = point_map(template, shape, nearest, c)
-    return SpectralStart(shape.vertices[landmark_matches],
-                         f"spectral start (orientation kept on {100 * agreement:.0f} % of triangles)",
-                         shape.normals[landmark_matches], agreement, _signature_error(template, shape, sample, weights, matches),
-                         shape.vertices, shape.signature)
-
-
+    landmark_matches = point_map(template, shape, nearest, found.c)
+    return SpectralStart(shape.vertices[landmark_matches], message, shape.normals[landmark_matches],
+                         found.orientation, found.signature_error, shape.vertices, shape.signature, found.facing,
+                         found.c, shape)

@@ -281,8 +281,10 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     rounds = settings.groupwise_rounds + 1
     starts = None
     if settings.data_term.initialisation == "spectral":
+        # a shape Prepare flagged (on its side, upside down, unusual) may not face as the others do
+        in_frame = [not shape.pose_outlier for shape in collection.shapes]
         starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
-                                                      sub_range(report, 0.0, SPECTRAL_SHARE))
+                                                      sub_range(report, 0.0, SPECTRAL_SHARE), in_frame)
         for name, spectral in zip(names, starts):
             if spectral is not None:
                 report(SPECTRAL_SHARE, f"{name}: {spectral.message}")

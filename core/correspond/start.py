@@ -8,7 +8,10 @@ points so the stiffness keeps the start's layout (a limb that moved stays matche
 limb). A shape whose spectrum is not trusted, whose spectral fit is clearly worse than the
 closest-point fit, or whose spectral landmarks do not match the template's wave-kernel
 signatures clearly better than the closest-point ones, is registered from the
-closest-point start instead, and the per-shape message says so. "auto": one of the two
+closest-point start instead, and the per-shape message says so. A shape for which no map
+from the template passes the tests of orientation and facing is reached through shapes
+that were (`relayed_starts`: consistency over the collection; a pose the template's map
+cannot bridge is often bridged in two steps). "auto": one of the two
 for the whole collection, from how its shapes differ (`pose_evidence`, `chosen_start`):
 the intrinsic start where they differ in pose, closest points where they differ in
 proportion."""
@@ -23,12 +26,12 @@ from scipy.spatial import cKDTree
 
 from ..geometry import chamfer_distance
 from ..geometry.spectral import SpectrumError, laplace_beltrami_spectrum
-from ..progress import Progress
+from ..progress import Progress, sub_range
 from .functional_map import MIN_PART_SHARE, SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
 from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration
 
-__all__ = ["pose_evidence", "PoseEvidence", "chosen_start", "POSE_RATIO", "EVIDENCE_FUNCTIONS", "spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
+__all__ = ["relayed_starts", "RELAY_TRIES", "RELAY_ROUNDS", "pose_evidence", "PoseEvidence", "chosen_start", "POSE_RATIO", "EVIDENCE_FUNCTIONS", "spectral_starts", "checked_spectral_fits", "signature_error", "SPECTRAL_FIT_MARGIN",
            "SPECTRAL_SIGNATURE_MARGIN"]
 
 #: a spectral start whose registration's residual is more than this times the closest-point
@@ -41,6 +44,13 @@ SPECTRAL_FIT_MARGIN = 1.5
 SPECTRAL_SIGNATURE_MARGIN = 0.9
 
 
+#: a shape tries at most RELAY_TRIES shapes with a start per round (the most alike by
+#: their spectra first), for at most RELAY_ROUNDS rounds (a shape reached in one round can
+#: relay in the next)
+RELAY_TRIES = 2
+RELAY_ROUNDS = 3
+
+
 @dataclass(frozen=True)
 class _StartItem:
     """One shape's share of `spectral_starts` (picklable, for a worker)."""
@@ -51,6 +61,7 @@ class _StartItem:
     vertices: np.ndarray
     faces: np.ndarray
     template_problem: str = ""
+    shared_frame: bool = True  # the shape lies in the template's frame as the collection does (its facing is evidence)
 
 
 def _start_on_shape(item: _StartItem) -> SpectralStart:
@@ -60,29 +71,138 @@ def _start_on_shape(item: _StartItem) -> SpectralStart:
         shape = spectral_shape(item.vertices, item.faces)
     except SpectrumError as exc:
         return SpectralStart(None, f"closest-point start: spectrum not trusted ({exc})")
-    start = spectral_start(item.template, item.template_points, shape)
-    return start if start.points is not None else replace(start, message=f"closest-point start: {start.message}")
+    return spectral_start(item.template, item.template_points, shape, shared_frame=item.shared_frame)
+
+
+@dataclass(frozen=True)
+class _RelayItem:
+    """One try of `relayed_starts` (picklable, for a worker): the map to shape `index`
+    through the shape named `via_name`."""
+
+    name: str
+    index: int
+    template: SpectralShape
+    template_points: np.ndarray
+    via_name: str
+    via: SpectralShape
+    via_map: np.ndarray
+    shape: SpectralShape
+    shared_frame: bool
+
+
+@dataclass(frozen=True)
+class _LastItem:
+    """One shape's last resort (picklable, for a worker)."""
+
+    name: str
+    template: SpectralShape
+    template_points: np.ndarray
+    shape: SpectralShape
+
+
+def _last_resort(item: _LastItem) -> SpectralStart:
+    return spectral_start(item.template, item.template_points, item.shape, by_triangles=True)
+
+
+def _relay_on_shape(item: _RelayItem) -> SpectralStart:
+    return spectral_start(item.template, item.template_points, item.shape, shared_frame=item.shared_frame,
+                          via=(item.via_name, item.via, item.via_map))
+
+
+def _spectral_distance(a: SpectralShape, b: SpectralShape) -> float:
+    """Mean |log ratio| of the two shapes' first non-zero eigenvalues (unit area; shape DNA,
+    as `pose_evidence`): small for the same body in a similar pose."""
+    k = min(EVIDENCE_FUNCTIONS + 1, len(a.spectrum.values), len(b.spectrum.values))
+    ratio = np.maximum(a.spectrum.values[1:k], 1e-12) / np.maximum(b.spectrum.values[1:k], 1e-12)
+    return float(np.mean(np.abs(np.log(ratio))))
+
+
+def relayed_starts(names: Sequence[str], template: SpectralShape, template_points: np.ndarray,
+                   starts: list[SpectralStart | None], runner: RegistrationRunner, report: Progress,
+                   in_frame: Sequence[bool]) -> list[SpectralStart | None]:
+    """`starts` (per shape, as `spectral_starts`) with shapes reached through shapes that
+    have a start (`functional_map.relayed_map`): every shape without a start, and every
+    shape whose facing is no evidence (`in_frame` False: its direct map may be the half
+    turn of the right one, which keeps the orientation). Each tries the next RELAY_TRIES
+    shapes with a start it has not tried, the most alike by their spectra first (reached
+    in the frame before those reached without it); rounds repeat while a shape without a
+    start is reached, at most RELAY_ROUNDS. Of a shape's direct and relayed maps that pass,
+    the one with the highest orientation score is kept (the right map's operators commute
+    best: a half turn is no exact isometry of a body). A shape still without a start gets
+    the last resort (`functional_map.MIN_TRIANGLE_SHARE`: the triangles' orientation,
+    without the facing) or keeps its message, with the relays tried."""
+    starts, tried = list(starts), [[] for _ in names]
+    has_start = lambda i: starts[i] is not None and starts[i].points is not None and starts[i].c is not None  # noqa: E731
+    for round_index in range(RELAY_ROUNDS):
+        reached = [i for i in range(len(names)) if has_start(i)]
+        waiting = [i for i, s in enumerate(starts) if s is not None and s.spectral is not None
+                   and (not has_start(i) or (not in_frame[i] and round_index == 0))]
+        items = []
+        for index in waiting:
+            order = sorted((u for u in reached if u != index and names[u] not in tried[index]),
+                           key=lambda u: (not in_frame[u], _spectral_distance(starts[u].spectral,
+                                                                               starts[index].spectral)))
+            for via in order[:RELAY_TRIES]:
+                tried[index].append(names[via])
+                items.append(_RelayItem(names[index], index, template, template_points, names[via], starts[via].spectral,
+                                        starts[via].c, starts[index].spectral, bool(in_frame[index])))
+        if not items:
+            break
+        outcomes = runner.map(_relay_on_shape, items, report, lambda i: f"intrinsic map to {items[i].name} through "
+                                                                          f"{items[i].via_name}")
+        newly = 0
+        for item, outcome in zip(items, outcomes):
+            current = starts[item.index]
+            if outcome.points is not None and (current.points is None or outcome.orientation > current.orientation):
+                newly += current.points is None
+                starts[item.index] = replace(outcome, spectral=current.spectral)
+        if not newly:
+            break
+    last = [i for i, start in enumerate(starts) if start is not None and start.points is None
+            and start.spectral is not None]
+    if last:  # the test used before the operator's, where no map passes the operator's
+        items = [_LastItem(names[i], template, template_points, starts[i].spectral) for i in last]
+        for index, outcome in zip(last, runner.map(_last_resort, items, report,
+                                                   lambda i: f"intrinsic map to {items[i].name}, last resort")):
+            if outcome.points is not None:
+                starts[index] = replace(outcome, message=f"{outcome.message}: {starts[index].message}",
+                                        spectral=starts[index].spectral)
+    for index, start in enumerate(starts):
+        if start is not None and start.points is None:
+            relays = f"; no relay through {', '.join(tried[index])} passed either" if tried[index] else ""
+            said = start.message if start.message.startswith("closest-point start") else \
+                f"closest-point start: {start.message}"
+            starts[index] = replace(start, message=said + relays)
+    return starts
 
 
 def spectral_starts(names: Sequence[str], surfaces: Sequence, template_index: int, template_points: np.ndarray,
-                    runner: RegistrationRunner, report: Progress
+                    runner: RegistrationRunner, report: Progress, in_frame: Sequence[bool] | None = None
                     ) -> tuple[list[SpectralStart | None], np.ndarray | None]:
     """Per shape (None for the template's own shape, which starts as itself): where its
     landmarks start by the intrinsic map from the template shape (functional_map.py), or
     why not; and the signatures of the template's landmarks (None: its spectrum is not
-    trusted). `surfaces`: per shape, the mesh registered against (a dense shape's proxy)."""
+    trusted). `surfaces`: per shape, the mesh registered against (a dense shape's proxy).
+    `in_frame`: per shape, whether it lies in the frame as the collection does, so that a
+    map's facing is evidence (default all; none when the template's own is not)."""
     template_mesh = surfaces[template_index].mesh
     try:
         template, problem = spectral_shape(template_mesh.vertices, template_mesh.faces), ""
     except SpectrumError as exc:
         template, problem = None, f"spectrum is not trusted ({exc})"
-    items = [_StartItem(name, template, template_points, surface.mesh.vertices, surface.mesh.faces, problem)
+    in_frame = [True] * len(names) if in_frame is None else [bool(f) and bool(in_frame[template_index]) for f in in_frame]
+    items = [_StartItem(name, template, template_points, surface.mesh.vertices, surface.mesh.faces, problem,
+                        in_frame[index])
              for index, (name, surface) in enumerate(zip(names, surfaces)) if index != template_index]
     others = [index for index in range(len(names)) if index != template_index]
-    mapped = runner.map(_start_on_shape, items, report, lambda i: f"intrinsic map to {items[i].name}")
+    mapped = runner.map(_start_on_shape, items, sub_range(report, 0.0, 0.6),
+                        lambda i: f"intrinsic map to {items[i].name}")
     starts: list[SpectralStart | None] = [None] * len(names)
     for index, outcome in zip(others, mapped):
         starts[index] = outcome
+    if template is not None:
+        starts = relayed_starts(names, template, template_points, starts, runner, sub_range(report, 0.6, 1.0),
+                                in_frame)
     return starts, None if template is None else landmark_signatures(template, template_points)
 
 
