@@ -18,6 +18,7 @@ from .cli_common import (CommandError, add_keep_pose_option, add_settings_option
                          console_progress,
                          correspond_on_console, flag_of, given_options, positive_int, prepare_source, read_source,
                          requested_settings, settings_from_args, turned_on_console)
+from . import __version__
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
@@ -134,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="shapegen",
         description="Learn a generative model of 3D shape from a collection of meshes.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("prepare", help="align, scale and landmark a folder of meshes")

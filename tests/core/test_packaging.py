@@ -15,6 +15,8 @@ import tomllib
 import zipfile
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 CORE = ROOT / "core"
 
@@ -123,3 +125,17 @@ def test_readme_is_short_and_opens_with_the_two_set_up_commands():
     headings = [line for line in lines if line.startswith("## ")]
     for wanted in ("Install into Blender", "The artist's path", "Pipelines", "Read more"):
         assert any(wanted in heading for heading in headings), wanted
+
+
+def test_version_is_one_number_for_the_cli_the_package_and_the_extension(capsys):
+    """`shapegen --version` prints the version pyproject.toml and blender_manifest.toml
+    declare (one number for the pip package and the Blender extension)."""
+    from shapegen_core.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    package = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    extension = tomllib.loads((ROOT / "blender_manifest.toml").read_text())["version"]
+    assert package == extension
+    assert capsys.readouterr().out.split() == ["shapegen", package]
