@@ -14,6 +14,7 @@ import pytest  # noqa: E402
 
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.preprocess import ShapeTransform  # noqa: E402
 
 PSB = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb"
 if not PSB.is_dir():
@@ -69,6 +70,36 @@ def subdivided(mesh: Mesh, steps: int, name: str | None = None) -> Mesh:
     for _ in range(steps):
         vertices, faces = trimesh.remesh.subdivide(vertices, faces)
     return Mesh(vertices, faces, name=name or mesh.name)
+
+
+#: a y-up file among z-up ones (the other common file convention): a quarter turn about x
+Y_UP_FILE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def placed(meshes, seed: int) -> list[Mesh]:
+    """Each shape at a random size and position, not turned: its pose as given is its own."""
+    rng = np.random.default_rng(seed)
+    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
+                            .to_normalised(m.vertices)) for m in meshes]
+
+
+def on_a_floor(meshes, seed: int) -> list[Mesh]:
+    """Random size, every shape's lowest point on z = 0 and its origin near the middle of
+    its base: files that share a floor (scans, statues, one Blender ground plane)."""
+    rng = np.random.default_rng(seed)
+    floored = []
+    for mesh in meshes:
+        vertices = mesh.vertices * rng.uniform(0.5, 2.0)
+        low = vertices.min(axis=0)
+        middle = (low + vertices.max(axis=0)) / 2
+        floored.append(mesh.with_vertices(vertices - [middle[0], middle[1], low[2]]
+                                          + [*rng.uniform(-0.05, 0.05, 2), 0]))
+    return floored
+
+
+def turned(meshes, turns: dict) -> list[Mesh]:
+    """The files re-saved turned: mesh i's vertices by turns[i] about its origin."""
+    return [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
 
 
 def tosca_class(name: str) -> Path:

@@ -9,20 +9,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import placed
 from shapegen_core.datasets import make_barrels, make_vases
-from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
+from shapegen_core.preprocess import ConsensusSettings, prepare_collection
 from shapegen_core.preprocess.consensus import CostSettings, PoseDecision, _combined
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, yaw_rotation
 from shapegen_core.preprocess.symmetry import AxisSymmetry, tilt_to_z
 
 ON_ITS_SIDE = AXIS_ROTATIONS[9]  # +x up, then a quarter turn
-
-
-def _placed(meshes, seed: int) -> list:
-    rng = np.random.default_rng(seed)
-    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
-                            .to_normalised(m.vertices)) for m in meshes]
 
 
 def _vases(n: int, seed: int) -> list:
@@ -39,7 +34,7 @@ def test_group_lying_together_is_stood_up_or_flagged():
     majority fits each of them better standing on another axis of its file; each is
     stood up (its up within 3° of its own) or, where the evidence is not clear, flagged
     with a suggested turn; nobody else moves."""
-    meshes = _placed(_vases(8, 4) + make_barrels(4, seed=4, pose=False), 1)
+    meshes = placed(_vases(8, 4) + make_barrels(4, seed=4, pose=False), 1)
     turns = {9: ON_ITS_SIDE, 10: ON_ITS_SIDE, 11: AXIS_ROTATIONS[17]}
     meshes = [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
     prepared = prepare_collection(meshes)
@@ -61,7 +56,7 @@ def test_flat_shapes_are_not_laid_on_their_side_by_tall_neighbours():
     symmetry about their up vetoes that change of up, even with no margin."""
     vases = _vases(11, 9)
     bowls = [m.with_vertices(m.vertices * [1.8, 1.8, 0.3]) for m in vases[8:]]
-    meshes = _placed(vases[:8] + bowls, 3)
+    meshes = placed(vases[:8] + bowls, 3)
     settings = ConsensusSettings(costs=CostSettings(margin=1.0))
     prepared = prepare_collection(meshes, consensus=settings)
     for shape in prepared[8:]:

@@ -11,15 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import psb_class, tosca_class
+from conftest import Y_UP_FILE, on_a_floor, placed, psb_class, tosca_class, turned
 from shapegen_core.datasets import make_mugs, make_vases
 from shapegen_core.io import read_folder
-from shapegen_core.mesh import Mesh
-from shapegen_core.preprocess import ShapeTransform, prepare_collection
+from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.rotations import describe_rotation
-
-#: a y-up file among z-up ones (the other common convention): a quarter turn about x
-Y_UP_FILE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 #: Prepare's decision for each shape as filed (up y): "kept", or the turn made; "flagged"
 #: when its pose is flagged as doubtful
@@ -87,30 +83,23 @@ def test_no_psb_airplane_is_laid_on_its_side(psb_prepared):
             assert up > np.cos(np.radians(1.0)), (shape.name, shape.pose_change)
 
 
-def _placed(meshes, seed: int) -> list[Mesh]:
-    rng = np.random.default_rng(seed)
-    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
-                            .to_normalised(m.vertices)) for m in meshes]
-
-
-def _on_floor(meshes, seed: int) -> list[Mesh]:
-    """Every shape's lowest point on z = 0, its origin near the middle of its base."""
-    rng = np.random.default_rng(seed)
-    placed = []
-    for mesh in meshes:
-        vertices = mesh.vertices * rng.uniform(0.5, 2.0)
-        low = vertices.min(axis=0)
-        middle = (low + vertices.max(axis=0)) / 2
-        placed.append(mesh.with_vertices(vertices - [middle[0], middle[1], low[2]] + [*rng.uniform(-0.05, 0.05, 2), 0]))
-    return placed
+def _mixed_against_single(meshes):
+    """Prepared as filed and with every third file re-saved y-up (a quarter turn about x
+    about its origin): per shape (mixed run, single run, degrees between where the two
+    put the same surface)."""
+    single = prepare_collection(meshes)
+    turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
+    mixed = prepare_collection(turned(meshes, turns))
+    return [(a, b, _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T))
+            for i, (a, b) in enumerate(zip(mixed, single))]
 
 
 MIXED_CLASSES = {
     # solid mugs: no hollow tells top from bottom, and a re-saved file's odd moments lean to
     # the wrong end; the files clearly saved in the other convention tell it instead
-    "closed mugs": lambda: _placed(make_mugs(10, 0, closed=True, handle_height=(0.3, 0.7), pose=False), 7000),
-    "vases": lambda: _placed([v.mesh for v in make_vases(12, seed=3, resolution=(12, 16), pose=False)], 1),
-    "open mugs on a floor": lambda: _on_floor(make_mugs(12, 2, closed=False, handle_height=(0.3, 0.7), pose=False), 2),
+    "closed mugs": lambda: placed(make_mugs(10, 0, closed=True, handle_height=(0.3, 0.7), pose=False), 7000),
+    "vases": lambda: placed([v.mesh for v in make_vases(12, seed=3, resolution=(12, 16), pose=False)], 1),
+    "open mugs on a floor": lambda: on_a_floor(make_mugs(12, 2, closed=False, handle_height=(0.3, 0.7), pose=False), 2),
 }
 
 
@@ -120,15 +109,9 @@ def test_mixed_file_conventions_end_as_one_convention_does(name):
     shape ends within 5° of where the single-convention collection puts it, without Turn
     Flagged, and is flagged only where the single-convention run flags it too (an unusual
     shape)."""
-    meshes = MIXED_CLASSES[name]()
-    single = prepare_collection(meshes)
-    turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
-    mixed = prepare_collection([m.with_vertices(m.vertices @ turns[i].T) if i in turns else m
-                                for i, m in enumerate(meshes)])
-    for i, (a, b) in enumerate(zip(mixed, single)):
-        apart = _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T)
-        assert apart <= 5.0, (i, apart, a.pose_change, a.pose_outlier)
-        assert bool(a.pose_outlier) == bool(b.pose_outlier), (i, a.pose_outlier, b.pose_outlier)
+    for a, b, apart in _mixed_against_single(MIXED_CLASSES[name]()):
+        assert apart <= 5.0, (a.name, apart, a.pose_change, a.pose_outlier)
+        assert bool(a.pose_outlier) == bool(b.pose_outlier), (a.name, a.pose_outlier, b.pose_outlier)
 
 
 def test_mixed_file_conventions_of_a_tosca_class_end_as_one_convention_does():
@@ -137,21 +120,15 @@ def test_mixed_file_conventions_of_a_tosca_class_end_as_one_convention_does():
     hardly tell a centaur lying from one standing, and every shape still ends within 5° of
     where the single-convention collection puts it (the files' floor, met to a hair by the
     others, and the convention's turn that lands them on it tell)."""
-    meshes = read_folder(tosca_class("centaur"))
-    single = prepare_collection(meshes)
-    turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
-    mixed = prepare_collection([m.with_vertices(m.vertices @ turns[i].T) if i in turns else m
-                                for i, m in enumerate(meshes)])
-    for i, (a, b) in enumerate(zip(mixed, single)):
-        apart = _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T)
+    for a, _, apart in _mixed_against_single(read_folder(tosca_class("centaur"))):
         assert apart <= 5.0, (a.name, apart, a.pose_change, a.pose_outlier)
 
 
 def test_upright_shapes_on_a_floor_are_never_turned():
     """Mugs and vases standing on one ground plane as their author put them (origins under
     their bases): nobody is turned over or onto a side."""
-    for meshes in (_on_floor(make_mugs(10, 4, closed=True, handle_height=(0.3, 0.7), pose=False), 5),
-                   _on_floor([v.mesh for v in make_vases(10, seed=6, resolution=(12, 16), pose=False)], 6)):
+    for meshes in (on_a_floor(make_mugs(10, 4, closed=True, handle_height=(0.3, 0.7), pose=False), 5),
+                   on_a_floor([v.mesh for v in make_vases(10, seed=6, resolution=(12, 16), pose=False)], 6)):
         for shape in prepare_collection(meshes):
             up = shape.pose_rotation[2, 2]
             assert up > np.cos(np.radians(1.0)), (shape.name, shape.pose_change)

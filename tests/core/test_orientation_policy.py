@@ -15,29 +15,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import Y_UP_FILE, on_a_floor, placed, turned
+
 from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.datasets import make_barrels, make_mugs, make_vases, write_collection
 from shapegen_core.errors import CollectionError
 from shapegen_core.geometry import TargetSurface
-from shapegen_core.mesh import Mesh
 from shapegen_core.pipeline import FitSettings, fit_meshes
-from shapegen_core.preprocess import ShapeTransform, prepare_collection
+from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.floors import FileFloors, Floor
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 UPSIDE_DOWN = AXIS_ROTATIONS[4]  # half turn about x
-Y_UP_FILE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]).T  # a y-up file among z-up ones
-
-
-def _placed(meshes, seed: int) -> list[Mesh]:
-    rng = np.random.default_rng(seed)
-    return [m.with_vertices(ShapeTransform(np.eye(3), rng.uniform(0.5, 2), rng.uniform(-1, 1, 3))
-                            .to_normalised(m.vertices)) for m in meshes]
-
-
-def _turned(meshes, turns: dict) -> list[Mesh]:
-    return [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
 
 
 def _up_error(shape, turn: np.ndarray) -> float:
@@ -50,15 +40,15 @@ def test_a_taper_both_ways_turns_nobody():
     others: the taper is all that differs between top and bottom, and it varies across
     the class, so nobody is turned over (today's rule turned 3-4 of 10 over)."""
     for seed in (0, 1):
-        prepared = prepare_collection(_placed(make_mugs(10, seed, closed=True, pose=False), seed))
+        prepared = prepare_collection(placed(make_mugs(10, seed, closed=True, pose=False), seed))
         for shape in prepared:
             assert not shape.orientation_changed, shape.pose_change
             np.testing.assert_array_equal(shape.pose_rotation, np.eye(3))
 
 
 def test_a_file_a_quarter_turn_off_is_put_right_and_nobody_else_moves():
-    meshes = _placed([v.mesh for v in make_vases(9, seed=5, resolution=(12, 16), pose=False)], 2)
-    prepared = prepare_collection(_turned(meshes, {4: Y_UP_FILE}))
+    meshes = placed([v.mesh for v in make_vases(9, seed=5, resolution=(12, 16), pose=False)], 2)
+    prepared = prepare_collection(turned(meshes, {4: Y_UP_FILE}))
     assert "file-convention turn" in prepared[4].pose_change, prepared[4].pose_change
     assert _up_error(prepared[4], Y_UP_FILE) < 1.0 and prepared[4].pose_outlier == ""
     for i, shape in enumerate(prepared):
@@ -71,32 +61,32 @@ def test_a_shape_turned_over_on_doubtful_evidence_is_flagged_then_turned_on_requ
     upside down, only its odd moments do, which is not evidence enough to turn it over:
     flagged with a suggested turn, left as given; turn_flagged turns it, says so, and
     carries its landmarks (still on its surface); the other shapes are untouched."""
-    meshes = _turned(_placed(make_barrels(8, seed=5, pose=False), 3), {2: UPSIDE_DOWN})
+    meshes = turned(placed(make_barrels(8, seed=5, pose=False), 3), {2: UPSIDE_DOWN})
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=40))
     flagged = prepared.shapes[2]
     assert not flagged.orientation_changed and flagged.pose_outlier.startswith("may be upside down")
     assert flagged.flag_turn is not None and prepared.flagged() == [flagged.name]
     assert all(s.pose_outlier == "" and not s.orientation_changed for i, s in enumerate(prepared.shapes) if i != 2)
 
-    turned = prepared.turn_flagged()
-    shape, landmarks = turned.shapes[2], turned.landmarks[2]
+    after = prepared.turn_flagged()
+    shape, landmarks = after.shapes[2], after.landmarks[2]
     assert _up_error(shape, UPSIDE_DOWN) < 3.0
     assert "at the user's request" in shape.pose_change and shape.pose_outlier == "" and shape.flag_turn is None
-    assert shape.orientation_changed and turned.flagged() == []
+    assert shape.orientation_changed and after.flagged() == []
     assert shape.mesh.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-9)  # floored again
     on_surface = TargetSurface(shape.mesh.vertices, shape.mesh.faces).closest(landmarks.points)
     assert np.abs(on_surface.points - landmarks.points).max() < 1e-9
-    # the input-frame landmarks are the same surface points: only the normalised frame turned
-    np.testing.assert_allclose(turned.landmarks_input(2), prepared.landmarks_input(2), atol=1e-9)
+    # the input-frame landmarks are the same surface points: only the normalised frame after
+    np.testing.assert_allclose(after.landmarks_input(2), prepared.landmarks_input(2), atol=1e-9)
     for i in range(8):
         if i != 2:
-            assert turned.shapes[i] is prepared.shapes[i]
+            assert after.shapes[i] is prepared.shapes[i]
     with pytest.raises(CollectionError, match="no shape named nobody"):
         prepared.turn_flagged(["nobody"])
 
 
 def test_flag_turns_are_saved_and_older_files_read_without(tmp_path):
-    meshes = _turned(_placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
+    meshes = turned(placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=30))
     path = prepared.save(tmp_path / "prepared.npz")
     back = PreparedCollection.load(path)
@@ -109,7 +99,7 @@ def test_flag_turns_are_saved_and_older_files_read_without(tmp_path):
 
 def test_cli_turn_flagged(tmp_path):
     folder = tmp_path / "barrels"
-    shapes = _turned(_placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
+    shapes = turned(placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
     folder.mkdir()
     for mesh in shapes:
         from shapegen_core.io import write_mesh
@@ -128,22 +118,9 @@ def test_cli_turn_flagged(tmp_path):
 
 def test_copies_of_one_shape_have_no_variation_to_learn():
     vase = make_vases(1, seed=3, resolution=(10, 12), pose=False)[0].mesh
-    copies = [m.with_vertices(m.vertices, name=f"copy_{i}") for i, m in enumerate(_placed([vase] * 4, 1))]
+    copies = [m.with_vertices(m.vertices, name=f"copy_{i}") for i, m in enumerate(placed([vase] * 4, 1))]
     with pytest.raises(CollectionError, match="copies of one mesh after alignment: there is no variation to learn"):
         fit_meshes(copies, FitSettings(model="ppca"))
-
-
-def _on_floor(meshes, seed: int) -> list[Mesh]:
-    """Random size, every shape's lowest point on z = 0 and its origin near the middle of
-    its base: files that share a floor (scans, statues, one Blender ground plane)."""
-    rng = np.random.default_rng(seed)
-    placed = []
-    for mesh in meshes:
-        vertices = mesh.vertices * rng.uniform(0.5, 2.0)
-        low = vertices.min(axis=0)
-        middle = (low + vertices.max(axis=0)) / 2
-        placed.append(mesh.with_vertices(vertices - [middle[0], middle[1], low[2]] + [*rng.uniform(-0.05, 0.05, 2), 0]))
-    return placed
 
 
 def test_file_floors_closed_forms():
@@ -188,10 +165,10 @@ def test_on_a_shared_floor_the_floor_decides_what_the_file_says():
     odd moments alone only flag it, previous test), one laid on its side on the floor by
     its author is flagged and left as given, one saved a quarter turn about its origin
     is stood up."""
-    barrels = _on_floor(make_barrels(9, seed=5, pose=False), 4)
+    barrels = on_a_floor(make_barrels(9, seed=5, pose=False), 4)
     laid = barrels[4].with_vertices(barrels[4].vertices @ Y_UP_FILE.T)
     laid = laid.with_vertices(laid.vertices - [0.0, 0.0, laid.vertices[:, 2].min()])  # resting on the floor
-    prepared = prepare_collection(_turned(barrels[:4] + [laid] + barrels[5:], {1: UPSIDE_DOWN, 7: Y_UP_FILE}))
+    prepared = prepare_collection(turned(barrels[:4] + [laid] + barrels[5:], {1: UPSIDE_DOWN, 7: Y_UP_FILE}))
     assert _up_error(prepared[1], UPSIDE_DOWN) < 3.0 and "floor" in prepared[1].pose_change
     assert _up_error(prepared[7], Y_UP_FILE) < 3.0 and "file-convention turn" in prepared[7].pose_change
     assert not prepared[4].orientation_changed
