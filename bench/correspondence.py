@@ -52,6 +52,8 @@ from shapegen_core.evaluation.completion import hidden_coordinates, region_mask 
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
 from shapegen_core.models.ppca import PPCA  # noqa: E402
 from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
+# face_labels: other benches import it from here
+from psb_labels import face_labels  # noqa: E402
 from shapegen_core.geometry import (AffineSolver, TargetSurface, data_blocks, knn_graph,  # noqa: E402
                                     registration_frame, stiffness_energy)
 from shapegen_core.io import read_folder  # noqa: E402
@@ -525,20 +527,6 @@ def collection_timing(quick: bool, log) -> dict:
 
 
 # ---------------------------------------------------------------------------- part 3
-def face_labels(off_path: Path, mesh) -> np.ndarray:
-    """Part label of every face of `mesh` (as read by core.io) from `<stem>_labels.txt`:
-    blocks of a part-name line followed by a line of 1-based face ids of the file."""
-    import trimesh
-
-    lines = [l.strip() for l in (off_path.parent / f"{off_path.stem}_labels.txt").read_text().splitlines() if l.strip()]
-    original = trimesh.load(str(off_path), force="mesh", process=False, maintain_order=True).faces
-    labels = np.full(len(original), "?", dtype=object)
-    for name, ids in zip(lines[0::2], lines[1::2]):
-        labels[np.asarray(ids.split(), dtype=np.int64) - 1] = name
-    index = {tuple(f): i for i, f in enumerate(original.tolist())}
-    return np.array([labels[index[tuple(f)]] if tuple(f) in index else "?" for f in mesh.faces.tolist()])
-
-
 def psb(quick: bool, log) -> dict:
     out = {}
     landmarks = 400 if quick else LANDMARKS

@@ -34,6 +34,8 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from psb_labels import face_labels  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 PSB = ROOT.parent / "shared" / "data" / "psb"
 if not PSB.is_dir():
@@ -43,23 +45,6 @@ CLASSES = ("Airplane", "Cup", "Fish", "Vase")
 
 
 # ---------------------------------------------------------------------------- one version (child process)
-def face_labels(off_path: Path, mesh):
-    """Part label of every face of `mesh` (as this version's reader read it) from
-    `<stem>_labels.txt`: blocks of a part-name line and a line of 1-based face ids of the
-    file; a face the reader changed maps to "?"."""
-    import numpy as np
-    import trimesh
-
-    lines = [ln.strip() for ln in (off_path.parent / f"{off_path.stem}_labels.txt").read_text().splitlines()
-             if ln.strip()]
-    original = trimesh.load(str(off_path), force="mesh", process=False, maintain_order=True).faces
-    labels = np.full(len(original), "?", dtype=object)
-    for name, ids in zip(lines[0::2], lines[1::2]):
-        labels[np.asarray(ids.split(), dtype=np.int64) - 1] = name
-    index = {tuple(f): i for i, f in enumerate(original.tolist())}
-    return np.array([labels[index[tuple(f)]] if tuple(f) in index else "?" for f in mesh.faces.tolist()])
-
-
 def decision(shape) -> dict:
     """What Prepare did to one shape's pose: kept, turned (how), flagged (why)."""
     import numpy as np
