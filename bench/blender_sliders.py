@@ -23,11 +23,9 @@ Writes bench_output/blender_sliders.{json,txt}.
 from __future__ import annotations
 
 import argparse
-import glob
 import importlib
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -40,17 +38,11 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from demo import install_extension  # noqa: E402  (the demo's install: dist/ zip, enabled, checked)
+
 MODULE = "bl_ext.user_default.shapegen"
-
-
-def install() -> None:
-    machine = {"x86_64": "x64", "amd64": "x64", "arm64": "arm64", "aarch64": "arm64"}[platform.machine().lower()]
-    system = {"linux": "linux", "darwin": "macos", "windows": "windows"}[platform.system().lower()]
-    zips = sorted(glob.glob(str(ROOT / "dist" / f"shapegen-*-{system}_{machine}.zip")))
-    if not zips:
-        sys.exit("no extension zip in dist/: run `make build` first")
-    bpy.ops.extensions.package_install_files(filepath=zips[-1], repo="user_default", enable_on_install=True)
-    assert MODULE in bpy.context.preferences.addons
 
 
 def module(name: str):
@@ -72,7 +64,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=ROOT / "bench_output")
     args = parser.parse_args()
 
-    install()
+    install_extension(bpy)
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     datasets, convert = module("core.datasets"), module("shapegen_addon.convert")
     jobs, store, latent = module("shapegen_addon.jobs"), module("shapegen_addon.store"), module(

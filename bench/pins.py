@@ -17,11 +17,9 @@ Writes bench_output/pins.{json,txt}.
 from __future__ import annotations
 
 import argparse
-import glob
 import importlib
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -34,17 +32,12 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from demo import install_extension  # noqa: E402  (the demo's install: dist/ zip, enabled, checked)
+
 MODULE = "bl_ext.user_default.shapegen"
 TARGET_MS = {"ppca": 100.0, "bgplvm": 250.0}
-
-
-def install() -> None:
-    machine = {"x86_64": "x64", "amd64": "x64", "arm64": "arm64", "aarch64": "arm64"}[platform.machine().lower()]
-    system = {"linux": "linux", "darwin": "macos", "windows": "windows"}[platform.system().lower()]
-    zips = sorted(glob.glob(str(ROOT / "dist" / f"shapegen-*-{system}_{machine}.zip")))
-    if not zips:
-        sys.exit("no extension zip in dist/: run `make build` first")
-    bpy.ops.extensions.package_install_files(filepath=zips[-1], repo="user_default", enable_on_install=True)
 
 
 def module(name: str):
@@ -57,7 +50,7 @@ def main() -> None:
     parser.add_argument("--landmarks", type=int, default=300)
     parser.add_argument("--moves", type=int, default=30)
     args = parser.parse_args()
-    install()
+    install_extension(bpy)
     datasets, pipeline, collection, models = (module("core.datasets"), module("core.pipeline"),
                                               module("core.collection"), module("core.models"))
     pins, latent, store = module("shapegen_addon.pins"), module("shapegen_addon.latent"), module("shapegen_addon.store")

@@ -12,10 +12,8 @@ drawn as small red spheres for the picture.
 from __future__ import annotations
 
 import argparse
-import glob
 import importlib
 import os
-import platform
 import sys
 import tempfile
 from pathlib import Path
@@ -28,16 +26,10 @@ import numpy as np  # noqa: E402
 from mathutils import Euler, Vector  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+from demo import install_extension  # noqa: E402  (the demo's install: dist/ zip, enabled, checked)
+
 MODULE = "bl_ext.user_default.shapegen"
-
-
-def install() -> None:
-    machine = {"x86_64": "x64", "amd64": "x64", "arm64": "arm64", "aarch64": "arm64"}[platform.machine().lower()]
-    system = {"linux": "linux", "darwin": "macos", "windows": "windows"}[platform.system().lower()]
-    zips = sorted(glob.glob(str(ROOT / "dist" / f"shapegen-*-{system}_{machine}.zip")))
-    if not zips:
-        sys.exit("no extension zip in dist/: run `make build` first")
-    bpy.ops.extensions.package_install_files(filepath=zips[-1], repo="user_default", enable_on_install=True)
 
 
 def module(name: str):
@@ -77,7 +69,7 @@ def main() -> int:
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "pins.png")
     args = parser.parse_args()
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    install()
+    install_extension(bpy)
     scene = bpy.context.scene
     assert bpy.ops.shapegen.load_model(filepath=str(fitted_vases(Path(tempfile.mkdtemp())))) == {"FINISHED"}
     assert bpy.ops.shapegen.explore() == {"FINISHED"}
