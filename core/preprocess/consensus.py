@@ -448,10 +448,17 @@ def up_lines(state: ConsensusState) -> None:
     _mixed_conventions(state)
 
 
+def _convention_height(rotation: np.ndarray | None, convention: np.ndarray | None) -> float:
+    """How far up (z) `rotation` takes the other common convention's up (`convention_up`):
+    1 when it stands a shape as a file of that convention stands; 0 without either."""
+    if rotation is None or convention is None:
+        return 0.0
+    return float((rotation @ convention)[2])
+
+
 def _on_convention_line(state: ConsensusState, rotation: np.ndarray | None) -> bool:
     """Whether `rotation` stands a shape on the line of the other common convention's up."""
-    return (state.convention is not None and rotation is not None
-            and abs(float((rotation @ state.convention)[2])) > 0.99)
+    return abs(_convention_height(rotation, state.convention)) > 0.99
 
 
 def _mixed_conventions(state: ConsensusState) -> None:
@@ -474,7 +481,7 @@ def _mixed_conventions(state: ConsensusState) -> None:
              and (state.floor is None or _side(state.floor_turns[j]) is not None)]
     if len(clear) < state.settings.costs.convention_files or len(clear) < len(stands):
         return  # too few, or files turned onto other sides too: turns, not one convention
-    convention_end = next(TILTS[d] for d in range(len(TILTS)) if (TILTS[d] @ state.convention)[2] > 0.99)
+    convention_end = next(tilt for tilt in TILTS if _convention_height(tilt, state.convention) > 0.99)
     files = f"{len(clear)} files of the collection are clearly saved in it"
     for j, decision in enumerate(state.stood):
         if j in clear:
@@ -580,7 +587,7 @@ def _floor_stand(state: ConsensusState, j: int, references: Sequence[int], side:
     # the turn that lands it is the other common convention's (its file's +y up among z-up
     # files): two facts of the file agree, which a pose differing from the references'
     # (a sitting dog among standing ones fits them better lying) does not outweigh
-    convention = state.convention is not None and (stand @ state.convention)[2] > 0.99
+    convention = _convention_height(stand, state.convention) > 0.99
     if (ratio * margin >= 1.0 or convention) and not state.frozen[j]:
         why = ", the other common file convention's up" if ratio * margin < 1.0 else ""
         return PoseDecision(stand, f"{describe_rotation(stand)}: {words}{why}, a file-convention turn")
@@ -612,7 +619,7 @@ def _standing_end(costs: np.ndarray, line: str, settings: ConsensusSettings,
     if max(ca, cb) >= settings.ends.flip_margin * min(ca, cb):
         return cheaper, True
     for d in (a, b):
-        if convention is not None and (TILTS[d] @ convention)[2] > 0.99:
+        if _convention_height(TILTS[d], convention) > 0.99:
             return d, False
     return cheaper, False
 
@@ -685,7 +692,7 @@ def _end_decision(state: ConsensusState, j: int, poses: Sequence[np.ndarray], vo
         why = "; ".join(w for w in (ends.flip_reason, LANDS if landing else "") if w)
         return PoseDecision(flipped, f"{describe_rotation(flipped @ poses[j].T)}: {why}")
     if stood.end_guessed and j in state.convention_files:
-        return _convention_end(state, j, poses[j], flipped, ends)
+        return _convention_end(state, poses[j], flipped)
     if stood.end_guessed and not ends.clear_keep:
         return _guessed_end(poses[j], flipped, ends)
     doubted = f"{LANDS}, but its references fit it better as given" if lands and not landing else ""
@@ -693,14 +700,13 @@ def _end_decision(state: ConsensusState, j: int, poses: Sequence[np.ndarray], vo
     return PoseDecision(poses[j], flag=f"may be upside down: {why}", flag_rotation=flipped)
 
 
-def _convention_end(state: ConsensusState, j: int, pose: np.ndarray, flipped: np.ndarray,
-                    ends: "_EndEvidence") -> PoseDecision:
+def _convention_end(state: ConsensusState, pose: np.ndarray, flipped: np.ndarray) -> PoseDecision:
     """A shape stood on the other common convention's up line in a collection that
     evidently mixes the conventions (`_mixed_conventions`), its end told by nothing clear:
     the end that convention puts up (its file's +y among z-up files), not flagged. Weak
     evidence against it (odd moments, a minority of references) does not outweigh files
     that share a convention; clear evidence turned it over before this point."""
-    if (pose @ state.convention)[2] > 0.99:
+    if _convention_height(pose, state.convention) > 0.99:
         return PoseDecision(pose)
     return PoseDecision(flipped, f"{describe_rotation(flipped @ pose.T)}: the end the other common file "
                                  f"convention puts up, as {len(state.convention_files)} files of the collection "
