@@ -4,18 +4,17 @@ facing in a shared frame, and the intrinsic start rejecting mirrors and half tur
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
+from conftest import tosca_class
 from shapegen_core.correspond.functional_map import (functional_map, shape_operators, spectral_shape, spectral_start,
                                                      triangle_share)
 from shapegen_core.correspond.map_orientation import (face_gradients, facing_agreement, orientation_operators,
                                                   orientation_score)
 
-PEOPLE = Path("/work/shared/data/tosca/people")
 
 
 def _grid(nx: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
@@ -151,12 +150,12 @@ def test_in_a_shared_frame_the_half_turn_of_a_doubly_symmetric_shape_is_rejected
 def _person(name: str):
     from shapegen_core.io import read_mesh
 
-    mesh = read_mesh(PEOPLE / f"{name}.off")
-    truth, mirror = (np.loadtxt(PEOPLE / "corres" / f"{name}{kind}.vts", dtype=np.int64) - 1 for kind in ("", ".sym"))
+    folder = tosca_class("people")
+    mesh = read_mesh(folder / f"{name}.off")
+    truth, mirror = (np.loadtxt(folder / "corres" / f"{name}{kind}.vts", dtype=np.int64) - 1 for kind in ("", ".sym"))
     return mesh, truth, mirror
 
 
-@pytest.mark.skipif(not PEOPLE.exists(), reason="the shared TOSCA people are not on this machine")
 def test_between_two_different_people_the_true_map_keeps_the_orientation_and_its_mirror_does_not():
     """TOSCA's man and woman (different bodies, different poses; the files share z up and a
     facing): the functional map of the ground truth scores clearly positive, that of its
@@ -170,7 +169,6 @@ def test_between_two_different_people_the_true_map_keeps_the_orientation_and_its
     assert scores[0] > 0.6 and scores[1] < -0.6, scores
 
 
-@pytest.mark.skipif(not PEOPLE.exists(), reason="the shared TOSCA people are not on this machine")
 def test_a_mirrored_map_between_two_different_bodies_is_rejected():
     """man_05 → woman_05: without the tests of orientation and facing this pair came out
     mirrored (its error against the mirrored truth well below that against the truth).
@@ -186,7 +184,6 @@ def test_a_mirrored_map_between_two_different_bodies_is_rejected():
         assert errors[0] < 0.05 * woman.bbox_diagonal(), (errors, start.message)
 
 
-@pytest.mark.skipif(not PEOPLE.exists(), reason="the shared TOSCA people are not on this machine")
 def test_a_pose_the_template_cannot_bridge_is_reached_through_another_shape():
     """man_05 → man_06: no map straight from the template passes the tests (the right map
     is not among the refined candidates); through man_01, which man_05 does reach, the

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
+from conftest import tosca_class
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
@@ -19,7 +19,6 @@ from shapegen_core.correspond.start import _start_on_shape, _StartItem
 from shapegen_core.geometry.spectral import SpectrumError, cotangent_laplacian, laplace_beltrami_spectrum
 from shapegen_core.settings import SettingsError
 
-TOSCA = Path("/work/shared/data/tosca")
 
 
 def _rotation(seed: int) -> np.ndarray:
@@ -122,7 +121,6 @@ def test_a_shape_in_two_parts_falls_back_and_says_why():
     assert start.message.startswith("closest-point start: spectrum not trusted (its largest of 2 parts holds 50 %")
 
 
-@pytest.mark.skipif(not TOSCA.exists(), reason="the shared TOSCA data is not on this machine")
 def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_points():
     """cat0 → cat1 (a cat that moved its limbs): the closest-point start (the files share
     z up and the facing) puts the landmarks far from their true places, the spectral start
@@ -130,8 +128,9 @@ def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_poi
     from shapegen_core.geometry import TargetSurface
     from shapegen_core.io import read_mesh
 
-    meshes = [read_mesh(TOSCA / "cat" / f"{name}.off") for name in ("cat0", "cat1")]
-    maps = [np.loadtxt(TOSCA / "cat" / "corres" / f"{name}.vts", dtype=np.int64) - 1 for name in ("cat0", "cat1")]
+    cats = tosca_class("cat")
+    meshes = [read_mesh(cats / f"{name}.off") for name in ("cat0", "cat1")]
+    maps = [np.loadtxt(cats / "corres" / f"{name}.vts", dtype=np.int64) - 1 for name in ("cat0", "cat1")]
     common = np.arange(0, 5000, 25)  # 200 ground-truth points
     landmarks, truth = meshes[0].vertices[maps[0][common]], meshes[1].vertices[maps[1][common]]
     diagonal = meshes[1].bbox_diagonal()
@@ -153,13 +152,19 @@ def test_initialisation_is_a_checked_recorded_setting_and_old_files_read_closest
         DataTermSettings(initialisation="intrinsic")
 
 
-def test_correspond_with_the_spectral_start_reports_every_shape_s_start(small_vases):
+def _short_correspondence(small_vases, initialisation: str):
+    """Three small vases corresponded briefly with the given start: (result, progress messages)."""
     prepared = prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=40, seed=1))
     messages = []
     settings = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
-                                      data_term=DataTermSettings(initialisation="spectral"),
+                                      data_term=DataTermSettings(initialisation=initialisation),
                                       iterations=IterationSettings(max_iterations=4))
     result = correspond(prepared, settings, jobs=1, progress=lambda fraction, message: messages.append(message))
+    return result, messages
+
+
+def test_correspond_with_the_spectral_start_reports_every_shape_s_start(small_vases):
+    result, messages = _short_correspondence(small_vases, "spectral")
     others = [n for n in result.names if n != result.template_name]
     for name in others:
         said = [m for m in messages if m.startswith(f"{name}: spectral start") or m.startswith(f"{name}: closest")]
@@ -178,11 +183,10 @@ def _evidence_of(meshes, landmarks: int = 300):
     return chosen_start(pose_evidence([s.mesh for s in prepared.shapes], sets, chamfer_medoid(sets)))
 
 
-@pytest.mark.skipif(not TOSCA.exists(), reason="the shared TOSCA data is not on this machine")
 def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
     from shapegen_core.io import read_mesh
 
-    choice, why = _evidence_of([read_mesh(TOSCA / "cat" / f"cat{i}.off") for i in range(4)])
+    choice, why = _evidence_of([read_mesh(tosca_class("cat") / f"cat{i}.off") for i in range(4)])
     assert choice == "spectral", why
 
 
@@ -196,12 +200,7 @@ def test_auto_takes_closest_points_for_vases_that_differ_in_proportion():
 def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vases, tmp_path):
     from shapegen_core.correspond import Correspondence
 
-    prepared = prepare_meshes([s.mesh for s in small_vases[:3]], PrepareSettings(n_landmarks=40, seed=1))
-    messages = []
-    settings = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
-                                      data_term=DataTermSettings(initialisation="auto"),
-                                      iterations=IterationSettings(max_iterations=4))
-    result = correspond(prepared, settings, jobs=1, progress=lambda fraction, message: messages.append(message))
+    result, messages = _short_correspondence(small_vases, "auto")
     assert result.start in ("closest", "spectral") and result.start_reason
     for name in (n for n in result.names if n != result.template_name):
         assert any(m.startswith(f"{name}: ") and "start" in m for m in messages), messages
@@ -210,7 +209,7 @@ def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vase
         (result.start, result.start_reason, "auto")
     # a file written before the record and the option: the start its settings name, closest
     arrays = {k: v for k, v in result.to_arrays().items() if k not in ("start", "start_reason")}
-    recorded = json.loads(settings.to_json())
+    recorded = json.loads(result.settings.to_json())
     del recorded["data_term"]["initialisation"]
     old = Correspondence.from_arrays({**arrays, "settings": np.asarray(json.dumps(recorded))})
     assert old.start == "" and old.start_used == "closest"
