@@ -49,10 +49,13 @@ coarse samples) against the other in its pose.
    turn is the other common convention's. Step 1 records each shape's floor turn and
    whether it rests on the floor as given for step 2.
    Both conventions in one collection (`_mixed_conventions`): when at least
-   `costs.convention_files` shapes are clearly stood on the other convention's up line and
-   none on another side, a shape flagged "may be on its side" on that line is stood too,
-   and step 2 keeps each of them on the end that convention puts up unless the costs
-   clearly turn it over.
+   `costs.convention_files` shapes are clearly stood on the other convention's up line,
+   and at least `costs.convention_share` of the shapes stood on a side are, a shape
+   flagged "may be on its side" on that line is stood too, and step 2 keeps each of them
+   on the end that convention puts up unless the costs clearly turn it over. Where so many
+   files lie as read that the upright shapes are no majority, they still set the up when
+   they and the shapes evidently lying on the other convention's up line are
+   (`_upright_with_convention`).
 2. Top and bottom (`tops_and_bottoms`): a shape is turned over only when the collection
    agrees on top and bottom and the shape clearly does not:
    - its hollow (`hollow.Hollows`) opens the other way up from at least
@@ -133,6 +136,10 @@ class CostSettings:
     #: shapes clearly stood on the other common convention's up line (by these votes or
     #: their symmetry) that show a collection mixes the two file conventions
     convention_files: int = 2
+    #: the share of the shapes stood on a side (by these votes or their symmetry) that must
+    #: stand on the other convention's up line for that: a collection's files may also lie
+    #: on their sides (PSB Cup: 5 of 20), and hand turns fall on either side line alike
+    convention_share: float = 0.75
 
 
 @dataclass(frozen=True)
@@ -428,7 +435,7 @@ def up_lines(state: ConsensusState) -> None:
     upright = _upright_majority(state, report)
     state.stood = [PoseDecision(np.eye(3))] * n
     state.floor_turns, state.resting = [None] * n, [False] * n
-    if 2 * len(upright) <= n or len(upright) < 2:
+    if len(upright) < 2 or (2 * len(upright) <= n and not _upright_with_convention(state, upright)):
         return  # no up shared by most shapes: nothing to line up with
     state.floor = None if floors is None else floors.shared(upright, state.settings.floor.tolerance,
                                                                state.settings.floor.exact)
@@ -448,6 +455,38 @@ def up_lines(state: ConsensusState) -> None:
     _mixed_conventions(state)
 
 
+def _convention_line(state: ConsensusState) -> str | None:
+    """The base-frame axis line ("x" or "y") of the other common convention's up, if any."""
+    if state.convention is None:
+        return None
+    return "xyz"[int(np.argmax(np.abs(state.convention)))]
+
+
+def _lying_on(state: ConsensusState, j: int, line: str) -> bool:
+    """Whether shape j as given evidently lies with its up along `line`: that side axis
+    has the collection's up symmetry (`_symmetric_side`), or most of its references fit it
+    better standing on that line by `costs.margin`."""
+    if state.symmetric_sides[j] is not None:
+        return state.symmetric_sides[j][0] == line
+    pairs = [state.costs.side_ratio(j, i) for i in state.costs.references(j, list(range(state.n)))]
+    votes = sum(ratio > state.settings.costs.margin and side == line for ratio, side in pairs)
+    return 2 * votes > len(pairs)
+
+
+def _upright_with_convention(state: ConsensusState, upright: Sequence[int]) -> bool:
+    """A collection mixing the two common file conventions may have no upright majority
+    (a third of its files lying when read with the given up): the upright shapes are then
+    still the collection's up when, together with the shapes evidently lying on the other
+    convention's up line (at least `costs.convention_files` of them), they are most of
+    the collection. Each lying shape is then stood, or not, on the evidence of the
+    upright ones alone, as in any collection (`_stand`)."""
+    line = _convention_line(state)
+    if line is None:
+        return False
+    lying = [j for j in range(state.n) if j not in upright and _lying_on(state, j, line)]
+    return len(lying) >= state.settings.costs.convention_files and 2 * (len(upright) + len(lying)) > state.n
+
+
 def _convention_height(rotation: np.ndarray | None, convention: np.ndarray | None) -> float:
     """How far up (z) `rotation` takes the other common convention's up (`convention_up`):
     1 when it stands a shape as a file of that convention stands; 0 without either."""
@@ -464,8 +503,9 @@ def _on_convention_line(state: ConsensusState, rotation: np.ndarray | None) -> b
 def _mixed_conventions(state: ConsensusState) -> None:
     """Files of both common conventions in one collection (a y-up file among z-up ones):
     when at least `costs.convention_files` shapes are clearly stood on the other
-    convention's up line (where the files share a floor: landing on it so), and none on
-    another side, the collection evidently holds files saved in it. That is
+    convention's up line (where the files share a floor: landing on it so), and at least
+    `costs.convention_share` of all the shapes stood on a side are, the collection
+    evidently holds files saved in it. That is
     evidence no single shape carries: a shape that step 1 only flagged "may be on its
     side" on that same line (its symmetry or most references say so, another measure
     objecting) is stood there too, and every such shape stands on the end that
@@ -479,8 +519,9 @@ def _mixed_conventions(state: ConsensusState) -> None:
     # stood on a side) is no sign of a convention there
     clear = [j for j in stands if _on_convention_line(state, state.stood[j].rotation)
              and (state.floor is None or _side(state.floor_turns[j]) is not None)]
-    if len(clear) < state.settings.costs.convention_files or len(clear) < len(stands):
-        return  # too few, or files turned onto other sides too: turns, not one convention
+    if (len(clear) < state.settings.costs.convention_files
+            or len(clear) < state.settings.costs.convention_share * len(stands)):
+        return  # too few, or files turned onto other sides as often: turns, not one convention
     convention_end = next(tilt for tilt in TILTS if _convention_height(tilt, state.convention) > 0.99)
     files = f"{len(clear)} files of the collection are clearly saved in it"
     for j, decision in enumerate(state.stood):
