@@ -1,4 +1,4 @@
-"""A CAD-like collection modelled in Blender (issue 31): bottles built with bmesh through
+"""A CAD-like collection modelled in Blender: bottles built with bmesh through
 bpy headless (the bpy 5.0.1 module) and exported by Blender's own OBJ exporter as large
 public CAD collections distribute them; and Blender's Workbench render of mesh files.
 Used by bench/cad.py (class "blender:bottles", `--picture`).

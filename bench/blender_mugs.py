@@ -22,8 +22,8 @@ coordinates, however they got there:
 
 `model_mugs` (orientation set d) cycles through the kinds; `perturbed` (the variant with
 a known subset) gives the chosen mugs an extra world map (a turn, or a mirror) after
-modelling. `mug_meshes` (samples bench, issue 14) is plain mugs each turned about z by
-its object rotation, mug 3 mirrored (as the mirrored template of issue 14's report was).
+modelling. `mug_meshes` (samples bench) is plain mugs each turned about z by
+its object rotation, mug 3 mirrored (a mirrored template once broke the samples).
 Objects are read by the add-on's own `convert.object_to_mesh` (evaluated, world
 coordinates, welded, wound outwards), imported from this source tree.
 """

@@ -1,4 +1,4 @@
-"""Blender workflow benchmark (issue 6): not a test.
+"""Blender workflow benchmark: not a test.
 
     python bench/blender_sliders.py [--rings 275] [--landmarks 300] [--drags 200]
 

@@ -1,4 +1,4 @@
-"""CAD-like collections in, clean meshes out (issue 31).
+"""CAD-like collections in, clean meshes out.
 
     python bench/cad.py [--classes psb:Cup,psb:Vase,cups,vases] [-n 10] [--samples 8] [--picture]
 

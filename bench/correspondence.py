@@ -1,4 +1,4 @@
-"""Correspondence benchmark (issue 3): quality against ground truth, speed, and peers.
+"""Correspondence benchmark: quality against ground truth, speed, and peers.
 
     python bench/correspondence.py [--quick]
 
@@ -17,7 +17,7 @@ Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three part
 3. PSB (shared/data/psb/*, up axis y): label-transfer accuracy = share of landmarks whose
    part label matches the reference (template) shape's, and time per shape.
 
-Issue 13 (groupwise refinement, `refine="population"`, core/correspond/refine.py) adds to
+Groupwise refinement (`refine="population"`, core/correspond/refine.py) adds to
 part 1 a refinement row and ablations (no spread term, no compactness term, fewer
 iterations, no similarity removal, no normals, plain gradient steps), the error decomposition of the refined result, the
 objective at NICP / refined / ground truth and a refinement started at the ground truth,
@@ -273,7 +273,7 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     return out
 
 
-# ---------------------------------------------------------------------------- refinement (issue 13)
+# ---------------------------------------------------------------------------- refinement
 def refined_by(**options) -> CorrespondenceSettings:
     """The default settings with population refinement (`options`: RefinementSettings')."""
     return CorrespondenceSettings(refinement=RefinementSettings(method="population", **options))

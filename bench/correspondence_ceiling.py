@@ -1,4 +1,4 @@
-"""How low can feature matches go? The true error when the profile feature is perfect (issue 13).
+"""How low can feature matches go? The true error when the profile feature is perfect.
 
 `matching="features"` with `feature_between` > 0 compares where a point lies between the
 turning lines of its region (core/correspond/turning.py). This diagnostic replaces that
@@ -15,7 +15,7 @@ Chamfer-medoid template): `features` (turning-line feature off), `features + bet
 (the computed feature, `feature_between=1`), and per W two truth rows. "template own" is
 what correspondence does with the feature: the first round compares sides only, later
 rounds give the template the feature of the shape it was made from, at its landmarks (here
-its true s). "template from population" is what it did before (docs/results.md,
+its true s). "template from population" is what it did before (git log -p docs/results.md,
 Correspondence): the population's mean feature at the first round's matches. With the
 truth every shape compares the feature with the full weight (the agreement weights of
 features.py are set to 1). Columns: true error against the template's surface

@@ -1,5 +1,5 @@
 """True correspondence error over several procedural collections, and PSB label
-transfer and model quality, per settings variant (issue 13).
+transfer and model quality, per settings variant.
 
 bench/correspondence.py measures one collection (seed 11) in depth; its error there has
 a small angle part, while other seeds' collections have large ones (Prepare's yaw), so

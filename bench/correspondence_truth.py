@@ -1,4 +1,4 @@
-"""Correspondence across classes against the truth (issue 34): one table, method × class.
+"""Correspondence across classes against the truth: one table, method × class.
 
     python bench/correspondence_truth.py [--quick] [--method NAME:key=value,...] [--classes a,b]
                                          [--rows closest,spectral,auto] [--psb-shapes N]
@@ -42,7 +42,7 @@ Methods:
   class and 1 of each TOSCA class (--quick: 1; not on PSB: its dense meshes make it far
   from cheap), compared with closest points on the same pairs;
 * (kernel warps, core/correspond/warps.py, had a row until they were removed: their
-  figures are in docs/results.md, the code at bfbd68b;)
+  figures are in docs/history.md, the code at bfbd68b;)
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words).
 `--rows` runs only the rows named (population and nricp_amberg only when named).
 """

@@ -1,4 +1,4 @@
-"""Meshing benchmark (issue 5): speed of decode → mesh, mass generation, and mesh quality
+"""Meshing benchmark: speed of decode → mesh, mass generation, and mesh quality
 on real data. Not part of the test suite; run `python bench/deform.py [--quick]`.
 
 1. decode + mesh on a ~100k-vertex template, per sample after setup, two ways:

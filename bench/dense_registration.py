@@ -1,4 +1,4 @@
-"""Correspondence time per shape, dense against ordinary meshes (issue 15's target:
+"""Correspondence time per shape, dense against ordinary meshes (the target:
 registration time per shape grows by at most 2x from 20k to 1M vertices), in CPU seconds
 of this one process (jobs=1: every registration, proxy and placement runs here, so the
 process's CPU time is all the work), split by part.
@@ -10,7 +10,7 @@ settings: the first `--shapes` meshes of the dense folder (bench/scale.py's dens
 cache: PSB fish subdivided to ~1.4M vertices; made by `bench/scale.py --rows dense-1M`
 when missing) and `--vases` procedural vases of ~20k vertices (the same vases as
 bench/scale.py's vases-20 row). Per shape: the whole correspondence, and the parts that run per dense shape: the
-registration proxy built (a dense shape's; helper code of issue 15 removes that rebuild by
+registration proxy built (a dense shape's; later code removes that rebuild by
 reusing Prepare's proxy, so the script also prints the ratio without it, an estimate), the
 registration rounds (`register_task`), the exact placement on the full surface, and the
 rest (template, outlier flags, mean templates in the main process). CPU seconds depend on

@@ -1,4 +1,4 @@
-"""What reading a mesh file's declarations costs (core/file_checks.py, issue 32): the time
+"""What reading a mesh file's declarations costs (core/file_checks.py): the time
 of `check_declared` beside the whole `read_mesh` for one mesh written in each format.
 
     python bench/file_checks.py [--subdivisions 7] [--folder DIR]

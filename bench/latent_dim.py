@@ -1,4 +1,4 @@
-"""The automatic latent dimension (80 % rule, issue 14) on real and procedural classes, per fold.
+"""The automatic latent dimension (80 % rule) on real and procedural classes, per fold.
 
     python bench/latent_dim.py [--data vases,psb:Airplane,psb:Cup,psb:Fish,psb:Vase] [--folds 5]
                                [--landmarks 800] [--seed 0]
@@ -8,13 +8,13 @@ landmark matrix Y (N, 3L); for the whole collection and for the training part of
 `--folds` folds of `evaluation.protocol.heldout_folds` it prints the latent dimension each model
 picks when none is given (PPCA, GP-LVM, Bayesian GP-LVM: the dimension is chosen before their
 optimisation starts, so the GP-LVMs run one iteration only), and beside it the rule as it was
-before issue 14 ("shrunk": the running sum of the Ledoit-Wolf shrunk spectrum over the
+before it counted the unshrunk variance ("shrunk": the running sum of the Ledoit-Wolf shrunk spectrum over the
 unshrunk total), and the Ledoit-Wolf shrinkage ("LW"). Writes bench_output/latent_dim.json.
 
 Data (--data, comma-separated):
   vases        `make_vases(20, seed)` (procedural, z up)
   psb:<Class>  every mesh of /work/shared/data/psb/<Class> (20 shapes, y up)
-Target (issue 14): automatic dimension <= 8 on every class and fold.
+Target: automatic dimension <= 8 on every class and fold (the former rule jumped between 2 and 19).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
 
 
 def shrunk_rule(Y: np.ndarray, fraction: float = 0.8) -> int:
-    """The rule before issue 14: shrunk spectrum's running sum over the unshrunk total, <= N - 1."""
+    """The former rule: shrunk spectrum's running sum over the unshrunk total, <= N - 1."""
     Yc = Y - Y.mean(0)
     _, eigvals, _ = principal_axes(Yc)
     spectrum, _ = shrunk_spectrum(eigvals, Yc.shape[1], ledoit_wolf_shrinkage(Yc))

@@ -1,4 +1,4 @@
-"""Benchmark of the shape models (issue 4): the same data through ours and the peers in one run.
+"""Benchmark of the shape models: the same data through ours and the peers in one run.
 
     python bench/models.py [--data vases|psb:<Class>|synthetic] [--shapes 30] [--landmarks 600]
                            [--only ppca|gplvm|bgplvm] [--no-gpy] [--gpy-python PATH] [--seed 0]

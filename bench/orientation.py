@@ -1,4 +1,4 @@
-"""Orientation benchmark (issue 12): how many shapes Prepare turns, how many it restores,
+"""Orientation benchmark: how many shapes Prepare turns, how many it restores,
 flags and leaves in a wrong pose, for several versions of the core in one run: the
 working tree ("after") and git revisions given by --revisions NAME=REV (default: "old",
 consensus from each shape's PCA pose, commit 5a0b44e, and "main", the default before

@@ -1,4 +1,4 @@
-"""Orientation policy benchmark (issue 30): does Prepare keep what it is given, undo file
+"""Orientation policy benchmark: does Prepare keep what it is given, undo file
 conventions, and flag (rather than silently turn) a shape turned by hand — on classes
 whose top/bottom evidence varies (tapers both ways, closed and open tops, handles at
 varying heights, several parts, sitting and standing), with no setting tuned per class.

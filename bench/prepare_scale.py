@@ -1,4 +1,4 @@
-"""Prepare by consensus on a large collection (issue 15): the pose decisions of the
+"""Prepare by consensus on a large collection: the pose decisions of the
 candidate path (above `neighbours.EXACT_SHAPES` shapes the pose search computes the exact
 cost only for the pairs a descriptor proposes) against every pair computed, for the
 working tree and git revisions, and where Prepare's time goes (cProfile).

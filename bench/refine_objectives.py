@@ -1,5 +1,5 @@
 """Which population objective has the procedural class's ground truth as its optimum?
-(issue 13: groupwise refinement beyond the thesis)
+(groupwise refinement beyond the thesis)
 
     python bench/refine_objectives.py [--seeds 11,1,2,3,4] [--sizes 6,16,40] [--no-starts]
 

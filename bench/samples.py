@@ -1,4 +1,4 @@
-"""Samples that never break (issue 14): the quality gate on 200 samples per class.
+"""Samples that never break: the quality gate on 200 samples per class.
 
     python bench/samples.py [--data vases,mugs,psb:Airplane,psb:Cup,psb:Fish,psb:Vase] [-n 200]
                             [--alpha A] [--stiffer F] [--seed 0]

@@ -1,5 +1,5 @@
-"""Scale benchmark (issue 15): time and peak memory per stage on dense meshes and large
-collections, beside the figures measured before the issue's changes.
+"""Scale benchmark: time and peak memory per stage on dense meshes and large
+collections, beside the figures measured before the dense-mesh and large-collection changes.
 
     python bench/scale.py [--quick] [--rows dense-100k,dense-1M,vases-200,...] [--jobs 2]
 
@@ -55,18 +55,18 @@ QUICK_ROWS = ("dense-100k", "vases-20")
 #: ~20k vertices per vase: rings along the profile (about 1.3x as many around)
 VASE_RESOLUTION = (115, 135)
 
-#: Figures of each row before issue 15's changes: {row: {"shapes": N, stage: (seconds, bytes)}},
+#: Figures of each row before those changes: {row: {"shapes": N, stage: (seconds, bytes)}},
 #: measured with this script on main 5dbb1d5 (dense rows; vase rows: see there) (2 jobs)
-#: while other jobs kept the load of the 2-core machine at 4-10 (docs/results.md, Scale). The 300k and 1M rows ran on fewer
-#: shapes to stay within the machine's memory (the 1M row's Prepare of 2 shapes peaked at
-#: 15.4 GB); its ppca fit cannot run on 2 shapes.
+#: while other jobs kept the load of the 2-core machine at 4-10 (git log -p docs/results.md, Scale).
+#: The 300k and 1M rows ran on fewer shapes to stay within the machine's memory (the 1M row's
+#: Prepare of 2 shapes peaked at 15.4 GB); its ppca fit cannot run on 2 shapes.
 BEFORE: dict[str, dict] = {
     "dense-100k": {"shapes": 20, "read": (12.7, 0.50e9), "prepare": (453.9, 3.66e9), "correspond": (144.8, 2.78e9),
                    "fit ppca": (0.0, 1.25e9), "save": (10.9, 1.25e9)},
     "dense-300k": {"shapes": 6, "read": (11.6, 1.10e9), "prepare": (452.1, 5.89e9), "correspond": (463.0, 7.82e9),
                    "fit ppca": (0.0, 0.99e9), "save": (7.4, 0.99e9)},
     "dense-1M": {"shapes": 2, "read": (72.7, 2.78e9), "prepare": (376.9, 15.38e9), "correspond": (1111.0, 6.89e9)},
-    # the vase rows before the large-collection changes (main 9c9d469, docs/results.md: load 3-9;
+    # the vase rows before the large-collection changes (main 9c9d469, load 3-9;
     # vases-200 prepared with align pca, vases-1000 stopped in Prepare; a peak not recorded: 0)
     "vases-20": {"shapes": 20, "make": (0.3, 0.12e9), "prepare": (131.0, 0.77e9), "correspond": (85.9, 0.82e9),
                  "correspond (dask local:2)": (66.3, 0.97e9), "fit ppca": (0.0, 0.64e9),
@@ -122,7 +122,7 @@ class TreeMemory:
 
 def _read(read_folder, folder, jobs, spill=None):
     """The folder read as `shapegen fit` reads it: in `jobs` processes, the dense meshes
-    kept in the run's spill store (core/spill.py). The core before issue 15's dense-mesh
+    kept in the run's spill store (core/spill.py). The core before the dense-mesh
     changes reads in this process only; before the spill store, every mesh stays in memory."""
     try:
         return read_folder(folder, jobs=jobs, **({} if spill is None else {"spill": spill}))
@@ -191,7 +191,7 @@ def run_row(row: str, args) -> dict:
     from shapegen_core.io import read_folder
     try:
         from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
-    except ImportError:  # the core before issue 15 (the "before" figures)
+    except ImportError:  # the core before the dense-mesh changes (the "before" figures)
         CUBIC_NOTE_SHAPES = 200
     from shapegen_core.pipeline import FitSettings, fit_shape_model
 

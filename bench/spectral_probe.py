@@ -1,4 +1,4 @@
-"""Intrinsic correspondence start (issue 34, Deliver 2): true error on TOSCA, procedural
+"""Intrinsic correspondence start: true error on TOSCA, procedural
 vases and PSB label transfer, for today's start (closest points) and the spectral start.
 
     python bench/spectral_probe.py [--classes cat dog ...] [--initialisation closest spectral]

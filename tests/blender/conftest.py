@@ -83,7 +83,7 @@ def core(extension):
         f"{extension}.core", fromlist=["*"])
 
 
-# ---------------------------------------------------------------- workflow fixtures (issue 6)
+# ---------------------------------------------------------------- workflow fixtures
 import importlib  # noqa: E402
 import json  # noqa: E402
 from dataclasses import replace  # noqa: E402

@@ -1,4 +1,4 @@
-"""Damaged mesh files through Import Training Collection (issue 32): a representative part
+"""Damaged mesh files through Import Training Collection: a representative part
 of the core tier's corpus (tests/core/corrupt_corpus.py; every case the core refuses, for
 every format) in one folder beside good files. Each damaged file is reported by name in one
 line and imported as nothing; the good files are imported; what was in the scene before

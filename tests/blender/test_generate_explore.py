@@ -1,5 +1,5 @@
 """Sample, Explore (live sliders), Interpolate, PPCA modes as shape keys, latent map —
-driven through the installed extension on small fitted models (issue 6)."""
+driven through the installed extension on small fitted models."""
 
 from __future__ import annotations
 

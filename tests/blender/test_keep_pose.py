@@ -1,4 +1,4 @@
-"""Pose reports and Keep Pose in Blender (issue 12): a vase turned upside down in the
+"""Pose reports and Keep Pose in Blender: a vase turned upside down in the
 viewport among upright ones is turned back by Prepare, which says so on its prepared copy,
 in the message and in the Data panel; with Keep Pose on that object it keeps its pose and
 is flagged instead."""

@@ -1,4 +1,4 @@
-"""Prepare keeps what it is given (issue 30) on a mug scene as an artist models it: solid
+"""Prepare keeps what it is given on a mug scene as an artist models it: solid
 mugs (quad walls, n-gon caps at both ends, walls tapering inward on some and outward on
 others, a handle as a second part: bench/blender_mugs.py `mug_data(closed=True)`), one
 with a Subdivision modifier, one parented to a turned, scaled empty, one with an

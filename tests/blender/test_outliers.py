@@ -1,4 +1,4 @@
-"""Outliers in the Correspondence panel (issue 12): listed with their reasons, left out of
+"""Outliers in the Correspondence panel: listed with their reasons, left out of
 training by Exclude Outliers and Refit (recorded on the collection, the objects
 untouched), taken back by Include Excluded."""
 

@@ -1,5 +1,5 @@
 """The fitted model travels with the .blend: save, reopen in a fresh Python process that
-installs and enables the extension, move a slider, the live mesh changes (issue 6)."""
+installs and enables the extension, move a slider, the live mesh changes."""
 
 from __future__ import annotations
 

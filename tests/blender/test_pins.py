@@ -1,4 +1,4 @@
-"""Pins on the live object (issue 43's Explore part): the live object takes the model's most
+"""Pins on the live object (Explore): the live object takes the model's most
 probable shape given the pins, the sliders follow, clearing restores, and both operators are
 undo steps (headless Blender cannot run undo itself)."""
 

@@ -1,4 +1,4 @@
-"""New objects go beside the work already in the scene, never on top of it (issue 14)."""
+"""New objects go beside the work already in the scene, never on top of it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Prepare reads objects as the artist sees them (issue 12): the evaluated mesh (an
+"""Prepare reads objects as the artist sees them: the evaluated mesh (an
 unapplied Subdivision counts) unless the panel's Base Mesh is on, world coordinates
 (parents and rotations included), a mirrored object (scale -1 on x) and a mesh wound
 inside out both come out with outward normals; the message and a custom property on each
@@ -159,7 +159,7 @@ def test_objects_of_a_scene_the_context_does_not_show_are_read_evaluated(extensi
 
 
 def _double_sided_cad_scene(path, rng) -> None:
-    """A CAD-like file (issue 31): a sphere and a small label box, every face twice (the
+    """A CAD-like file: a sphere and a small label box, every face twice (the
     copy wound the other way), each triangle on its own vertices with its own UVs (OBJ or
     glTF binary by the suffix)."""
     body = trimesh.creation.icosphere(2)
@@ -184,7 +184,7 @@ def _double_sided_cad_scene(path, rng) -> None:
 def test_a_double_sided_cad_file_reads_alike_through_blenders_importer_and_the_core(extension, tmp_path, suffix):
     """Blender's OBJ and glTF importers keep the soup's vertices; read as Prepare reads the
     object, it is the same one surface as the core's reader makes of the file: the same
-    faces, twins, parts and one-line message (issue 31)."""
+    faces, twins, parts and one-line message."""
     convert = addon_module(extension, "shapegen_addon.convert")
     io = addon_module(extension, "core.io")
     path = tmp_path / f"cad.{suffix}"
@@ -207,7 +207,7 @@ def test_double_sided_quads_and_a_wall_between_cells_read_alike_through_blenders
     importer and the core's reader both make the same closed surface of the outside, the
     wall left out. The core's reader reads the backs as twins (20 triangles; the wall's two
     sides, 4, are counted as internal); Blender's importer keeps one polygon per vertex set
-    on its own, so the object has no backs and a one-sided wall (issue 31)."""
+    on its own, so the object has no backs and a one-sided wall."""
     convert = addon_module(extension, "shapegen_addon.convert")
     io = addon_module(extension, "core.io")
     at = lambda x, y, z: 4 * x + 2 * y + z + 1  # noqa: E731  (OBJ numbers vertices from 1)

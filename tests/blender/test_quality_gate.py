@@ -25,7 +25,7 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
     def exploding(landmarks, template=None, **options):
         mesh = real(landmarks, template=template, **options)
         templates.append(template)
-        if len(templates) == 1:  # the first mesh: a flat disc five times the class's size (the mug of issue 14)
+        if len(templates) == 1:  # the first mesh: a flat disc five times the class's size (a broken mug sample)
             return mesh.with_vertices(mesh.vertices * np.array([5.0, 5.0, 0.05]))
         return mesh
 

@@ -1,5 +1,5 @@
 """Explore's sliders and Randomise stay within the training shapes' range, and a collection of
-20 shapes gets a small automatic latent dimension (issue 14)."""
+20 shapes gets a small automatic latent dimension."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Generated objects keep their template's mesh: quads, n-gons, UV maps, materials, smooth
-flags, sharp edges and vertex groups, with only the positions replaced (issue 14)."""
+flags, sharp edges and vertex groups, with only the positions replaced."""
 
 from __future__ import annotations
 
@@ -332,7 +332,7 @@ def side_volumes(obj, n_front: int) -> tuple[float, float]:
 def test_a_double_sided_template_keeps_its_two_sides_facing_apart(extension, jobs):
     """Double-sided vessels (one wound inwards): the core reads each as one surface, and the
     live object on every template keeps both sides as the object had them, the front facing
-    out and the back in (issue 31)."""
+    out and the back in (CAD files come double-sided)."""
     found = add_vessels("sheets")
     fronts = {name: make_double_sided(obj, inside_out=name == "vessel 2") for name, obj in found.items()}
     fit()

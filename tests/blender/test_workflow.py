@@ -1,4 +1,4 @@
-"""Fit in the background through the installed extension (issue 6).
+"""Fit in the background through the installed extension.
 
 Timers never fire in the bpy module, so these tests drive the add-on's polling loop
 (`jobs.poll_job`) themselves, exactly as the UI timer would.

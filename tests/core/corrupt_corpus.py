@@ -1,5 +1,5 @@
-"""A generated corpus of damaged mesh files, one list of cases per format ShapeGen reads
-(issue 32): truncations at several lengths, byte flips at seeded positions, count and
+"""A generated corpus of damaged mesh files, one list of cases per format ShapeGen reads:
+truncations at several lengths, byte flips at seeded positions, count and
 index damage, non-finite and extreme coordinates, wrong encodings and an empty file.
 
 Needs numpy and trimesh only (the Blender tier imports it too). Every case is

@@ -232,7 +232,7 @@ def test_cli_too_few_landmarks_is_one_line_naming_the_option(vase_folder, tmp_pa
     assert not out.exists()
 
 
-# ---------------------------------------------------------------------------- pose report (issue 12)
+# ---------------------------------------------------------------------------- pose report
 UPSIDE_DOWN = np.diag([1.0, -1.0, -1.0])
 
 

@@ -1,4 +1,4 @@
-"""Top and bottom by which way a shape's hollow opens (issue 12, core/preprocess/hollow.py):
+"""Top and bottom by which way a shape's hollow opens (core/preprocess/hollow.py):
 a cup turned upside down inside an upright class whose walls taper either way is put
 right (the Chamfer cost and the odd moments see an upright cup of the opposite taper),
 or flagged with that reason when its pose is kept; consistent cups, which are surfaces of

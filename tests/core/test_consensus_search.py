@@ -1,4 +1,4 @@
-"""The measurements behind consensus (issue 12): remembered pair costs equal the Chamfer
+"""The measurements behind consensus: remembered pair costs equal the Chamfer
 distance they stand for, the up signature from exact moment tensors equals its quadrature
 sum, and a search from a start rotation searches around that pose."""
 

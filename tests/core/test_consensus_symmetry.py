@@ -1,4 +1,4 @@
-"""Up by the collection's evidence and symmetries (issue 30, core/preprocess/symmetry.py and
+"""Up by the collection's evidence and symmetries (core/preprocess/symmetry.py and
 step 1 of the consensus): a group of shapes lying on their side together among an upright
 majority is stood up or flagged, a flat shape among tall ones is not laid on its side
 because they fit it better that way (its own up has the collection's symmetry)."""

@@ -1,4 +1,4 @@
-"""Prepare on a collection whose inputs share no pose (issue 13): every file turned about
+"""Prepare on a collection whose inputs share no pose: every file turned about
 its up at random. Stage A's Chamfer votes then agree only by chance; the collection
 follows one shape from nearest shape to nearest shape, the nearest shapes found at any
 turn about up (`PoseSearch.compare_turned`), instead of keeping a chance majority's poses."""
@@ -56,8 +56,8 @@ def test_airplanes_turned_at_random_about_up_end_in_one_pose():
     within = [[_angle(a @ b.T) <= 20.0 for b in relative] for a in relative]
     common = relative[int(np.argmax(np.sum(within, axis=1)))]
     # shapes lying on their side in their files (62, 63, 77) are turned about a horizontal
-    # axis by a turn about their own up: no file-convention turn undoes that (issue 30's
-    # policy: flagged or left), so only the shapes upright in their files, and not flagged
+    # axis by a turn about their own up: no file-convention turn undoes that (the
+    # orientation policy: flagged or left), so only the shapes upright in their files, and not flagged
     # as maybe upside down there, are counted
     upright = {p.name for p in as_filed if not p.orientation_changed and not p.pose_outlier}
     apart = {p.name: round(_angle(r @ common.T)) for p, r in zip(prepared, relative)

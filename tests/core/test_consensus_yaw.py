@@ -1,7 +1,7 @@
-"""The turn about up of a collection whose inputs share no facing (issue 13): every
+"""The turn about up of a collection whose inputs share no facing: every
 shape is turned to one shape's facing as precisely as its signature measures it, not to
 within the 30° tolerance that keeps shapes oriented alike; a collection whose inputs
-agree, or mostly agree, is left as it was (issue 12)."""
+agree, or mostly agree, is left as it was."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Correspondence outlier flags that catch a wrong pose (issue 12): a shape turned upside
+"""Correspondence outlier flags that catch a wrong pose: a shape turned upside
 down after Prepare is flagged with a reason a user understands, a clean collection flags
 nobody, and no outlier is ever chosen as a template (correspondence medoid, nearest-data,
 nearest-latent)."""

@@ -1,4 +1,4 @@
-"""A corpus of damaged mesh files through `shapegen prepare` (issue 32).
+"""A corpus of damaged mesh files through `shapegen prepare`.
 
 For each format ShapeGen reads (OFF, OBJ, PLY ASCII and binary, STL ASCII and binary,
 glTF and GLB), tests/core/corrupt_corpus.py makes 36-41 damaged copies of one small
@@ -9,7 +9,7 @@ output folder) or read exactly as the undamaged file. A byte flip that only chan
 coordinate of a binary file leaves a well-formed file no reader can tell from the
 original: it must then be read with every face the file declares (none added; one lost
 only as a loose sliver the message names: a corner flung far off pulls its triangle into a
-needle on a new border, issue 31).
+needle on a new border).
 An OBJ cut at a line end between its faces declares nothing that says so: it is read, and
 its vertices that no face uses are reported on stderr.
 """
@@ -141,7 +141,7 @@ def test_a_repeated_file_is_refused_but_double_sided_faces_are_left_to_intake(tm
     trimesh.Trimesh(sphere.vertices, np.vstack([sphere.faces, sphere.faces[:, ::-1]]), process=False).export(double_sided)
     with pytest.raises(MeshFileError, match=f"^{repeated}: every face appears 2 times"):
         read_mesh(repeated)
-    both_sides = read_mesh(double_sided)  # one surface, its back recorded (issue 31)
+    both_sides = read_mesh(double_sided)  # one surface, its back recorded (as CAD files store sheets)
     assert both_sides.n_faces == len(sphere.faces) and both_sides.report.twin_faces_dropped == len(sphere.faces)
 
 

@@ -1,4 +1,4 @@
-"""The optional Dask engine (issue 15): registrations on a LocalCluster of two workers give
+"""The optional Dask engine: registrations on a LocalCluster of two workers give
 the local process pool's results; addresses are checked; the core imports without Dask."""
 
 from __future__ import annotations

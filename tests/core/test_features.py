@@ -1,4 +1,4 @@
-"""Feature-space matches of non-rigid ICP (core/correspond/features.py, issue 13, beyond
+"""Feature-space matches of non-rigid ICP (core/correspond/features.py, beyond
 the thesis, opt-in with `matching="features"`)."""
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def test_feature_matches_lower_the_true_error_of_a_procedural_class():
     # measured with 150 landmarks: 3.65 % (closest points), 2.86 % (sides only, 0.78 of
     # closest), 2.65 % (with positions between turning lines, the default; 0.93 of sides
     # only); with 300 landmarks 2.74, 2.46 (0.90), 2.23 % (0.90), at 1.6 times the CPU.
-    # How each step got there: docs/results.md, Correspondence
+    # How each step got there: docs/history.md, Correspondence: feature matches
     shapes = make_vases(5, seed=11, resolution=(33, 64))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=150, seed=0))
     error = lambda settings: _true_error(shapes, prepared, correspond(prepared, settings, jobs=1))  # noqa: E731
@@ -290,7 +290,7 @@ def test_files_written_before_feature_between_compared_sides_only():
     del old["data_term"]["feature_between"]
     assert recorded_settings(CorrespondenceSettings, {"settings": np.asarray(json.dumps(old))},
                              "old.npz").data_term.feature_between == 0
-    flat = {"gamma": 2.0, "bidirectional_weight": 1.0, "matching": "features"}  # as files before issue 35 record it
+    flat = {"gamma": 2.0, "bidirectional_weight": 1.0, "matching": "features"}  # as older files record it
     assert CorrespondenceSettings.from_dict(flat, recorded=True).data_term.feature_between == 0
     # options given today (the panel's, the command line's) take today's default
     assert CorrespondenceSettings.from_dict({"matching": "features"}).data_term.feature_between == 1.0
@@ -302,7 +302,7 @@ REMOVED_KNOBS = {"feature_normals": 1.0, "feature_tilt": 1.0, "feature_up": 1.0,
 
 
 def test_files_that_record_removed_feature_knobs_load_as_today_and_new_settings_naming_them_are_refused(tmp_path):
-    """Issue 34 took the research knobs of feature matches out of the settings: a file that
+    """The research knobs of feature matches are constants, not settings: a file that
     records them (as every file written before did) loads with today's constants; settings
     given now that name one are refused, naming it and why."""
     today = BETWEEN
@@ -439,7 +439,7 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     # seed 1: the template (vase 2) has a neck; vases 1 and 4 have none, so belly to rim
     # faces up on them in one piece where the template's neck splits it. Measured true
     # error here (400 landmarks): vase 1 3.34 -> 1.52 %, vase 4 3.13 -> 2.15 %, the others
-    # unchanged; 800 landmarks: docs/results.md, Correspondence
+    # unchanged; 800 landmarks: docs/history.md, Measurements behind the correspondence settings
     shapes = make_vases(6, seed=1, resolution=(65, 130))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=400, seed=0))
     neckless = [i for i, s in enumerate(shapes) if s.params.lip_radius < s.params.neck_radius]

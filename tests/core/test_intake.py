@@ -304,7 +304,7 @@ def test_smoothed_samples_of_an_stl_class_have_no_cracks_and_are_written_connect
         assert read_mesh(write_mesh(mesh, tmp_path / f"sample_{k}.stl")).is_closed()
 
 
-# ---------------------------------------------------------------------------- CAD files (issue 31)
+# ---------------------------------------------------------------------------- CAD files
 def _double_sided(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every face twice, the copy wound the other way (how CAD files store sheets)."""
     return vertices, np.concatenate([faces, faces[:, [0, 2, 1]]])

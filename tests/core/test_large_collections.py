@@ -1,4 +1,4 @@
-"""Large collections (issue 15): Prepare's pose search proposes pairs instead of comparing
+"""Large collections: Prepare's pose search proposes pairs instead of comparing
 every pair and still finds the same nearest shapes, what Prepare holds per shape does not
 outgrow the shapes themselves, and correspondence's medoid and leave-one-out flags avoid
 their N² and N³ costs with the same answers."""
@@ -177,7 +177,7 @@ PREPARE_LOOPS = ["pose search: sampling shape 1 of", "pose search: comparing sha
 @pytest.mark.parametrize("loop", PREPARE_LOOPS)
 def test_prepare_reports_and_cancels_in_every_loop_over_the_shapes(loop):
     """Every loop of Prepare over the shapes reports progress per shape (or per shape's
-    worth of pairs) and stops at its next report once Cancel is asked (issue 15: a
+    worth of pairs) and stops at its next report once Cancel is asked (a
     1000-shape Prepare spends minutes in each): cancelled at the loop's first report, the
     last report is that first one."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes

@@ -1,4 +1,4 @@
-"""Latent vectors in training standard deviations and random draws within ±3 (issue 14)."""
+"""Latent vectors in training standard deviations and random draws within ±3."""
 
 from __future__ import annotations
 

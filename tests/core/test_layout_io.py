@@ -1,4 +1,4 @@
-"""The template's faces in written files (issue 14): quads, n-gons and UVs of the input
+"""The template's faces in written files: quads, n-gons and UVs of the input
 file come back in `shapegen sample`'s OBJ, PLY and glTF output; only positions change."""
 
 from __future__ import annotations

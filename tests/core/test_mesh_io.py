@@ -24,7 +24,7 @@ def test_vertex_and_face_order_kept(tmp_path, rng, suffix):
     trimesh.Trimesh(vertices, faces, process=False).export(str(path))
     mesh = read_mesh(path)
     assert mesh.name == "shape"
-    assert mesh.vertices.dtype == np.float64 and mesh.faces.dtype == np.int32  # int32 since issue 15
+    assert mesh.vertices.dtype == np.float64 and mesh.faces.dtype == np.int32  # int32: half the memory of dense meshes
     assert mesh.vertices.shape == vertices.shape  # nothing merged, nothing dropped
     # PLY/GLB store float32, OBJ/OFF print ~8-10 significant digits
     np.testing.assert_allclose(mesh.vertices, vertices, rtol=0, atol=1e-6)

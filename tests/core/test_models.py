@@ -1,4 +1,4 @@
-"""Tests of the shape models (issue 4): gradients, closed forms, peers, bounds, ARD, completion,
+"""Tests of the shape models: gradients, closed forms, peers, bounds, ARD, completion,
 reproducibility, input errors and serialisation. Small data only (the file runs in well under 60 s).
 """
 
@@ -598,7 +598,7 @@ def test_ppca_on_two_shapes_says_what_to_do_in_the_panels_words():
         PPCA(n_components=3, shrinkage=0.0).fit(Y)
 
 
-# ----------------------------------------------------------------------------- training latents (issue 15)
+# ----------------------------------------------------------------------------- training latents
 
 def test_training_latents_are_searched_up_to_the_size_then_the_fit_own(fitted, monkeypatch):
     """Up to ENCODE_SEARCH_SHAPES rows a model's training latents are exactly `encode`'s

@@ -1,4 +1,4 @@
-"""Exact closest points near a few queries on a dense mesh (issue 15: core/geometry/nearby.py,
+"""Exact closest points near a few queries on a dense mesh (core/geometry/nearby.py,
 nearfaces.py): the search over the faces near the queries gives exactly what the search
 over every face gives, and both what a brute-force test of every (query, face) pair gives,
 on a dense mesh with degenerate faces, a few huge faces, queries far from the surface and

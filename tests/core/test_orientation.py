@@ -1,4 +1,4 @@
-"""Orientation you can trust (issues 12 and 30): consensus turns nobody when the inputs
+"""Orientation you can trust: consensus turns nobody when the inputs
 agree, restores a perturbed subset where the evidence is clear and flags the rest without
 moving anyone else, respects keep_pose, reports every change and flags a doubtful pose
 with its reason and a turn Turn Flagged makes."""
@@ -45,7 +45,7 @@ def test_consistent_input_keeps_every_pose_exactly(kind, seed):
 
 
 def test_perturbed_subset_is_restored_or_flagged_and_nobody_else_moves():
-    """Issue 30's policy on barrels (nearly symmetric top to bottom: only the odd moments
+    """The orientation policy on barrels (nearly symmetric top to bottom: only the odd moments
     tell the ends apart): turns about up are undone, a shape on its side is stood on
     its axis (its end on weak evidence, flagged), a barrel upside down is flagged, not
     turned; Turn Flagged stands it up; nobody else moves."""

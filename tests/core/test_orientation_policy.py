@@ -1,4 +1,4 @@
-"""Issue 30's orientation policy, one collection built for each rule: Prepare trusts the
+"""The orientation policy, one collection built for each rule: Prepare trusts the
 given up axis and poses; a taper that varies across the class turns nobody; a file
 written a quarter turn off is put right; a shape turned over by hand, where only
 doubtful evidence says so, is flagged with a suggested turn and left as given; Turn

@@ -117,7 +117,7 @@ def test_every_method_section_the_code_cites_exists():
 
 
 def test_readme_is_short_and_opens_with_the_two_set_up_commands():
-    """A newcomer finds set-up first and the whole page on a few screens (issue 33)."""
+    """A newcomer finds set-up first and the whole page on a few screens."""
     lines = (ROOT / "README.md").read_text().splitlines()
     assert len(lines) <= 150
     first_block = lines[lines.index("```sh") + 1:lines.index("```", lines.index("```sh") + 1)]

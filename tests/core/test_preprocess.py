@@ -194,7 +194,7 @@ def test_consensus_restores_one_orientation():
     alone leaves those wrong; consensus brings every one upright and facing the same way
     (the spout, at +x in each vase's canonical frame, points the same way for all, to
     within the vases' own variation of about 10°). The inputs disagree in facing, so the
-    facing is the one of a shape whose pose is kept, not the PCA axis (issue 12)."""
+    facing is the one of a shape whose pose is kept, not the PCA axis."""
     vases = make_vases(9, seed=3, resolution=(12, 16))
     extra = [np.eye(3), Z_TO_MINUS_Z, Z_TO_Y] * 3
     meshes = [v.mesh.with_vertices(v.mesh.vertices @ r.T) for v, r in zip(vases, extra)]

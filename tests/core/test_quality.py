@@ -1,4 +1,4 @@
-"""The quality gate (issue 14): flipped triangles, edge distortion, self-intersections and
+"""The quality gate: flipped triangles, edge distortion, self-intersections and
 extent of generated meshes against their template and the training shapes."""
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def test_the_template_passes(vases, gate):
 
 
 def test_an_exploded_mesh_fails_on_extent(vases, gate):
-    """The mug sample of issue 14: a flat disc five times the class's size."""
+    """A broken mug sample: a flat disc five times the class's size."""
     exploded = vases[0].vertices * np.array([5.0, 5.0, 0.05])
     quality = gate.check(exploded, 0)
     assert not quality.ok
@@ -146,7 +146,7 @@ def test_settings_are_checked():
     assert QualitySettings.from_json(QualitySettings(max_redraws=3).to_json()).max_redraws == 3
 
 
-# ---------------------------------------------------------------------------- renders like its template (issue 31)
+# ---------------------------------------------------------------------------- renders like its template
 def test_a_crumpled_mesh_fails_on_roughness(vases, gate):
     mesh = vases[1]
     assert gate.check(mesh, 1).roughness_ratio == pytest.approx(1.0)

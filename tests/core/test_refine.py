@@ -1,4 +1,4 @@
-"""Groupwise refinement after NICP (issue 13): core/correspond/refine.py and objective.py."""
+"""Groupwise refinement after NICP: core/correspond/refine.py and objective.py."""
 
 from dataclasses import replace
 
@@ -252,7 +252,7 @@ def test_correspondence_file_records_the_refinement(vases, tmp_path):
     assert loaded.refinement == "population" and loaded.settings.refinement.method == "population"
     assert np.array_equal(loaded.refinement_trace, refined.refinement_trace)
     assert np.array_equal(loaded.points, refined.points)
-    # a file written before issue 13 (no refinement arrays) loads as "none"
+    # a file written before refinement existed (no refinement arrays) loads as "none"
     from shapegen_core.correspond import CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION
     from shapegen_core.npzfile import save_npz
     arrays = nicp.to_arrays()

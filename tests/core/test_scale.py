@@ -1,4 +1,4 @@
-"""Dense meshes and large collections (issue 15): the vertex-clustering proxy, exact
+"""Dense meshes and large collections: the vertex-clustering proxy, exact
 closest points on a full surface from an upper bound, dense and sparse copies of one
 shape corresponding alike, and what a worker receives not growing with the collection.
 Small meshes only: time and memory at scale are measured by bench/scale.py."""

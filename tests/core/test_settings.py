@@ -19,7 +19,7 @@ from shapegen_core.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.settings import Settings, SettingsError, group, option, recorded_settings
 
-#: the correspondence settings of the `corresponded` fixture as files written before issue 35
+#: the correspondence settings of the `corresponded` fixture as files written before the grouped settings
 #: record them: one flat JSON object (written by CorrespondenceSettings(alpha_steps=1,
 #: max_iterations=3, groupwise_rounds=0).to_json() at de08ccf)
 FLAT_JSON = (
@@ -216,7 +216,7 @@ def test_correspondence_files_of_the_previous_version_still_load(corresponded, t
 
 
 def test_flat_correspondence_settings_of_before_read_into_their_groups(corresponded, tmp_path):
-    """Files written before issue 35 record CorrespondenceSettings flat (one JSON object, or
+    """Files written before the grouped settings record CorrespondenceSettings flat (one JSON object, or
     before that key/value strings); `FIELDS_MOVED` reads them into the groups, renamed
     options (refine_sigma → refinement.sigma) included, and files written now nest them."""
     assert CorrespondenceSettings.from_json(FLAT_JSON, recorded=True) == SMALL
@@ -229,7 +229,7 @@ def test_flat_correspondence_settings_of_before_read_into_their_groups(correspon
     with np.load(path) as data:  # written now: nested by subsystem
         assert json.loads(str(data["settings"]))["stiffness"]["alpha_steps"] == 1
     fit = FitSettings(correspondence=SMALL).as_dict()
-    fit["correspondence"] = flat  # a model file's FitSettings before issue 35
+    fit["correspondence"] = flat  # a model file's FitSettings before the grouped settings
     assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == SMALL
     renamed = {"refine": "population", "refine_sigma": 2.0, "outlier_mad_factor": 4.0}
     assert CorrespondenceSettings.from_dict(renamed) == CorrespondenceSettings(
@@ -313,7 +313,7 @@ def test_choose_template_reads_the_recorded_mesh_template(fitted):
     model, path = fitted
     loaded = GenerativeShapeModel.load(path)
     assert loaded.settings.mesh_template == "vase_003"
-    fits = int(np.flatnonzero(~loaded.correspondence.outliers)[0])  # outliers are never templates (issue 12)
+    fits = int(np.flatnonzero(~loaded.correspondence.outliers)[0])  # outliers are never templates
     own = loaded.correspondence.points[fits]
     assert loaded.choose_template(own, "nearest-data") == fits
     assert loaded.choose_template(own, None) == loaded.names.index("vase_003")

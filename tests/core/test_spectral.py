@@ -1,4 +1,4 @@
-"""The intrinsic start of correspondence (issue 34): the Laplace–Beltrami spectrum against
+"""The intrinsic start of correspondence: the Laplace–Beltrami spectrum against
 closed forms, the spectral map on known answers, the option's wiring and its file record."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Dense meshes kept on disk for a run (core/spill.py, issue 15): the main process keeps
+"""Dense meshes kept on disk for a run (core/spill.py): the main process keeps
 handles, not the meshes; the results equal the in-memory path's; the store's folder is
 removed after success, error and cancel. Small meshes stand in for dense ones (the
 store's size limit and the proxy size are lowered); bench/scale.py measures the real

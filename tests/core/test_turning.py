@@ -1,4 +1,4 @@
-"""Positions between turning lines (core/correspond/turning.py; issue 13, beyond the thesis)."""
+"""Positions between turning lines (core/correspond/turning.py; beyond the thesis)."""
 
 from __future__ import annotations
 

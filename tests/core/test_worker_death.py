@@ -1,6 +1,6 @@
 """A worker process killed during `shapegen fit` (SIGKILL, as the out-of-memory killer
 would) ends the command with exit status 2 and one line: the shape, the signal, the
-likely cause and what to try; no traceback, no output file, no temporary folder (issue 32).
+likely cause and what to try; no traceback, no output file, no temporary folder.
 The worker kills itself through the test hook `pool.KILL_ON_SHAPE_VARIABLE`."""
 
 from __future__ import annotations
