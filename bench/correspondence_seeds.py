@@ -54,7 +54,7 @@ from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa:
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.io import read_folder  # noqa: E402
 from shapegen_core.mesh import Mesh  # noqa: E402
-from shapegen_core.settings import nested_data  # noqa: E402
+from shapegen_core.base.settings import nested_data  # noqa: E402
 
 
 def parse_variant(spec: str) -> dict:

@@ -66,10 +66,10 @@ from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E4
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
-from shapegen_core.errors import MeshFileError  # noqa: E402
+from shapegen_core.base.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
 from shapegen_core.io import read_folder, read_mesh  # noqa: E402
-from shapegen_core.settings import nested_data  # noqa: E402
+from shapegen_core.base.settings import nested_data  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from correspondence import console_log, face_labels, nricp_baseline  # noqa: E402

@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from shapegen_core.errors import MeshError, MeshFileError  # noqa: E402
+from shapegen_core.base.errors import MeshError, MeshFileError  # noqa: E402
 from shapegen_core.io import list_mesh_files, read_mesh  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"

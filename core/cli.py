@@ -22,7 +22,7 @@ from . import __version__
 from .cli_generate import add_generate_commands
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
-from .errors import ShapeGenError
+from .base.errors import ShapeGenError
 from .pipeline import FitSettings
 from .spill import SpillStore
 

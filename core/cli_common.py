@@ -13,12 +13,12 @@ from typing import Sequence, Union, get_args, get_origin, get_type_hints
 
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
-from .errors import CollectionError, ShapeGenError
+from .base.errors import CollectionError, ShapeGenError
 from .io import read_folder, read_readable
 from .mesh import Mesh
 from .pipeline import FitSettings
-from .progress import Progress
-from .settings import SettingsError, is_group, nested_data, settings_from_dict
+from .base.progress import Progress
+from .base.settings import SettingsError, is_group, nested_data, settings_from_dict
 from .spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 

@@ -26,13 +26,13 @@ import numpy as np
 from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, add_skip_unreadable_option,
                          console_progress, positive_int, prepare_source, read_mesh_folder, read_source,
                          requested_settings, settings_from_args)
-from .child_process import exit_with_parent
+from .base.child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
 from .io import MeshWriters, list_mesh_files
 from .labels import PartLabels, labels_beside, write_label_file, written_face_labels
-from .npzfile import ArraySpec, load_npz, save_npz
+from .base.npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .spill import SpillStore, loaded
 from .preprocess import ShapeTransform

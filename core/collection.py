@@ -22,15 +22,15 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import CollectionError, ModelFileError
+from .base.errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
 from . import meshset
 from .mesh import Mesh
-from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .preprocess.prepare import turn_as_flagged
-from .progress import CancelCheck, Progress, sub_range
-from .settings import Settings, option, recorded_settings
+from .base.progress import CancelCheck, Progress, sub_range
+from .base.settings import Settings, option, recorded_settings
 from .spill import REGISTRATION_PROXY, StoredMesh, loaded
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
@@ -230,7 +230,7 @@ def prepare_meshes(
     """Align, scale and landmark a collection (thesis §3.4 and §4.2.1). `keep_pose`: the
     names of the shapes whose pose is kept (never turned beyond the up axis, still
     checked and flagged), or one bool per mesh. `progress` and `should_cancel` as in
-    core/progress.py; cancel is checked at every progress step. Dense meshes kept on disk
+    core/base/progress.py; cancel is checked at every progress step. Dense meshes kept on disk
     (`spill.StoredMesh`, from `io.read_folder(spill=...)`) stay there: each is loaded for
     its own steps, its prepared shape is stored beside it with its registration proxy
     (`spill.REGISTRATION_PROXY`, built here at full density, once)."""

@@ -37,11 +37,11 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import factorized
 from scipy.spatial import cKDTree
 
-from .errors import ShapeGenError
+from .base.errors import ShapeGenError
 from .geometry import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines,
                        registration_frame)
 from .mesh import Mesh
-from .settings import Settings, option
+from .base.settings import Settings, option
 
 __all__ = [
     "DeformSettings",

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import MeshFileError
+from .base.errors import MeshFileError
 
 __all__ = ["MAX_COORDINATE", "check_declared", "check_read_faces", "check_coordinates", "check_not_repeated",
            "data_rows", "off_sections"]

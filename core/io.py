@@ -47,8 +47,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .child_process import MEMORY_ADVICE, exit_with_parent
-from .errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
+from .base.child_process import MEMORY_ADVICE, exit_with_parent
+from .base.errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
 from .file_checks import (check_coordinates, check_declared, check_not_repeated, check_read_faces, data_rows,
                           obj_unterminated, off_sections)
 from .intake import clean_mesh, weld_vertices

@@ -3,7 +3,7 @@
 The Blender layer (and tests, and anything else) starts a `BackgroundJob`, then polls it;
 polling never blocks. The worker is a plain Python process running `core/worker.py` with
 the core importable (it never imports bpy: a child of Blender cannot). It talks back over
-its stdout, one JSON object per line (progress as in core/progress.py):
+its stdout, one JSON object per line (progress as in core/base/progress.py):
 
     {"event": "progress", "fraction": 0.42,
      "stage": "correspondence: registering vase_003 (round 1 of 2, iteration 7)"}
@@ -32,7 +32,7 @@ import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .child_process import MEMORY_ADVICE, how_it_ended
+from .base.child_process import MEMORY_ADVICE, how_it_ended
 
 __all__ = ["BackgroundJob", "JobStatus", "JOB_STATES"]
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ShapeGenError
+from .base.errors import ShapeGenError
 from .mesh import Mesh
 
 __all__ = ["LABELS_SUFFIX", "UNLABELLED", "LabelFileError", "PartLabels", "label_path", "labels_beside",

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import MeshError
+from .base.errors import MeshError
 from .mesh import Mesh
 
 __all__ = ["Landmarks", "select_landmarks", "radius_select", "DEFAULT_LANDMARKS", "MIN_LANDMARKS"]

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .errors import MeshError
+from .base.errors import MeshError
 
 if TYPE_CHECKING:
     from .layout import FaceLayout

@@ -43,7 +43,7 @@ from .collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .correspond.posing import apply_pose
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
-from .errors import CollectionError, ModelFileError, ShapeGenError
+from .base.errors import CollectionError, ModelFileError, ShapeGenError
 from .labels import PartLabels
 from .latent_units import LatentUnits
 from . import meshset
@@ -51,10 +51,10 @@ from .layout import pack_layouts, unpack_layouts
 from .mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .models.scaling import ScaleWarning, size_note
-from .npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess.rotations import up_rotation
-from .progress import CancelCheck, Progress, no_progress, sub_range
-from .settings import Settings, SettingsError, legacy_settings, option
+from .base.progress import CancelCheck, Progress, no_progress, sub_range
+from .base.settings import Settings, SettingsError, legacy_settings, option
 from .spill import full_mesh, loaded
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
@@ -554,7 +554,7 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
     (the model records how its shapes were really prepared); `settings.prepare` is used
     only for raw meshes or a collection that records none.
 
-    Progress fractions (core/progress.py): prepare 0–0.15, correspondence 0.15–0.75,
+    Progress fractions (core/base/progress.py): prepare 0–0.15, correspondence 0.15–0.75,
     model 0.75–1. `should_cancel` (None, a callable or an Event) is polled inside every
     step and between them; a cancel raises errors.Cancelled and nothing is returned.
     """
@@ -624,7 +624,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     prepared meshes moved by the correspondence's poses, `posed_meshes`): fit
     `settings.model` to the landmark matrix, encode the training shapes (saved with the
     model, so nobody encodes them again) and bundle the fitted whole.
-    `progress` and `should_cancel` as in core/progress.py (cancel is checked at every
+    `progress` and `should_cancel` as in core/base/progress.py (cancel is checked at every
     progress step of the model fit); `started` (perf_counter) dates the fit's start."""
     report = progress or no_progress
     cancel = CancelCheck(should_cancel, "fit")

@@ -34,13 +34,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .errors import ShapeGenError
+from .base.errors import ShapeGenError
 from .geometry.intersections import intersecting_pairs, pair_keys
 from scipy.spatial import cKDTree
 
 from .intake import shared_edges
 from .mesh import Mesh, triangle_cross
-from .settings import Settings, option
+from .base.settings import Settings, option
 
 __all__ = ["QualitySettings", "MeshQuality", "QualityGate", "training_extents"]
 

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Sequence
 
-from .cluster import connect
+from .base.cluster import connect
 from .quality import QualitySettings
 from .sampling import GatedSample, gated_slots
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ShapeGenError
+from .base.errors import ShapeGenError
 from .mesh import Mesh, MeshReport, MeshSizes
 from .simplify import DENSE_FACES, POSE_PROXY_FACES, REGISTRATION_PROXY_FACES, Proxy, proxy_mesh
 

@@ -39,8 +39,8 @@ import numpy as np
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings
 from .correspond.posing import apply_pose
-from .errors import ShapeGenError
-from .npzfile import read_format
+from .base.errors import ShapeGenError
+from .base.npzfile import read_format
 from .pipeline import FitSettings
 
 __all__ = ["STAGES", "FILE_STAGES", "Offered", "StagePlan", "SettingsConflict", "plan_stages", "file_stage",

@@ -78,7 +78,7 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     from .collection import PreparedCollection, prepare_meshes
     from .meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-    from .progress import sub_range
+    from .base.progress import sub_range
     from .spill import SpillStore
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
@@ -109,7 +109,7 @@ def _kept(meshes: list, spill) -> list:
 def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
     """The shared end of a task: nothing is written once cancelled; else `result.save` to
     arguments["output"], whose path is the task's output."""
-    from .progress import CancelCheck
+    from .base.progress import CancelCheck
 
     CancelCheck(should_cancel, task)()
     output = Path(arguments["output"])
@@ -150,7 +150,7 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash, be
     killed (`kill_at`: SIGKILL) or run a step that never checks cancel (`busy_at`, for
     `busy` seconds; `import_at`: one that turns the cancel's interrupt into an ImportError)."""
-    from .progress import CancelCheck
+    from .base.progress import CancelCheck
     from .spill import SpillStore
 
     cancel = CancelCheck(should_cancel, "selftest")
@@ -174,7 +174,7 @@ def _busy(seconds: float) -> None:
 def _selftest_steps(arguments: dict, steps: int, progress, cancel) -> None:
     import time
 
-    from .errors import ShapeGenError
+    from .base.errors import ShapeGenError
 
     for i in range(steps):
         if arguments.get("busy_at") == i:  # a long step that never checks cancel
@@ -207,7 +207,7 @@ def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] not in TASKS:
         _emit(event="failed", error=f"usage: worker.py TASK JSON (tasks: {', '.join(TASKS)})")
         return 2
-    from .errors import Cancelled, ShapeGenError
+    from .base.errors import Cancelled, ShapeGenError
 
     task, arguments = TASKS[argv[0]], json.loads(argv[1])
     cancel = _CancelOnStdin()

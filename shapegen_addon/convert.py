@@ -28,7 +28,7 @@ import bmesh
 import bpy
 import numpy as np
 
-from ..core.errors import MeshError, MeshFileError
+from ..core.base.errors import MeshError, MeshFileError
 from ..core.intake import clean_mesh
 from ..core.mesh import Mesh
 

@@ -19,7 +19,7 @@ from typing import Callable
 import bpy
 import numpy as np
 
-from ..core.errors import ShapeGenError
+from ..core.base.errors import ShapeGenError
 from ..core.jobs import JobStatus
 from ..core.meshset import save_mesh_set
 from ..core.pipeline import FitSettings

@@ -27,7 +27,7 @@ import contextlib
 import bpy
 import numpy as np
 
-from ..core.errors import ShapeGenError
+from ..core.base.errors import ShapeGenError
 from ..core.latent_units import LatentUnits
 from ..core.quality import QualitySettings
 from ..core.sampling import quality_gate

@@ -23,7 +23,7 @@ from mathutils import Matrix
 from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
 from ..core.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
-from ..core.settings import SettingsError
+from ..core.base.settings import SettingsError
 from ..core.stages import Offered
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ..core.errors import MeshError
+from ..core.base.errors import MeshError
 from . import store
 from .convert import (evaluated_depsgraph, mesh_copy, mesh_data_from_arrays, read_object, reverse_polygons,
                       winding_to_reverse)

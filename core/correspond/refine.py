@@ -36,7 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from ..mesh import Mesh
-from ..progress import CancelCheck, Progress, no_progress
+from ..base.progress import CancelCheck, Progress, no_progress
 from .objective import CompactnessTerm, LandmarkState, combined
 from .shards import ShapeShard, ShardAnswer, Shards, interpolated_normals
 from .settings import REFINE_METHODS, CorrespondenceSettings

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..settings import Settings, SettingsError, group, option
+from ..base.settings import Settings, SettingsError, group, option
 from ..simplify import REGISTRATION_PROXY_FACES
 
 __all__ = ["CorrespondenceSettings", "StiffnessSettings", "DataTermSettings", "IterationSettings", "OutlierSettings",

@@ -103,7 +103,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..mesh import Mesh
-from ..progress import Progress, sub_range
+from ..base.progress import Progress, sub_range
 from .floors import FileFloors, Floor
 from .hollow import Hollows
 from .posesearch import NearestInPool, PoseSearch

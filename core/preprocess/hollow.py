@@ -32,7 +32,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Hollows", "opening_vector"]

@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry.chamfer import chamfer_distance, chamfer_distances
 from ..mesh import Mesh
-from ..progress import Progress, no_progress, sub_range
+from ..base.progress import Progress, no_progress, sub_range
 from .moments import surface_moments
 from .neighbours import EXACT_SHAPES, CandidateDistances, complete_nearest
 from .rotations import AXIS_ROTATIONS, TILTS, turn_rotations, yaw_rotation

@@ -7,7 +7,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import CollectionError, MeshError
+from ..base.errors import CollectionError, MeshError
 from ..mesh import FACE_CHUNK, Mesh
 from ..simplify import DENSE_FACES, POSE_PROXY_FACES
 from ..spill import loaded, proxy_of

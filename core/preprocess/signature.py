@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Signatures", "FACING_FLOOR"]

@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry.chamfer import chamfer_distance
 from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 from .posesearch import PoseSearch
 from .rotations import TILTS

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import bpy
 
-from ...core.errors import ShapeGenError
+from ...core.base.errors import ShapeGenError
 from ...core.jobs import JobStatus
 from .manager import MANAGER
 

@@ -25,7 +25,7 @@ import bpy
 from bpy.props import StringProperty
 
 from ...core.collection import PrepareSettings
-from ...core.errors import ShapeGenError
+from ...core.base.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
 from ...core.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy

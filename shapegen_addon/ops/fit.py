@@ -26,7 +26,7 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ...core.errors import ShapeGenError
+from ...core.base.errors import ShapeGenError
 from ...core.jobs import BackgroundJob
 from .. import fitting, store
 from ..exclusion import training_objects

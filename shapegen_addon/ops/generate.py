@@ -21,7 +21,7 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from ...core.errors import ShapeGenError
+from ...core.base.errors import ShapeGenError
 from ...core.quality import QualitySettings
 from ...core.sampling import draw_budget, gate_summary, gated_samples, shortfall
 from .. import store

@@ -171,7 +171,7 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
     """The panel's defaults, as the worker receives them, are the core's default FitSettings,
     which are the `shapegen` defaults too (its options are built from the same classes)."""
     pipeline = addon_module(extension, "core.pipeline")
-    core_settings = addon_module(extension, "core.settings")
+    core_settings = addon_module(extension, "core.base.settings")
     scene = bpy.data.scenes.new("fresh defaults")
     try:
         panel = scene.shapegen

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.npzfile import load_npz, save_npz, ArraySpec
+from shapegen_core.base.npzfile import load_npz, save_npz, ArraySpec
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.npzfile import load_npz, save_npz
+from shapegen_core.base.npzfile import load_npz, save_npz
 from shapegen_core.pipeline import GenerativeShapeModel
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")

@@ -13,8 +13,8 @@ import pytest
 
 from shapegen_core.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.errors import CollectionError, ModelFileError
-from shapegen_core.npzfile import save_npz
+from shapegen_core.base.errors import CollectionError, ModelFileError
+from shapegen_core.base.npzfile import save_npz
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
@@ -205,7 +205,7 @@ def test_cli_bad_folder_exits_2(vase_folder, tmp_path, content, fragment):
 def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
     """A failure while writing (here: streaming the meshes in raising half-way) leaves
     neither the output nor a temporary file."""
-    import shapegen_core.npzfile as npzfile
+    import shapegen_core.base.npzfile as npzfile
 
     def broken(self, handle):
         handle.write(b"\x93NUMPY partial")

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from shapegen_core.cluster import ClusterError, parse_scheduler
+from shapegen_core.base.cluster import ClusterError, parse_scheduler
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import IterationSettings
@@ -48,7 +48,7 @@ def test_cancel_on_dask_stops_the_registrations(cluster):
     """Cancel asked once the first shape is registered raises Cancelled; nothing is returned."""
     import threading
 
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=7, resolution=(14, 20))],
                               PrepareSettings(n_landmarks=120))
@@ -87,7 +87,7 @@ def test_core_imports_and_runs_without_dask():
     code = (
         "import sys; sys.modules['distributed'] = None; sys.modules['dask'] = None\n"
         "import shapegen_core.pipeline, shapegen_core.cli\n"
-        "from shapegen_core.cluster import connect, ClusterError\n"
+        "from shapegen_core.base.cluster import connect, ClusterError\n"
         "try:\n"
         "    with connect('local:1'): pass\n"
         "except ClusterError as exc: print(exc)\n"

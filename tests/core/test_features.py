@@ -21,11 +21,11 @@ from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO
                                                point_features, worse_fits)
 from shapegen_core.correspond.settings import FEATURE_STIFFNESS, DataTermSettings, StiffnessSettings
 from shapegen_core.datasets import make_cups, make_vases
-from shapegen_core.errors import ModelFileError
+from shapegen_core.base.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, closest_points_on_triangles, knn_graph, registration_frame
 from shapegen_core.landmarks import select_landmarks
 from shapegen_core.pipeline import FitSettings
-from shapegen_core.settings import SettingsError, recorded_settings
+from shapegen_core.base.settings import SettingsError, recorded_settings
 
 FEATURES = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=0.0))  # sides only
 BETWEEN = CorrespondenceSettings(data_term=DataTermSettings(matching="features"))  # positions between turning lines too

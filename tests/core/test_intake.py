@@ -13,7 +13,7 @@ import trimesh
 from shapegen_core.collection import PrepareSettings
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.deform import enclosed_volume
-from shapegen_core.errors import MeshError
+from shapegen_core.base.errors import MeshError
 from shapegen_core.intake import (OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outside_sides, outwardness,
                                    weld_vertices, winding_numbers)
 from shapegen_core.io import read_folder, read_mesh, write_mesh

@@ -151,7 +151,7 @@ def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
     """Cancel is checked while the pose search compares shapes (every pair, or the
     proposed pairs), not only after it: the search stops at its next report."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
     from shapegen_core.preprocess import posesearch
 
     monkeypatch.setattr(posesearch.PoseSearch.__init__, "__defaults__", (exact_shapes, None))
@@ -181,7 +181,7 @@ def test_prepare_reports_and_cancels_in_every_loop_over_the_shapes(loop):
     1000-shape Prepare spends minutes in each): cancelled at the loop's first report, the
     last report is that first one."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     messages, fractions = [], []
     meshes = [v.mesh for v in make_vases(5, seed=2, resolution=(12, 16))]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.errors import CollectionError, MeshError, MeshFileError
+from shapegen_core.base.errors import CollectionError, MeshError, MeshFileError
 from shapegen_core.io import read_folder, read_mesh, write_mesh
 from shapegen_core.mesh import Mesh
 

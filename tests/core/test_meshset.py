@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.datasets import make_vases
-from shapegen_core.errors import ModelFileError
+from shapegen_core.base.errors import ModelFileError
 from shapegen_core.meshset import load_mesh_set, pack, save_mesh_set, unpack
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from shapegen_core.errors import Cancelled, ModelFileError
+from shapegen_core.base.errors import Cancelled, ModelFileError
 from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, kde, make_model, model_from_arrays
 from shapegen_core.models.base import ModelInputError, default_latent_dim, ledoit_wolf_shrinkage
 from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales, profile_scale

@@ -10,7 +10,7 @@ import pytest
 
 from shapegen_core.collection import PrepareSettings
 from shapegen_core.datasets import make_vases
-from shapegen_core.errors import ShapeGenError
+from shapegen_core.base.errors import ShapeGenError
 from shapegen_core.models import GPLVM, PPCA, BayesianGPLVM
 from shapegen_core.models.latent_variable import LatentVariableModel
 from shapegen_core.pipeline import FitSettings, fit_meshes

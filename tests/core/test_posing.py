@@ -16,7 +16,7 @@ from shapegen_core.correspond import Correspondence, CorrespondenceSettings, cor
 from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_angle, rigid_fit
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.mesh import Mesh
-from shapegen_core.npzfile import save_npz
+from shapegen_core.base.npzfile import save_npz
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 from shapegen_core.preprocess import ShapeTransform
 from shapegen_core.stages import same_shapes

@@ -254,14 +254,14 @@ def test_correspondence_file_records_the_refinement(vases, tmp_path):
     assert np.array_equal(loaded.points, refined.points)
     # a file written before issue 13 (no refinement arrays) loads as "none"
     from shapegen_core.correspond import CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION
-    from shapegen_core.npzfile import save_npz
+    from shapegen_core.base.npzfile import save_npz
     arrays = nicp.to_arrays()
     del arrays["refinement"], arrays["refinement_trace"]
     old = Correspondence.load(save_npz(tmp_path / "old.npz", CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, arrays))
     assert old.refinement == "none" and old.refinement_trace.shape == (0, 3)
     arrays["refinement"] = np.asarray("sideways")
     arrays["refinement_trace"] = np.zeros((0, 3))
-    from shapegen_core.errors import ModelFileError
+    from shapegen_core.base.errors import ModelFileError
     with pytest.raises(ModelFileError, match="unknown refinement 'sideways'"):
         Correspondence.load(save_npz(tmp_path / "bad.npz", CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, arrays))
 
@@ -282,7 +282,7 @@ def test_command_line_refine_option():
 def test_progress_cancel_and_worker_processes(vases):
     """Refinement reports progress after NICP's share and can be cancelled; its per-shape
     work in two worker processes gives the same landmarks as in this process."""
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     shapes, prepared, nicp = vases
     seen = []

@@ -211,7 +211,7 @@ def test_meshes_streamed_into_files_uncompressed(vases, tmp_path):
     keys are written without compression, and the file reads back as before."""
     import zipfile
 
-    from shapegen_core.npzfile import Concatenation, save_npz
+    from shapegen_core.base.npzfile import Concatenation, save_npz
 
     parts = [m.vertices for m in vases[:3]]
     path = save_npz(tmp_path / "x.npz", "shapegen.test", 1,

@@ -15,9 +15,9 @@ from shapegen_core.correspond import Correspondence, CorrespondenceSettings, cor
 from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, OutlierSettings, RefinementSettings,
                                                StiffnessSettings)
 from shapegen_core.deform import DeformSettings
-from shapegen_core.errors import ModelFileError, ShapeGenError
+from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
-from shapegen_core.settings import Settings, SettingsError, group, option, recorded_settings
+from shapegen_core.base.settings import Settings, SettingsError, group, option, recorded_settings
 
 #: the correspondence settings of the `corresponded` fixture as files written before issue 35
 #: record them: one flat JSON object (written by CorrespondenceSettings(alpha_steps=1,

@@ -17,7 +17,7 @@ from shapegen_core.correspond.settings import DataTermSettings, IterationSetting
 from shapegen_core.correspond.functional_map import spectral_shape, spectral_start
 from shapegen_core.correspond.start import _start_on_shape, _StartItem
 from shapegen_core.geometry.spectral import SpectrumError, cotangent_laplacian, laplace_beltrami_spectrum
-from shapegen_core.settings import SettingsError
+from shapegen_core.base.settings import SettingsError
 
 
 

@@ -18,7 +18,7 @@ import trimesh
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.datasets import make_vases
-from shapegen_core.errors import Cancelled
+from shapegen_core.base.errors import Cancelled
 from shapegen_core.io import read_folder
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from shapegen_core.spill import SpillStore, StoredMesh
