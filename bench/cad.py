@@ -37,8 +37,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 import numpy as np  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings  # noqa: E402
-from shapegen_core.io import MeshWriters, read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.meshes.reading import MeshWriters, read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.pipeline import FitSettings, fit_meshes  # noqa: E402
 from shapegen_core.quality import coincident_faces  # noqa: E402
 from shapegen_core.sampling import gated_samples  # noqa: E402
@@ -153,8 +153,8 @@ def thinnest_faces() -> None:
     """The thinnest face (shortest altitude / longest edge) of every clean mesh of PSB, TOSCA
     and the procedural classes, per class: intake.SLIVER_RATIO must stay below them all."""
     from shapegen_core.datasets import make_barrels, make_cups, make_mugs, make_vases
-    from shapegen_core.io import list_mesh_files, read_mesh
-    from shapegen_core.mesh import SLIVER_RATIO
+    from shapegen_core.meshes.reading import list_mesh_files, read_mesh
+    from shapegen_core.meshes.mesh import SLIVER_RATIO
 
     def ratios(mesh: Mesh) -> np.ndarray:
         corners = mesh.vertices[mesh.faces]

@@ -56,7 +56,7 @@ from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
 from psb_labels import face_labels  # noqa: E402
 from shapegen_core.geometry import (AffineSolver, TargetSurface, data_blocks, knn_graph,  # noqa: E402
                                     registration_frame, stiffness_energy)
-from shapegen_core.io import read_folder  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"

@@ -52,8 +52,8 @@ from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, erro
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.datasets import make_vases  # noqa: E402
-from shapegen_core.io import read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.base.settings import nested_data  # noqa: E402
 
 

@@ -68,7 +68,7 @@ from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.base.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 from shapegen_core.base.settings import nested_data  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -28,8 +28,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.geometry import apply_affines  # noqa: E402
-from shapegen_core.io import read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.collection import PrepareSettings  # noqa: E402
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 

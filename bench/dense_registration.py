@@ -91,7 +91,7 @@ def main() -> int:
     from shapegen_core import __file__ as core_file
     from shapegen_core.collection import PrepareSettings, prepare_meshes
     from shapegen_core.datasets import make_vases
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     files = sorted(Path(args.dense_folder).glob("*.ply"))[: args.shapes]
     if len(files) < args.shapes:

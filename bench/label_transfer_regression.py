@@ -64,7 +64,7 @@ def measure_class(name: str, jobs: int, decisions_only: bool) -> dict:
     import numpy as np
 
     from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.io import read_folder
+    from shapegen_core.meshes.reading import read_folder
 
     folder = PSB / name
     meshes = read_folder(folder)

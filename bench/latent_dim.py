@@ -51,7 +51,7 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
             from shapegen_core.datasets import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(20, seed=seed)], "z"
         elif data.startswith("psb:"):
-            from shapegen_core.io import read_folder
+            from shapegen_core.meshes.reading import read_folder
             meshes, up_axis = read_folder(PSB / data[4:]), "y"
         else:
             raise SystemExit(f"unknown --data {data!r} (vases, psb:<Class>)")

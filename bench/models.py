@@ -109,7 +109,7 @@ def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
             from shapegen_core.datasets import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(n_shapes, seed=seed)], "z"
         else:
-            from shapegen_core.io import read_folder
+            from shapegen_core.meshes.reading import read_folder
             meshes, up_axis = read_folder(PSB / data[4:]), "y"
         prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=n_landmarks, up_axis=up_axis, seed=0))
         corr = correspond(prepared, CorrespondenceSettings(), jobs=1)

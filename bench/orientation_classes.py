@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from shapegen_core.datasets import _revolved_mesh
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 
 __all__ = ["make_bottles", "make_teddies"]
 

@@ -55,7 +55,7 @@ from orientation import load_revision  # noqa: E402
 from orientation_classes import make_bottles, make_teddies  # noqa: E402
 from shapegen_core.datasets import make_barrels, make_cups, make_mugs, make_vases  # noqa: E402
 from shapegen_core.base.errors import MeshFileError  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform, prepare_collection  # noqa: E402
 from shapegen_core.preprocess.rotations import up_rotation, yaw_rotation  # noqa: E402
 

@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from shapegen_core.base.errors import MeshError, MeshFileError  # noqa: E402
-from shapegen_core.io import list_mesh_files, read_mesh  # noqa: E402
+from shapegen_core.meshes.reading import list_mesh_files, read_mesh  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():

@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 
 from shapegen_core.collection import PrepareSettings  # noqa: E402
 from shapegen_core.deform import DeformSettings  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 from shapegen_core.quality import CRITERIA, QualitySettings  # noqa: E402
 from shapegen_core.sampling import gated_samples  # noqa: E402
@@ -65,7 +65,7 @@ def class_meshes(data: str) -> tuple[list[Mesh], str]:
 
         return [Mesh(vertices, faces, name=name) for name, vertices, faces in mug_meshes()], "z"
     if data.startswith("psb:"):
-        from shapegen_core.io import read_folder
+        from shapegen_core.meshes.reading import read_folder
 
         return read_folder(PSB / data[4:]), "y"
     raise SystemExit(f"unknown --data {data!r} (vases, mugs, psb:<Class>)")

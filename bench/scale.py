@@ -13,7 +13,7 @@ memory of that process and every process it started, sampled every 20 ms):
   repository (`--cache`, default /tmp/shapegen-scale; never committed); then the stages of
   `shapegen fit --model ppca` on that folder: read, prepare, correspond, fit ppca, save
   (as `shapegen fit` runs them: meshes above 100k faces kept in a spill store on disk, the
-  main process holding handles, core/spill.py).
+  main process holding handles, core/meshes/spill.py).
 * vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
@@ -122,7 +122,7 @@ class TreeMemory:
 
 def _read(read_folder, folder, jobs, spill=None):
     """The folder read as `shapegen fit` reads it: in `jobs` processes, the dense meshes
-    kept in the run's spill store (core/spill.py). The core before issue 15's dense-mesh
+    kept in the run's spill store (core/meshes/spill.py). The core before issue 15's dense-mesh
     changes reads in this process only; before the spill store, every mesh stays in memory."""
     try:
         return read_folder(folder, jobs=jobs, **({} if spill is None else {"spill": spill}))
@@ -133,13 +133,13 @@ def _read(read_folder, folder, jobs, spill=None):
 def _spill_store(stack, read_folder):
     """The row's spill store (`shapegen fit` keeps one per run), entered on `stack`; None
     for a core whose `read_folder` takes none (asked of the function itself: with the
-    editable install, `shapegen_core.spill` imports even beside an older core on
+    editable install, `shapegen_core.meshes.spill` imports even beside an older core on
     PYTHONPATH)."""
     import inspect
 
     if "spill" not in inspect.signature(read_folder).parameters:
         return None
-    from shapegen_core.spill import SpillStore
+    from shapegen_core.meshes.spill import SpillStore
 
     return stack.enter_context(SpillStore())
 
@@ -160,7 +160,7 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
     each (cached; written once)."""
     import trimesh
 
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     folder = cache / f"{psb_class}-{target}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -188,7 +188,7 @@ def run_row(row: str, args) -> dict:
     """The stages of one row in this process: {"stages": {stage: [seconds, peak bytes]}, ...}."""
     from shapegen_core.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
-    from shapegen_core.io import read_folder
+    from shapegen_core.meshes.reading import read_folder
     try:
         from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
     except ImportError:  # the core before issue 15 (the "before" figures)

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.base.errors import MeshFileError  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/correspondence.py: the vase and PSB measures
 

@@ -24,7 +24,7 @@ from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .base.errors import ShapeGenError
 from .pipeline import FitSettings
-from .spill import SpillStore
+from .meshes.spill import SpillStore
 
 __all__ = ["main", "build_parser"]
 
@@ -32,7 +32,7 @@ __all__ = ["main", "build_parser"]
 # ---------------------------------------------------------------------------- prepare
 def cmd_prepare(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    with SpillStore() as spill:  # dense meshes on disk until the file is written (core/spill.py)
+    with SpillStore() as spill:  # dense meshes on disk until the file is written (core/meshes/spill.py)
         source = read_source(args.directory, args, accepts=("folder",), spill=spill, last="prepare")
         prepared = prepare_source(source)
         if args.turn_flagged is not None:

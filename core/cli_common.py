@@ -14,12 +14,12 @@ from typing import Sequence, Union, get_args, get_origin, get_type_hints
 from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
 from .base.errors import CollectionError, ShapeGenError
-from .io import read_folder, read_readable
-from .mesh import Mesh
+from .meshes.reading import read_folder, read_readable
+from .meshes.mesh import Mesh
 from .pipeline import FitSettings
 from .base.progress import Progress
 from .base.settings import SettingsError, is_group, nested_data, settings_from_dict
-from .spill import SpillStore
+from .meshes.spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
@@ -194,7 +194,7 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
     it, but the `own` ones, which the command uses for itself — evaluate's --seed —, and
     for a fit its correspondence options, must agree with the settings it records).
     `requested`: the command's settings (default: its Prepare and correspondence options).
-    `spill`: the run's store for a folder's dense meshes (core/spill.py). A folder's
+    `spill`: the run's store for a folder's dense meshes (core/meshes/spill.py). A folder's
     unreadable files are an error, or left out with --skip-unreadable (`read_mesh_folder`)."""
     path = Path(path)
     kind = _source_kind(path, accepts)

@@ -30,11 +30,11 @@ from .base.child_process import exit_with_parent
 from .collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .deform import DeformSettings
-from .io import MeshWriters, list_mesh_files
-from .labels import PartLabels, labels_beside, write_label_file, written_face_labels
+from .meshes.reading import MeshWriters, list_mesh_files
+from .meshes.labels import PartLabels, labels_beside, write_label_file, written_face_labels
 from .base.npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-from .spill import SpillStore, loaded
+from .meshes.spill import SpillStore, loaded
 from .preprocess import ShapeTransform
 from .quality import QualitySettings
 from .sample_batch import cluster_sampler, contiguous_chunks
@@ -98,7 +98,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     # every setting is checked before the source is read
     settings = requested_settings(args, deform=settings_from_args(DeformSettings, args))
-    with SpillStore() as spill:  # dense meshes on disk until the model file is written (core/spill.py)
+    with SpillStore() as spill:  # dense meshes on disk until the model file is written (core/meshes/spill.py)
         source = read_source(args.source, args, spill=spill, requested=settings)
         if source.correspondence is None and args.meshes is not None:
             raise CommandError(f"--meshes applies to a correspondence .npz source only; {source.path} is a "
@@ -132,7 +132,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def _part_labels(model, folder: Path) -> PartLabels | None:
     """The part labels beside the training meshes' files in `folder` (`<name>_labels.txt`,
-    core/labels.py), mapped onto the meshes as read; None when no file has them."""
+    core/meshes/labels.py), mapped onto the meshes as read; None when no file has them."""
     files = {path.stem: path for path in list_mesh_files(folder)}
     found, counts = [], []
     for name, mesh in zip(model.names, model.meshes):
@@ -296,7 +296,7 @@ def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSa
 
 def _write_sample_labels(model, samples, folder: Path, file_format: str) -> None:
     """`<sample>_labels.txt` for every sample: the parts of its template's faces, in the
-    written file's face order (core/labels.py)."""
+    written file's face order (core/meshes/labels.py)."""
     names, parts = list(model.part_labels.names), model.part_labels.parts
     by_template: dict[int, np.ndarray] = {}
     for sample in samples:

@@ -24,14 +24,14 @@ import numpy as np
 
 from .base.errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
-from . import meshset
-from .mesh import Mesh
+from .meshes import meshset
+from .meshes.mesh import Mesh
 from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
 from .preprocess.prepare import turn_as_flagged
 from .base.progress import CancelCheck, Progress, sub_range
 from .base.settings import Settings, option, recorded_settings
-from .spill import REGISTRATION_PROXY, StoredMesh, loaded
+from .meshes.spill import REGISTRATION_PROXY, StoredMesh, loaded
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
            "PREPARED_VERSION", "unreadable_arrays", "recorded_unreadable"]
@@ -252,7 +252,7 @@ def prepare_meshes(
     )
     landmarks = []
     for i, shape in enumerate(shapes):
-        with loaded(shape.mesh) as mesh:  # a stored dense mesh (core/spill.py): loaded for its own steps only
+        with loaded(shape.mesh) as mesh:  # a stored dense mesh (core/meshes/spill.py): loaded for its own steps only
             landmarks.append(select_landmarks(mesh, settings.n_landmarks, seed=settings.seed + i))
             if isinstance(shape.mesh, StoredMesh):  # built here, at full density, once (correspondence reuses it)
                 shape.mesh.keep_proxy(mesh, REGISTRATION_PROXY)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from .mesh import Mesh
+from .meshes.mesh import Mesh
 from .preprocess import ShapeTransform
 
 __all__ = ["VaseParameters", "ProceduralShape", "PartedShape", "make_vases", "make_barrels", "make_cups", "make_mugs",
@@ -404,7 +404,7 @@ def _handle(rng: np.random.Generator, outer, centre: float, height: float,
 
 def write_collection(shapes, folder: str | Path, file_format: str = "obj") -> list[Path]:
     """Write the shapes' meshes into `folder` as `<name>.<format>`; returns the paths."""
-    from .io import write_mesh
+    from .meshes.reading import write_mesh
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 from .base.errors import ShapeGenError
 from .geometry import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines,
                        registration_frame)
-from .mesh import Mesh
+from .meshes.mesh import Mesh
 from .base.settings import Settings, option
 
 __all__ = [

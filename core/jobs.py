@@ -83,7 +83,7 @@ class BackgroundJob:
         paths = [str(WORKER_SCRIPT.parent.parent)] + [p for p in sys.path if p]
         env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
         env.setdefault("OPENBLAS_NUM_THREADS", "1")
-        # the worker's temporary files (its spill store, core/spill.py) go into a folder this
+        # the worker's temporary files (its spill store, core/meshes/spill.py) go into a folder this
         # process removes when the job ends, however the worker ended (a killed worker cannot)
         self.temporary_folder = tempfile.mkdtemp(prefix=f"shapegen-job-{self.task}-")
         self._remove_temporary = weakref.finalize(self, shutil.rmtree, self.temporary_folder, True)

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .base.errors import MeshError
-from .mesh import Mesh
+from .meshes.mesh import Mesh
 
 __all__ = ["Landmarks", "select_landmarks", "radius_select", "DEFAULT_LANDMARKS", "MIN_LANDMARKS"]
 

@@ -44,18 +44,18 @@ from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .correspond.posing import apply_pose
 from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .base.errors import CollectionError, ModelFileError, ShapeGenError
-from .labels import PartLabels
+from .meshes.labels import PartLabels
 from .latent_units import LatentUnits
-from . import meshset
-from .layout import pack_layouts, unpack_layouts
-from .mesh import Mesh, MeshReport
+from .meshes import meshset
+from .meshes.layout import pack_layouts, unpack_layouts
+from .meshes.mesh import Mesh, MeshReport
 from .models import MODEL_TYPES, make_model, model_from_arrays
 from .models.scaling import ScaleWarning, size_note
 from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from .preprocess.rotations import up_rotation
 from .base.progress import CancelCheck, Progress, no_progress, sub_range
 from .base.settings import Settings, SettingsError, legacy_settings, option
-from .spill import full_mesh, loaded
+from .meshes.spill import full_mesh, loaded
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
@@ -148,7 +148,7 @@ class GenerativeShapeModel:
             raise ShapeGenError(f"{len(meshes)} meshes for {len(correspondence.names)} corresponded shapes")
         if part_labels is not None and len(part_labels.parts) != len(meshes):
             raise ShapeGenError(f"part labels of {len(part_labels.parts)} meshes for {len(meshes)} meshes")
-        #: the training meshes' part labels (core/labels.py), None when the files had none;
+        #: the training meshes' part labels (core/meshes/labels.py), None when the files had none;
         #: a sample's faces have the parts of its template's
         self.part_labels = part_labels
         self.meshes = meshes
@@ -583,7 +583,7 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
 def posed_meshes(meshes: list[Mesh], corr: Correspondence) -> list[Mesh]:
     """Prepared meshes (prepared frame) in the model frame: each shape the correspondence
     posed by its landmarks (core/correspond/posing.py) moved by its pose, the others as
-    they are (the same objects). A stored dense mesh (core/spill.py) stays stored."""
+    they are (the same objects). A stored dense mesh (core/meshes/spill.py) stays stored."""
     posed = []
     for mesh, pose, moved in zip(meshes, corr.model_poses, corr.posed):
         if moved:

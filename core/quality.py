@@ -38,8 +38,8 @@ from .base.errors import ShapeGenError
 from .geometry.intersections import intersecting_pairs, pair_keys
 from scipy.spatial import cKDTree
 
-from .intake import shared_edges
-from .mesh import Mesh, triangle_cross
+from .meshes.intake import shared_edges
+from .meshes.mesh import Mesh, triangle_cross
 from .base.settings import Settings, option
 
 __all__ = ["QualitySettings", "MeshQuality", "QualityGate", "training_extents"]

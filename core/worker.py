@@ -69,17 +69,17 @@ class _CancelOnStdin:
 
 
 def task_fit(arguments: dict, progress, should_cancel) -> str:
-    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshset .npz, prepared
+    """Fit a GenerativeShapeModel from raw meshes (`meshes`: core.meshes.meshset .npz, prepared
     here first with `keep_pose`, one bool per mesh, as in task_prepare), from an
     already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare) or
     from the meshes and correspondence of an earlier model (`correspondence_of`: a model
     file; only the shape model is fitted); `settings` are FitSettings as plain data
     (FitSettings.from_dict)."""
     from .collection import PreparedCollection, prepare_meshes
-    from .meshset import load_mesh_set
+    from .meshes.meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
     from .base.progress import sub_range
-    from .spill import SpillStore
+    from .meshes.spill import SpillStore
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
     if "correspondence_of" in arguments:
@@ -87,7 +87,7 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
         model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
                                 should_cancel=should_cancel)
         return _save_result(model, arguments, should_cancel, "fit")
-    with SpillStore() as spill:  # dense meshes on disk until the model is written (core/spill.py)
+    with SpillStore() as spill:  # dense meshes on disk until the model is written (core/meshes/spill.py)
         if "prepared" in arguments:
             source = PreparedCollection.load(arguments["prepared"])
         else:  # prepared here, as fit_meshes would (progress 0-0.15), so the kept poses count
@@ -99,7 +99,7 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
 
 
 def _kept(meshes: list, spill) -> list:
-    """The meshes with the dense ones moved into the run's spill store (core/spill.py), so
+    """The meshes with the dense ones moved into the run's spill store (core/meshes/spill.py), so
     the stages after loading hold one at a time."""
     for index, mesh in enumerate(meshes):
         meshes[index] = spill.keep(mesh)
@@ -118,13 +118,13 @@ def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
 
 
 def task_prepare(arguments: dict, progress, should_cancel) -> str:
-    """Align, scale and landmark meshes from an .npz (core.meshset) into a prepared
+    """Align, scale and landmark meshes from an .npz (core.meshes.meshset) into a prepared
     collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data,
     `keep_pose` one bool per mesh (keep its pose) or absent. Cancel is checked at every
     progress step (after each shape's stage)."""
     from .collection import PrepareSettings, prepare_meshes
-    from .meshset import load_mesh_set
-    from .spill import SpillStore
+    from .meshes.meshset import load_mesh_set
+    from .meshes.spill import SpillStore
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     with SpillStore() as spill:
@@ -151,7 +151,7 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     killed (`kill_at`: SIGKILL) or run a step that never checks cancel (`busy_at`, for
     `busy` seconds; `import_at`: one that turns the cancel's interrupt into an ImportError)."""
     from .base.progress import CancelCheck
-    from .spill import SpillStore
+    from .meshes.spill import SpillStore
 
     cancel = CancelCheck(should_cancel, "selftest")
     steps = int(arguments.get("steps", 10))

@@ -171,7 +171,7 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     pipeline = importlib.import_module(f"{module}.core.pipeline")
     collection = importlib.import_module(f"{module}.core.collection")
     jobs = importlib.import_module(f"{module}.core.jobs")
-    meshset = importlib.import_module(f"{module}.core.meshset")
+    meshset = importlib.import_module(f"{module}.core.meshes.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")
     start = time.perf_counter()
     meshes = [convert.object_to_mesh(o) for o in sorted(source.objects, key=lambda o: o.name)]

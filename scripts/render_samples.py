@@ -97,8 +97,8 @@ def fit_and_sample(folders: dict[str, Path], work: Path, args) -> None:
 def row_meshes(model_path: Path, samples: Path):
     """(label of the start taken, training mesh, [(sample mesh, kind)]) of one row, all in
     the axes the CLI writes samples in."""
-    from shapegen_core.io import read_mesh
-    from shapegen_core.mesh import Mesh
+    from shapegen_core.meshes.reading import read_mesh
+    from shapegen_core.meshes.mesh import Mesh
     from shapegen_core.pipeline import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_path)

@@ -29,8 +29,8 @@ import bpy
 import numpy as np
 
 from ..core.base.errors import MeshError, MeshFileError
-from ..core.intake import clean_mesh
-from ..core.mesh import Mesh
+from ..core.meshes.intake import clean_mesh
+from ..core.meshes.mesh import Mesh
 
 __all__ = ["ObjectTriangles", "ObjectReading", "object_triangles", "read_object", "object_to_mesh",
            "mesh_copy", "reverse_polygons", "winding_to_reverse", "world_mesh_copy", "evaluated_depsgraph",
@@ -260,7 +260,7 @@ def import_mesh_file(path: Path, collection: bpy.types.Collection) -> bpy.types.
 
     Raises MeshFileError naming the file when the importer fails or yields no mesh.
     """
-    from ..core.io import check_mesh_file, read_mesh
+    from ..core.meshes.reading import check_mesh_file, read_mesh
 
     path = Path(path)
     suffix = path.suffix.lower()

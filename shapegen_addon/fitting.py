@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.base.errors import ShapeGenError
 from ..core.jobs import JobStatus
-from ..core.meshset import save_mesh_set
+from ..core.meshes.meshset import save_mesh_set
 from ..core.pipeline import FitSettings
 from ..core.stages import Offered, StagePlan, plan_stages, same_shapes
 from . import latent, store
@@ -95,7 +95,7 @@ def gather_meshes(objects, evaluated: bool = True) -> list[tuple[str, np.ndarray
 
 
 def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: Path) -> Path:
-    """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshset). No bpy: runs
+    """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshes.meshset). No bpy: runs
     on the job's setup thread. Uncompressed: it is a throwaway hand-off; compressing
     6 × 100k-vertex meshes took 1.5 s, this ~0.1 s."""
     return save_mesh_set(path, [m[0] for m in meshes], [m[1] for m in meshes], [m[2] for m in meshes],

@@ -32,7 +32,7 @@ class Concatenation:
     """The array `np.concatenate(parts)` (in `dtype`, default the parts' common type) as
     `save_npz` writes it: streamed part by part, never built in memory. A part is an array
     or an object with `shape`, `dtype` and `__array__` (e.g. an array kept on disk,
-    core/spill.py), made an array only when it is written."""
+    core/meshes/spill.py), made an array only when it is written."""
 
     def __init__(self, parts, dtype=None):
         self.parts = [part if all(hasattr(part, key) for key in ("shape", "dtype", "__array__")) else np.asarray(part)

@@ -17,8 +17,8 @@ from scipy.spatial import cKDTree
 from ..base.errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
 from ..base.progress import Progress, no_progress, sub_range
-from ..simplify import Proxy
-from ..spill import full_mesh
+from ..meshes.simplify import Proxy
+from ..meshes.spill import full_mesh
 from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of

@@ -39,7 +39,7 @@ class RegistrationTask:
 
     index: int  # position in the run's task list
     name: str
-    vertices: np.ndarray  # normalised frame: the shape's surface (or its proxy, core/simplify.py)
+    vertices: np.ndarray  # normalised frame: the shape's surface (or its proxy, core/meshes/simplify.py)
     faces: np.ndarray
     landmarks: np.ndarray  # normalised frame
     landmark_normals: np.ndarray

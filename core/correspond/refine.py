@@ -35,7 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from ..base.progress import CancelCheck, Progress, no_progress
 from .objective import CompactnessTerm, LandmarkState, combined
 from .shards import ShapeShard, ShardAnswer, Shards, interpolated_normals

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..base.settings import Settings, SettingsError, group, option
-from ..simplify import REGISTRATION_PROXY_FACES
+from ..meshes.simplify import REGISTRATION_PROXY_FACES
 
 __all__ = ["CorrespondenceSettings", "StiffnessSettings", "DataTermSettings", "IterationSettings", "OutlierSettings",
            "RefinementSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",

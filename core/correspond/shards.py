@@ -21,7 +21,7 @@ import numpy as np
 
 from ..base.child_process import exit_with_parent
 from ..geometry import TargetSurface
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from .objective import LandmarkState, SpreadTerm, spread_sigma
 
 __all__ = ["ShapeShard", "Shards", "ShardAnswer", "interpolated_normals"]

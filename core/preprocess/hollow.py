@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 

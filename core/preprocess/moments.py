@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..base.errors import MeshError
-from ..mesh import FACE_CHUNK, Mesh
+from ..meshes.mesh import FACE_CHUNK, Mesh
 
 __all__ = ["SCALE_MODES", "surface_moments", "third_central_moment", "scale_measure"]
 

@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 

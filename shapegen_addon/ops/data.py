@@ -27,7 +27,7 @@ from bpy.props import StringProperty
 from ...core.collection import PrepareSettings
 from ...core.base.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
-from ...core.meshset import save_mesh_set
+from ...core.meshes.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
@@ -54,7 +54,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ...core.io import list_mesh_files
+        from ...core.meshes.reading import list_mesh_files
 
         folder = Path(bpy.path.abspath(self.directory))
         try:

@@ -75,7 +75,7 @@ def test_upside_down_object_is_turned_and_reported_or_kept_and_flagged(extension
 def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
     """task_fit on raw meshes prepares them with keep_pose, like task_prepare."""
     datasets = addon_module(extension, "core.datasets")
-    meshset = addon_module(extension, "core.meshset")
+    meshset = addon_module(extension, "core.meshes.meshset")
     worker = addon_module(extension, "core.worker")
     pipeline = addon_module(extension, "core.pipeline")
     meshes = [s.mesh for s in datasets.make_vases(8, seed=1, resolution=(14, 20), pose=False)]

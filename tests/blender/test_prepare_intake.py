@@ -186,7 +186,7 @@ def test_a_double_sided_cad_file_reads_alike_through_blenders_importer_and_the_c
     object, it is the same one surface as the core's reader makes of the file: the same
     faces, twins, parts and one-line message (issue 31)."""
     convert = addon_module(extension, "shapegen_addon.convert")
-    io = addon_module(extension, "core.io")
+    io = addon_module(extension, "core.meshes.reading")
     path = tmp_path / f"cad.{suffix}"
     _double_sided_cad_scene(path, np.random.default_rng(0))
     from_file = io.read_mesh(path)
@@ -209,7 +209,7 @@ def test_double_sided_quads_and_a_wall_between_cells_read_alike_through_blenders
     sides, 4, are counted as internal); Blender's importer keeps one polygon per vertex set
     on its own, so the object has no backs and a one-sided wall (issue 31)."""
     convert = addon_module(extension, "shapegen_addon.convert")
-    io = addon_module(extension, "core.io")
+    io = addon_module(extension, "core.meshes.reading")
     at = lambda x, y, z: 4 * x + 2 * y + z + 1  # noqa: E731  (OBJ numbers vertices from 1)
     quads = [[at(0, 0, 0), at(0, 0, 1), at(0, 1, 1), at(0, 1, 0)], [at(2, 0, 0), at(2, 1, 0), at(2, 1, 1), at(2, 0, 1)],
              [at(1, 0, 0), at(1, 1, 0), at(1, 1, 1), at(1, 0, 1)]]  # two ends and the wall

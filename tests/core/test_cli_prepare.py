@@ -246,7 +246,7 @@ def upright_vases():
 
 @pytest.fixture(scope="module")
 def upright_folder(upright_vases, tmp_path_factory):
-    from shapegen_core.io import write_mesh
+    from shapegen_core.meshes.reading import write_mesh
 
     folder = tmp_path_factory.mktemp("upright")
     for mesh in upright_vases:

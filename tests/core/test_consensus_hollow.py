@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.datasets import _revolved_mesh, make_barrels
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
 from shapegen_core.preprocess.consensus import HollowSettings
 from shapegen_core.preprocess.hollow import Hollows, opening_vector

@@ -41,7 +41,7 @@ from shapegen_core.geometry import (
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.base.errors import Cancelled, CollectionError, MeshError, ModelFileError
 from shapegen_core.landmarks import Landmarks, select_landmarks
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.base.npzfile import save_npz
 from shapegen_core.preprocess import PreparedShape, ShapeTransform
 

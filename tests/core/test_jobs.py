@@ -94,7 +94,7 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
 def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
     from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
     from shapegen_core.datasets import make_vases
-    from shapegen_core.meshset import save_mesh_set
+    from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))]
     save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
@@ -149,7 +149,7 @@ def test_a_step_broken_by_the_cancel_interrupt_is_reported_cancelled_not_failed(
 
 def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
     from shapegen_core.datasets import make_vases
-    from shapegen_core.meshset import save_mesh_set
+    from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(12, seed=1)]
     save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],

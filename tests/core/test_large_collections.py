@@ -13,7 +13,7 @@ import pytest
 from shapegen_core.correspond import groupwise, outliers
 from shapegen_core.datasets import make_barrels, make_vases
 from shapegen_core.geometry import chamfer_matrix
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess.neighbours import field_descriptors, probe_grid
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.prepare import prepare_collection

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.io import read_mesh, write_mesh
-from shapegen_core.layout import FaceLayout, pack_layouts, unpack_layouts
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.reading import read_mesh, write_mesh
+from shapegen_core.meshes.layout import FaceLayout, pack_layouts, unpack_layouts
+from shapegen_core.meshes.mesh import Mesh
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 AROUND, RINGS = 12, 6

@@ -9,8 +9,8 @@ import pytest
 import trimesh
 
 from shapegen_core.base.errors import CollectionError, MeshError, MeshFileError
-from shapegen_core.io import read_folder, read_mesh, write_mesh
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.reading import read_folder, read_mesh, write_mesh
+from shapegen_core.meshes.mesh import Mesh
 
 from conftest import random_mesh, random_surface
 
@@ -371,7 +371,7 @@ def test_fast_obj_writer_round_trips_through_trimesh_with_vertex_order(tmp_path)
     import trimesh as _trimesh
 
     from shapegen_core.datasets import make_vases
-    from shapegen_core.io import ObjWriter, read_mesh, write_mesh
+    from shapegen_core.meshes.reading import ObjWriter, read_mesh, write_mesh
 
     mesh = make_vases(1, seed=3, resolution=(12, 14))[0].mesh
     write_mesh(mesh, tmp_path / "a.obj")

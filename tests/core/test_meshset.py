@@ -1,4 +1,4 @@
-"""Many meshes in a few arrays (core/meshset.py): round trip, offset checks, hand-off file."""
+"""Many meshes in a few arrays (core/meshes/meshset.py): round trip, offset checks, hand-off file."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import ModelFileError
-from shapegen_core.meshset import load_mesh_set, pack, save_mesh_set, unpack
+from shapegen_core.meshes.meshset import load_mesh_set, pack, save_mesh_set, unpack
 
 
 def test_pack_unpack_round_trip_keeps_every_mesh():

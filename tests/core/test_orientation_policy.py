@@ -102,7 +102,7 @@ def test_cli_turn_flagged(tmp_path):
     shapes = turned(placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
     folder.mkdir()
     for mesh in shapes:
-        from shapegen_core.io import write_mesh
+        from shapegen_core.meshes.reading import write_mesh
         write_mesh(mesh, folder / f"{mesh.name}.obj")
     out = tmp_path / "prepared.npz"
     result = subprocess.run([str(SHAPEGEN), "prepare", str(folder), "-o", str(out), "--landmarks", "30",

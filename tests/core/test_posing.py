@@ -15,7 +15,7 @@ from shapegen_core.collection import PREPARED_FORMAT, PREPARED_VERSION, Prepared
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_angle, rigid_fit
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.base.npzfile import save_npz
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 from shapegen_core.preprocess import ShapeTransform
@@ -212,7 +212,7 @@ def test_the_command_line_says_who_was_posed_and_a_fit_from_the_file_meshes_in_t
     import sys
     from pathlib import Path
 
-    from shapegen_core.io import read_mesh, write_mesh
+    from shapegen_core.meshes.reading import read_mesh, write_mesh
 
     shapegen = str(Path(sys.executable).with_name("shapegen"))
     folder = tmp_path / "blobs"

@@ -10,7 +10,7 @@ import trimesh
 from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import CollectionError
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess import (
     ShapeTransform,
     prepare_collection,

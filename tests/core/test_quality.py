@@ -9,7 +9,7 @@ import trimesh
 
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry.intersections import _segments_cross, candidate_pairs, intersecting_pairs
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.quality import QualityGate, QualitySettings, training_extents
 
 

@@ -21,8 +21,8 @@ from shapegen_core.correspond.registration import Registration
 from shapegen_core.datasets import make_vases
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.geometry.nearby import closest_within
-from shapegen_core.mesh import Mesh
-from shapegen_core.simplify import proxy_mesh
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.meshes.simplify import proxy_mesh
 
 from conftest import subdivided
 
@@ -178,7 +178,7 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
 def test_files_read_in_workers_equal_those_read_here(vases, tmp_path):
     """read_folder(jobs=2) (shapegen fit reads so) gives the meshes read in this process:
     same names, order, vertices and int32 faces, read-only either way."""
-    from shapegen_core.io import read_folder
+    from shapegen_core.meshes.reading import read_folder
 
     for index, mesh in enumerate(vases[:3]):
         dense = _subdivided(mesh, 1)

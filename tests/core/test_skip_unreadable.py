@@ -17,7 +17,7 @@ from shapegen_core.collection import PrepareSettings, PreparedCollection, prepar
 from shapegen_core.correspond import Correspondence
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, MeshFileError, ModelFileError
-from shapegen_core.io import read_folder, read_readable
+from shapegen_core.meshes.reading import read_folder, read_readable
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 

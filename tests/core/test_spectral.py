@@ -126,7 +126,7 @@ def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_poi
     z up and the facing) puts the landmarks far from their true places, the spectral start
     near them."""
     from shapegen_core.geometry import TargetSurface
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     cats = tosca_class("cat")
     meshes = [read_mesh(cats / f"{name}.off") for name in ("cat0", "cat1")]
@@ -184,7 +184,7 @@ def _evidence_of(meshes, landmarks: int = 300):
 
 
 def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     choice, why = _evidence_of([read_mesh(tosca_class("cat") / f"cat{i}.off") for i in range(4)])
     assert choice == "spectral", why

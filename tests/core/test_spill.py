@@ -1,4 +1,4 @@
-"""Dense meshes kept on disk for a run (core/spill.py, issue 15): the main process keeps
+"""Dense meshes kept on disk for a run (core/meshes/spill.py, issue 15): the main process keeps
 handles, not the meshes; the results equal the in-memory path's; the store's folder is
 removed after success, error and cancel. Small meshes stand in for dense ones (the
 store's size limit and the proxy size are lowered); bench/scale.py measures the real
@@ -19,9 +19,9 @@ from shapegen_core.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import Cancelled
-from shapegen_core.io import read_folder
+from shapegen_core.meshes.reading import read_folder
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-from shapegen_core.spill import SpillStore, StoredMesh
+from shapegen_core.meshes.spill import SpillStore, StoredMesh
 
 from conftest import subdivided
 

@@ -8,7 +8,7 @@ Mesh. Polygons are fan-triangulated by trimesh's readers. Every error message st
 the file's path.
 
 Damaged files (issue 32): trimesh trusts what a file declares, so before and after it reads
-one, core/file_checks.py compares the declarations (OFF and ASCII PLY counts, ASCII STL facets,
+one, core/meshes/file_checks.py compares the declarations (OFF and ASCII PLY counts, ASCII STL facets,
 glTF accessor counts, an OBJ's last line) with the content, and refuses coordinates that are
 not finite or too large to square in float64, before any geometry runs.
 
@@ -19,7 +19,7 @@ present). Only geometry is wanted here, so the text handed to trimesh keeps the 
 lines and the `f` lines with each corner reduced to its vertex index; trimesh still
 does the parsing and triangulation.
 
-OFF: read here from the rows core/file_checks.py has already checked against the header
+OFF: read here from the rows core/meshes/file_checks.py has already checked against the header
 (`_read_off`), polygons fan-cut from their first corner as trimesh does. trimesh 5's reader
 cuts a file of mixed polygon sizes with numpy string arithmetic that numpy 2.5 refuses, and
 refuses an out-of-range index before intake can name the face.
@@ -47,8 +47,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .base.child_process import MEMORY_ADVICE, exit_with_parent
-from .base.errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
+from ..base.child_process import MEMORY_ADVICE, exit_with_parent
+from ..base.errors import CollectionError, MeshError, MeshFileError, ShapeGenError, WorkerDied
 from .file_checks import (check_coordinates, check_declared, check_not_repeated, check_read_faces, data_rows,
                           obj_unterminated, off_sections)
 from .intake import clean_mesh, weld_vertices
@@ -64,7 +64,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
 def file_faces(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """The faces of a mesh file as it stores them: (sizes (P,), corners (C,) in file vertex
-    indices), the polygons its face ids number (part labels, core/labels.py)."""
+    indices), the polygons its face ids number (part labels, core/meshes/labels.py)."""
     sizes, corners = _parsed(path)[6][:2]
     return np.asarray(sizes, dtype=np.int64), np.asarray(corners, dtype=np.int64)
 
@@ -128,7 +128,7 @@ def _parsed(path: str | os.PathLike, name: str | None = None):
     if path.stat().st_size == 0:
         raise MeshFileError(f"{label}: file is empty")
     file_faces = None
-    declared = check_declared(path)  # what the file declares against what it holds (core/file_checks.py)
+    declared = check_declared(path)  # what the file declares against what it holds (core/meshes/file_checks.py)
     try:
         if suffix == ".obj":
             text, file_faces = _obj_geometry_text(path, with_faces=True)
@@ -353,7 +353,7 @@ def read_folder(folder: str | os.PathLike, min_shapes: int = 2, jobs: int | None
                 spill: "SpillStore | None" = None) -> list:
     """Read every mesh file in `folder`, in `jobs` worker processes (None: all cores; 1:
     in this process), one file per task, in file order either way. With a `spill` store
-    (core/spill.py), a mesh above its size is written there by the process that read it
+    (core/meshes/spill.py), a mesh above its size is written there by the process that read it
     and comes back as a `StoredMesh` (no full-density copy reaches this process).
 
     All files are tried; if any fail, one single-line MeshFileError names every failing

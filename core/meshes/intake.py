@@ -39,7 +39,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .base.errors import MeshError
+from ..base.errors import MeshError
 from .mesh import FACE_CHUNK, SLIVER_RATIO, Mesh, cross_rows, triangle_cross
 
 __all__ = ["clean_mesh", "weld_vertices", "sliver_faces", "loose_slivers", "drop_twin_faces", "internal_faces", "separate_parts",

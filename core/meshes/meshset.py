@@ -13,10 +13,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .base.errors import ModelFileError, ShapeGenError
+from ..base.errors import ModelFileError, ShapeGenError
 from .intake import clean_mesh
 from .mesh import Mesh
-from .base.npzfile import ArraySpec, Concatenation, load_npz, save_npz, validate_arrays
+from ..base.npzfile import ArraySpec, Concatenation, load_npz, save_npz, validate_arrays
 
 __all__ = ["pack", "stored", "unpack", "save_mesh_set", "load_mesh_set", "MESHES_FORMAT", "MESHES_VERSION"]
 

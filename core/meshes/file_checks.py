@@ -1,6 +1,6 @@
 """What a mesh file declares, checked against what it holds (issue 32).
 
-trimesh parses the files (core/io.py); it trusts their declarations: an OFF whose header
+trimesh parses the files (core/meshes/reading.py); it trusts their declarations: an OFF whose header
 counts more faces than the file holds, an ASCII PLY cut short, a glTF accessor counting
 fewer indices than its buffer holds, an OBJ cut in the middle of a line all come back as
 a mesh with faces missing. These checks read only the declarations (OFF and PLY headers,
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base.errors import MeshFileError
+from ..base.errors import MeshFileError
 
 __all__ = ["MAX_COORDINATE", "check_declared", "check_read_faces", "check_coordinates", "check_not_repeated",
            "data_rows", "off_sections"]

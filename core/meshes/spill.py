@@ -8,7 +8,7 @@ written there as two uncompressed .npy files where it is first read (a reading w
 and the main process keeps a `StoredMesh`: its name, sizes, intake report, the small
 summaries computed once on the full surface (area, bounds, surface moments: whatever
 `Mesh.cached` holds) and the proxies built at full density (Prepare's pose proxy,
-correspondence's registration proxy, core/simplify.py). A per-shape step that needs the
+correspondence's registration proxy, core/meshes/simplify.py). A per-shape step that needs the
 full surface loads one mesh (`StoredMesh.load`, `loaded`, `full_mesh`), in a worker where
 the work is already per shape. Closing the store (the end of a `with` block: success,
 error or cancel alike) deletes the folder.
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base.errors import ShapeGenError
+from ..base.errors import ShapeGenError
 from .mesh import Mesh, MeshReport, MeshSizes
 from .simplify import DENSE_FACES, POSE_PROXY_FACES, REGISTRATION_PROXY_FACES, Proxy, proxy_mesh
 

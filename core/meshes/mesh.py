@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .base.errors import MeshError
+from ..base.errors import MeshError
 
 if TYPE_CHECKING:
     from .layout import FaceLayout
@@ -87,7 +87,7 @@ class MeshReport:
     face_reversed: np.ndarray | None = field(default=None, repr=False)
     twin_source: np.ndarray | None = field(default=None, repr=False)  # input triangle of each dropped twin
     twin_of: np.ndarray | None = field(default=None, repr=False)  # the mesh face each dropped twin repeats
-    layout: "FaceLayout | None" = field(default=None, repr=False)  # the file's polygons and UVs (core/layout.py)
+    layout: "FaceLayout | None" = field(default=None, repr=False)  # the file's polygons and UVs (core/meshes/layout.py)
 
     def summary(self) -> str:
         parts = []
@@ -142,7 +142,7 @@ class SurfaceSamples:
 
 
 class MeshSizes:
-    """What a mesh and a handle of one kept on disk (core/spill.py) both answer from their
+    """What a mesh and a handle of one kept on disk (core/meshes/spill.py) both answer from their
     `vertices` and `faces` shapes and their `bounds()`."""
 
     @property

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base.errors import ShapeGenError
+from ..base.errors import ShapeGenError
 from .mesh import Mesh
 
 __all__ = ["LABELS_SUFFIX", "UNLABELLED", "LabelFileError", "PartLabels", "label_path", "labels_beside",
@@ -181,7 +181,7 @@ def written_face_labels(template: Mesh, face_part: np.ndarray, file_format: str)
 def labels_beside(mesh_path: str | os.PathLike, mesh: Mesh) -> tuple[list[str], np.ndarray] | None:
     """(part names, part of each face of `mesh`) from the labels beside its file, None when
     it has none. `mesh` is the file as the core read it (its vertices may have moved)."""
-    from .io import file_faces
+    from .reading import file_faces
 
     path = label_path(mesh_path)
     if not path.is_file():

@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .base.errors import ModelFileError, ShapeGenError
+from ..base.errors import ModelFileError, ShapeGenError
 
 __all__ = ["FaceLayout", "pack_layouts", "unpack_layouts", "LAYOUT_KEYS"]
 
