@@ -36,12 +36,12 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
 from shapegen_core.meshes.reading import MeshWriters, read_folder  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.pipeline import FitSettings, fit_meshes  # noqa: E402
-from shapegen_core.quality import coincident_faces  # noqa: E402
-from shapegen_core.sampling import gated_samples  # noqa: E402
+from shapegen_core.generate.quality import coincident_faces  # noqa: E402
+from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 
 PSB = Path("/work/shared/data/psb")
 OUTPUT = ROOT / "bench_output"

@@ -41,7 +41,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import (Anchors, CorrespondenceSettings, RegistrationProblem, correspond,  # noqa: E402
                                       refine_population, register)
 from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, RefinementSettings,  # noqa: E402

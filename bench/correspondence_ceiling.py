@@ -50,7 +50,7 @@ from correspondence import LANDMARKS, OUTPUT, console_log, decompose, error_vs_t
 
 import shapegen_core.correspond.features as features  # noqa: E402
 import shapegen_core.correspond.groupwise as groupwise  # noqa: E402
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, chamfer_medoid, correspond  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402

@@ -49,7 +49,7 @@ from blender_mugs import mug_meshes  # noqa: E402
 from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, error_vs_template,  # noqa: E402
                             face_labels, model_quality, naive_baseline)
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.datasets import make_vases  # noqa: E402
 from shapegen_core.meshes.reading import read_folder  # noqa: E402

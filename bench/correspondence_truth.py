@@ -62,7 +62,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402

@@ -29,10 +29,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
-from shapegen_core.landmarks import DEFAULT_LANDMARKS  # noqa: E402
+from shapegen_core.preprocess.landmarks import DEFAULT_LANDMARKS  # noqa: E402
 from shapegen_core.models import MODEL_TYPES, make_model  # noqa: E402
 from shapegen_core.models.base import ledoit_wolf_shrinkage, principal_axes, shrunk_spectrum  # noqa: E402
 

@@ -90,7 +90,7 @@ DEFAULT_GPY_PYTHON = "/tmp/venvbench/bin/python"
 def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
     """Landmark matrix Y (N, 3L) from our pipeline (prepare_meshes + correspond), cached as a
     correspondence .npz in bench_output/."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 
     if data == "vases":

@@ -52,7 +52,7 @@ def main() -> None:
     args = parser.parse_args()
     install_extension(bpy)
     datasets, pipeline, collection, models = (module("core.datasets"), module("core.pipeline"),
-                                              module("core.collection"), module("core.models"))
+                                              module("core.preprocess.collection"), module("core.models"))
     pins, latent, store = module("shapegen_addon.pins"), module("shapegen_addon.latent"), module("shapegen_addon.store")
     shapes = datasets.make_vases(6, seed=2, resolution=(args.rings, args.rings))
     t = time.perf_counter()

@@ -44,7 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
 from shapegen_core.correspond.objective import CompactnessTerm, compactness, regulariser_variance  # noqa: E402
 from shapegen_core.correspond.refine import _tangent, landmark_state, smooth_basis  # noqa: E402

@@ -186,7 +186,7 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
 # ---------------------------------------------------------------------------- child
 def run_row(row: str, args) -> dict:
     """The stages of one row in this process: {"stages": {stage: [seconds, peak bytes]}, ...}."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
     from shapegen_core.meshes.reading import read_folder
     try:
@@ -262,8 +262,8 @@ def landmarks_only(meshes, settings):
     """A prepared collection of meshes made upright and facing alike (make_vases with
     pose=False), left in their frame: Prepare's landmarks without its alignment, to time
     the correspondence of a large collection on its own (--landmarks-only)."""
-    from shapegen_core.collection import PreparedCollection
-    from shapegen_core.landmarks import select_landmarks
+    from shapegen_core.preprocess.collection import PreparedCollection
+    from shapegen_core.preprocess.landmarks import select_landmarks
     from shapegen_core.preprocess.transform import PreparedShape, ShapeTransform
 
     shapes = [PreparedShape(mesh, ShapeTransform.identity()) for mesh in meshes]

@@ -20,7 +20,7 @@ from .cli_common import (CommandError, add_keep_pose_option, add_settings_option
                          requested_settings, settings_from_args, turned_on_console)
 from . import __version__
 from .cli_generate import add_generate_commands
-from .collection import PrepareSettings
+from .preprocess.collection import PrepareSettings
 from .correspond import CorrespondenceSettings
 from .base.errors import ShapeGenError
 from .pipeline import FitSettings
@@ -79,7 +79,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate shape models on a folder of meshes or a correspondence .npz (issue 7)."""
     from .evaluation import EvaluationSettings, parse_model_names, run_evaluation
-    from .report import write_report
+    from .evaluation.report import write_report
 
     start = time.perf_counter()
     # check the cheap settings before any expensive correspondence work

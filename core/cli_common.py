@@ -11,7 +11,7 @@ from dataclasses import MISSING, Field, dataclass, fields
 from pathlib import Path
 from typing import Sequence, Union, get_args, get_origin, get_type_hints
 
-from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
+from .preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
 from .base.errors import CollectionError, ShapeGenError
 from .meshes.reading import read_folder, read_readable

@@ -27,19 +27,19 @@ from .cli_common import (CommandError, add_keep_pose_option, add_settings_option
                          console_progress, positive_int, prepare_source, read_mesh_folder, read_source,
                          requested_settings, settings_from_args)
 from .base.child_process import exit_with_parent
-from .collection import PrepareSettings
+from .preprocess.collection import PrepareSettings
 from .correspond import CorrespondenceSettings
-from .deform import DeformSettings
+from .generate.deform import DeformSettings
 from .meshes.reading import MeshWriters, list_mesh_files
 from .meshes.labels import PartLabels, labels_beside, write_label_file, written_face_labels
 from .base.npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from .meshes.spill import SpillStore, loaded
 from .preprocess import ShapeTransform
-from .quality import QualitySettings
+from .generate.quality import QualitySettings
 from .sample_batch import cluster_sampler, contiguous_chunks
-from .sampling import (GatedSample, draw_budget, gate_summary, gated_slots, pooled_samples, redraw_seed,
-                       rejection_lines, shortfall)
+from .generate.sampling import (GatedSample, draw_budget, gate_summary, gated_slots, pooled_samples, redraw_seed,
+                                rejection_lines, shortfall)
 
 __all__ = ["add_generate_commands"]
 
@@ -199,7 +199,7 @@ class SampleRun:
 
 
 def _gated_chunk(model, run: SampleRun, slots) -> list[GatedSample]:
-    """One round's `slots` ((index, draws) pairs) of `run`, gated (core/sampling.py); a
+    """One round's `slots` ((index, draws) pairs) of `run`, gated (core/generate/sampling.py); a
     passing sample is written into the run's folder and returned without its mesh, a
     failing one returned with it (it may still pass in a later round)."""
     settings = QualitySettings.from_json(run.quality)
@@ -287,7 +287,7 @@ def _round_gate(args, model, run: SampleRun, templates: list):
 
 def _write_samples(args, model, run: SampleRun, templates: list) -> list[GatedSample]:
     """Draw, gate, mesh and write every sample within the run's pooled draw budget
-    (core/sampling.py, `pooled_samples`; `_round_gate` says where); the samples in order,
+    (core/generate/sampling.py, `pooled_samples`; `_round_gate` says where); the samples in order,
     passing ones written and without their meshes, failing ones with theirs."""
     budget = draw_budget(run.count, QualitySettings.from_json(run.quality))
     with _round_gate(args, model, run, templates) as gate:

@@ -19,7 +19,7 @@ versioned `.npz` (format "shapegen.model", `allow_pickle=False`):
 * what Blender needs at once when a model is installed, computed where the model is
   fitted (the worker), so installing it costs no encoding on Blender's main thread: the
   training shapes' latent vectors `training_latents` (N, Q; the latent map's points, Snap's
-  targets) and the sliders' units `latent_centre` / `latent_scale` (core/latent_units.py).
+  targets) and the sliders' units `latent_centre` / `latent_scale` (core/models/latent_units.py).
   Files written before these arrays existed still load: they are computed on load.
 
 Generation: `sample_landmarks` → `mesh_from_landmarks` (embedded deformation of a
@@ -39,13 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .collection import PrepareSettings, PreparedCollection, prepare_meshes
+from .preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from .correspond import Correspondence, CorrespondenceSettings, correspond
 from .correspond.posing import apply_pose
-from .deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
+from .generate.deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
 from .base.errors import CollectionError, ModelFileError, ShapeGenError
 from .meshes.labels import PartLabels
-from .latent_units import LatentUnits
+from .models.latent_units import LatentUnits
 from .meshes import meshset
 from .meshes.layout import pack_layouts, unpack_layouts
 from .meshes.mesh import Mesh, MeshReport
@@ -211,7 +211,7 @@ class GenerativeShapeModel:
         return self._training_latents
 
     def latent_units(self) -> LatentUnits:
-        """The sliders' units (core/latent_units.py) from the training latents."""
+        """The sliders' units (core/models/latent_units.py) from the training latents."""
         if self._latent_units is None:
             self._latent_units = LatentUnits.from_training(self.training_latents())
         return self._latent_units
@@ -306,7 +306,7 @@ class GenerativeShapeModel:
     def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
         """The templates for a landmark set, best first: a named template alone, else the
         candidates (`template_candidates`) nearest first, in data space (nearest-data) or
-        latent space (nearest-latent). The gated sampler (core/sampling.py) tries the next
+        latent space (nearest-latent). The gated sampler (core/generate/sampling.py) tries the next
         ones when a mesh fails the quality gate."""
         landmarks = self._check_landmarks(landmarks)
         if template is None:
@@ -375,7 +375,7 @@ class GenerativeShapeModel:
 
         exact=False uses the linear fast path (final α only); exact=True runs the full
         stiffness relaxation (§6.2.3). `stiffness` replaces the final α of the model's
-        deform settings (the gated sampler's stiffer re-mesh, core/sampling.py)."""
+        deform settings (the gated sampler's stiffer re-mesh, core/generate/sampling.py)."""
         landmarks = np.asarray(landmarks, dtype=np.float64)
         index = self.choose_template(landmarks, template)
         deformer = self.deformer(index, stiffness)

@@ -1,6 +1,6 @@
 """Gated sampling on a Dask cluster: `shapegen sample --scheduler tcp://host:8786`
 (or local:N). The model file's bytes go to every worker once; in each round of the run's
-pooled draw budget (core/sampling.py, `pooled_samples`) each worker draws, gates and meshes
+pooled draw budget (core/generate/sampling.py, `pooled_samples`) each worker draws, gates and meshes
 a contiguous run of the round's samples (sorted by template so it builds few mesh maps) and
 returns them with their meshes, which the calling process writes, so the workers need no
 shared file system. Same samples as the local process pool: sample i of a run depends only
@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Sequence
 
 from .base.cluster import connect
-from .quality import QualitySettings
-from .sampling import GatedSample, gated_slots
+from .generate.quality import QualitySettings
+from .generate.sampling import GatedSample, gated_slots
 
 __all__ = ["contiguous_chunks", "cluster_sampler"]
 

@@ -36,7 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
+from .preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
 from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings
 from .correspond.posing import apply_pose
 from .base.errors import ShapeGenError

@@ -75,7 +75,7 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     from the meshes and correspondence of an earlier model (`correspondence_of`: a model
     file; only the shape model is fitted); `settings` are FitSettings as plain data
     (FitSettings.from_dict)."""
-    from .collection import PreparedCollection, prepare_meshes
+    from .preprocess.collection import PreparedCollection, prepare_meshes
     from .meshes.meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
     from .base.progress import sub_range
@@ -122,7 +122,7 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
     collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data,
     `keep_pose` one bool per mesh (keep its pose) or absent. Cancel is checked at every
     progress step (after each shape's stage)."""
-    from .collection import PrepareSettings, prepare_meshes
+    from .preprocess.collection import PrepareSettings, prepare_meshes
     from .meshes.meshset import load_mesh_set
     from .meshes.spill import SpillStore
 
@@ -136,7 +136,7 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
 
 def task_correspond(arguments: dict, progress, should_cancel) -> str:
     """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
-    from .collection import PreparedCollection
+    from .preprocess.collection import PreparedCollection
     from .correspond import CorrespondenceSettings, correspond
 
     prepared = PreparedCollection.load(arguments["prepared"])

@@ -169,7 +169,7 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     import numpy as np
 
     pipeline = importlib.import_module(f"{module}.core.pipeline")
-    collection = importlib.import_module(f"{module}.core.collection")
+    collection = importlib.import_module(f"{module}.core.preprocess.collection")
     jobs = importlib.import_module(f"{module}.core.jobs")
     meshset = importlib.import_module(f"{module}.core.meshes.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")

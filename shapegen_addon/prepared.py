@@ -20,8 +20,8 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
-from ..core.landmarks import Landmarks
+from ..core.preprocess.collection import PrepareSettings, PreparedCollection, pose_notes
+from ..core.preprocess.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.base.settings import SettingsError
 from ..core.stages import Offered
@@ -170,7 +170,7 @@ def flagged_copies(collection: bpy.types.Collection | None) -> list[bpy.types.Ob
 
 
 def prepared_pose_notes(objects) -> list[str]:
-    """What Prepare did to the poses of prepared `objects` (core.collection.pose_notes,
+    """What Prepare did to the poses of prepared `objects` (core.preprocess.collection.pose_notes,
     named after their source objects): "name: turned ..." and "name: pose looks wrong: ..."."""
     return pose_notes([o.get(SOURCE_KEY, o.name) for o in objects], [o.get(POSE_CHANGE_KEY, "") for o in objects],
                       [o.get(POSE_OUTLIER_KEY, "") for o in objects])

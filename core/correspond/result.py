@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..collection import PrepareSettings, recorded_unreadable, unreadable_arrays
+from ..preprocess.collection import PrepareSettings, recorded_unreadable, unreadable_arrays
 from ..base.errors import ModelFileError
 from ..base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..base.settings import recorded_settings

@@ -3,7 +3,7 @@ into scene data; they hold no algorithm.
 
 * `SHAPEGEN_OT_import_collection` — a folder of mesh files → a new collection of mesh
   objects named after the files (Blender's own importers; OFF through the core reader).
-* `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
+* `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.preprocess.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
   never modified. Meshes are read here as the artist sees them (modifiers applied, unless
   the panel's Base Mesh is on; a mirrored object's winding reversed) and cleaned by the
@@ -24,7 +24,7 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ...core.collection import PrepareSettings
+from ...core.preprocess.collection import PrepareSettings
 from ...core.base.errors import ShapeGenError
 from ...core.jobs import BackgroundJob, JobStatus
 from ...core.meshes.meshset import save_mesh_set
@@ -96,7 +96,7 @@ def _load_prepared(status: JobStatus):
     """prepare step of the job (helper thread, no bpy): load and validate the result."""
     if status.state != "done":
         return None
-    from ...core.collection import PreparedCollection
+    from ...core.preprocess.collection import PreparedCollection
 
     return PreparedCollection.load(status.output)
 

@@ -136,7 +136,7 @@ def fit_vase_models(extension: str, kinds, n: int, latent_dim: int | None) -> di
     datasets = addon_module(extension, "core.datasets")
     pipeline = addon_module(extension, "core.pipeline")
     correspond = addon_module(extension, "core.correspond")
-    collection = addon_module(extension, "core.collection")
+    collection = addon_module(extension, "core.preprocess.collection")
     meshes = [s.mesh for s in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
     settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim, jobs=1,
                                     correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))

@@ -123,9 +123,9 @@ def test_keep_failed_writes_only_the_failing_samples_with_their_reasons(explodin
 def test_a_short_run_writes_none_of_its_passing_samples(model_file, tmp_path, monkeypatch, capsys):
     """One of three samples fails on every draw (a gate refusing its seeds): the two that
     pass are not written either, and --keep-failed writes only the failing one."""
-    from shapegen_core import sampling
+    from shapegen_core.generate import sampling
     from shapegen_core.cli import main
-    from shapegen_core.quality import MeshQuality
+    from shapegen_core.generate.quality import MeshQuality
 
     draw, seeds = sampling._draw, []
 
@@ -270,7 +270,7 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
 # ---------------------------------------------------------------------------- settings on the command line
 def test_every_source_command_takes_the_same_prepare_options(tmp_path):
     from shapegen_core.cli import build_parser
-    from shapegen_core.collection import PrepareSettings
+    from shapegen_core.preprocess.collection import PrepareSettings
     from shapegen_core.cli_common import settings_from_args
 
     options = ["--landmarks", "50", "--up", "y", "--align", "pca", "--scale", "bbox", "--centre", "none", "--seed", "3"]
@@ -328,8 +328,8 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
     from concurrent.futures import Future
 
     from shapegen_core import cli_generate
-    from shapegen_core.quality import MeshQuality
-    from shapegen_core.sampling import GatedSample, sample_name
+    from shapegen_core.generate.quality import MeshQuality
+    from shapegen_core.generate.sampling import GatedSample, sample_name
 
     submitted, seen = [], {}
 

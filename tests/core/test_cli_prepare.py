@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, ModelFileError
 from shapegen_core.base.npzfile import save_npz

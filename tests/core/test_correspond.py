@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from shapegen_core.cli import main
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
     CORRESPONDENCE_FORMAT,
     CORRESPONDENCE_VERSION,
@@ -40,7 +40,7 @@ from shapegen_core.geometry import (
 )
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.base.errors import Cancelled, CollectionError, MeshError, ModelFileError
-from shapegen_core.landmarks import Landmarks, select_landmarks
+from shapegen_core.preprocess.landmarks import Landmarks, select_landmarks
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.base.npzfile import save_npz
 from shapegen_core.preprocess import PreparedShape, ShapeTransform

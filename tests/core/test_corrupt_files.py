@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.cli import main
-from shapegen_core.collection import PreparedCollection
+from shapegen_core.preprocess.collection import PreparedCollection
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import MeshFileError
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.base.cluster import ClusterError, parse_scheduler
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import IterationSettings
 from shapegen_core.datasets import make_vases

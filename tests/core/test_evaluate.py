@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import correspond
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.evaluation import (EvaluationError, EvaluationSettings, TrainingSetModel, choose_morph_endpoints,

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings
+from shapegen_core.preprocess.collection import PrepareSettings
 from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.deform import enclosed_volume
+from shapegen_core.generate.deform import enclosed_volume
 from shapegen_core.base.errors import MeshError
 from shapegen_core.meshes.intake import (OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outside_sides, outwardness,
                                          weld_vertices, winding_numbers)
@@ -375,7 +375,7 @@ def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_thei
     sample has no coincident faces, its body is consistently wound and encloses a positive
     volume, and the label is a second body of the file."""
     from shapegen_core.meshes.reading import MeshWriters
-    from shapegen_core.quality import coincident_faces
+    from shapegen_core.generate.quality import coincident_faces
 
     meshes, model = cad_model
     assert all(m.report.layout is not None and m.report.separate_parts == 2 for m in meshes)

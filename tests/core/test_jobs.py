@@ -76,7 +76,7 @@ def test_poll_never_blocks(tmp_path):
 
 
 def test_correspond_task_writes_a_correspondence_file(tmp_path):
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence
     from shapegen_core.datasets import make_vases
 
@@ -92,7 +92,7 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
 
 
 def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
-    from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
     from shapegen_core.datasets import make_vases
     from shapegen_core.meshes.meshset import save_mesh_set
 
@@ -179,7 +179,7 @@ def _children(pid: int) -> list[int]:
 def test_registration_workers_exit_when_their_job_is_killed(tmp_path):
     """A worker terminated mid-correspondence (Blender's Cancel after its grace period)
     leaves no registration process behind: they used to run on, then wait forever."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.datasets import make_vases
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=2)], PrepareSettings(n_landmarks=400))

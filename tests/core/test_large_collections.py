@@ -150,7 +150,7 @@ def test_held_out_groups_flag_the_shape_leave_one_out_flags(monkeypatch):
 def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
     """Cancel is checked while the pose search compares shapes (every pair, or the
     proposed pairs), not only after it: the search stops at its next report."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.base.errors import Cancelled
     from shapegen_core.preprocess import posesearch
 
@@ -180,7 +180,7 @@ def test_prepare_reports_and_cancels_in_every_loop_over_the_shapes(loop):
     worth of pairs) and stops at its next report once Cancel is asked (issue 15: a
     1000-shape Prepare spends minutes in each): cancelled at the loop's first report, the
     last report is that first one."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.base.errors import Cancelled
 
     messages, fractions = [], []

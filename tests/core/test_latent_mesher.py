@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings
+from shapegen_core.preprocess.collection import PrepareSettings
 from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
 from shapegen_core.datasets import make_vases

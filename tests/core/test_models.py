@@ -502,7 +502,7 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     length-scale at or above the bound, and a latent between two training shapes decodes to
     something between them, not to the mean shape (before the bound and the latent prior the
     optimiser reached ℓ = 0.03 with latents spread 1–4: every new latent decoded to the mean)."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
     from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
     from shapegen_core.datasets import make_vases

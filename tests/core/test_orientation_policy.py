@@ -17,7 +17,7 @@ import pytest
 
 from conftest import Y_UP_FILE, on_a_floor, placed, turned
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.datasets import make_barrels, make_mugs, make_vases, write_collection
 from shapegen_core.base.errors import CollectionError
 from shapegen_core.geometry import TargetSurface

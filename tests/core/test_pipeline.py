@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings
+from shapegen_core.preprocess.collection import PrepareSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.models import PPCA

@@ -10,8 +10,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.collection import PREPARED_FORMAT, PREPARED_VERSION, PreparedCollection, PrepareSettings, \
-    prepare_meshes
+from shapegen_core.preprocess.collection import (PREPARED_FORMAT, PREPARED_VERSION, PreparedCollection, PrepareSettings,
+                                                 prepare_meshes)
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_angle, rigid_fit
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import CollectionError
 from shapegen_core.meshes.mesh import Mesh

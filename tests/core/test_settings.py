@@ -10,11 +10,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, OutlierSettings, RefinementSettings,
                                                StiffnessSettings)
-from shapegen_core.deform import DeformSettings
+from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
 from shapegen_core.base.settings import Settings, SettingsError, group, option, recorded_settings

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence
 from shapegen_core.datasets import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, MeshFileError, ModelFileError

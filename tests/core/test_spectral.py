@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from conftest import tosca_class
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.correspond.functional_map import spectral_shape, spectral_start

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import Cancelled
@@ -165,7 +165,7 @@ def test_correspondence_reuses_the_proxy_prepare_built(folder, monkeypatch):
     """A stored shape's registration proxy is built once, by Prepare while the shape is at
     full density; correspondence registers against it without building another, with
     the same landmarks as when it builds the proxy itself."""
-    import shapegen_core.collection as collection
+    import shapegen_core.preprocess.collection as collection
     from shapegen_core.correspond.proxy import dense_limit
 
     key = (CORRESPONDENCE.proxy_faces, dense_limit(CORRESPONDENCE))

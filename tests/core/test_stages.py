@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PreparedCollection, PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PreparedCollection, PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.pipeline import FitSettings

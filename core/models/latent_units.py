@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from .base.errors import ShapeGenError
+from ..base.errors import ShapeGenError
 
 __all__ = ["LatentUnits", "RandomValues", "SLIDER_LIMIT"]
 

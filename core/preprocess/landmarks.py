@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .base.errors import MeshError
-from .meshes.mesh import Mesh
+from ..base.errors import MeshError
+from ..meshes.mesh import Mesh
 
 __all__ = ["Landmarks", "select_landmarks", "radius_select", "DEFAULT_LANDMARKS", "MIN_LANDMARKS"]
 

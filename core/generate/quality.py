@@ -34,13 +34,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .base.errors import ShapeGenError
-from .geometry.intersections import intersecting_pairs, pair_keys
+from ..base.errors import ShapeGenError
+from ..geometry.intersections import intersecting_pairs, pair_keys
 from scipy.spatial import cKDTree
 
-from .meshes.intake import shared_edges
-from .meshes.mesh import Mesh, triangle_cross
-from .base.settings import Settings, option
+from ..meshes.intake import shared_edges
+from ..meshes.mesh import Mesh, triangle_cross
+from ..base.settings import Settings, option
 
 __all__ = ["QualitySettings", "MeshQuality", "QualityGate", "training_extents"]
 
@@ -66,7 +66,7 @@ class QualitySettings(Settings):
         training range; an explosion (the mug sample that became a disc 5× the class's
         size) is far outside it.
     stiffer_remesh: a draw that fails on its nearest templates is meshed again on them at
-        this many times the model's final α before it is redrawn (core/sampling.py). 2: on
+        this many times the model's final α before it is redrawn (core/generate/sampling.py). 2: on
         PSB Cup at α 5, 23 of 24 draws that failed on 3 templates pass at α 10, which keeps
         the draw (the sample's distribution) and costs landmark fidelity only where the
         soft mesh folds. 1 skips it.
@@ -76,7 +76,7 @@ class QualitySettings(Settings):
     max_coincident_faces: face pairs on top of each other a sample may have. 0: each pair
         z-fights (a checkerboard of dark triangles in a viewport).
     max_redraws: redraws per requested sample, pooled over the run: a run of n samples
-        makes at most n·(1 + max_redraws) draws in all (core/sampling.py, `draw_budget`),
+        makes at most n·(1 + max_redraws) draws in all (core/generate/sampling.py, `draw_budget`),
         each sample first getting 1 + max_redraws and those still failing sharing what the
         passing ones left. 20: where half the draws pass, a sample's own 21 draws all
         fail about once in two million (0.5^21), and a run that cannot pass stops after

@@ -22,16 +22,16 @@ from typing import Sequence
 
 import numpy as np
 
-from .base.errors import CollectionError, ModelFileError
+from ..base.errors import CollectionError, ModelFileError
 from .landmarks import DEFAULT_LANDMARKS, MIN_LANDMARKS, Landmarks, select_landmarks
-from .meshes import meshset
-from .meshes.mesh import Mesh
-from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
-from .preprocess import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
-from .preprocess.prepare import turn_as_flagged
-from .base.progress import CancelCheck, Progress, sub_range
-from .base.settings import Settings, option, recorded_settings
-from .meshes.spill import REGISTRATION_PROXY, StoredMesh, loaded
+from ..meshes import meshset
+from ..meshes.mesh import Mesh
+from ..base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from . import ALIGN_MODES, CENTRE_MODES, SCALE_MODES, UP_AXES, PreparedShape, ShapeTransform, prepare_collection
+from .prepare import turn_as_flagged
+from ..base.progress import CancelCheck, Progress, sub_range
+from ..base.settings import Settings, option, recorded_settings
+from ..meshes.spill import REGISTRATION_PROXY, StoredMesh, loaded
 
 __all__ = ["PrepareSettings", "PreparedCollection", "prepare_meshes", "kept_poses", "pose_notes", "PREPARED_FORMAT",
            "PREPARED_VERSION", "unreadable_arrays", "recorded_unreadable"]

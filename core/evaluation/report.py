@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation import EvaluationResult, procrustes_align
+from . import EvaluationResult, procrustes_align
 
 __all__ = ["clean_for_json", "write_report", "write_summary", "write_figures", "REPORT_FILES"]
 

@@ -38,7 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .meshes.mesh import Mesh
+from ..meshes.mesh import Mesh
 from .quality import CRITERIA, MeshQuality, QualityGate, QualitySettings, training_extents
 
 __all__ = ["Rejection", "GatedSample", "TEMPLATES_TRIED", "quality_gate", "redraw_seed", "gated_sample",

@@ -37,11 +37,10 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import factorized
 from scipy.spatial import cKDTree
 
-from .base.errors import ShapeGenError
-from .geometry import (AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines,
-                       registration_frame)
-from .meshes.mesh import Mesh
-from .base.settings import Settings, option
+from ..base.errors import ShapeGenError
+from ..geometry import AffineSolver, apply_affines, compose_affines, data_blocks, identity_affines, registration_frame
+from ..meshes.mesh import Mesh
+from ..base.settings import Settings, option
 
 __all__ = [
     "DeformSettings",
@@ -70,7 +69,7 @@ class DeformSettings(Settings):
         scale of the landmark spacing, and a template's landmarks cover it unevenly (a
         vertex up to 5-11 landmark spacings from the nearest one on PSB Fish), so a soft
         deformation follows the noise and crumples. Samples broken by the quality gate
-        (core/quality.py), 200 per class, BGP-LVM, nearest-data template, linear path,
+        (core/generate/quality.py), 200 per class, BGP-LVM, nearest-data template, linear path,
         α 2 → 3 → 5: PSB Fish 23 → 12 → 1, PSB Airplane 5 → 0 → 0, procedural vases
         2 → 0 → 0, PSB Vase 126 → 65 (α 5); the landmark residual grows from 0.53 % to
         0.72 % of the diagonal on Airplane (bench/deform.py: α 1 → 0.39 %, 3 → 0.61 %).
