@@ -69,7 +69,7 @@ def main() -> None:
     datasets, convert = module("core.datasets"), module("shapegen_addon.convert")
     jobs, store, latent = module("shapegen_addon.jobs"), module("shapegen_addon.store"), module(
         "shapegen_addon.latent")
-    pipeline, models = module("core.pipeline"), module("core.models")
+    pipeline, models = module("core.app.pipeline"), module("core.models")
 
     scene = bpy.context.scene
     settings = scene.shapegen

@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
 from shapegen_core.meshes.reading import MeshWriters, read_folder  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
-from shapegen_core.pipeline import FitSettings, fit_meshes  # noqa: E402
+from shapegen_core.app.pipeline import FitSettings, fit_meshes  # noqa: E402
 from shapegen_core.generate.quality import coincident_faces  # noqa: E402
 from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 

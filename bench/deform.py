@@ -31,7 +31,7 @@ from shapegen_core.geometry import apply_affines  # noqa: E402
 from shapegen_core.meshes.reading import read_folder  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PSB = ROOT.parent / "shared" / "data" / "psb"

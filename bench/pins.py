@@ -51,7 +51,7 @@ def main() -> None:
     parser.add_argument("--moves", type=int, default=30)
     args = parser.parse_args()
     install_extension(bpy)
-    datasets, pipeline, collection, models = (module("core.datasets"), module("core.pipeline"),
+    datasets, pipeline, collection, models = (module("core.datasets"), module("core.app.pipeline"),
                                               module("core.preprocess.collection"), module("core.models"))
     pins, latent, store = module("shapegen_addon.pins"), module("shapegen_addon.latent"), module("shapegen_addon.store")
     shapes = datasets.make_vases(6, seed=2, resolution=(args.rings, args.rings))

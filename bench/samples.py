@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
 from shapegen_core.generate.deform import DeformSettings  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
 from shapegen_core.generate.quality import CRITERIA, QualitySettings  # noqa: E402
 from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 

@@ -193,7 +193,7 @@ def run_row(row: str, args) -> dict:
         from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
     except ImportError:  # the core before issue 15 (the "before" figures)
         CUBIC_NOTE_SHAPES = 200
-    from shapegen_core.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.pipeline import FitSettings, fit_shape_model
 
     memory = TreeMemory()
     stages: dict[str, list] = {}

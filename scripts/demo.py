@@ -168,9 +168,9 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     """Fit BGP-LVM on the imported collection, sample, morph, render one PNG."""
     import numpy as np
 
-    pipeline = importlib.import_module(f"{module}.core.pipeline")
+    pipeline = importlib.import_module(f"{module}.core.app.pipeline")
     collection = importlib.import_module(f"{module}.core.preprocess.collection")
-    jobs = importlib.import_module(f"{module}.core.jobs")
+    jobs = importlib.import_module(f"{module}.core.app.jobs")
     meshset = importlib.import_module(f"{module}.core.meshes.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")
     start = time.perf_counter()

@@ -41,7 +41,7 @@ COLOURS = {"training": (0.8, 0.82, 0.86, 1.0), "sample": (0.45, 0.65, 0.95, 1.0)
 
 def shapegen(*arguments: str, log: Path) -> int:
     """Run the project's CLI (the interpreter's own install) with its output in `log`."""
-    command = [sys.executable, "-m", "shapegen_core.cli", *arguments]
+    command = [sys.executable, "-m", "shapegen_core.app.cli", *arguments]
     print("$ shapegen " + " ".join(arguments), flush=True)
     with open(log, "w") as out:
         return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT).returncode
@@ -99,7 +99,7 @@ def row_meshes(model_path: Path, samples: Path):
     the axes the CLI writes samples in."""
     from shapegen_core.meshes.reading import read_mesh
     from shapegen_core.meshes.mesh import Mesh
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.pipeline import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_path)
     corr = model.correspondence

@@ -24,7 +24,7 @@ from ..core.preprocess.collection import PrepareSettings, PreparedCollection, po
 from ..core.preprocess.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
 from ..core.base.settings import SettingsError
-from ..core.stages import Offered
+from ..core.app.stages import Offered
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,
                    KEEP_POSE_KEY,
@@ -194,7 +194,7 @@ class PreparedCopies:
 
 def offered_prepared(collection, objects, evaluated: bool = True) -> list[Offered]:
     """Every Prepare result of `collection` (newest name first) as a found stage output for
-    core.stages: the Prepare settings it records, and, as its `current` check, whether it
+    core.app.stages: the Prepare settings it records, and, as its `current` check, whether it
     has a copy of each of `objects` (the mesh objects of `collection`, sorted by name) read
     the same way (`evaluated`: modifiers applied, or the base mesh) and none has changed
     since: every copy equals its source as read now, in world coordinates, under its stored

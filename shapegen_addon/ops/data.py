@@ -7,7 +7,7 @@ into scene data; they hold no algorithm.
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
   never modified. Meshes are read here as the artist sees them (modifiers applied, unless
   the panel's Base Mesh is on; a mirrored object's winding reversed) and cleaned by the
-  core's intake (welded, wound outwards); the slow part runs in a worker (core.worker
+  core's intake (welded, wound outwards); the slow part runs in a worker (core.app.worker
   "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit. Objects flagged
   Keep Pose (keys.KEEP_POSE_KEY) are never turned; the message names the turned and the
   flagged shapes.
@@ -26,7 +26,7 @@ from bpy.props import StringProperty
 
 from ...core.preprocess.collection import PrepareSettings
 from ...core.base.errors import ShapeGenError
-from ...core.jobs import BackgroundJob, JobStatus
+from ...core.app.jobs import BackgroundJob, JobStatus
 from ...core.meshes.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
 from ..exclusion import training_objects

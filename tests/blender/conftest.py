@@ -134,7 +134,7 @@ def fit_vase_models(extension: str, kinds, n: int, latent_dim: int | None) -> di
     prepare and one correspondence, then each model type fitted on it (fit_shape_model,
     the stage fit_meshes ends with)."""
     datasets = addon_module(extension, "core.datasets")
-    pipeline = addon_module(extension, "core.pipeline")
+    pipeline = addon_module(extension, "core.app.pipeline")
     correspond = addon_module(extension, "core.correspond")
     collection = addon_module(extension, "core.preprocess.collection")
     meshes = [s.mesh for s in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION)]

@@ -76,8 +76,8 @@ def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
     """task_fit on raw meshes prepares them with keep_pose, like task_prepare."""
     datasets = addon_module(extension, "core.datasets")
     meshset = addon_module(extension, "core.meshes.meshset")
-    worker = addon_module(extension, "core.worker")
-    pipeline = addon_module(extension, "core.pipeline")
+    worker = addon_module(extension, "core.app.worker")
+    pipeline = addon_module(extension, "core.app.pipeline")
     meshes = [s.mesh for s in datasets.make_vases(8, seed=1, resolution=(14, 20), pose=False)]
     meshes[2] = meshes[2].with_vertices(meshes[2].vertices * [1.0, -1.0, -1.0])
     meshset.save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],

@@ -16,7 +16,7 @@ REASON = "landmarks 6.1× farther from the other shapes' model than the median s
 
 def _model_with_an_outlier(extension, model_files, tmp_path, name: str):
     """The session's small PPCA model with shape `name` flagged, loaded into the scene."""
-    pipeline = addon_module(extension, "core.pipeline")
+    pipeline = addon_module(extension, "core.app.pipeline")
     model = pipeline.GenerativeShapeModel.load(model_files["ppca"])
     corr = model.correspondence
     flagged = np.array([n == name for n in corr.names])

@@ -102,7 +102,7 @@ def test_panels_draw_with_a_model_a_live_object_and_a_map(model_files):
 
 def test_model_panel_shows_progress_and_cancel_while_a_job_runs(extension, tmp_path):
     jobs = addon_module(extension, "shapegen_addon.jobs")
-    core_jobs = addon_module(extension, "core.jobs")
+    core_jobs = addon_module(extension, "core.app.jobs")
     job = core_jobs.BackgroundJob("selftest", {"steps": 50, "sleep": 0.1, "output": str(tmp_path / "out")})
     jobs.MANAGER.start(job, lambda status, prepared: None, label="selftest")
     try:
@@ -170,7 +170,7 @@ def test_tooltips_speak_to_artists_not_programmers():
 def test_every_blender_default_is_the_core_and_cli_default(extension):
     """The panel's defaults, as the worker receives them, are the core's default FitSettings,
     which are the `shapegen` defaults too (its options are built from the same classes)."""
-    pipeline = addon_module(extension, "core.pipeline")
+    pipeline = addon_module(extension, "core.app.pipeline")
     core_settings = addon_module(extension, "core.base.settings")
     scene = bpy.data.scenes.new("fresh defaults")
     try:

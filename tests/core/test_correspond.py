@@ -15,7 +15,7 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from shapegen_core.cli import main
+from shapegen_core.app.cli import main
 from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
     CORRESPONDENCE_FORMAT,

@@ -16,7 +16,7 @@ from shapegen_core.correspond.settings import OutlierSettings
 from shapegen_core.correspond import groupwise
 from shapegen_core.datasets import make_vases
 from shapegen_core.preprocess.landmarks import Landmarks
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_shape_model
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_shape_model
 
 UPSIDE_DOWN = np.diag([1.0, -1.0, -1.0])  # a half turn about x: +z up becomes -z up
 FLIPPED = 3

@@ -24,7 +24,7 @@ import warnings
 import numpy as np
 import pytest
 
-from shapegen_core.cli import main
+from shapegen_core.app.cli import main
 from shapegen_core.preprocess.collection import PreparedCollection
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import MeshFileError

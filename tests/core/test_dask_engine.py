@@ -86,7 +86,7 @@ def test_core_imports_and_runs_without_dask():
     and --scheduler names the package to install."""
     code = (
         "import sys; sys.modules['distributed'] = None; sys.modules['dask'] = None\n"
-        "import shapegen_core.pipeline, shapegen_core.cli\n"
+        "import shapegen_core.app.pipeline, shapegen_core.app.cli\n"
         "from shapegen_core.base.cluster import connect, ClusterError\n"
         "try:\n"
         "    with connect('local:1'): pass\n"
@@ -99,8 +99,8 @@ def test_core_imports_and_runs_without_dask():
 
 def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
     """`shapegen sample --scheduler` writes the same files as the local process pool."""
-    from shapegen_core.cli import main
-    from shapegen_core.pipeline import FitSettings, fit_meshes
+    from shapegen_core.app.cli import main
+    from shapegen_core.app.pipeline import FitSettings, fit_meshes
 
     meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca", jobs=1,

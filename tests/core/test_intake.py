@@ -19,7 +19,7 @@ from shapegen_core.meshes.intake import (OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, c
 from shapegen_core.meshes.reading import read_folder, read_mesh, write_mesh
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.meshes.meshset import load_mesh_set, save_mesh_set
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.pipeline import FitSettings, fit_meshes
 
 from conftest import random_surface
 

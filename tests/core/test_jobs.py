@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.jobs import BackgroundJob
+from shapegen_core.app.jobs import BackgroundJob
 
 
 def test_progress_reaches_one_and_output_is_reported(tmp_path):

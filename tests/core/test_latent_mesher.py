@@ -11,7 +11,7 @@ from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
 from shapegen_core.datasets import make_vases
 from shapegen_core.models import MODEL_TYPES
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 
 
 @pytest.fixture(scope="module")

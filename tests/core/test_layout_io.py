@@ -153,7 +153,7 @@ def test_fit_and_sample_write_the_template_faces_and_uvs(collection, model, tmp_
 
 def test_a_model_file_keeps_the_layouts_and_older_files_load(model, tmp_path):
     from shapegen_core.base.npzfile import load_npz, save_npz
-    from shapegen_core.pipeline import MODEL_FILE_FORMAT, GenerativeShapeModel
+    from shapegen_core.app.pipeline import MODEL_FILE_FORMAT, GenerativeShapeModel
 
     fitted = GenerativeShapeModel.load(model)
     assert all(m.report.layout is not None and m.report.layout.uv is not None for m in fitted.meshes)

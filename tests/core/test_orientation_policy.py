@@ -21,7 +21,7 @@ from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollect
 from shapegen_core.datasets import make_barrels, make_mugs, make_vases, write_collection
 from shapegen_core.base.errors import CollectionError
 from shapegen_core.geometry import TargetSurface
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.pipeline import FitSettings, fit_meshes
 from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.floors import FileFloors, Floor
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS

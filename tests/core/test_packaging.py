@@ -130,7 +130,7 @@ def test_readme_is_short_and_opens_with_the_two_set_up_commands():
 def test_version_is_one_number_for_the_cli_the_package_and_the_extension(capsys):
     """`shapegen --version` prints the version pyproject.toml and blender_manifest.toml
     declare (one number for the pip package and the Blender extension)."""
-    from shapegen_core.cli import main
+    from shapegen_core.app.cli import main
 
     with pytest.raises(SystemExit) as stop:
         main(["--version"])

@@ -13,7 +13,7 @@ from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import ShapeGenError
 from shapegen_core.models import GPLVM, PPCA, BayesianGPLVM
 from shapegen_core.models.latent_variable import LatentVariableModel
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.pipeline import FitSettings, fit_meshes
 
 from conftest import central_diff
 

@@ -17,9 +17,9 @@ from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_ang
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.base.npzfile import save_npz
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
 from shapegen_core.preprocess import ShapeTransform
-from shapegen_core.stages import same_shapes
+from shapegen_core.app.stages import same_shapes
 
 #: the copy Prepare leaves lying: a quarter turn about x (its long z axis ends along −y)
 QUARTER_TURN = Rotation.from_euler("x", 90, degrees=True).as_matrix()

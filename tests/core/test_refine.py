@@ -267,8 +267,8 @@ def test_correspondence_file_records_the_refinement(vases, tmp_path):
 
 
 def test_command_line_refine_option():
-    from shapegen_core.cli import build_parser
-    from shapegen_core.cli_common import settings_from_args
+    from shapegen_core.app.cli import build_parser
+    from shapegen_core.app.cli_common import settings_from_args
 
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--refine", "population"])

@@ -159,7 +159,7 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
     """GP-LVM (O(N³) per iteration) notes its cost above CUBIC_NOTE_SHAPES shapes, as a
     ScaleWarning and a progress message; PPCA and the Bayesian GP-LVM never do."""
     from shapegen_core.models import scaling
-    from shapegen_core.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.pipeline import FitSettings, fit_shape_model
 
     assert scaling.size_note("gplvm", scaling.CUBIC_NOTE_SHAPES) is None
     assert "N³" in scaling.size_note("gplvm", 1000) and "bgplvm" in scaling.size_note("gplvm", 1000)

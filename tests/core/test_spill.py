@@ -20,7 +20,7 @@ from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.datasets import make_vases
 from shapegen_core.base.errors import Cancelled
 from shapegen_core.meshes.reading import read_folder
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
 from shapegen_core.meshes.spill import SpillStore, StoredMesh
 
 from conftest import subdivided
@@ -150,7 +150,7 @@ def test_the_store_is_removed_after_success_error_and_cancel(folder):
 
 def test_commands_remove_their_store(folder, tmp_path, monkeypatch):
     """`shapegen prepare` leaves no store behind, whether it succeeds or fails."""
-    from shapegen_core.cli import main
+    from shapegen_core.app.cli import main
 
     spill_parent = tmp_path / "tmp"
     spill_parent.mkdir()

@@ -26,20 +26,20 @@ import numpy as np
 from .cli_common import (CommandError, add_keep_pose_option, add_settings_options, add_skip_unreadable_option,
                          console_progress, positive_int, prepare_source, read_mesh_folder, read_source,
                          requested_settings, settings_from_args)
-from .base.child_process import exit_with_parent
-from .preprocess.collection import PrepareSettings
-from .correspond import CorrespondenceSettings
-from .generate.deform import DeformSettings
-from .meshes.reading import MeshWriters, list_mesh_files
-from .meshes.labels import PartLabels, labels_beside, write_label_file, written_face_labels
-from .base.npzfile import ArraySpec, load_npz, save_npz
+from ..base.child_process import exit_with_parent
+from ..preprocess.collection import PrepareSettings
+from ..correspond import CorrespondenceSettings
+from ..generate.deform import DeformSettings
+from ..meshes.reading import MeshWriters, list_mesh_files
+from ..meshes.labels import PartLabels, labels_beside, write_label_file, written_face_labels
+from ..base.npzfile import ArraySpec, load_npz, save_npz
 from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-from .meshes.spill import SpillStore, loaded
-from .preprocess import ShapeTransform
-from .generate.quality import QualitySettings
+from ..meshes.spill import SpillStore, loaded
+from ..preprocess import ShapeTransform
+from ..generate.quality import QualitySettings
 from .sample_batch import cluster_sampler, contiguous_chunks
-from .generate.sampling import (GatedSample, draw_budget, gate_summary, gated_slots, pooled_samples, redraw_seed,
-                                rejection_lines, shortfall)
+from ..generate.sampling import (GatedSample, draw_budget, gate_summary, gated_slots, pooled_samples, redraw_seed,
+                                 rejection_lines, shortfall)
 
 __all__ = ["add_generate_commands"]
 
@@ -258,7 +258,7 @@ def _first_templates(model, run: SampleRun) -> list[int]:
 def _round_gate(args, model, run: SampleRun, templates: list):
     """The gate of one round of `pooled_samples` for this run: in this process, in
     `args.jobs` processes when there are many samples, or on the Dask cluster
-    `args.scheduler` (core/sample_batch.py; the meshes come back and passing ones are
+    `args.scheduler` (core/app/sample_batch.py; the meshes come back and passing ones are
     written here, so workers need no shared file system). The pool or cluster stays open
     for every round. Each worker gets a contiguous run of the round's samples sorted by
     the template of their first draw (`templates`), so it builds the mesh maps of few

@@ -39,23 +39,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
-from .correspond import Correspondence, CorrespondenceSettings, correspond
-from .correspond.posing import apply_pose
-from .generate.deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
-from .base.errors import CollectionError, ModelFileError, ShapeGenError
-from .meshes.labels import PartLabels
-from .models.latent_units import LatentUnits
-from .meshes import meshset
-from .meshes.layout import pack_layouts, unpack_layouts
-from .meshes.mesh import Mesh, MeshReport
-from .models import MODEL_TYPES, make_model, model_from_arrays
-from .models.scaling import ScaleWarning, size_note
-from .base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
-from .preprocess.rotations import up_rotation
-from .base.progress import CancelCheck, Progress, no_progress, sub_range
-from .base.settings import Settings, SettingsError, legacy_settings, option
-from .meshes.spill import full_mesh, loaded
+from ..preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from ..correspond import Correspondence, CorrespondenceSettings, correspond
+from ..correspond.posing import apply_pose
+from ..generate.deform import DeformSettings, EmbeddedDeformer, LinearMeshMap, smooth_curvature_flow
+from ..base.errors import CollectionError, ModelFileError, ShapeGenError
+from ..meshes.labels import PartLabels
+from ..models.latent_units import LatentUnits
+from ..meshes import meshset
+from ..meshes.layout import pack_layouts, unpack_layouts
+from ..meshes.mesh import Mesh, MeshReport
+from ..models import MODEL_TYPES, make_model, model_from_arrays
+from ..models.scaling import ScaleWarning, size_note
+from ..base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from ..preprocess.rotations import up_rotation
+from ..base.progress import CancelCheck, Progress, no_progress, sub_range
+from ..base.settings import Settings, SettingsError, legacy_settings, option
+from ..meshes.spill import full_mesh, loaded
 
 __all__ = ["FitSettings", "GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS",
@@ -644,7 +644,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
                                      cancel.before(sub_range(report, 0.95, 1.0, "encoding the training shapes: ")))
     cancel()
     report(1.0, "fitted")
-    from . import __version__
+    from .. import __version__
 
     metadata = {"created": time.strftime("%Y-%m-%dT%H:%M:%S"), "fit_seconds": f"{time.perf_counter() - start:.2f}",
                 "n_shapes": str(len(meshes)), "shapegen_version": __version__}

@@ -36,11 +36,11 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
-from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings
-from .correspond.posing import apply_pose
-from .base.errors import ShapeGenError
-from .base.npzfile import read_format
+from ..preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings
+from ..correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings
+from ..correspond.posing import apply_pose
+from ..base.errors import ShapeGenError
+from ..base.npzfile import read_format
 from .pipeline import FitSettings
 
 __all__ = ["STAGES", "FILE_STAGES", "Offered", "StagePlan", "SettingsConflict", "plan_stages", "file_stage",

@@ -1,6 +1,6 @@
 """What the `shapegen` commands share: options built from settings dataclasses, the one
 source reader (folder, prepared .npz or correspondence .npz; which stages run on it is
-core/stages.py's decision) and the console progress printer."""
+core/app/stages.py's decision) and the console progress printer."""
 
 from __future__ import annotations
 
@@ -11,15 +11,15 @@ from dataclasses import MISSING, Field, dataclass, fields
 from pathlib import Path
 from typing import Sequence, Union, get_args, get_origin, get_type_hints
 
-from .preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
-from .correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
-from .base.errors import CollectionError, ShapeGenError
-from .meshes.reading import read_folder, read_readable
-from .meshes.mesh import Mesh
+from ..preprocess.collection import PREPARED_FORMAT, PreparedCollection, PrepareSettings, kept_poses, prepare_meshes
+from ..correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSettings, correspond
+from ..base.errors import CollectionError, ShapeGenError
+from ..meshes.reading import read_folder, read_readable
+from ..meshes.mesh import Mesh
 from .pipeline import FitSettings
-from .base.progress import Progress
-from .base.settings import SettingsError, is_group, nested_data, settings_from_dict
-from .meshes.spill import SpillStore
+from ..base.progress import Progress
+from ..base.settings import SettingsError, is_group, nested_data, settings_from_dict
+from ..meshes.spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
 __all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
@@ -151,7 +151,7 @@ def _either(things: list[str]) -> str:
 
 @dataclass
 class Source:
-    """A command's input and its `plan` (core/stages.py): the stages that run on it and the
+    """A command's input and its `plan` (core/app/stages.py): the stages that run on it and the
     settings its result records (a file's own where it records them)."""
 
     path: Path
@@ -190,7 +190,7 @@ def read_source(path: Path, args: argparse.Namespace, accepts: tuple[str, ...] =
                 own: tuple[str, ...] = (), spill: SpillStore | None = None, requested: FitSettings | None = None,
                 last: str = "fit") -> Source:
     """Read a folder of meshes, a prepared .npz or a correspondence .npz and plan the stages
-    up to `last` on it (core/stages.py: a file is used as given; Prepare options given with
+    up to `last` on it (core/app/stages.py: a file is used as given; Prepare options given with
     it, but the `own` ones, which the command uses for itself — evaluate's --seed —, and
     for a fit its correspondence options, must agree with the settings it records).
     `requested`: the command's settings (default: its Prepare and correspondence options).

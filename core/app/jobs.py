@@ -1,7 +1,7 @@
 """Background jobs: long core work in a separate Python process, with progress and cancel.
 
 The Blender layer (and tests, and anything else) starts a `BackgroundJob`, then polls it;
-polling never blocks. The worker is a plain Python process running `core/worker.py` with
+polling never blocks. The worker is a plain Python process running `core/app/worker.py` with
 the core importable (it never imports bpy: a child of Blender cannot). It talks back over
 its stdout, one JSON object per line (progress as in core/base/progress.py):
 
@@ -32,7 +32,7 @@ import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .base.child_process import MEMORY_ADVICE, how_it_ended
+from ..base.child_process import MEMORY_ADVICE, how_it_ended
 
 __all__ = ["BackgroundJob", "JobStatus", "JOB_STATES"]
 
@@ -80,7 +80,7 @@ class BackgroundJob:
         if self._process is not None:
             raise RuntimeError("job already started")
         env = dict(os.environ)
-        paths = [str(WORKER_SCRIPT.parent.parent)] + [p for p in sys.path if p]
+        paths = [str(WORKER_SCRIPT.parent.parent.parent)] + [p for p in sys.path if p]
         env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
         env.setdefault("OPENBLAS_NUM_THREADS", "1")
         # the worker's temporary files (its spill store, core/meshes/spill.py) go into a folder this

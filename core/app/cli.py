@@ -18,13 +18,13 @@ from .cli_common import (CommandError, add_keep_pose_option, add_settings_option
                          console_progress,
                          correspond_on_console, flag_of, given_options, positive_int, prepare_source, read_source,
                          requested_settings, settings_from_args, turned_on_console)
-from . import __version__
+from .. import __version__
 from .cli_generate import add_generate_commands
-from .preprocess.collection import PrepareSettings
-from .correspond import CorrespondenceSettings
-from .base.errors import ShapeGenError
+from ..preprocess.collection import PrepareSettings
+from ..correspond import CorrespondenceSettings
+from ..base.errors import ShapeGenError
 from .pipeline import FitSettings
-from .meshes.spill import SpillStore
+from ..meshes.spill import SpillStore
 
 __all__ = ["main", "build_parser"]
 
@@ -78,8 +78,8 @@ def cmd_correspond(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- evaluate
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate shape models on a folder of meshes or a correspondence .npz (issue 7)."""
-    from .evaluation import EvaluationSettings, parse_model_names, run_evaluation
-    from .evaluation.report import write_report
+    from ..evaluation import EvaluationSettings, parse_model_names, run_evaluation
+    from ..evaluation.report import write_report
 
     start = time.perf_counter()
     # check the cheap settings before any expensive correspondence work
@@ -114,7 +114,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _evaluated_correspondence(source, args: argparse.Namespace):
     """The correspondence `evaluate` works on: the file's, or a folder's corresponded now."""
-    from .evaluation import EvaluationError
+    from ..evaluation import EvaluationError
 
     if source.correspondence is not None:
         unused = [flag_of(PrepareSettings, name) for name in given_options(PrepareSettings, args) if name != "seed"]

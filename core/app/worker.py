@@ -14,11 +14,13 @@ import traceback
 from pathlib import Path
 
 if __name__ == "__main__" and not __package__:
-    # started as a script: import this file's folder as a package so relative imports work
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    # started as a script: import the core's folder (this file's grandparent) as a package
+    # so relative imports work
+    _core = Path(__file__).resolve().parent.parent
+    sys.path.insert(0, str(_core.parent))
     import importlib
 
-    _module = importlib.import_module(f"{Path(__file__).resolve().parent.name}.worker")
+    _module = importlib.import_module(f"{_core.name}.{Path(__file__).resolve().parent.name}.worker")
     sys.exit(_module.main(sys.argv[1:]))
 
 # Note: nothing below imports the core at module level. Process pools started by a task
@@ -75,11 +77,11 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     from the meshes and correspondence of an earlier model (`correspondence_of`: a model
     file; only the shape model is fitted); `settings` are FitSettings as plain data
     (FitSettings.from_dict)."""
-    from .preprocess.collection import PreparedCollection, prepare_meshes
-    from .meshes.meshset import load_mesh_set
+    from ..preprocess.collection import PreparedCollection, prepare_meshes
+    from ..meshes.meshset import load_mesh_set
     from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-    from .base.progress import sub_range
-    from .meshes.spill import SpillStore
+    from ..base.progress import sub_range
+    from ..meshes.spill import SpillStore
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
     if "correspondence_of" in arguments:
@@ -109,7 +111,7 @@ def _kept(meshes: list, spill) -> list:
 def _save_result(result, arguments: dict, should_cancel, task: str) -> str:
     """The shared end of a task: nothing is written once cancelled; else `result.save` to
     arguments["output"], whose path is the task's output."""
-    from .base.progress import CancelCheck
+    from ..base.progress import CancelCheck
 
     CancelCheck(should_cancel, task)()
     output = Path(arguments["output"])
@@ -122,9 +124,9 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
     collection .npz (PreparedCollection.save); `settings` are PrepareSettings as plain data,
     `keep_pose` one bool per mesh (keep its pose) or absent. Cancel is checked at every
     progress step (after each shape's stage)."""
-    from .preprocess.collection import PrepareSettings, prepare_meshes
-    from .meshes.meshset import load_mesh_set
-    from .meshes.spill import SpillStore
+    from ..preprocess.collection import PrepareSettings, prepare_meshes
+    from ..meshes.meshset import load_mesh_set
+    from ..meshes.spill import SpillStore
 
     settings = PrepareSettings.from_dict(arguments.get("settings", {}))
     with SpillStore() as spill:
@@ -136,8 +138,8 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
 
 def task_correspond(arguments: dict, progress, should_cancel) -> str:
     """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
-    from .preprocess.collection import PreparedCollection
-    from .correspond import CorrespondenceSettings, correspond
+    from ..preprocess.collection import PreparedCollection
+    from ..correspond import CorrespondenceSettings, correspond
 
     prepared = PreparedCollection.load(arguments["prepared"])
     settings = CorrespondenceSettings.from_dict(arguments.get("settings", {}))
@@ -150,8 +152,8 @@ def task_selftest(arguments: dict, progress, should_cancel) -> str:
     """A tiny task for tests of the job machinery: counts, sleeps, can fail, crash, be
     killed (`kill_at`: SIGKILL) or run a step that never checks cancel (`busy_at`, for
     `busy` seconds; `import_at`: one that turns the cancel's interrupt into an ImportError)."""
-    from .base.progress import CancelCheck
-    from .meshes.spill import SpillStore
+    from ..base.progress import CancelCheck
+    from ..meshes.spill import SpillStore
 
     cancel = CancelCheck(should_cancel, "selftest")
     steps = int(arguments.get("steps", 10))
@@ -174,7 +176,7 @@ def _busy(seconds: float) -> None:
 def _selftest_steps(arguments: dict, steps: int, progress, cancel) -> None:
     import time
 
-    from .base.errors import ShapeGenError
+    from ..base.errors import ShapeGenError
 
     for i in range(steps):
         if arguments.get("busy_at") == i:  # a long step that never checks cancel
@@ -207,7 +209,7 @@ def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] not in TASKS:
         _emit(event="failed", error=f"usage: worker.py TASK JSON (tasks: {', '.join(TASKS)})")
         return 2
-    from .base.errors import Cancelled, ShapeGenError
+    from ..base.errors import Cancelled, ShapeGenError
 
     task, arguments = TASKS[argv[0]], json.loads(argv[1])
     cancel = _CancelOnStdin()

@@ -13,9 +13,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Sequence
 
-from .base.cluster import connect
-from .generate.quality import QualitySettings
-from .generate.sampling import GatedSample, gated_slots
+from ..base.cluster import connect
+from ..generate.quality import QualitySettings
+from ..generate.sampling import GatedSample, gated_slots
 
 __all__ = ["contiguous_chunks", "cluster_sampler"]
 
