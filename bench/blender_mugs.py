@@ -240,7 +240,7 @@ def main() -> int:
 
         bpy.ops.wm.save_as_mainfile(filepath=str(args.blend.resolve()))
     if args.obj_dir:
-        from shapegen_core.meshes.reading import write_mesh
+        from shapegen_core.meshes.writing import write_mesh
         from shapegen_core.meshes.mesh import Mesh
 
         args.obj_dir.mkdir(parents=True, exist_ok=True)

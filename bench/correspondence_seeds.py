@@ -51,7 +51,7 @@ from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, erro
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
-from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.meshes.reading import read_folder  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.base.settings import nested_data  # noqa: E402

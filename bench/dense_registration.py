@@ -90,7 +90,7 @@ def main() -> int:
     args = parser.parse_args()
     from shapegen_core import __file__ as core_file
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
     from shapegen_core.meshes.reading import read_mesh
 
     files = sorted(Path(args.dense_folder).glob("*.ply"))[: args.shapes]

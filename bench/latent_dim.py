@@ -48,7 +48,7 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
     if not path.exists():
         start = time.perf_counter()
         if data == "vases":
-            from shapegen_core.datasets import make_vases
+            from shapegen_core.demo_data import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(20, seed=seed)], "z"
         elif data.startswith("psb:"):
             from shapegen_core.meshes.reading import read_folder

@@ -106,7 +106,7 @@ def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
     else:
         start = time.perf_counter()
         if data == "vases":
-            from shapegen_core.datasets import make_vases
+            from shapegen_core.demo_data import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(n_shapes, seed=seed)], "z"
         else:
             from shapegen_core.meshes.reading import read_folder

@@ -1,4 +1,4 @@
-"""What reading a mesh file costs: `io.read_mesh` (trimesh's reader, then intake: weld,
+"""What reading a mesh file costs: `reading.read_mesh` (trimesh's reader, then intake: weld,
 twins, walls, slivers, winding) against trimesh's plain load of the same file
 (`trimesh.load(path, process=False, force="mesh")`: one mesh, as read_mesh makes),
 paired file by file in one run.

@@ -43,7 +43,9 @@ import numpy as np  # noqa: E402
 from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
 from shapegen_core.generate.deform import DeformSettings  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
-from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
 from shapegen_core.generate.quality import CRITERIA, QualitySettings  # noqa: E402
 from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 
@@ -56,7 +58,7 @@ DEFAULT_DATA = "vases,mugs,psb:Airplane,psb:Cup,psb:Fish,psb:Vase"
 def class_meshes(data: str) -> tuple[list[Mesh], str]:
     """The meshes of one class and its up axis."""
     if data == "vases":
-        from shapegen_core.datasets import make_vases
+        from shapegen_core.demo_data import make_vases
 
         return [s.mesh for s in make_vases(20, seed=0)], "z"
     if data == "mugs":

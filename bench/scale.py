@@ -14,7 +14,7 @@ memory of that process and every process it started, sampled every 20 ms):
   `shapegen fit --model ppca` on that folder: read, prepare, correspond, fit ppca, save
   (as `shapegen fit` runs them: meshes above 100k faces kept in a spill store on disk, the
   main process holding handles, core/meshes/spill.py).
-* vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
+* vases-20 / vases-200 / vases-1000: procedural vases (core/demo_data/vases.py make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
   at every size (above 64 shapes its pose search computes the exact cost only for the
@@ -193,7 +193,8 @@ def run_row(row: str, args) -> dict:
         from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
     except ImportError:  # the core before issue 15 (the "before" figures)
         CUBIC_NOTE_SHAPES = 200
-    from shapegen_core.app.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_shape_model
 
     memory = TreeMemory()
     stages: dict[str, list] = {}
@@ -218,7 +219,7 @@ def run_row(row: str, args) -> dict:
         meshes = stage("read", lambda: _read(read_folder, folder, args.jobs, spill))
         models = ("ppca",)
     else:
-        from shapegen_core.datasets import make_vases
+        from shapegen_core.demo_data import make_vases
 
         meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0, resolution=VASE_RESOLUTION,
                                                                      pose=not args.landmarks_only)])

@@ -14,7 +14,7 @@
 * `mesh_data_from_arrays`: a new bpy mesh from vertex / face arrays (`foreach_set`).
 * `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF), which
   keeps what the file holds (polygons, UVs, materials), after the core's damage check
-  (`io.check_mesh_file`, no intake); OFF, which Blender cannot read, through the core
+  (`reading.check_mesh_file`, no intake); OFF, which Blender cannot read, through the core
   reader alone (trimesh, bundled).
 """
 

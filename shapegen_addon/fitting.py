@@ -22,7 +22,7 @@ import numpy as np
 from ..core.base.errors import ShapeGenError
 from ..core.app.jobs import JobStatus
 from ..core.meshes.meshset import save_mesh_set
-from ..core.app.pipeline import FitSettings
+from ..core.app.fit_settings import FitSettings
 from ..core.app.stages import Offered, StagePlan, plan_stages, same_shapes
 from . import latent, store
 from .convert import object_triangles

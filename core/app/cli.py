@@ -23,7 +23,7 @@ from .cli_generate import add_generate_commands
 from ..preprocess.collection import PrepareSettings
 from ..correspond import CorrespondenceSettings
 from ..base.errors import ShapeGenError
-from .pipeline import FitSettings
+from .fit_settings import FitSettings
 from ..meshes.spill import SpillStore
 
 __all__ = ["main", "build_parser"]

@@ -5,7 +5,10 @@ core/app/stages.py's decision) and the console progress printer."""
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import sys
+import tempfile
 import types
 from dataclasses import MISSING, Field, dataclass, fields
 from pathlib import Path
@@ -16,7 +19,7 @@ from ..correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSe
 from ..base.errors import CollectionError, ShapeGenError
 from ..meshes.reading import read_folder, read_readable
 from ..meshes.mesh import Mesh
-from .pipeline import FitSettings
+from .fit_settings import FitSettings
 from ..base.progress import Progress
 from ..base.settings import SettingsError, is_group, nested_data, settings_from_dict
 from ..meshes.spill import SpillStore
@@ -290,3 +293,26 @@ def console_progress(prefix: str) -> Progress:
             state["message"] = message
 
     return report
+
+
+class _StagedOutput:
+    """A folder written completely in a sibling temporary folder, then moved into place."""
+
+    def __init__(self, target: Path):
+        self.target = Path(target)
+
+    def __enter__(self) -> Path:
+        if self.target.exists() and any(self.target.iterdir()):
+            raise CommandError(f"{self.target}: output folder exists and is not empty")
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", dir=self.target.parent))
+        return self.staging
+
+    def __exit__(self, kind, value, traceback):
+        if kind is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            return False
+        if self.target.exists():
+            self.target.rmdir()
+        os.replace(self.staging, self.target)
+        return False

@@ -29,7 +29,7 @@ def contiguous_chunks(items: list, parts: int) -> list[list]:
 def _gated_run(model_bytes: bytes, run, slots: Sequence[tuple[int, range]]) -> list[GatedSample]:
     """A worker's part of a round: `slots` ((index, draws) pairs) of `run`
     (cli_generate.SampleRun), gated, with meshes."""
-    from .pipeline import GenerativeShapeModel
+    from .shape_model import GenerativeShapeModel
 
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "model.npz"

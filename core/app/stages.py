@@ -41,7 +41,7 @@ from ..correspond import CORRESPONDENCE_FORMAT, Correspondence, CorrespondenceSe
 from ..correspond.posing import apply_pose
 from ..base.errors import ShapeGenError
 from ..base.npzfile import read_format
-from .pipeline import FitSettings
+from .fit_settings import FitSettings
 
 __all__ = ["STAGES", "FILE_STAGES", "Offered", "StagePlan", "SettingsConflict", "plan_stages", "file_stage",
            "read_offered", "same_shapes"]

@@ -79,7 +79,9 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     (FitSettings.from_dict)."""
     from ..preprocess.collection import PreparedCollection, prepare_meshes
     from ..meshes.meshset import load_mesh_set
-    from .pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+    from .fit_settings import FitSettings
+    from .shape_model import GenerativeShapeModel
+    from .pipeline import fit_meshes, fit_shape_model
     from ..base.progress import sub_range
     from ..meshes.spill import SpillStore
 

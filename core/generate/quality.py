@@ -38,7 +38,7 @@ from ..base.errors import ShapeGenError
 from ..geometry.intersections import intersecting_pairs, pair_keys
 from scipy.spatial import cKDTree
 
-from ..meshes.intake import shared_edges
+from ..meshes.winding import shared_edges
 from ..meshes.mesh import Mesh, triangle_cross
 from ..base.settings import Settings, option
 

@@ -60,7 +60,7 @@ class MeshReport:
     A double-sided surface is one surface in the mesh: `twin_source[k]` is the input
     triangle of the k-th dropped side and `twin_of[k]` the mesh face it lay on, so the
     file's faces all map to a mesh face (issue 31). Written files have one side.
-    `layout` keeps the file's polygons and UVs (io.read_mesh) so deformed copies, which
+    `layout` keeps the file's polygons and UVs (reading.read_mesh) so deformed copies, which
     keep the report (`Mesh.with_vertices`), are written with them.
     """
 

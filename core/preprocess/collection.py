@@ -8,7 +8,7 @@ the landmarks and the settings used, as one JSON string). `keep_pose` names the 
 whose pose Prepare must not turn (issue 12), recorded per shape (`pose_kept`, so the
 correspondence does not pose them by their landmarks either; files written before read as
 not kept). A collection read from a folder that left out files it could not read
-(`io.read_readable`) records them by file name with the reader's message (`unreadable`),
+(`reading.read_readable`) records them by file name with the reader's message (`unreadable`),
 so every later file says which inputs it lacks; files written before the record load
 with none.
 """
@@ -231,7 +231,7 @@ def prepare_meshes(
     names of the shapes whose pose is kept (never turned beyond the up axis, still
     checked and flagged), or one bool per mesh. `progress` and `should_cancel` as in
     core/base/progress.py; cancel is checked at every progress step. Dense meshes kept on disk
-    (`spill.StoredMesh`, from `io.read_folder(spill=...)`) stay there: each is loaded for
+    (`spill.StoredMesh`, from `reading.read_folder(spill=...)`) stay there: each is loaded for
     its own steps, its prepared shape is stored beside it with its registration proxy
     (`spill.REGISTRATION_PROXY`, built here at full density, once)."""
     meshes = list(meshes)

@@ -17,7 +17,7 @@ from conftest import addon_module
 
 @pytest.fixture
 def datasets(extension):
-    return importlib.import_module(f"{extension}.core.datasets")
+    return importlib.import_module(f"{extension}.core.demo_data")
 
 
 @pytest.fixture

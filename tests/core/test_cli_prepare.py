@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.preprocess.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, ModelFileError
 from shapegen_core.base.npzfile import save_npz
 
@@ -246,7 +246,7 @@ def upright_vases():
 
 @pytest.fixture(scope="module")
 def upright_folder(upright_vases, tmp_path_factory):
-    from shapegen_core.meshes.reading import write_mesh
+    from shapegen_core.meshes.writing import write_mesh
 
     folder = tmp_path_factory.mktemp("upright")
     for mesh in upright_vases:

@@ -38,7 +38,7 @@ from shapegen_core.geometry import (
     registration_frame,
     stiffness_matrix,
 )
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.errors import Cancelled, CollectionError, MeshError, ModelFileError
 from shapegen_core.preprocess.landmarks import Landmarks, select_landmarks
 from shapegen_core.meshes.mesh import Mesh

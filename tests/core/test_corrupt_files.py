@@ -26,7 +26,7 @@ import pytest
 
 from shapegen_core.app.cli import main
 from shapegen_core.preprocess.collection import PreparedCollection
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.base.errors import MeshFileError
 
 from corrupt_corpus import FORMATS, corrupt_cases, file_bytes

@@ -13,7 +13,7 @@ from shapegen_core.base.cluster import ClusterError, parse_scheduler
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import IterationSettings
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 
 distributed = pytest.importorskip("distributed")
 
@@ -100,7 +100,8 @@ def test_core_imports_and_runs_without_dask():
 def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
     """`shapegen sample --scheduler` writes the same files as the local process pool."""
     from shapegen_core.app.cli import main
-    from shapegen_core.app.pipeline import FitSettings, fit_meshes
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_meshes
 
     meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca", jobs=1,

@@ -8,7 +8,7 @@ import scipy.sparse as sp
 import trimesh
 from scipy.spatial import cKDTree
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.generate.deform import (DeformInputError, DeformSettings, EmbeddedDeformer, LinearMeshMap,
                                            blend_matrix, cotangent_laplacian, enclosed_volume, smooth_curvature_flow)
 from shapegen_core.geometry import stiffness_matrix

@@ -20,11 +20,11 @@ from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO
                                                agreement_weights, keeps_features, kept_matches, merged_regions,
                                                point_features, worse_fits)
 from shapegen_core.correspond.settings import FEATURE_STIFFNESS, DataTermSettings, StiffnessSettings
-from shapegen_core.datasets import make_cups, make_vases
+from shapegen_core.demo_data import make_cups, make_vases
 from shapegen_core.base.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, closest_points_on_triangles, knn_graph, registration_frame
 from shapegen_core.preprocess.landmarks import select_landmarks
-from shapegen_core.app.pipeline import FitSettings
+from shapegen_core.app.fit_settings import FitSettings
 from shapegen_core.base.settings import SettingsError, recorded_settings
 
 FEATURES = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=0.0))  # sides only

@@ -11,15 +11,17 @@ import pytest
 import trimesh
 
 from shapegen_core.preprocess.collection import PrepareSettings
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.generate.deform import enclosed_volume
 from shapegen_core.base.errors import MeshError
-from shapegen_core.meshes.intake import (OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outside_sides, outwardness,
-                                         weld_vertices, winding_numbers)
-from shapegen_core.meshes.reading import read_folder, read_mesh, write_mesh
+from shapegen_core.meshes.winding import OPEN_PART_MIN_OUTWARDNESS, outside_sides, outwardness, winding_numbers
+from shapegen_core.meshes.intake import WELD_RTOL, clean_mesh, weld_vertices
+from shapegen_core.meshes.reading import read_folder, read_mesh
+from shapegen_core.meshes.writing import write_mesh
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.meshes.meshset import load_mesh_set, save_mesh_set
-from shapegen_core.app.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes
 
 from conftest import random_surface
 
@@ -374,7 +376,7 @@ def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_thei
     """Written as the CLI writes them (the template's file layout: its soup and UVs), a
     sample has no coincident faces, its body is consistently wound and encloses a positive
     volume, and the label is a second body of the file."""
-    from shapegen_core.meshes.reading import MeshWriters
+    from shapegen_core.meshes.writing import MeshWriters
     from shapegen_core.generate.quality import coincident_faces
 
     meshes, model = cad_model

@@ -78,7 +78,7 @@ def test_poll_never_blocks(tmp_path):
 def test_correspond_task_writes_a_correspondence_file(tmp_path):
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     prepared = prepare_meshes([s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))], PrepareSettings(n_landmarks=60))
     prepared.save(tmp_path / "prepared.npz")
@@ -93,7 +93,7 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
 
 def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
     from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
     from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))]
@@ -148,7 +148,7 @@ def test_a_step_broken_by_the_cancel_interrupt_is_reported_cancelled_not_failed(
 
 
 def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
     from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(12, seed=1)]
@@ -180,7 +180,7 @@ def test_registration_workers_exit_when_their_job_is_killed(tmp_path):
     """A worker terminated mid-correspondence (Blender's Cancel after its grace period)
     leaves no registration process behind: they used to run on, then wait forever."""
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=2)], PrepareSettings(n_landmarks=400))
     prepared.save(tmp_path / "prepared.npz")

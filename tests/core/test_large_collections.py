@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from shapegen_core.correspond import groupwise, outliers
-from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.geometry import chamfer_matrix
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess.neighbours import field_descriptors, probe_grid

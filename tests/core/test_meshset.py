@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.base.errors import ModelFileError
 from shapegen_core.meshes.meshset import load_mesh_set, pack, save_mesh_set, unpack
 

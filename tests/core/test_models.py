@@ -505,7 +505,7 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
     from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
     from shapegen_core.models.gplvm import MIN_LENGTHSCALE
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=1, resolution=(14, 20))], PrepareSettings(n_landmarks=100))

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from shapegen_core.correspond.proxy import PlacementTask, place_on_full_surface
 from shapegen_core.correspond.registration import Registration
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import closest_points_on_triangles
 from shapegen_core.geometry.nearby import closest_within
 from shapegen_core.geometry.nearfaces import NearFaces

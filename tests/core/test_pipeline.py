@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 
 from shapegen_core.preprocess.collection import PrepareSettings
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.models import PPCA
 from shapegen_core.base.npzfile import save_npz
-from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +134,7 @@ def test_the_model_file_holds_the_training_latents_and_slider_units(fitted, tmp_
     """Encoded once where the model is fitted and saved: loading never encodes; a file
     written before these arrays existed still loads, and computes them on load."""
     from shapegen_core.base.npzfile import load_npz
-    from shapegen_core.app.pipeline import MODEL_FILE_FORMAT, MODEL_FILE_VERSION
+    from shapegen_core.app.shape_model import MODEL_FILE_FORMAT, MODEL_FILE_VERSION
 
     model, path = fitted
     expected = model.model.encode(model.training_matrix())

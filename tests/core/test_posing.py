@@ -17,7 +17,9 @@ from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_ang
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.base.npzfile import save_npz
-from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 from shapegen_core.preprocess import ShapeTransform
 from shapegen_core.app.stages import same_shapes
 
@@ -212,7 +214,8 @@ def test_the_command_line_says_who_was_posed_and_a_fit_from_the_file_meshes_in_t
     import sys
     from pathlib import Path
 
-    from shapegen_core.meshes.reading import read_mesh, write_mesh
+    from shapegen_core.meshes.reading import read_mesh
+    from shapegen_core.meshes.writing import write_mesh
 
     shapegen = str(Path(sys.executable).with_name("shapegen"))
     folder = tmp_path / "blobs"

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.base.errors import CollectionError
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess import (

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry.intersections import _segments_cross, candidate_pairs, intersecting_pairs
 from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.generate.quality import QualityGate, QualitySettings, training_extents

@@ -11,7 +11,7 @@ from shapegen_core.correspond.settings import RefinementSettings
 from shapegen_core.correspond.objective import (CompactnessTerm, LandmarkState, PopulationObjective, compactness,
                                                 density, spread)
 from shapegen_core.correspond.refine import interpolated_normals, landmark_state, refine_population
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import TargetSurface
 
 SMALL = dict(iterations=15)

@@ -18,7 +18,7 @@ from shapegen_core.correspond.settings import IterationSettings
 from shapegen_core.correspond import groupwise
 from shapegen_core.correspond.proxy import PlacementTask, place_on_full_surface
 from shapegen_core.correspond.registration import Registration
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.geometry.nearby import closest_within
 from shapegen_core.meshes.mesh import Mesh
@@ -159,7 +159,8 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
     """GP-LVM (O(N³) per iteration) notes its cost above CUBIC_NOTE_SHAPES shapes, as a
     ScaleWarning and a progress message; PPCA and the Bayesian GP-LVM never do."""
     from shapegen_core.models import scaling
-    from shapegen_core.app.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_shape_model
 
     assert scaling.size_note("gplvm", scaling.CUBIC_NOTE_SHAPES) is None
     assert "N³" in scaling.size_note("gplvm", 1000) and "bgplvm" in scaling.size_note("gplvm", 1000)

@@ -16,7 +16,9 @@ from shapegen_core.correspond.settings import (DataTermSettings, IterationSettin
                                                StiffnessSettings)
 from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
-from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings, _nest_prepare
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 from shapegen_core.base.settings import Settings, SettingsError, group, option, recorded_settings
 
 #: the correspondence settings of the `corresponded` fixture as files written before issue 35

@@ -15,7 +15,7 @@ import pytest
 
 from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, MeshFileError, ModelFileError
 from shapegen_core.meshes.reading import read_folder, read_readable
 

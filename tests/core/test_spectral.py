@@ -191,7 +191,7 @@ def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
 
 
 def test_auto_takes_closest_points_for_vases_that_differ_in_proportion():
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     choice, why = _evidence_of([s.mesh for s in make_vases(5, seed=11, resolution=(30, 60))])
     assert choice == "closest", why

@@ -17,10 +17,12 @@ import trimesh
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.base.errors import Cancelled
 from shapegen_core.meshes.reading import read_folder
-from shapegen_core.app.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes, fit_shape_model
 from shapegen_core.meshes.spill import SpillStore, StoredMesh
 
 from conftest import subdivided

@@ -11,8 +11,8 @@ import pytest
 
 from shapegen_core.preprocess.collection import PreparedCollection, PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings
-from shapegen_core.datasets import make_vases
-from shapegen_core.app.pipeline import FitSettings
+from shapegen_core.demo_data import make_vases
+from shapegen_core.app.fit_settings import FitSettings
 from shapegen_core.app.stages import Offered, SettingsConflict, plan_stages, read_offered, same_shapes
 
 ASKED = FitSettings(prepare=PrepareSettings(n_landmarks=60), template=None)

@@ -14,7 +14,7 @@ import time
 
 from shapegen_core.app.cli import main
 from shapegen_core.correspond.pool import KILL_ON_SHAPE_VARIABLE
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 
 
 def test_a_killed_worker_is_one_line_naming_the_shape_the_signal_and_what_to_try(tmp_path, capsys, monkeypatch):
