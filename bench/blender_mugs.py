@@ -240,8 +240,8 @@ def main() -> int:
 
         bpy.ops.wm.save_as_mainfile(filepath=str(args.blend.resolve()))
     if args.obj_dir:
-        from shapegen_core.io import write_mesh
-        from shapegen_core.mesh import Mesh
+        from shapegen_core.meshes.writing import write_mesh
+        from shapegen_core.meshes.mesh import Mesh
 
         args.obj_dir.mkdir(parents=True, exist_ok=True)
         for name, vertices, faces in meshes:

@@ -66,10 +66,10 @@ def main() -> None:
 
     install_extension(bpy)
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    datasets, convert = module("core.datasets"), module("shapegen_addon.convert")
+    datasets, convert = module("core.demo_data"), module("shapegen_addon.convert")
     jobs, store, latent = module("shapegen_addon.jobs"), module("shapegen_addon.store"), module(
         "shapegen_addon.latent")
-    pipeline, models = module("core.pipeline"), module("core.models")
+    models = module("core.models")
 
     scene = bpy.context.scene
     settings = scene.shapegen
@@ -118,7 +118,7 @@ def main() -> None:
         if kind == "ppca":
             shape_model = fitted
         else:
-            shape_model = pipeline.GenerativeShapeModel(
+            shape_model = module("core.app.shape_model").GenerativeShapeModel(
                 fitted.meshes, fitted.correspondence, models.MODEL_TYPES[kind](n_components=3).fit(Y),
                 settings=fitted.settings)
             path = shape_model.save(folder / f"vases_{kind}.npz")

@@ -3,7 +3,7 @@
     python bench/cad.py [--classes psb:Cup,psb:Vase,cups,vases] [-n 10] [--samples 8] [--picture]
 
 Every class is made CAD-like the way large public CAD collections distribute models, then
-written as OBJ files and read back through `io.read_folder` (the CLI's reader):
+written as OBJ files and read back through `reading.read_folder` (the CLI's reader):
 
 * y up (procedural classes, built z up, are turned; PSB classes are y up already);
 * a small extra part: a thin label (a box of 4 % of the height) standing off the side;
@@ -36,12 +36,14 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings  # noqa: E402
-from shapegen_core.io import MeshWriters, read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
-from shapegen_core.pipeline import FitSettings, fit_meshes  # noqa: E402
-from shapegen_core.quality import coincident_faces  # noqa: E402
-from shapegen_core.sampling import gated_samples  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
+from shapegen_core.meshes.writing import MeshWriters
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
+from shapegen_core.generate.quality import coincident_faces  # noqa: E402
+from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 
 PSB = Path("/work/shared/data/psb")
 OUTPUT = ROOT / "bench_output"
@@ -53,11 +55,11 @@ def clean_class(name: str, n: int) -> tuple[list[Mesh], str]:
     if name.startswith("psb:"):
         return read_folder(PSB / name[4:])[:n], "y"
     if name == "vases":
-        from shapegen_core.datasets import make_vases
+        from shapegen_core.demo_data import make_vases
 
         return [s.mesh for s in make_vases(n, seed=0)], "z"
     if name == "cups":
-        from shapegen_core.datasets import make_cups
+        from shapegen_core.demo_data import make_cups
 
         return make_cups(n, seed=0), "z"
     raise SystemExit(f"unknown class {name!r} (psb:<Class>, vases, cups, blender:bottles)")
@@ -152,9 +154,9 @@ def draw(panels: list[tuple[str, Mesh]], path: Path) -> None:
 def thinnest_faces() -> None:
     """The thinnest face (shortest altitude / longest edge) of every clean mesh of PSB, TOSCA
     and the procedural classes, per class: intake.SLIVER_RATIO must stay below them all."""
-    from shapegen_core.datasets import make_barrels, make_cups, make_mugs, make_vases
-    from shapegen_core.io import list_mesh_files, read_mesh
-    from shapegen_core.mesh import SLIVER_RATIO
+    from shapegen_core.demo_data import make_barrels, make_cups, make_mugs, make_vases
+    from shapegen_core.meshes.reading import list_mesh_files, read_mesh
+    from shapegen_core.meshes.mesh import SLIVER_RATIO
 
     def ratios(mesh: Mesh) -> np.ndarray:
         corners = mesh.vertices[mesh.faces]

@@ -4,7 +4,7 @@
 
 Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three parts:
 
-1. Procedural vases (core/datasets.py, 5k–30k-vertex targets, varied triangulations):
+1. Procedural vases (core/demo_data/, 5k–30k-vertex targets, varied triangulations):
    true error = mean distance landmark → ground-truth point / bounding-box diagonal, and
    time per shape, for: ours (groupwise); ours pairwise; without the bidirectional term;
    one α (no relaxation); snapping to vertices; no normal compatibility (the thesis's
@@ -41,7 +41,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import (Anchors, CorrespondenceSettings, RegistrationProblem, correspond,  # noqa: E402
                                       refine_population, register)
 from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, RefinementSettings,  # noqa: E402
@@ -51,12 +51,12 @@ from shapegen_core.correspond.refine import landmark_state  # noqa: E402
 from shapegen_core.evaluation.completion import hidden_coordinates, region_mask  # noqa: E402
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
 from shapegen_core.models.ppca import PPCA  # noqa: E402
-from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
+from shapegen_core.demo_data import PROFILE_BREAKS, make_vases  # noqa: E402
 # face_labels: other benches import it from here
 from psb_labels import face_labels  # noqa: E402
 from shapegen_core.geometry import (AffineSolver, TargetSurface, data_blocks, knn_graph,  # noqa: E402
                                     registration_frame, stiffness_energy)
-from shapegen_core.io import read_folder  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
@@ -92,7 +92,7 @@ def decompose(shapes, template_index, template_landmarks, face_index, barycentri
     diagonal): the profile part (landmark moved to its true θ, keeping its s) and the
     angular part (true s, its θ); the mean error per surface part (PROFILE_BREAKS, by the
     true s); and the median signed θ error (a rotation about the vase axis shows here).
-    The sections use the eccentric angle (core/datasets.py), so an affine map between
+    The sections use the eccentric angle (core/demo_data/), so an affine map between
     two sections keeps θ: the angular ground truth is affine-consistent by construction."""
     t = template_index
     st_true = shapes[t].surface_coordinates(template_landmarks.face_index, template_landmarks.barycentric)

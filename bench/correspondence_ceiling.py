@@ -3,7 +3,7 @@
 `matching="features"` with `feature_between` > 0 compares where a point lies between the
 turning lines of its region (core/correspond/turning.py). This diagnostic replaces that
 computed position, on every target point, by what the procedural generator knows: the
-true profile coordinate s of the point (core/datasets.py), times a weight W, so the
+true profile coordinate s of the point (core/demo_data/), times a weight W, so the
 feature column is W · feature_between · s. Everything else is the default feature-space
 non-rigid ICP. The rows therefore bound what any better profile feature could give this
 registration:
@@ -50,13 +50,13 @@ from correspondence import LANDMARKS, OUTPUT, console_log, decompose, error_vs_t
 
 import shapegen_core.correspond.features as features  # noqa: E402
 import shapegen_core.correspond.groupwise as groupwise  # noqa: E402
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, chamfer_medoid, correspond  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
-from shapegen_core.datasets import PROFILE_BREAKS, make_vases  # noqa: E402
+from shapegen_core.demo_data import PROFILE_BREAKS, make_vases  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
 
-#: the outer wall's s-range (core/datasets.py PROFILE_BREAKS) and one third of it
+#: the outer wall's s-range (core/demo_data/ PROFILE_BREAKS) and one third of it
 WALL = (PROFILE_BREAKS[1], PROFILE_BREAKS[2])
 WALL_THIRD = (WALL[1] - WALL[0]) / 3
 

@@ -49,12 +49,12 @@ from blender_mugs import mug_meshes  # noqa: E402
 from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, error_vs_template,  # noqa: E402
                             face_labels, model_quality, naive_baseline)
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
-from shapegen_core.datasets import make_vases  # noqa: E402
-from shapegen_core.io import read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
-from shapegen_core.settings import nested_data  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
+from shapegen_core.base.settings import nested_data  # noqa: E402
 
 
 def parse_variant(spec: str) -> dict:

@@ -7,7 +7,7 @@ Writes bench_output/correspondence_truth.{json,txt}. Not part of the tests.
 
 Classes (one PrepareSettings for all but the up axis their files use; no setting tuned
 per class):
-* procedural vases (core/datasets.py `make_vases`), handled mugs (`make_handled_mugs`: a
+* procedural vases (core/demo_data/ `make_vases`), handled mugs (`make_handled_mugs`: a
   handle at a shape-specific height, walls leaning in and out) and quadrupeds
   (`make_quadrupeds`: not a body of revolution; neck and tail raised by per-shape angles).
   True error: landmark i of shape m against the point of m at the surface coordinates of
@@ -62,14 +62,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
-from shapegen_core.datasets import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
-from shapegen_core.errors import MeshFileError  # noqa: E402
+from shapegen_core.demo_data import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
+from shapegen_core.base.errors import MeshFileError  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
-from shapegen_core.settings import nested_data  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
+from shapegen_core.base.settings import nested_data  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from correspondence import console_log, face_labels, nricp_baseline  # noqa: E402
@@ -108,7 +108,7 @@ def _on_surface(mesh, points):
 
 
 def procedural_class(name: str, shapes) -> BenchClass:
-    """A core/datasets.py class with a parametrisation (ProceduralShape, PartedShape)."""
+    """A core/demo_data/ class with a parametrisation (ProceduralShape, PartedShape)."""
 
     def score(t, reference, m, points):
         coordinates = shapes[t].surface_coordinates(*_on_surface(shapes[t].mesh, reference))

@@ -26,12 +26,14 @@ import numpy as np
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.geometry import apply_affines  # noqa: E402
-from shapegen_core.io import read_folder  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
-from shapegen_core.collection import PrepareSettings  # noqa: E402
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PSB = ROOT.parent / "shared" / "data" / "psb"

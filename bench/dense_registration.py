@@ -89,9 +89,9 @@ def main() -> int:
                         help="folder of dense PLY files (bench/scale.py's dense-1M cache)")
     args = parser.parse_args()
     from shapegen_core import __file__ as core_file
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.datasets import make_vases
-    from shapegen_core.io import read_mesh
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.demo_data import make_vases
+    from shapegen_core.meshes.reading import read_mesh
 
     files = sorted(Path(args.dense_folder).glob("*.ply"))[: args.shapes]
     if len(files) < args.shapes:

@@ -1,4 +1,4 @@
-"""What reading a mesh file's declarations costs (core/file_checks.py): the time
+"""What reading a mesh file's declarations costs (core/meshes/file_checks.py): the time
 of `check_declared` beside the whole `read_mesh` for one mesh written in each format.
 
     python bench/file_checks.py [--subdivisions 7] [--folder DIR]
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import trimesh
 
-from shapegen_core.file_checks import check_declared
-from shapegen_core.io import read_mesh
+from shapegen_core.meshes.file_checks import check_declared
+from shapegen_core.meshes.reading import read_mesh
 
 FORMATS = {"off": ("off", {}), "obj": ("obj", {}), "ply_ascii": ("ply", {"encoding": "ascii"}),
            "ply_binary": ("ply", {"encoding": "binary"}), "stl_ascii": ("stl_ascii", {}), "stl_binary": ("stl", {}),

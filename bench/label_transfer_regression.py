@@ -63,8 +63,8 @@ def measure_class(name: str, jobs: int, decisions_only: bool) -> dict:
     """Prepare and (unless `decisions_only`) correspond one PSB class at the defaults."""
     import numpy as np
 
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.io import read_folder
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.meshes.reading import read_folder
 
     folder = PSB / name
     meshes = read_folder(folder)

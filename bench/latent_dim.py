@@ -29,10 +29,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
-from shapegen_core.landmarks import DEFAULT_LANDMARKS  # noqa: E402
+from shapegen_core.preprocess.landmarks import DEFAULT_LANDMARKS  # noqa: E402
 from shapegen_core.models import MODEL_TYPES, make_model  # noqa: E402
 from shapegen_core.models.base import ledoit_wolf_shrinkage, principal_axes, shrunk_spectrum  # noqa: E402
 
@@ -48,10 +48,10 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
     if not path.exists():
         start = time.perf_counter()
         if data == "vases":
-            from shapegen_core.datasets import make_vases
+            from shapegen_core.demo_data import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(20, seed=seed)], "z"
         elif data.startswith("psb:"):
-            from shapegen_core.io import read_folder
+            from shapegen_core.meshes.reading import read_folder
             meshes, up_axis = read_folder(PSB / data[4:]), "y"
         else:
             raise SystemExit(f"unknown --data {data!r} (vases, psb:<Class>)")

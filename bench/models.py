@@ -90,7 +90,7 @@ DEFAULT_GPY_PYTHON = "/tmp/venvbench/bin/python"
 def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
     """Landmark matrix Y (N, 3L) from our pipeline (prepare_meshes + correspond), cached as a
     correspondence .npz in bench_output/."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 
     if data == "vases":
@@ -106,10 +106,10 @@ def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
     else:
         start = time.perf_counter()
         if data == "vases":
-            from shapegen_core.datasets import make_vases
+            from shapegen_core.demo_data import make_vases
             meshes, up_axis = [s.mesh for s in make_vases(n_shapes, seed=seed)], "z"
         else:
-            from shapegen_core.io import read_folder
+            from shapegen_core.meshes.reading import read_folder
             meshes, up_axis = read_folder(PSB / data[4:]), "y"
         prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=n_landmarks, up_axis=up_axis, seed=0))
         corr = correspond(prepared, CorrespondenceSettings(), jobs=1)

@@ -65,8 +65,8 @@ try:
 except ImportError:  # not installed: use the source tree
     shapegen_core = importlib.import_module("core")
     sys.modules["shapegen_core"] = shapegen_core
-from shapegen_core.datasets import make_barrels, make_vases  # noqa: E402
-from shapegen_core.io import read_folder  # noqa: E402
+from shapegen_core.demo_data import make_barrels, make_vases  # noqa: E402
+from shapegen_core.meshes.reading import read_folder  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform, prepare_collection  # noqa: E402
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, up_rotation, yaw_rotation  # noqa: E402
 

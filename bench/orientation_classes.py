@@ -1,5 +1,5 @@
 """Procedural classes of the orientation benchmark (bench/orientation_policy.py) besides the
-core's (`core.datasets`): bottles with a cap as a second part, and teddy bears made of
+core's (`core.demo_data`): bottles with a cap as a second part, and teddy bears made of
 several parts, sitting and standing. Each shape stands on +z facing +x in its own frame
 (the "as given" pose every class of the benchmark starts from).
 """
@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shapegen_core.datasets import _revolved_mesh
-from shapegen_core.mesh import Mesh
+from shapegen_core.demo_data.revolved import _revolved_mesh
+from shapegen_core.meshes.mesh import Mesh
 
 __all__ = ["make_bottles", "make_teddies"]
 

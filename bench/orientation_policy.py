@@ -5,7 +5,7 @@ varying heights, several parts, sitting and standing), with no setting tuned per
 
 Classes (each standing on +z facing +x as given, random size and position; with --floor
 also each procedural class on one floor, its files' origins under their bases):
-  closed mugs, open mugs (core.datasets.make_mugs: tapering both ways, handle at 30-70 %
+  closed mugs, open mugs (core.demo_data.make_mugs: tapering both ways, handle at 30-70 %
   of the height), cups (make_cups: open, leaning in or out, no handle), vases
   (make_vases), barrels (make_barrels), bottles and teddies (bench/orientation_classes.py;
   teddies half sitting, half standing), mugs modelled in Blender (--blender:
@@ -53,9 +53,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from orientation import load_revision  # noqa: E402
 from orientation_classes import make_bottles, make_teddies  # noqa: E402
-from shapegen_core.datasets import make_barrels, make_cups, make_mugs, make_vases  # noqa: E402
-from shapegen_core.errors import MeshFileError  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.demo_data import make_barrels, make_cups, make_mugs, make_vases  # noqa: E402
+from shapegen_core.base.errors import MeshFileError  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform, prepare_collection  # noqa: E402
 from shapegen_core.preprocess.rotations import up_rotation, yaw_rotation  # noqa: E402
 

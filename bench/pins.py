@@ -51,16 +51,16 @@ def main() -> None:
     parser.add_argument("--moves", type=int, default=30)
     args = parser.parse_args()
     install_extension(bpy)
-    datasets, pipeline, collection, models = (module("core.datasets"), module("core.pipeline"),
-                                              module("core.collection"), module("core.models"))
+    datasets, pipeline, collection, models = (module("core.demo_data"), module("core.app.pipeline"),
+                                              module("core.preprocess.collection"), module("core.models"))
     pins, latent, store = module("shapegen_addon.pins"), module("shapegen_addon.latent"), module("shapegen_addon.store")
     shapes = datasets.make_vases(6, seed=2, resolution=(args.rings, args.rings))
     t = time.perf_counter()
-    settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=args.landmarks), model="ppca",
+    settings = module("core.app.fit_settings").FitSettings(prepare=collection.PrepareSettings(n_landmarks=args.landmarks), model="ppca",
                                     latent_dim=3, jobs=1)
     ppca = pipeline.fit_meshes([s.mesh for s in shapes], settings)
     print(f"fitted PPCA in {time.perf_counter() - t:.1f} s", flush=True)
-    bgplvm = pipeline.GenerativeShapeModel(ppca.meshes, ppca.correspondence,
+    bgplvm = module("core.app.shape_model").GenerativeShapeModel(ppca.meshes, ppca.correspondence,
                                            models.BayesianGPLVM(n_components=3).fit(ppca.training_matrix()),
                                            settings=ppca.settings)
     folder = Path(tempfile.mkdtemp(prefix="shapegen-bench-"))

@@ -27,10 +27,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from shapegen_core.collection import PreparedCollection  # noqa: E402
+from shapegen_core.preprocess.collection import PreparedCollection  # noqa: E402
 from shapegen_core.correspond import Correspondence  # noqa: E402
 from shapegen_core.correspond.posing import apply_pose, pose_angle, rigid_fit  # noqa: E402
-from shapegen_core.io import read_mesh  # noqa: E402
+from shapegen_core.meshes.reading import read_mesh  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca" / "people"
 

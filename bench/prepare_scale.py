@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from orientation import load_revision  # noqa: E402  (also makes shapegen_core importable)
 
-from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.preprocess import prepare_collection  # noqa: E402
 
 

@@ -1,4 +1,4 @@
-"""What reading a mesh file costs: `io.read_mesh` (trimesh's reader, then intake: weld,
+"""What reading a mesh file costs: `reading.read_mesh` (trimesh's reader, then intake: weld,
 twins, walls, slivers, winding) against trimesh's plain load of the same file
 (`trimesh.load(path, process=False, force="mesh")`: one mesh, as read_mesh makes),
 paired file by file in one run.
@@ -36,8 +36,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from shapegen_core.errors import MeshError, MeshFileError  # noqa: E402
-from shapegen_core.io import list_mesh_files, read_mesh  # noqa: E402
+from shapegen_core.base.errors import MeshError, MeshFileError  # noqa: E402
+from shapegen_core.meshes.reading import list_mesh_files, read_mesh  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():

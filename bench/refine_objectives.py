@@ -4,7 +4,7 @@
     python bench/refine_objectives.py [--seeds 11,1,2,3,4] [--sizes 6,16,40] [--no-starts]
 
 Writes bench_output/refine_objectives.{json,txt}. Not part of the tests. On procedural
-vases (core/datasets.py, known (s, θ) correspondence; seed-11-style sets of 6 shapes,
+vases (core/demo_data/, known (s, θ) correspondence; seed-11-style sets of 6 shapes,
 800 landmarks, as `bench/correspondence.py --quick`), for every candidate objective:
 
 * E at the NICP landmarks, at the ground truth (every shape's landmarks at the template
@@ -44,11 +44,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
 from shapegen_core.correspond.objective import CompactnessTerm, compactness, regulariser_variance  # noqa: E402
 from shapegen_core.correspond.refine import _tangent, landmark_state, smooth_basis  # noqa: E402
-from shapegen_core.datasets import make_vases  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.geometry import TargetSurface  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -6,7 +6,7 @@
 For each class a Bayesian GP-LVM with the automatic latent dimension is fitted with the
 default settings (cached in bench_output/samples/<class>.npz; the meshing stiffness is
 `DeformSettings().final_alpha` unless --alpha is given, applied to the cached model), then
-`n` samples are drawn exactly as `shapegen sample --seed 0` draws them (core/sampling.py:
+`n` samples are drawn exactly as `shapegen sample --seed 0` draws them (core/generate/sampling.py:
 sample i from seed i, meshed on the nearest template by the linear fast path) and gated:
 
 * broken before: samples whose first mesh fails the gate, by criterion (a sample failing
@@ -40,12 +40,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings  # noqa: E402
-from shapegen_core.deform import DeformSettings  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes  # noqa: E402
-from shapegen_core.quality import CRITERIA, QualitySettings  # noqa: E402
-from shapegen_core.sampling import gated_samples  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings  # noqa: E402
+from shapegen_core.generate.deform import DeformSettings  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
+from shapegen_core.generate.quality import CRITERIA, QualitySettings  # noqa: E402
+from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
@@ -56,7 +58,7 @@ DEFAULT_DATA = "vases,mugs,psb:Airplane,psb:Cup,psb:Fish,psb:Vase"
 def class_meshes(data: str) -> tuple[list[Mesh], str]:
     """The meshes of one class and its up axis."""
     if data == "vases":
-        from shapegen_core.datasets import make_vases
+        from shapegen_core.demo_data import make_vases
 
         return [s.mesh for s in make_vases(20, seed=0)], "z"
     if data == "mugs":
@@ -65,7 +67,7 @@ def class_meshes(data: str) -> tuple[list[Mesh], str]:
 
         return [Mesh(vertices, faces, name=name) for name, vertices, faces in mug_meshes()], "z"
     if data.startswith("psb:"):
-        from shapegen_core.io import read_folder
+        from shapegen_core.meshes.reading import read_folder
 
         return read_folder(PSB / data[4:]), "y"
     raise SystemExit(f"unknown --data {data!r} (vases, mugs, psb:<Class>)")

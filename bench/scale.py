@@ -13,8 +13,8 @@ memory of that process and every process it started, sampled every 20 ms):
   repository (`--cache`, default /tmp/shapegen-scale; never committed); then the stages of
   `shapegen fit --model ppca` on that folder: read, prepare, correspond, fit ppca, save
   (as `shapegen fit` runs them: meshes above 100k faces kept in a spill store on disk, the
-  main process holding handles, core/spill.py).
-* vases-20 / vases-200 / vases-1000: procedural vases (core/datasets.make_vases,
+  main process holding handles, core/meshes/spill.py).
+* vases-20 / vases-200 / vases-1000: procedural vases (core/demo_data/vases.py make_vases,
   ~20k vertices each) through prepare, correspond and every model (ppca, gplvm, bgplvm;
   gplvm, O(N³), only up to 200 shapes unless --all-models). Prepare aligns by consensus
   at every size (above 64 shapes its pose search computes the exact cost only for the
@@ -122,7 +122,7 @@ class TreeMemory:
 
 def _read(read_folder, folder, jobs, spill=None):
     """The folder read as `shapegen fit` reads it: in `jobs` processes, the dense meshes
-    kept in the run's spill store (core/spill.py). The core before the dense-mesh
+    kept in the run's spill store (core/meshes/spill.py). The core before the dense-mesh
     changes reads in this process only; before the spill store, every mesh stays in memory."""
     try:
         return read_folder(folder, jobs=jobs, **({} if spill is None else {"spill": spill}))
@@ -133,13 +133,13 @@ def _read(read_folder, folder, jobs, spill=None):
 def _spill_store(stack, read_folder):
     """The row's spill store (`shapegen fit` keeps one per run), entered on `stack`; None
     for a core whose `read_folder` takes none (asked of the function itself: with the
-    editable install, `shapegen_core.spill` imports even beside an older core on
+    editable install, `shapegen_core.meshes.spill` imports even beside an older core on
     PYTHONPATH)."""
     import inspect
 
     if "spill" not in inspect.signature(read_folder).parameters:
         return None
-    from shapegen_core.spill import SpillStore
+    from shapegen_core.meshes.spill import SpillStore
 
     return stack.enter_context(SpillStore())
 
@@ -160,7 +160,7 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
     each (cached; written once)."""
     import trimesh
 
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     folder = cache / f"{psb_class}-{target}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -186,14 +186,15 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
 # ---------------------------------------------------------------------------- child
 def run_row(row: str, args) -> dict:
     """The stages of one row in this process: {"stages": {stage: [seconds, peak bytes]}, ...}."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
-    from shapegen_core.io import read_folder
+    from shapegen_core.meshes.reading import read_folder
     try:
         from shapegen_core.models.scaling import CUBIC_NOTE_SHAPES
     except ImportError:  # the core before the dense-mesh changes (the "before" figures)
         CUBIC_NOTE_SHAPES = 200
-    from shapegen_core.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_shape_model
 
     memory = TreeMemory()
     stages: dict[str, list] = {}
@@ -218,7 +219,7 @@ def run_row(row: str, args) -> dict:
         meshes = stage("read", lambda: _read(read_folder, folder, args.jobs, spill))
         models = ("ppca",)
     else:
-        from shapegen_core.datasets import make_vases
+        from shapegen_core.demo_data import make_vases
 
         meshes = stage("make", lambda: [s.mesh for s in make_vases(VASE_ROWS[row], seed=0, resolution=VASE_RESOLUTION,
                                                                      pose=not args.landmarks_only)])
@@ -262,8 +263,8 @@ def landmarks_only(meshes, settings):
     """A prepared collection of meshes made upright and facing alike (make_vases with
     pose=False), left in their frame: Prepare's landmarks without its alignment, to time
     the correspondence of a large collection on its own (--landmarks-only)."""
-    from shapegen_core.collection import PreparedCollection
-    from shapegen_core.landmarks import select_landmarks
+    from shapegen_core.preprocess.collection import PreparedCollection
+    from shapegen_core.preprocess.landmarks import select_landmarks
     from shapegen_core.preprocess.transform import PreparedShape, ShapeTransform
 
     shapes = [PreparedShape(mesh, ShapeTransform.identity()) for mesh in meshes]

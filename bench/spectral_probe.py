@@ -30,10 +30,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
-from shapegen_core.errors import MeshFileError  # noqa: E402
-from shapegen_core.io import read_folder, read_mesh  # noqa: E402
+from shapegen_core.base.errors import MeshFileError  # noqa: E402
+from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/correspondence.py: the vase and PSB measures
 
@@ -133,10 +133,10 @@ def _starts_said(messages) -> list[str]:
 
 
 def run_vases(n: int, initialisations) -> dict:
-    """Procedural vases (core/datasets.py, bench/correspondence.py part 1): mean true error
+    """Procedural vases (core/demo_data/, bench/correspondence.py part 1): mean true error
     vs the template landmark's surface coordinates, % of the diagonal."""
     from correspondence import error_vs_template
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     shapes = make_vases(n, seed=11, resolution=(65, 130))
     prepared = prepare_meshes([s.mesh for s in shapes], PrepareSettings(n_landmarks=800, seed=0))

@@ -22,7 +22,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes  # noqa: E402
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond.start import pose_evidence  # noqa: E402
 from shapegen_core.correspond.groupwise import chamfer_medoid  # noqa: E402
 

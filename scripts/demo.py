@@ -1,6 +1,6 @@
 """ShapeGen demo, headless (`make demo`): the main job on the built-in procedural class.
 
-1. Generate a class of procedural vases (core/datasets.py: varied triangulations, random
+1. Generate a class of procedural vases (core/demo_data/: varied triangulations, random
    input poses) and write them as OBJ files.
 2. Install the built extension (dist/) into a throwaway Blender user folder, as a user
    would, and drive its operators: Import Training Collection → Prepare. Render the
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     module = install_extension(bpy)
-    datasets = importlib.import_module(f"{module}.core.datasets")
+    datasets = importlib.import_module(f"{module}.core.demo_data")
 
     data_dir = output / "training_data"
     shapes = datasets.make_vases(args.shapes, seed=args.seed)
@@ -168,10 +168,12 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     """Fit BGP-LVM on the imported collection, sample, morph, render one PNG."""
     import numpy as np
 
-    pipeline = importlib.import_module(f"{module}.core.pipeline")
-    collection = importlib.import_module(f"{module}.core.collection")
-    jobs = importlib.import_module(f"{module}.core.jobs")
-    meshset = importlib.import_module(f"{module}.core.meshset")
+    pipeline = importlib.import_module(f"{module}.core.app.pipeline")
+    fit_settings = importlib.import_module(f"{module}.core.app.fit_settings")
+    shape_model = importlib.import_module(f"{module}.core.app.shape_model")
+    collection = importlib.import_module(f"{module}.core.preprocess.collection")
+    jobs = importlib.import_module(f"{module}.core.app.jobs")
+    meshset = importlib.import_module(f"{module}.core.meshes.meshset")
     convert = importlib.import_module(f"{module}.shapegen_addon.convert")
     start = time.perf_counter()
     meshes = [convert.object_to_mesh(o) for o in sorted(source.objects, key=lambda o: o.name)]
@@ -182,7 +184,7 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
     job = jobs.BackgroundJob("fit", {
         "meshes": str(output / "training_meshes.npz"), "output": str(output / "model.npz"),
         # built from the settings dataclasses, so the worker's format cannot drift from the demo's
-        "settings": pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=args.landmarks, seed=args.seed),
+        "settings": fit_settings.FitSettings(prepare=collection.PrepareSettings(n_landmarks=args.landmarks, seed=args.seed),
                                          model="bgplvm").as_dict(),
     }).start()
     report = _print_progress("fit")
@@ -191,7 +193,7 @@ def contact_sheet(bpy, module: str, source, output: Path, args) -> None:
         time.sleep(0.1)
     if status.state != "done":
         sys.exit(f"demo: fit {status.state}: {status.error}")
-    model = pipeline.GenerativeShapeModel.load(output / "model.npz")
+    model = shape_model.GenerativeShapeModel.load(output / "model.npz")
     print(f"demo: fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(meshes)} shapes "
           f"x {model.n_landmarks} landmarks in {time.perf_counter() - start:.1f} s -> {output / 'model.npz'}")
 

@@ -39,9 +39,9 @@ def module(name: str):
 def fitted_vases(folder: Path) -> Path:
     """A PPCA model of 12 procedural vases, fitted with the extension's core; its file. Ten
     latent dimensions: three pins (nine coordinates) leave some of the shape open."""
-    datasets, pipeline, collection = module("core.datasets"), module("core.pipeline"), module("core.collection")
+    datasets, pipeline, collection = module("core.demo_data"), module("core.app.pipeline"), module("core.preprocess.collection")
     shapes = datasets.make_vases(12, seed=4, resolution=(48, 64))
-    settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=400), model="ppca",
+    settings = module("core.app.fit_settings").FitSettings(prepare=collection.PrepareSettings(n_landmarks=400), model="ppca",
                                     latent_dim=10, jobs=1)
     return pipeline.fit_meshes([s.mesh for s in shapes], settings).save(folder / "vases.npz")
 

@@ -6,7 +6,7 @@ the procedural quadrupeds, one row per class and start, a training shape first.
 
 From scratch, step by step (each step skipped when its output is already in --work):
 1. the collections: links to the TOSCA files (people: the man and woman files, not the
-   gorilla) and the procedural quadrupeds (core/datasets.py `make_quadrupeds`) as OBJ files;
+   gorilla) and the procedural quadrupeds (core/demo_data/ `make_quadrupeds`) as OBJ files;
 2. `shapegen fit FOLDER --up z --skip-unreadable` with the defaults ("default") and with
    `--initialisation auto` ("auto"): WORK/<start>/<class>.npz;
 3. `shapegen sample MODEL -n 8 --seed 0 --keep-failed`: WORK/<start>/<class>_samples/
@@ -41,7 +41,7 @@ COLOURS = {"training": (0.8, 0.82, 0.86, 1.0), "sample": (0.45, 0.65, 0.95, 1.0)
 
 def shapegen(*arguments: str, log: Path) -> int:
     """Run the project's CLI (the interpreter's own install) with its output in `log`."""
-    command = [sys.executable, "-m", "shapegen_core.cli", *arguments]
+    command = [sys.executable, "-m", "shapegen_core.app.cli", *arguments]
     print("$ shapegen " + " ".join(arguments), flush=True)
     with open(log, "w") as out:
         return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT).returncode
@@ -57,7 +57,7 @@ def collections(tosca: Path, work: Path, quadrupeds: int) -> dict[str, Path]:
             continue
         folder.mkdir(parents=True, exist_ok=True)
         if name == "quadrupeds":
-            from shapegen_core.datasets import make_quadrupeds, write_collection
+            from shapegen_core.demo_data import make_quadrupeds, write_collection
 
             write_collection(make_quadrupeds(quadrupeds, seed=0), folder)
             continue
@@ -97,9 +97,9 @@ def fit_and_sample(folders: dict[str, Path], work: Path, args) -> None:
 def row_meshes(model_path: Path, samples: Path):
     """(label of the start taken, training mesh, [(sample mesh, kind)]) of one row, all in
     the axes the CLI writes samples in."""
-    from shapegen_core.io import read_mesh
-    from shapegen_core.mesh import Mesh
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.meshes.reading import read_mesh
+    from shapegen_core.meshes.mesh import Mesh
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_path)
     corr = model.correspondence

@@ -14,7 +14,7 @@
 * `mesh_data_from_arrays`: a new bpy mesh from vertex / face arrays (`foreach_set`).
 * `import_mesh_file`: a file through Blender's own importer (OBJ, PLY, STL, glTF), which
   keeps what the file holds (polygons, UVs, materials), after the core's damage check
-  (`io.check_mesh_file`, no intake); OFF, which Blender cannot read, through the core
+  (`reading.check_mesh_file`, no intake); OFF, which Blender cannot read, through the core
   reader alone (trimesh, bundled).
 """
 
@@ -28,9 +28,9 @@ import bmesh
 import bpy
 import numpy as np
 
-from ..core.errors import MeshError, MeshFileError
-from ..core.intake import clean_mesh
-from ..core.mesh import Mesh
+from ..core.base.errors import MeshError, MeshFileError
+from ..core.meshes.intake import clean_mesh
+from ..core.meshes.mesh import Mesh
 
 __all__ = ["ObjectTriangles", "ObjectReading", "object_triangles", "read_object", "object_to_mesh",
            "mesh_copy", "reverse_polygons", "winding_to_reverse", "world_mesh_copy", "evaluated_depsgraph",
@@ -260,7 +260,7 @@ def import_mesh_file(path: Path, collection: bpy.types.Collection) -> bpy.types.
 
     Raises MeshFileError naming the file when the importer fails or yields no mesh.
     """
-    from ..core.io import check_mesh_file, read_mesh
+    from ..core.meshes.reading import check_mesh_file, read_mesh
 
     path = Path(path)
     suffix = path.suffix.lower()

@@ -1,7 +1,7 @@
 """The fit job outside its operators: what a Fit hands the worker, what its end does to the
 scene, and `poll_fit`, the scripting entry point the README documents.
 
-1. `plan_fit` asks core/stages.py which stages run (what Prepare and the scene's model
+1. `plan_fit` asks core/app/stages.py which stages run (what Prepare and the scene's model
    offer); `fit_inputs` writes what the worker starts from: the model's correspondence,
    the prepared collection, or the objects' meshes (`gather_meshes` / `save_meshes`, main
    thread, then the job's setup thread) as a "shapegen.meshes" hand-off file.
@@ -19,11 +19,11 @@ from typing import Callable
 import bpy
 import numpy as np
 
-from ..core.errors import ShapeGenError
-from ..core.jobs import JobStatus
-from ..core.meshset import save_mesh_set
-from ..core.pipeline import FitSettings
-from ..core.stages import Offered, StagePlan, plan_stages, same_shapes
+from ..core.base.errors import ShapeGenError
+from ..core.app.jobs import JobStatus
+from ..core.meshes.meshset import save_mesh_set
+from ..core.app.fit_settings import FitSettings
+from ..core.app.stages import Offered, StagePlan, plan_stages, same_shapes
 from . import latent, store
 from .convert import object_triangles
 from .jobs import MANAGER, job_settings, poll_job, report_outcome
@@ -44,10 +44,10 @@ def poll_fit() -> JobStatus | None:
 
 def plan_fit(scene: bpy.types.Scene, collection, objects, options: dict, evaluated: bool) -> StagePlan:
     """Which stages a Fit of `objects` (the mesh objects of `collection`) with `options`
-    (FitSettings as plain data) runs, decided by core.stages from what the scene offers:
+    (FitSettings as plain data) runs, decided by core.app.stages from what the scene offers:
     Prepare's results for the collection (prepared.offered_prepared) and the correspondence
     of the scene's model, current when its training shapes are exactly the reused prepared
-    collection's (core.stages.same_shapes)."""
+    collection's (core.app.stages.same_shapes)."""
     offered = offered_prepared(collection, objects, evaluated)
     try:
         model = store.get_model(scene)
@@ -62,7 +62,7 @@ def plan_fit(scene: bpy.types.Scene, collection, objects, options: dict, evaluat
 
 
 def fit_inputs(plan: StagePlan, settings, objects, evaluated: bool, folder: Path) -> tuple[dict, Callable]:
-    """The fit task's inputs for `plan` (core/worker.py task_fit) and the bpy-free setup that
+    """The fit task's inputs for `plan` (core/app/worker.py task_fit) and the bpy-free setup that
     writes them into `folder` on the job's helper thread: the scene's model (its
     correspondence is reused), the reused prepared collection, or the objects' meshes."""
     if "correspond" not in plan.run:  # only the model part changed: the worker fits the shape model alone
@@ -95,7 +95,7 @@ def gather_meshes(objects, evaluated: bool = True) -> list[tuple[str, np.ndarray
 
 
 def save_meshes(meshes: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: Path) -> Path:
-    """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshset). No bpy: runs
+    """Write `gather_meshes` output as a "shapegen.meshes" file (core.meshes.meshset). No bpy: runs
     on the job's setup thread. Uncompressed: it is a throwaway hand-off; compressing
     6 × 100k-vertex meshes took 1.5 s, this ~0.1 s."""
     return save_mesh_set(path, [m[0] for m in meshes], [m[1] for m in meshes], [m[2] for m in meshes],

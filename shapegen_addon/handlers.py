@@ -13,7 +13,7 @@ from __future__ import annotations
 import bpy
 from bpy.app.handlers import persistent
 
-from ..core.errors import ShapeGenError
+from ..core.base.errors import ShapeGenError
 from . import latent, pins, store
 from .jobs import MANAGER
 from .ui.properties import regroup_flat_settings

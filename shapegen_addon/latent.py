@@ -8,7 +8,7 @@ features(z) @ basis, the basis computed once per model and template) and one bul
 of the position attribute (through the copy's vertex map when the core welded vertices),
 so a drag costs a small matrix product and a `foreach_set`, for every model type.
 
-The live shape is checked by the core's quality gate (core/quality.py; 10-200 ms for
+The live shape is checked by the core's quality gate (core/generate/quality.py; 10-200 ms for
 10-30k faces, most of it the self-intersection search): at once after an operator
 (Explore, Randomise, Snap, Reset) and, while a slider is dragged, once the drag pauses
 (FULL_CHECK_DELAY, a timer), so a drag stays a matrix product and a bulk write. The
@@ -27,10 +27,10 @@ import contextlib
 import bpy
 import numpy as np
 
-from ..core.errors import ShapeGenError
-from ..core.latent_units import LatentUnits
-from ..core.quality import QualitySettings
-from ..core.sampling import quality_gate
+from ..core.base.errors import ShapeGenError
+from ..core.models.latent_units import LatentUnits
+from ..core.generate.quality import QualitySettings
+from ..core.generate.sampling import quality_gate
 from . import store
 from .keys import (LATENT_KEY, LIVE_KEY, MODEL_ID_KEY, MODEL_KEY, QUALITY_KEY, SEED_KEY, SOURCE_KEY,
                    TEMPLATE_INDEX_KEY, TEMPLATE_KEY, VERTEX_MAP_KEY)
@@ -73,7 +73,7 @@ def sliders_batch():
 # ------------------------------------------------------------------------------ sliders
 def rebuild_sliders(scene: bpy.types.Scene, model) -> None:
     """One slider per latent dimension of `model`, all at the training mean, in training
-    standard deviations (core.latent_units: ±3 covers every training shape), as the model
+    standard deviations (core.models.latent_units: ±3 covers every training shape), as the model
     file records them (nothing is encoded here)."""
     settings = scene.shapegen
     units = model.latent_units()
@@ -214,7 +214,7 @@ def _gate_live(obj: bpy.types.Object, model, template_index: int, flat: np.ndarr
 
 
 def live_quality(scene: bpy.types.Scene):
-    """The full quality gate (core/quality.py `MeshQuality`) of the live object's current
+    """The full quality gate (core/generate/quality.py `MeshQuality`) of the live object's current
     shape, its reasons kept on the object (keys.QUALITY_KEY, "" when it passes); None when
     there is no live object."""
     obj = live_object(scene)

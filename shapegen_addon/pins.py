@@ -20,7 +20,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 from mathutils import Vector
 
-from ..core.errors import ShapeGenError
+from ..core.base.errors import ShapeGenError
 from . import latent, store
 from .keys import (MODEL_ID_KEY, PIN_DISTANCE_KEY, PIN_KEY, PINS_START_KEY, STD_ATTRIBUTE,
                    TEMPLATE_INDEX_KEY, VERTEX_MAP_KEY)

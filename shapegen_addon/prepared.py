@@ -20,11 +20,11 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.collection import PrepareSettings, PreparedCollection, pose_notes
-from ..core.landmarks import Landmarks
+from ..core.preprocess.collection import PrepareSettings, PreparedCollection, pose_notes
+from ..core.preprocess.landmarks import Landmarks
 from ..core.preprocess import PreparedShape, ShapeTransform
-from ..core.settings import SettingsError
-from ..core.stages import Offered
+from ..core.base.settings import SettingsError
+from ..core.app.stages import Offered
 from .convert import object_to_mesh, object_triangles
 from .keys import (CORRESPONDENCE_KEY, CORRESPONDENCE_OUTLIER_KEY, CORRESPONDENCE_TEMPLATE_KEY, FLAG_TURN_KEY,
                    KEEP_POSE_KEY,
@@ -170,7 +170,7 @@ def flagged_copies(collection: bpy.types.Collection | None) -> list[bpy.types.Ob
 
 
 def prepared_pose_notes(objects) -> list[str]:
-    """What Prepare did to the poses of prepared `objects` (core.collection.pose_notes,
+    """What Prepare did to the poses of prepared `objects` (core.preprocess.collection.pose_notes,
     named after their source objects): "name: turned ..." and "name: pose looks wrong: ..."."""
     return pose_notes([o.get(SOURCE_KEY, o.name) for o in objects], [o.get(POSE_CHANGE_KEY, "") for o in objects],
                       [o.get(POSE_OUTLIER_KEY, "") for o in objects])
@@ -194,7 +194,7 @@ class PreparedCopies:
 
 def offered_prepared(collection, objects, evaluated: bool = True) -> list[Offered]:
     """Every Prepare result of `collection` (newest name first) as a found stage output for
-    core.stages: the Prepare settings it records, and, as its `current` check, whether it
+    core.app.stages: the Prepare settings it records, and, as its `current` check, whether it
     has a copy of each of `objects` (the mesh objects of `collection`, sorted by name) read
     the same way (`evaluated`: modifiers applied, or the base mesh) and none has changed
     since: every copy equals its source as read now, in world coordinates, under its stored

@@ -33,8 +33,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core.errors import ModelFileError, ShapeGenError
-from ..core.pipeline import GenerativeShapeModel
+from ..core.base.errors import ModelFileError, ShapeGenError
+from ..core.app.shape_model import GenerativeShapeModel
 from .keys import (LATENT_DIM_KEY, MATCHING_KEY, MODEL_FILE_KEY, MODEL_ID_KEY, MODEL_NAME_KEY, MODEL_TYPE_KEY,
                    N_LANDMARKS_KEY, N_SHAPES_KEY, OUTLIERS_KEY, RESIDUAL_MEDIAN_KEY, TEMPLATE_KEY)
 

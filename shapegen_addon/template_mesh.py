@@ -8,7 +8,7 @@ vertex positions of the copy are replaced: quads, n-gons, UV maps, materials and
 slots, smooth/flat shading, sharp edges and vertex groups stay the artist's. Custom
 normals are dropped (they belong to the old positions) and so are the copy's shape keys.
 
-The core welds coincident vertices and may re-wind faces on reading (core/intake.py); the
+The core welds coincident vertices and may re-wind faces on reading (core/meshes/intake.py); the
 report's `vertex_map` takes each Blender vertex to its core vertex, and the polygons the
 core re-wound, or all of them for a mirrored object (negative determinant world matrix),
 are reversed in the copy so its normals point outward in the model's frame.
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ..core.errors import MeshError
+from ..core.base.errors import MeshError
 from . import store
 from .convert import (evaluated_depsgraph, mesh_copy, mesh_data_from_arrays, read_object, reverse_polygons,
                       winding_to_reverse)

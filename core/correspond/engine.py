@@ -1,7 +1,7 @@
 """Where registrations run: the local process pool (pool.py) or, given a scheduler, a
 Dask distributed cluster (issue 15). Both take the same tasks (one shape each, picklable)
 and give the same results; `make_runner` chooses. Dask is imported only when a scheduler
-is given (core/cluster.py), so the core runs without it."""
+is given (core/base/cluster.py), so the core runs without it."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import uuid
 from contextlib import ExitStack
 from typing import Callable, Sequence
 
-from ..progress import CancelCheck, Progress
+from ..base.progress import CancelCheck, Progress
 from .pool import RegistrationRunner, RegistrationTask, _RunProgress, collector, register_task, submit_bounded
 from .registration import Registration
 
@@ -19,7 +19,7 @@ __all__ = ["DaskRunner", "make_runner"]
 
 def make_runner(jobs: int, scheduler: str | None = None, should_cancel=None):
     """The local RegistrationRunner (`jobs` processes; 1: in this process), or a
-    DaskRunner on `scheduler` (tcp://host:port or local:N, core/cluster.py)."""
+    DaskRunner on `scheduler` (tcp://host:port or local:N, core/base/cluster.py)."""
     if scheduler is None:
         return RegistrationRunner(jobs, should_cancel)
     return DaskRunner(scheduler, should_cancel)
@@ -65,7 +65,7 @@ class DaskRunner:
     def __init__(self, scheduler: str, should_cancel=None):
         from distributed import Event
 
-        from ..cluster import connect
+        from ..base.cluster import connect
 
         self._stack = ExitStack()
         self.client = self._stack.enter_context(connect(scheduler))

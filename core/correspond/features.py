@@ -53,7 +53,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import TargetSurface, closest_points_on_triangles, nearest_facing_alike
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from .settings import CorrespondenceSettings
 from .turning import MAX_ANGLE, NO_LINE, facing_regions, position_between_turning_lines, positions_and_regions
 

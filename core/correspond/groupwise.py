@@ -14,11 +14,11 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import CollectionError, MeshError
+from ..base.errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
-from ..progress import Progress, no_progress, sub_range
-from ..simplify import Proxy
-from ..spill import full_mesh
+from ..base.progress import Progress, no_progress, sub_range
+from ..meshes.simplify import Proxy
+from ..meshes.spill import full_mesh
 from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of

@@ -20,10 +20,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..child_process import MEMORY_ADVICE, exit_with_parent, how_it_ended
-from ..errors import WorkerDied
+from ..base.child_process import MEMORY_ADVICE, exit_with_parent, how_it_ended
+from ..base.errors import WorkerDied
 from ..geometry import TargetSurface
-from ..progress import CancelCheck, Progress
+from ..base.progress import CancelCheck, Progress
 from .registration import Registration, RegistrationProblem, register
 from .settings import CorrespondenceSettings
 
@@ -39,7 +39,7 @@ class RegistrationTask:
 
     index: int  # position in the run's task list
     name: str
-    vertices: np.ndarray  # normalised frame: the shape's surface (or its proxy, core/simplify.py)
+    vertices: np.ndarray  # normalised frame: the shape's surface (or its proxy, core/meshes/simplify.py)
     faces: np.ndarray
     landmarks: np.ndarray  # normalised frame
     landmark_normals: np.ndarray
@@ -177,7 +177,7 @@ def worker_death_message(name: str, exitcode: int | None, jobs: int) -> str:
 class RegistrationRunner:
     """Runs registration tasks in-process (jobs = 1) or in a pool of spawned processes,
     with progress per ICP iteration and cooperative cancel (`should_cancel`: None, a
-    callable or an Event-like object; see core/progress.py).
+    callable or an Event-like object; see core/base/progress.py).
 
     A spawned worker loads numpy, and with it OpenBLAS, before any code of ours runs in it,
     and OpenBLAS reads OPENBLAS_NUM_THREADS only then. So while the pool is open this

@@ -3,7 +3,7 @@ on the full surfaces (issue 15).
 
 Every round of the groupwise registration (§4.2.7) needs closest points on each target,
 at the scale of the landmarks. A shape with more than 2.5 × `CorrespondenceSettings.proxy_faces` faces (100k)
-is registered against its vertex-clustering proxy of about proxy_faces faces (core/simplify.py), built once per
+is registered against its vertex-clustering proxy of about proxy_faces faces (core/meshes/simplify.py), built once per
 shape in a worker, so a round costs the same for a sculpt of a million vertices as for a
 mesh of the proxy's size. After the last round every template point is placed on the
 *full* surface, exactly as `registration._place` does on a surface it registered
@@ -24,9 +24,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry.nearby import closest_within
-from ..mesh import Mesh
-from ..simplify import DENSE_RATIO, Proxy, proxy_mesh
-from ..spill import StoredMesh, full_mesh
+from ..meshes.mesh import Mesh
+from ..meshes.simplify import DENSE_RATIO, Proxy, proxy_mesh
+from ..meshes.spill import StoredMesh, full_mesh
 from .registration import Registration, fit_residual
 
 __all__ = ["DENSE_RATIO", "PlacementTask", "ProxyTask", "build_proxy", "dense_shapes", "face_normals_at",
@@ -44,7 +44,7 @@ class ProxyTask:
 
 
 def build_proxy(task: ProxyTask) -> Proxy:
-    """The proxy a worker builds for one mesh (core/simplify.py)."""
+    """The proxy a worker builds for one mesh (core/meshes/simplify.py)."""
     return proxy_mesh(full_mesh(task.mesh), task.max_faces, task.above)
 
 

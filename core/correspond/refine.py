@@ -35,8 +35,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..mesh import Mesh
-from ..progress import CancelCheck, Progress, no_progress
+from ..meshes.mesh import Mesh
+from ..base.progress import CancelCheck, Progress, no_progress
 from .objective import CompactnessTerm, LandmarkState, combined
 from .shards import ShapeShard, ShardAnswer, Shards, interpolated_normals
 from .settings import REFINE_METHODS, CorrespondenceSettings

@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry import (AffineSolver, SurfacePoints, TargetSurface, apply_affines, data_blocks, stiffness_energy,
                         transform_normals)
-from ..progress import CancelCheck
+from ..base.progress import CancelCheck
 from .data_terms import (AnchorTerm, Anchors, BidirectionalTerm, ClosestMatches, DataTerm, FeatureMatches, ForwardTerm,
                          Pulls, closest_target_points)
 from .features import FeatureMatcher, point_features, uses_between, uses_features

@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..collection import PrepareSettings, recorded_unreadable, unreadable_arrays
-from ..errors import ModelFileError
-from ..npzfile import ArraySpec, load_npz, save_npz, validate_arrays
-from ..settings import recorded_settings
+from ..preprocess.collection import PrepareSettings, recorded_unreadable, unreadable_arrays
+from ..base.errors import ModelFileError
+from ..base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
+from ..base.settings import recorded_settings
 from .posing import apply_pose
 from .features import FALLBACK_SHARE, keeps_features, uses_features
 from .settings import REFINE_METHODS, CorrespondenceSettings

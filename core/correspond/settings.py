@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..settings import Settings, SettingsError, group, option
-from ..simplify import REGISTRATION_PROXY_FACES
+from ..base.settings import Settings, SettingsError, group, option
+from ..meshes.simplify import REGISTRATION_PROXY_FACES
 
 __all__ = ["CorrespondenceSettings", "StiffnessSettings", "DataTermSettings", "IterationSettings", "OutlierSettings",
            "RefinementSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",

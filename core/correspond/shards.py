@@ -19,9 +19,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..child_process import exit_with_parent
+from ..base.child_process import exit_with_parent
 from ..geometry import TargetSurface
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from .objective import LandmarkState, SpreadTerm, spread_sigma
 
 __all__ = ["ShapeShard", "Shards", "ShardAnswer", "interpolated_normals"]

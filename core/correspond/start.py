@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry import chamfer_distance
 from ..geometry.spectral import SpectrumError, laplace_beltrami_spectrum
-from ..progress import Progress, sub_range
+from ..base.progress import Progress, sub_range
 from .functional_map import MIN_PART_SHARE, SpectralShape, SpectralStart, landmark_signatures, spectral_shape, spectral_start
 from .pool import RegistrationRunner, RegistrationTask
 from .registration import Registration

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import ShapeGenError
+from ..base.errors import ShapeGenError
 from ..models.kernels import rbf_from_sq_dists
 
 __all__ = [

@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from ..models import MODEL_TYPES, GPLVM, make_model
-from ..progress import Progress, no_progress
+from ..base.progress import Progress, no_progress
 from .baselines import MeanShapeModel, TrainingSetModel
 from .completion import REGIONS, completion_errors, hidden_coordinates, region_mask
 from .curves import generalisation_curve, ppca_nll_curve, specificity_curve

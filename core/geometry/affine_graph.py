@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from ..errors import CollectionError, MeshError, ShapeGenError
+from ..base.errors import CollectionError, MeshError, ShapeGenError
 
 __all__ = [
     "AffineSolver",

@@ -16,7 +16,7 @@ Modules: base (input checks, PCA helpers, the common API and model arrays), late
 shapes; the note an N³ fit of many shapes gives).
 """
 
-from ..errors import ModelFileError
+from ..base.errors import ModelFileError
 from .base import ModelInputError, ShapeModel
 from .bgplvm import BayesianGPLVM
 from .gplvm import GPLVM

@@ -17,8 +17,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import ModelFileError, ShapeGenError
-from ..npzfile import ArraySpec, validate_arrays
+from ..base.errors import ModelFileError, ShapeGenError
+from ..base.npzfile import ArraySpec, validate_arrays
 
 __all__ = [
     "ModelInputError",

@@ -33,8 +33,8 @@ E_q(x*)[f] = psi1(mu*, S*) B.
 from __future__ import annotations
 
 import numpy as np
-from ..npzfile import ArraySpec
-from ..progress import Progress
+from ..base.npzfile import ArraySpec
+from ..base.progress import Progress
 from .base import ModelInputError, as_generator, pca_latents, standardised_pca_latents
 from .kernels import PsiStatistics, rbf
 from .latent_variable import (FitProblem, LatentVariableModel, OptimiserRun, TrainingData, best_start,

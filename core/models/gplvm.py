@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from ..npzfile import ArraySpec
-from ..progress import Progress
+from ..base.npzfile import ArraySpec
+from ..base.progress import Progress
 from . import kde
 from .base import as_generator, pca_latents, standardised_pca_latents
 from .kernels import rbf, rbf_from_sq_dists, sq_dists

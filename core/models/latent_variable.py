@@ -32,7 +32,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 from scipy.optimize import minimize
 
-from ..progress import Progress
+from ..base.progress import Progress
 from .base import (ModelInputError, ShapeModel, ShapePosterior, check_latent_dim, check_rows, check_training_data,
                    default_latent_dim)
 from .scaling import ENCODE_SEARCH_SHAPES

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import ModelFileError
-from ..npzfile import ArraySpec
-from ..progress import Progress
+from ..base.errors import ModelFileError
+from ..base.npzfile import ArraySpec
+from ..base.progress import Progress
 from .base import (ModelInputError, ShapeModel, ShapePosterior, as_generator, check_latent_dim,
                    check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
                    principal_axes, shrunk_spectrum)

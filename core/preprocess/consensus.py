@@ -105,8 +105,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..mesh import Mesh
-from ..progress import Progress, sub_range
+from ..meshes.mesh import Mesh
+from ..base.progress import Progress, sub_range
 from .floors import FileFloors, Floor
 from .hollow import Hollows
 from .posesearch import NearestInPool, PoseSearch

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from .moments import surface_moments
 
 __all__ = ["FileFloors", "Floor"]

@@ -31,8 +31,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
-from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..meshes.mesh import Mesh
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Hollows", "opening_vector"]

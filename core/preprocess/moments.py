@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import MeshError
-from ..mesh import FACE_CHUNK, Mesh
+from ..base.errors import MeshError
+from ..meshes.mesh import FACE_CHUNK, Mesh
 
 __all__ = ["SCALE_MODES", "surface_moments", "third_central_moment", "scale_measure"]
 

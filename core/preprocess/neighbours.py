@@ -43,7 +43,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..progress import Progress, no_progress
+from ..base.progress import Progress, no_progress
 from .rotations import AXIS_ROTATIONS
 
 __all__ = ["EXACT_SHAPES", "CANDIDATES", "CandidateDistances", "complete_nearest", "field_descriptors"]

@@ -37,8 +37,8 @@ from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
 from ..geometry.chamfer import chamfer_distance, chamfer_distances
-from ..mesh import Mesh
-from ..progress import Progress, no_progress, sub_range
+from ..meshes.mesh import Mesh
+from ..base.progress import Progress, no_progress, sub_range
 from .moments import surface_moments
 from .neighbours import EXACT_SHAPES, CandidateDistances, complete_nearest
 from .rotations import AXIS_ROTATIONS, TILTS, turn_rotations, yaw_rotation

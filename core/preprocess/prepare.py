@@ -7,10 +7,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import CollectionError, MeshError
-from ..mesh import FACE_CHUNK, Mesh
-from ..simplify import DENSE_FACES, POSE_PROXY_FACES
-from ..spill import loaded, proxy_of
+from ..base.errors import CollectionError, MeshError
+from ..meshes.mesh import FACE_CHUNK, Mesh
+from ..meshes.simplify import DENSE_FACES, POSE_PROXY_FACES
+from ..meshes.spill import loaded, proxy_of
 from .consensus import ConsensusSettings, PoseDecision, ShapeEvidence, consensus_rotations
 from .moments import SCALE_MODES, scale_measure, surface_moments
 from .rotations import describe_rotation, horizontal_pca_rotation, up_rotation
@@ -39,7 +39,7 @@ def prepare_collection(
     keep_pose: per shape, True to never turn it beyond the up axis (any align mode); its
     pose is still checked and flagged (`PreparedShape.pose_outlier`).
     dense_faces: the pose search and signatures see a mesh with more faces through its
-    proxy of about POSE_PROXY_FACES faces (core/simplify.py; issue 15), so their cost does
+    proxy of about POSE_PROXY_FACES faces (core/meshes/simplify.py; issue 15), so their cost does
     not grow with the density of the mesh.
     meshes may be `spill.StoredMesh`es (dense meshes kept on disk for the run): the pose
     search uses their proxies built when they were read, each per-shape step at full
@@ -99,7 +99,7 @@ def _flag_turn(decision: PoseDecision) -> np.ndarray | None:
 
 
 def _normalised(mesh, transform: ShapeTransform):
-    """The mesh in the normalised frame; a stored mesh (core/spill.py) stays stored."""
+    """The mesh in the normalised frame; a stored mesh (core/meshes/spill.py) stays stored."""
     with loaded(mesh) as full:
         vertices = transform.to_normalised(full.vertices)
     return mesh.with_vertices(vertices)

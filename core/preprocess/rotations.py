@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 from scipy.spatial.transform import Rotation
 
 from .moments import surface_moments, third_central_moment

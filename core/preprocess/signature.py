@@ -22,8 +22,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..meshes.mesh import Mesh
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 
 __all__ = ["Signatures", "FACING_FLOOR"]

@@ -40,8 +40,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..geometry.chamfer import chamfer_distance
-from ..mesh import Mesh
-from ..progress import Progress, no_progress
+from ..meshes.mesh import Mesh
+from ..base.progress import Progress, no_progress
 from .moments import surface_moments
 from .posesearch import PoseSearch
 from .rotations import TILTS

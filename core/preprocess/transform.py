@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..meshes.mesh import Mesh
 
 __all__ = ["ShapeTransform", "PreparedShape"]
 

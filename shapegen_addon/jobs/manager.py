@@ -1,6 +1,6 @@
 """The background-job manager: one core `BackgroundJob` at a time, polled without blocking.
 
-This module never imports bpy. It owns the running worker process (core/jobs.py), its
+This module never imports bpy. It owns the running worker process (core/app/jobs.py), its
 temporary folder and the callback that applies the result. Whoever drives the UI calls
 `MANAGER.poll()` regularly on the main thread:
 
@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
-from ...core.jobs import BackgroundJob, JobStatus
+from ...core.app.jobs import BackgroundJob, JobStatus
 
 __all__ = ["JobManager", "MANAGER"]
 

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import bpy
 
-from ...core.errors import ShapeGenError
-from ...core.jobs import JobStatus
+from ...core.base.errors import ShapeGenError
+from ...core.app.jobs import JobStatus
 from .manager import MANAGER
 
 __all__ = ["poll_job", "job_scene", "job_settings", "report_outcome", "run_worker_job", "no_job_running",

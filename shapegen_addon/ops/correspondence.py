@@ -14,7 +14,7 @@ from pathlib import Path
 
 import bpy
 
-from ...core.jobs import BackgroundJob, JobStatus
+from ...core.app.jobs import BackgroundJob, JobStatus
 from ..exclusion import without_excluded
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
 from ..prepared import (apply_correspondence, prepared_collection_for, prepared_objects, recorded_prepare_settings,

@@ -3,11 +3,11 @@ into scene data; they hold no algorithm.
 
 * `SHAPEGEN_OT_import_collection` — a folder of mesh files → a new collection of mesh
   objects named after the files (Blender's own importers; OFF through the core reader).
-* `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.collection,
+* `SHAPEGEN_OT_prepare` — align, scale and landmark a collection (core.preprocess.collection,
   thesis §3.4 / §4.2.1) into a new "<name> Prepared" collection; the user's objects are
   never modified. Meshes are read here as the artist sees them (modifiers applied, unless
   the panel's Base Mesh is on; a mirrored object's winding reversed) and cleaned by the
-  core's intake (welded, wound outwards); the slow part runs in a worker (core.worker
+  core's intake (welded, wound outwards); the slow part runs in a worker (core.app.worker
   "prepare") through `jobs.MANAGER`, like Find Correspondences and Fit. Objects flagged
   Keep Pose (keys.KEEP_POSE_KEY) are never turned; the message names the turned and the
   flagged shapes.
@@ -24,10 +24,10 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ...core.collection import PrepareSettings
-from ...core.errors import ShapeGenError
-from ...core.jobs import BackgroundJob, JobStatus
-from ...core.meshset import save_mesh_set
+from ...core.preprocess.collection import PrepareSettings
+from ...core.base.errors import ShapeGenError
+from ...core.app.jobs import BackgroundJob, JobStatus
+from ...core.meshes.meshset import save_mesh_set
 from ..convert import evaluated_depsgraph, import_mesh_file, read_object, world_mesh_copy
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, job_settings, report_outcome
@@ -54,7 +54,7 @@ class SHAPEGEN_OT_import_collection(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ...core.io import list_mesh_files
+        from ...core.meshes.reading import list_mesh_files
 
         folder = Path(bpy.path.abspath(self.directory))
         try:
@@ -96,7 +96,7 @@ def _load_prepared(status: JobStatus):
     """prepare step of the job (helper thread, no bpy): load and validate the result."""
     if status.state != "done":
         return None
-    from ...core.collection import PreparedCollection
+    from ...core.preprocess.collection import PreparedCollection
 
     return PreparedCollection.load(status.output)
 

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 from bpy.props import IntProperty, StringProperty
 
-from ...core.errors import ShapeGenError
+from ...core.base.errors import ShapeGenError
 from .. import store
 from ..keys import MAP_BOUNDS_KEY, MAP_DIMS_KEY, MODEL_ID_KEY, QUALITY_KEY, TEMPLATE_KEY
 from ..latent import (bake_live, create_live, current_latent, live_object, reset_sliders, set_latent, set_values,

@@ -2,14 +2,14 @@
 the .blend), Load Model, Export Model.
 
 Flow of Fit:
-1. `SHAPEGEN_OT_fit` (main thread) asks core/stages.py which stages run
+1. `SHAPEGEN_OT_fit` (main thread) asks core/app/stages.py which stages run
    (fitting.plan_fit: is Prepare's result for the objects current, was the scene's model
    corresponded on exactly those with the same settings?) and reads what the worker starts
    from (fitting.fit_inputs): the collection's mesh objects' triangles
    (convert.object_triangles, world coordinates), the prepared shapes, or that model's
    correspondence; a helper thread writes them
    into a temporary folder, then the core's "fit" task starts in a worker process
-   (core/worker.py, which never imports bpy) through `jobs.MANAGER`. Nothing in the scene
+   (core/app/worker.py, which never imports bpy) through `jobs.MANAGER`. Nothing in the scene
    changes yet.
 2. The job runtime (jobs.poll_job, from the UI timer or a script's loop) mirrors the
    progress into `scene.shapegen`.
@@ -26,8 +26,8 @@ from pathlib import Path
 import bpy
 from bpy.props import StringProperty
 
-from ...core.errors import ShapeGenError
-from ...core.jobs import BackgroundJob
+from ...core.base.errors import ShapeGenError
+from ...core.app.jobs import BackgroundJob
 from .. import fitting, store
 from ..exclusion import training_objects
 from ..jobs import MANAGER, JobOperator, no_job_running

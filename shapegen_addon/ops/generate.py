@@ -6,7 +6,7 @@ and template (latent.tag_object; a sample also with its seed), so later operator
 core (`GenerativeShapeModel.sample`, `mesh_from_landmarks`, `LatentMesher`), the mesh
 around them is a copy of the template's own (template_mesh.TemplateMeshes; a plain
 triangle mesh, said in the report, when the template's object is gone); nothing here is
-an algorithm. Samples pass the core's quality gate (core/sampling.py: a failing mesh is
+an algorithm. Samples pass the core's quality gate (core/generate/sampling.py: a failing mesh is
 re-meshed on the next-nearest template, then stiffer, or redrawn with a new seed, within
 the run's pooled draw budget); the report says how many were redrawn and why, and each
 sample records the meshes refused on its way (keys.REJECTED_KEY) and the stiffness it was
@@ -21,9 +21,9 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from ...core.errors import ShapeGenError
-from ...core.quality import QualitySettings
-from ...core.sampling import draw_budget, gate_summary, gated_samples, shortfall
+from ...core.base.errors import ShapeGenError
+from ...core.generate.quality import QualitySettings
+from ...core.generate.sampling import draw_budget, gate_summary, gated_samples, shortfall
 from .. import store
 from ..keys import INTERPOLATION_KEY, REJECTED_KEY, STIFFNESS_KEY
 from ..latent import object_latent, tag_object
@@ -65,7 +65,7 @@ class SHAPEGEN_OT_sample(store.NeedsModel, bpy.types.Operator):
             count = self.count or settings.generate.sample_count
             first_seed = settings.prepare.seed if self.seed < 0 else self.seed
             # everything that can fail runs before the scene is touched; sample i is drawn
-            # with seed first_seed + i (redraws: core.sampling.redraw_seed)
+            # with seed first_seed + i (redraws: core.generate.sampling.redraw_seed)
             quality = QualitySettings()
             results = gated_samples(model, count, first_seed, template=settings.generate.sample_template,
                                     settings=quality)

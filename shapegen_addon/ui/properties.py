@@ -15,7 +15,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
-from ...core.pipeline import FitSettings
+from ...core.app.fit_settings import FitSettings
 from ..latent import on_slider_changed
 from ..prepared import PREPARE_SETTINGS
 

@@ -104,7 +104,7 @@ def addon_module(extension: str, name: str):
 def add_vase_collection(extension: str, n: int = 6, name: str = "vases", pose: bool = True) -> bpy.types.Collection:
     """n procedural vases as mesh objects (named like the core's shapes) in a new collection,
     chosen as the panel's training collection; `pose` False: all upright, facing +x."""
-    datasets = addon_module(extension, "core.datasets")
+    datasets = addon_module(extension, "core.demo_data")
     convert = addon_module(extension, "shapegen_addon.convert")
     collection = bpy.data.collections.new(name)
     bpy.context.scene.collection.children.link(collection)
@@ -133,12 +133,13 @@ def fit_vase_models(extension: str, kinds, n: int, latent_dim: int | None) -> di
     """{kind: GenerativeShapeModel} of n procedural vases with the FAST_FIT settings: one
     prepare and one correspondence, then each model type fitted on it (fit_shape_model,
     the stage fit_meshes ends with)."""
-    datasets = addon_module(extension, "core.datasets")
-    pipeline = addon_module(extension, "core.pipeline")
+    datasets = addon_module(extension, "core.demo_data")
+    pipeline = addon_module(extension, "core.app.pipeline")
+    fit_settings = addon_module(extension, "core.app.fit_settings")
     correspond = addon_module(extension, "core.correspond")
-    collection = addon_module(extension, "core.collection")
+    collection = addon_module(extension, "core.preprocess.collection")
     meshes = [s.mesh for s in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
-    settings = pipeline.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim, jobs=1,
+    settings = fit_settings.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim, jobs=1,
                                     correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
     prepared = collection.prepare_meshes(meshes, settings.prepare)
     corr = correspond.correspond(prepared, settings.correspondence, template=settings.template, jobs=1)

@@ -12,7 +12,7 @@ import trimesh
 
 @pytest.fixture
 def prepared(extension, tmp_path):
-    datasets = importlib.import_module(f"{extension}.core.datasets")
+    datasets = importlib.import_module(f"{extension}.core.demo_data")
     folder = tmp_path / "vases"
     folder.mkdir()
     for shape in datasets.make_vases(4, seed=7, resolution=(14, 18)):

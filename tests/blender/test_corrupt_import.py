@@ -26,7 +26,7 @@ CASES = ("empty", "truncated_0.5", "truncated_0.9", "utf16", "vertex_nan", "vert
 @pytest.fixture
 def damaged_folder(extension, tmp_path):
     """(folder, names of the damaged files, names of the good files)."""
-    datasets = addon_module(extension, "core.datasets")
+    datasets = addon_module(extension, "core.demo_data")
     meshes = [s.mesh for s in datasets.make_vases(3, seed=1, resolution=(5, 7))]
     folder = tmp_path / "mixed"
     folder.mkdir()

@@ -17,7 +17,7 @@ from conftest import addon_module
 
 @pytest.fixture
 def datasets(extension):
-    return importlib.import_module(f"{extension}.core.datasets")
+    return importlib.import_module(f"{extension}.core.demo_data")
 
 
 @pytest.fixture
@@ -84,7 +84,7 @@ def test_import_parses_each_file_once_in_the_core_and_leaves_cleaning_to_prepare
     checks each for damage, parsing it once and never running intake's costly cleaning,
     which Prepare runs on the object. OFF, which Blender cannot read, is the core's one read."""
     folder, shapes = vase_folder
-    io = addon_module(extension, "core.io")
+    io = addon_module(extension, "core.meshes.reading")
     parsed, cleaned = [], []
     parse, clean = io._parsed, io.clean_mesh
     monkeypatch.setattr(io, "_parsed", lambda path, name=None: parsed.append(path.name) or parse(path, name))

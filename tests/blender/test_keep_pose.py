@@ -74,10 +74,10 @@ def test_upside_down_object_is_turned_and_reported_or_kept_and_flagged(extension
 
 def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
     """task_fit on raw meshes prepares them with keep_pose, like task_prepare."""
-    datasets = addon_module(extension, "core.datasets")
-    meshset = addon_module(extension, "core.meshset")
-    worker = addon_module(extension, "core.worker")
-    pipeline = addon_module(extension, "core.pipeline")
+    datasets = addon_module(extension, "core.demo_data")
+    meshset = addon_module(extension, "core.meshes.meshset")
+    worker = addon_module(extension, "core.app.worker")
+    shape_model = addon_module(extension, "core.app.shape_model")
     meshes = [s.mesh for s in datasets.make_vases(8, seed=1, resolution=(14, 20), pose=False)]
     meshes[2] = meshes[2].with_vertices(meshes[2].vertices * [1.0, -1.0, -1.0])
     meshset.save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
@@ -87,7 +87,7 @@ def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
     for keep in ([False] * 8, [i == 2 for i in range(8)]):
         output = worker.task_fit({"meshes": str(tmp_path / "meshes.npz"), "keep_pose": keep, "settings": options,
                                   "output": str(tmp_path / f"model{len(fitted)}.npz")}, lambda f, stage: None, None)
-        fitted.append(pipeline.GenerativeShapeModel.load(output).meshes)
+        fitted.append(shape_model.GenerativeShapeModel.load(output).meshes)
     turned, kept = fitted
     np.testing.assert_allclose(turned[0].vertices, kept[0].vertices, rtol=0, atol=1e-12)
     # turned back upright, or kept upside down: the same vase mirrored in y and z (up to the floor shift)

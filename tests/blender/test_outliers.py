@@ -16,19 +16,19 @@ REASON = "landmarks 6.1× farther from the other shapes' model than the median s
 
 def _model_with_an_outlier(extension, model_files, tmp_path, name: str):
     """The session's small PPCA model with shape `name` flagged, loaded into the scene."""
-    pipeline = addon_module(extension, "core.pipeline")
-    model = pipeline.GenerativeShapeModel.load(model_files["ppca"])
+    shape_model = addon_module(extension, "core.app.shape_model")
+    model = shape_model.GenerativeShapeModel.load(model_files["ppca"])
     corr = model.correspondence
     flagged = np.array([n == name for n in corr.names])
     corr = replace(corr, outliers=flagged, outlier_reasons=[REASON if f else "" for f in flagged])
     path = tmp_path / "flagged.npz"
-    pipeline.GenerativeShapeModel(model.meshes, corr, model.model, settings=model.settings).save(path)
+    shape_model.GenerativeShapeModel(model.meshes, corr, model.model, settings=model.settings).save(path)
     load_model("flagged", {"flagged": path})
 
 
 def test_outliers_are_listed_excluded_and_included_again(extension, model_files, tmp_path):
     collection = add_vase_collection(extension)  # the same vases as the session's models
-    datasets = addon_module(extension, "core.datasets")
+    datasets = addon_module(extension, "core.demo_data")
     assert [o.name for o in sorted(collection.objects, key=lambda o: o.name)] == [
         s.name for s in datasets.make_vases(6, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
     _model_with_an_outlier(extension, model_files, tmp_path, "vase_002")

@@ -102,7 +102,7 @@ def test_panels_draw_with_a_model_a_live_object_and_a_map(model_files):
 
 def test_model_panel_shows_progress_and_cancel_while_a_job_runs(extension, tmp_path):
     jobs = addon_module(extension, "shapegen_addon.jobs")
-    core_jobs = addon_module(extension, "core.jobs")
+    core_jobs = addon_module(extension, "core.app.jobs")
     job = core_jobs.BackgroundJob("selftest", {"steps": 50, "sleep": 0.1, "output": str(tmp_path / "out")})
     jobs.MANAGER.start(job, lambda status, prepared: None, label="selftest")
     try:
@@ -170,23 +170,23 @@ def test_tooltips_speak_to_artists_not_programmers():
 def test_every_blender_default_is_the_core_and_cli_default(extension):
     """The panel's defaults, as the worker receives them, are the core's default FitSettings,
     which are the `shapegen` defaults too (its options are built from the same classes)."""
-    pipeline = addon_module(extension, "core.pipeline")
-    core_settings = addon_module(extension, "core.settings")
+    fit_settings = addon_module(extension, "core.app.fit_settings")
+    core_settings = addon_module(extension, "core.base.settings")
     scene = bpy.data.scenes.new("fresh defaults")
     try:
         panel = scene.shapegen
-        received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
-        assert received == pipeline.FitSettings()
+        received = core_settings.settings_from_dict(fit_settings.FitSettings, panel.fit_options())
+        assert received == fit_settings.FitSettings()
         for item, initialisation in (("ON", "spectral"), ("OFF", "closest"), ("AUTO", "auto")):
             panel.correspondence.differ_in_pose = item  # "Shapes Differ in Pose": Auto / On / Off
-            received = core_settings.settings_from_dict(pipeline.FitSettings, panel.fit_options())
+            received = core_settings.settings_from_dict(fit_settings.FitSettings, panel.fit_options())
             assert received.correspondence.data_term.initialisation == initialisation
-        assert panel.generate.sample_template == pipeline.FitSettings().mesh_template
-        assert panel.fit.mesh_stiffness == pipeline.FitSettings().deform.final_alpha
+        assert panel.generate.sample_template == fit_settings.FitSettings().mesh_template
+        assert panel.fit.mesh_stiffness == fit_settings.FitSettings().deform.final_alpha
     finally:
         bpy.data.scenes.remove(scene)
     # every choice the panel offers is one the core knows, and the other way round
-    defaults = pipeline.FitSettings()
+    defaults = fit_settings.FitSettings()
     choices = {"prepare.up_axis": (defaults.prepare, "up_axis"), "prepare.align": (defaults.prepare, "align"),
                "prepare.scale": (defaults.prepare, "scale"), "prepare.centre": (defaults.prepare, "centre"),
                "correspondence.matching": (defaults.correspondence.data_term, "matching"),

@@ -26,7 +26,7 @@ def _add(convert, collection, name: str, mesh, faces=None):
 def shapes(extension):
     """Seven vases: two plain, one mirrored (scale -1 on x), one wound inside out, one with
     an unapplied level-1 Subdivision, one parented to a turned, scaled empty, one rotated."""
-    datasets = addon_module(extension, "core.datasets")
+    datasets = addon_module(extension, "core.demo_data")
     add = lambda *args: _add(addon_module(extension, "shapegen_addon.convert"), collection, *args)  # noqa: E731
     vases = [s.mesh for s in datasets.make_vases(7, seed=1, resolution=(10, 14))]
     collection = bpy.data.collections.new("shapes")
@@ -186,10 +186,10 @@ def test_a_double_sided_cad_file_reads_alike_through_blenders_importer_and_the_c
     object, it is the same one surface as the core's reader makes of the file: the same
     faces, twins, parts and one-line message."""
     convert = addon_module(extension, "shapegen_addon.convert")
-    io = addon_module(extension, "core.io")
+    reading = addon_module(extension, "core.meshes.reading")
     path = tmp_path / f"cad.{suffix}"
     _double_sided_cad_scene(path, np.random.default_rng(0))
-    from_file = io.read_mesh(path)
+    from_file = reading.read_mesh(path)
     importer = bpy.ops.wm.obj_import if suffix == "obj" else bpy.ops.import_scene.gltf
     assert importer(filepath=str(path)) == {"FINISHED"}
     obj = next(o for o in bpy.context.selected_objects if o.type == "MESH")  # glTF adds an empty too
@@ -209,7 +209,7 @@ def test_double_sided_quads_and_a_wall_between_cells_read_alike_through_blenders
     sides, 4, are counted as internal); Blender's importer keeps one polygon per vertex set
     on its own, so the object has no backs and a one-sided wall."""
     convert = addon_module(extension, "shapegen_addon.convert")
-    io = addon_module(extension, "core.io")
+    reading = addon_module(extension, "core.meshes.reading")
     at = lambda x, y, z: 4 * x + 2 * y + z + 1  # noqa: E731  (OBJ numbers vertices from 1)
     quads = [[at(0, 0, 0), at(0, 0, 1), at(0, 1, 1), at(0, 1, 0)], [at(2, 0, 0), at(2, 1, 0), at(2, 1, 1), at(2, 0, 1)],
              [at(1, 0, 0), at(1, 1, 0), at(1, 1, 1), at(1, 0, 1)]]  # two ends and the wall
@@ -222,7 +222,7 @@ def test_double_sided_quads_and_a_wall_between_cells_read_alike_through_blenders
     lines = [f"v {x} {y} {z}" for x in (0, 1, 2) for y in (0, 1) for z in (0, 1)]
     path = tmp_path / "cells.obj"
     path.write_text("\n".join(lines + ["f " + " ".join(map(str, q)) for q in quads]) + "\n")
-    from_file = io.read_mesh(path)
+    from_file = reading.read_mesh(path)
     assert bpy.ops.wm.obj_import(filepath=str(path)) == {"FINISHED"}
     from_blender = convert.read_object(bpy.context.selected_objects[0], world=False).mesh
     for mesh in (from_file, from_blender):

@@ -53,7 +53,7 @@ def test_sample_gate_rejects_an_exploded_mesh_and_reports_it(extension, model_fi
 def _explode_draws(extension, model, monkeypatch, broken):
     """Every mesh of a draw whose seed satisfies `broken(seed)` comes out a flat disc five
     times the class's size (the real gate refuses it on extent); other draws mesh as usual."""
-    sampling = addon_module(extension, "core.sampling")
+    sampling = addon_module(extension, "core.generate.sampling")
     draw, real, seeds = sampling._draw, model.mesh_from_landmarks, []
 
     def recording(model, seed):
@@ -109,7 +109,7 @@ def test_explore_keeps_the_gate_warning_on_the_live_object_and_the_panel_shows_i
     assert not any(text.startswith("This shape fails") for kind, text in _draw_all(["SHAPEGEN_PT_explore"]))
 
     latent = addon_module(extension, "shapegen_addon.latent")
-    quality = addon_module(extension, "core.quality")
+    quality = addon_module(extension, "core.generate.quality")
     model = store.get_model(scene)
     # a gate that finds every shape of the class five times too large: the live shape "exploded"
     shrunk = quality.QualityGate(model.meshes, quality.training_extents(model.meshes) / 5.0)

@@ -146,7 +146,7 @@ def _expected(intake, template, flat_core_vertices) -> np.ndarray:
 
 
 def test_every_generated_object_keeps_the_template_mesh(extension, vessels, capfd):
-    intake = addon_module(extension, "core.intake")
+    intake = addon_module(extension, "core.meshes.intake")
     scene = bpy.context.scene
     store = addon_module(extension, "shapegen_addon.store")
     model = store.get_model(scene)
@@ -296,7 +296,7 @@ def test_the_live_object_on_a_welded_template_keeps_updating_after_reopening(ext
     store = addon_module(extension, "shapegen_addon.store")
     model = store.get_model(scene)
     mesher = model.latent_mesher(model.shape_index("vessel 1"), dtype=np.float64)
-    intake = addon_module(extension, "core.intake")
+    intake = addon_module(extension, "core.meshes.intake")
     z = np.asarray(live["shapegen_latent"])
     expected = _expected(intake, bpy.data.objects["vessel 1"], mesher.flat_vertices(z))
     np.testing.assert_allclose(moved, expected, atol=1e-4)

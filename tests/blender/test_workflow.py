@@ -280,7 +280,7 @@ def test_job_manager_setup_prepare_and_cancel_before_the_worker_starts(extension
     import threading
 
     jobs = addon_module(extension, "shapegen_addon.jobs")
-    core_jobs = addon_module(extension, "core.jobs")
+    core_jobs = addon_module(extension, "core.app.jobs")
     manager = jobs.JobManager()
     finished = []
 

@@ -12,8 +12,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from shapegen_core.datasets import make_vases  # noqa: E402
-from shapegen_core.mesh import Mesh  # noqa: E402
+from shapegen_core.demo_data import make_vases  # noqa: E402
+from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform  # noqa: E402
 
 PSB = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.npzfile import load_npz, save_npz, ArraySpec
+from shapegen_core.demo_data import make_vases, write_collection
+from shapegen_core.base.npzfile import load_npz, save_npz, ArraySpec
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 
@@ -71,7 +71,7 @@ def test_sample_reports_the_quality_gate_and_records_seeds(model_file, tmp_path)
 def exploding_model_file(model_file):
     """The vase model drawing every shape five times the class's size (its mean and modes
     scaled): no draw can pass the quality gate's extent check, as with a model gone wrong."""
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_file)
     model.model.mean_ = model.model.mean_ * 5.0
@@ -123,9 +123,9 @@ def test_keep_failed_writes_only_the_failing_samples_with_their_reasons(explodin
 def test_a_short_run_writes_none_of_its_passing_samples(model_file, tmp_path, monkeypatch, capsys):
     """One of three samples fails on every draw (a gate refusing its seeds): the two that
     pass are not written either, and --keep-failed writes only the failing one."""
-    from shapegen_core import sampling
-    from shapegen_core.cli import main
-    from shapegen_core.quality import MeshQuality
+    from shapegen_core.generate import sampling
+    from shapegen_core.app.cli import main
+    from shapegen_core.generate.quality import MeshQuality
 
     draw, seeds = sampling._draw, []
 
@@ -170,7 +170,7 @@ def test_sample_refuses_a_non_empty_folder_and_unknown_template_writes_nothing(m
 
 
 def test_complete_fills_missing_landmarks(model_file, tmp_path):
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_file)
     partial = model.correspondence.points[:2].copy()
@@ -185,7 +185,7 @@ def test_complete_fills_missing_landmarks(model_file, tmp_path):
 
 
 def test_morph_ends_at_the_two_training_shapes(model_file, tmp_path):
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_file)
     a, b = model.names[0], model.names[4]
@@ -205,7 +205,7 @@ def test_a_morph_keeps_one_mesh_and_moves_evenly(model_file, tmp_path):
     """Every step of a morph is one template's mesh (one face list), so the path has no jump:
     no step moves more than 2.5x the median step. The ends are the two training shapes
     farthest apart in latent space, whose nearest templates differ."""
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_file)
     latents = model.training_latents()
@@ -227,7 +227,7 @@ def test_a_morph_keeps_one_mesh_and_moves_evenly(model_file, tmp_path):
 
 
 def test_a_morph_on_a_named_template_uses_its_mesh(model_file, tmp_path):
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     model = GenerativeShapeModel.load(model_file)
     result = run("morph", model_file, model.names[0], model.names[1], "-n", 3, "--template", model.names[5],
@@ -269,9 +269,9 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
 
 # ---------------------------------------------------------------------------- settings on the command line
 def test_every_source_command_takes_the_same_prepare_options(tmp_path):
-    from shapegen_core.cli import build_parser
-    from shapegen_core.collection import PrepareSettings
-    from shapegen_core.cli_common import settings_from_args
+    from shapegen_core.app.cli import build_parser
+    from shapegen_core.preprocess.collection import PrepareSettings
+    from shapegen_core.app.cli_common import settings_from_args
 
     options = ["--landmarks", "50", "--up", "y", "--align", "pca", "--scale", "bbox", "--centre", "none", "--seed", "3"]
     expected = PrepareSettings(n_landmarks=50, up_axis="y", align="pca", scale="bbox", centre="none", seed=3)
@@ -295,7 +295,7 @@ def test_fit_refuses_bad_settings_in_one_line_before_any_work(model_file, tmp_pa
 
 def test_fit_of_a_prepared_file_records_its_settings_and_refuses_conflicts(model_file, tmp_path):
     """It recorded the CLI's defaults (800 landmarks, up z) instead of the file's."""
-    from shapegen_core.pipeline import GenerativeShapeModel
+    from shapegen_core.app.shape_model import GenerativeShapeModel
 
     prepared = tmp_path / "prepared.npz"
     assert run("prepare", model_file.parent / "data", "-o", prepared, "--landmarks", 50, "--up", "y").returncode == 0
@@ -327,9 +327,9 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
     import os
     from concurrent.futures import Future
 
-    from shapegen_core import cli_generate
-    from shapegen_core.quality import MeshQuality
-    from shapegen_core.sampling import GatedSample, sample_name
+    from shapegen_core.app import cli_sample
+    from shapegen_core.generate.quality import MeshQuality
+    from shapegen_core.generate.sampling import GatedSample, sample_name
 
     submitted, seen = [], {}
 
@@ -353,12 +353,12 @@ def test_parallel_sample_gives_workers_contiguous_template_runs_and_one_blas_thr
         quality = MeshQuality(0, 0.0, 0.1, 0.05, 0, 1.0, 1.0)
         return GatedSample(index, sample_name(index), index, np.zeros((2, 3)), np.zeros(1), 0, None, quality, 1.0)
 
-    monkeypatch.setattr(cli_generate, "ProcessPoolExecutor", RecordingPool)
+    monkeypatch.setattr(cli_sample, "ProcessPoolExecutor", RecordingPool)
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
     templates = [["vase_a", "vase_b", "vase_c"][i % 3] for i in range(90)]
     args = argparse.Namespace(jobs=3, model=tmp_path / "model.npz", scheduler=None)
-    run = cli_generate.SampleRun(90, 0, None, str(tmp_path), "obj", 0, False, "{}")
-    samples = cli_generate._write_samples(args, None, run, templates)
+    run = cli_sample.SampleRun(90, 0, None, str(tmp_path), "obj", 0, False, "{}")
+    samples = cli_sample._write_samples(args, None, run, templates)
     assert seen == {"jobs": 3, "blas": "1"} and os.environ["OPENBLAS_NUM_THREADS"] == "4"
     assert [sorted({templates[i] for i, _ in chunk}) for chunk in submitted] == [["vase_a"], ["vase_b"], ["vase_c"]]
     assert sorted(i for chunk in submitted for i, _ in chunk) == list(range(90))

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.npzfile import load_npz, save_npz
-from shapegen_core.pipeline import GenerativeShapeModel
+from shapegen_core.base.npzfile import load_npz, save_npz
+from shapegen_core.app.shape_model import GenerativeShapeModel
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 VASE = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb" / "Vase"

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.errors import CollectionError, ModelFileError
-from shapegen_core.npzfile import save_npz
+from shapegen_core.preprocess.collection import PREPARED_FORMAT, PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.demo_data import make_vases, write_collection
+from shapegen_core.base.errors import CollectionError, ModelFileError
+from shapegen_core.base.npzfile import save_npz
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
@@ -205,7 +205,7 @@ def test_cli_bad_folder_exits_2(vase_folder, tmp_path, content, fragment):
 def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
     """A failure while writing (here: streaming the meshes in raising half-way) leaves
     neither the output nor a temporary file."""
-    import shapegen_core.npzfile as npzfile
+    import shapegen_core.base.npzfile as npzfile
 
     def broken(self, handle):
         handle.write(b"\x93NUMPY partial")
@@ -246,7 +246,7 @@ def upright_vases():
 
 @pytest.fixture(scope="module")
 def upright_folder(upright_vases, tmp_path_factory):
-    from shapegen_core.io import write_mesh
+    from shapegen_core.meshes.writing import write_mesh
 
     folder = tmp_path_factory.mktemp("upright")
     for mesh in upright_vases:

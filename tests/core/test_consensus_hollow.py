@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.datasets import _revolved_mesh, make_barrels
-from shapegen_core.mesh import Mesh
+from shapegen_core.demo_data.revolved import _revolved_mesh
+from shapegen_core.demo_data import make_barrels
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
 from shapegen_core.preprocess.consensus import HollowSettings
 from shapegen_core.preprocess.hollow import Hollows, opening_vector

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry.chamfer import chamfer_distance
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS

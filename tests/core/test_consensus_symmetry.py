@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from conftest import placed
-from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.preprocess import ConsensusSettings, prepare_collection
 from shapegen_core.preprocess.consensus import CostSettings, PoseDecision, _combined
 from shapegen_core.preprocess.posesearch import PoseSearch

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import psb_class
-from shapegen_core.io import read_folder
+from shapegen_core.meshes.reading import read_folder
 from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, turn_rotations, up_rotation, yaw_rotation

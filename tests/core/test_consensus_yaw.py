@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.preprocess import ConsensusSettings, ShapeTransform, prepare_collection
 from shapegen_core.preprocess.consensus import FacingSettings
 from shapegen_core.preprocess.rotations import yaw_rotation

@@ -15,8 +15,8 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from shapegen_core.cli import main
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.app.cli import main
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import (
     CORRESPONDENCE_FORMAT,
     CORRESPONDENCE_VERSION,
@@ -38,11 +38,11 @@ from shapegen_core.geometry import (
     registration_frame,
     stiffness_matrix,
 )
-from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.errors import Cancelled, CollectionError, MeshError, ModelFileError
-from shapegen_core.landmarks import Landmarks, select_landmarks
-from shapegen_core.mesh import Mesh
-from shapegen_core.npzfile import save_npz
+from shapegen_core.demo_data import make_vases, write_collection
+from shapegen_core.base.errors import Cancelled, CollectionError, MeshError, ModelFileError
+from shapegen_core.preprocess.landmarks import Landmarks, select_landmarks
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.base.npzfile import save_npz
 from shapegen_core.preprocess import PreparedShape, ShapeTransform
 
 
@@ -352,7 +352,7 @@ def test_result_arrays_progress_and_transforms(small_vases, small_result):
 
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_progress_is_monotone_ends_at_one_and_names_every_shape(small_vases, small_result, jobs):
-    """correspond reports fractions itself (core/progress.py): never decreasing, 1.0 at the
+    """correspond reports fractions itself (core/base/progress.py): never decreasing, 1.0 at the
     end, the messages naming the template, each shape being registered and its round; the
     same in this process and with a pool whose workers send their iterations back."""
     _, prepared = small_vases

@@ -10,13 +10,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond, flag_outliers, leave_one_out_errors
 from shapegen_core.correspond.settings import OutlierSettings
 from shapegen_core.correspond import groupwise
-from shapegen_core.datasets import make_vases
-from shapegen_core.landmarks import Landmarks
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_shape_model
+from shapegen_core.demo_data import make_vases
+from shapegen_core.preprocess.landmarks import Landmarks
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_shape_model
 
 UPSIDE_DOWN = np.diag([1.0, -1.0, -1.0])  # a half turn about x: +z up becomes -z up
 FLIPPED = 3

@@ -24,10 +24,10 @@ import warnings
 import numpy as np
 import pytest
 
-from shapegen_core.cli import main
-from shapegen_core.collection import PreparedCollection
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import MeshFileError
+from shapegen_core.app.cli import main
+from shapegen_core.preprocess.collection import PreparedCollection
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import MeshFileError
 
 from corrupt_corpus import FORMATS, corrupt_cases, file_bytes
 
@@ -114,8 +114,8 @@ def test_every_damaged_file_is_refused_in_one_line_or_read_whole(file_format, th
 
 
 def test_an_obj_without_a_final_line_end_is_read_and_reported(tmp_path):
-    from shapegen_core.errors import MeshFileError
-    from shapegen_core.io import read_mesh
+    from shapegen_core.base.errors import MeshFileError
+    from shapegen_core.meshes.reading import read_mesh
 
     whole = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4"
     (tmp_path / "whole.obj").write_text(whole)
@@ -131,8 +131,8 @@ def test_a_repeated_file_is_refused_but_double_sided_faces_are_left_to_intake(tm
     face twice with opposite windings (a double-sided surface) is read (intake's business)."""
     import trimesh
 
-    from shapegen_core.errors import MeshFileError
-    from shapegen_core.io import read_mesh
+    from shapegen_core.base.errors import MeshFileError
+    from shapegen_core.meshes.reading import read_mesh
 
     sphere = trimesh.creation.icosphere(1)
     repeated, double_sided = tmp_path / "repeated.obj", tmp_path / "double_sided.obj"
@@ -151,7 +151,7 @@ def test_the_damage_check_without_intake_refuses_what_the_reader_refuses(file_fo
     """`check_mesh_file` (run before Blender's importers, which accept damage silently)
     refuses every case of the corpus `read_mesh` refuses, with its message, and passes every
     case it reads, without intake's cleaning."""
-    from shapegen_core import io as mesh_io
+    from shapegen_core.meshes import reading as mesh_io
 
     mesh = three_vases[0]
     path = tmp_path / f"case{FORMATS[file_format]}"

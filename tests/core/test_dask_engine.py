@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from shapegen_core.cluster import ClusterError, parse_scheduler
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.base.cluster import ClusterError, parse_scheduler
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import IterationSettings
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 
 distributed = pytest.importorskip("distributed")
 
@@ -48,7 +48,7 @@ def test_cancel_on_dask_stops_the_registrations(cluster):
     """Cancel asked once the first shape is registered raises Cancelled; nothing is returned."""
     import threading
 
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=7, resolution=(14, 20))],
                               PrepareSettings(n_landmarks=120))
@@ -86,8 +86,8 @@ def test_core_imports_and_runs_without_dask():
     and --scheduler names the package to install."""
     code = (
         "import sys; sys.modules['distributed'] = None; sys.modules['dask'] = None\n"
-        "import shapegen_core.pipeline, shapegen_core.cli\n"
-        "from shapegen_core.cluster import connect, ClusterError\n"
+        "import shapegen_core.app.pipeline, shapegen_core.app.cli\n"
+        "from shapegen_core.base.cluster import connect, ClusterError\n"
         "try:\n"
         "    with connect('local:1'): pass\n"
         "except ClusterError as exc: print(exc)\n"
@@ -99,8 +99,9 @@ def test_core_imports_and_runs_without_dask():
 
 def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
     """`shapegen sample --scheduler` writes the same files as the local process pool."""
-    from shapegen_core.cli import main
-    from shapegen_core.pipeline import FitSettings, fit_meshes
+    from shapegen_core.app.cli import main
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_meshes
 
     meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca", jobs=1,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shapegen_core.datasets import PROFILE_BREAKS, make_vases, vase_surface
+from shapegen_core.demo_data import PROFILE_BREAKS, make_vases, vase_surface
 
 
 def test_vertices_lie_at_their_surface_coordinates():
@@ -54,7 +54,7 @@ def test_generation_is_deterministic_for_a_seed():
 
 
 def _parted_classes():
-    from shapegen_core.datasets import make_handled_mugs, make_quadrupeds
+    from shapegen_core.demo_data import make_handled_mugs, make_quadrupeds
 
     return [make_handled_mugs(3, seed=4, resolution=(12, 16)), make_quadrupeds(3, seed=4, resolution=(12, 16))]
 
@@ -87,7 +87,7 @@ def test_parted_surface_coordinates_round_trip_within_discretisation():
 def test_quadruped_bodies_correspond_by_an_affine_map():
     """Equal body coordinates are an affine map between two quadrupeds' bodies (what the
     ground truth claims geometry can recover): a least-squares affine fits them exactly."""
-    from shapegen_core.datasets import make_quadrupeds
+    from shapegen_core.demo_data import make_quadrupeds
 
     a, b = make_quadrupeds(2, seed=9, resolution=(12, 16), pose=False)
     rng = np.random.default_rng(1)

@@ -8,11 +8,11 @@ import scipy.sparse as sp
 import trimesh
 from scipy.spatial import cKDTree
 
-from shapegen_core.datasets import make_vases
-from shapegen_core.deform import (DeformInputError, DeformSettings, EmbeddedDeformer, LinearMeshMap,
-                                  blend_matrix, cotangent_laplacian, enclosed_volume, smooth_curvature_flow)
+from shapegen_core.demo_data import make_vases
+from shapegen_core.generate.deform import (DeformInputError, DeformSettings, EmbeddedDeformer, LinearMeshMap,
+                                           blend_matrix, cotangent_laplacian, enclosed_volume, smooth_curvature_flow)
 from shapegen_core.geometry import stiffness_matrix
-from shapegen_core.landmarks import select_landmarks
+from shapegen_core.preprocess.landmarks import select_landmarks
 
 
 def knn_edges(points: np.ndarray, k: int = 6) -> np.ndarray:

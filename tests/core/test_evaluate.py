@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import correspond
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.evaluation import (EvaluationError, EvaluationSettings, TrainingSetModel, choose_morph_endpoints,
                                     completion_errors,
                                     coverage, generalisation_curve, hidden_coordinates, kfold_indices,

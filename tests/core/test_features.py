@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from shapegen_core.cli import build_parser
-from shapegen_core.cli_common import settings_from_args
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.app.cli import build_parser
+from shapegen_core.app.cli_common import settings_from_args
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond, groupwise,
                                       pool, register)
 from shapegen_core.correspond import data_terms
@@ -20,12 +20,12 @@ from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO
                                                agreement_weights, keeps_features, kept_matches, merged_regions,
                                                point_features, worse_fits)
 from shapegen_core.correspond.settings import FEATURE_STIFFNESS, DataTermSettings, StiffnessSettings
-from shapegen_core.datasets import make_cups, make_vases
-from shapegen_core.errors import ModelFileError
+from shapegen_core.demo_data import make_cups, make_vases
+from shapegen_core.base.errors import ModelFileError
 from shapegen_core.geometry import TargetSurface, closest_points_on_triangles, knn_graph, registration_frame
-from shapegen_core.landmarks import select_landmarks
-from shapegen_core.pipeline import FitSettings
-from shapegen_core.settings import SettingsError, recorded_settings
+from shapegen_core.preprocess.landmarks import select_landmarks
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.base.settings import SettingsError, recorded_settings
 
 FEATURES = CorrespondenceSettings(data_term=DataTermSettings(matching="features", feature_between=0.0))  # sides only
 BETWEEN = CorrespondenceSettings(data_term=DataTermSettings(matching="features"))  # positions between turning lines too

@@ -1,4 +1,4 @@
-"""Intake (core/intake.py): triangle soups welded into one connected surface with a map
+"""Intake (core/meshes/intake.py): triangle soups welded into one connected surface with a map
 back to the input's vertices; inside-out, mirrored and inconsistently wound meshes wound
 outwards (closed and open), non-orientable parts wound face by face towards their outside;
 fast winding numbers against the closed form; and an STL class whose smoothed samples have
@@ -10,16 +10,18 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings
-from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.deform import enclosed_volume
-from shapegen_core.errors import MeshError
-from shapegen_core.intake import (OPEN_PART_MIN_OUTWARDNESS, WELD_RTOL, clean_mesh, outside_sides, outwardness,
-                                   weld_vertices, winding_numbers)
-from shapegen_core.io import read_folder, read_mesh, write_mesh
-from shapegen_core.mesh import Mesh
-from shapegen_core.meshset import load_mesh_set, save_mesh_set
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.preprocess.collection import PrepareSettings
+from shapegen_core.demo_data import make_vases, write_collection
+from shapegen_core.generate.deform import enclosed_volume
+from shapegen_core.base.errors import MeshError
+from shapegen_core.meshes.winding import OPEN_PART_MIN_OUTWARDNESS, outside_sides, outwardness, winding_numbers
+from shapegen_core.meshes.intake import WELD_RTOL, clean_mesh, weld_vertices
+from shapegen_core.meshes.reading import read_folder, read_mesh
+from shapegen_core.meshes.writing import write_mesh
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.meshes.meshset import load_mesh_set, save_mesh_set
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes
 
 from conftest import random_surface
 
@@ -374,8 +376,8 @@ def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_thei
     """Written as the CLI writes them (the template's file layout: its soup and UVs), a
     sample has no coincident faces, its body is consistently wound and encloses a positive
     volume, and the label is a second body of the file."""
-    from shapegen_core.io import MeshWriters
-    from shapegen_core.quality import coincident_faces
+    from shapegen_core.meshes.writing import MeshWriters
+    from shapegen_core.generate.quality import coincident_faces
 
     meshes, model = cad_model
     assert all(m.report.layout is not None and m.report.separate_parts == 2 for m in meshes)

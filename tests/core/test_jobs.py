@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.jobs import BackgroundJob
+from shapegen_core.app.jobs import BackgroundJob
 
 
 def test_progress_reaches_one_and_output_is_reported(tmp_path):
@@ -76,9 +76,9 @@ def test_poll_never_blocks(tmp_path):
 
 
 def test_correspond_task_writes_a_correspondence_file(tmp_path):
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import Correspondence
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     prepared = prepare_meshes([s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))], PrepareSettings(n_landmarks=60))
     prepared.save(tmp_path / "prepared.npz")
@@ -92,9 +92,9 @@ def test_correspond_task_writes_a_correspondence_file(tmp_path):
 
 
 def test_prepare_task_matches_prepare_meshes_and_names_a_bad_mesh(tmp_path):
-    from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
-    from shapegen_core.datasets import make_vases
-    from shapegen_core.meshset import save_mesh_set
+    from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
+    from shapegen_core.demo_data import make_vases
+    from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(3, seed=1, resolution=(12, 14))]
     save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
@@ -148,8 +148,8 @@ def test_a_step_broken_by_the_cancel_interrupt_is_reported_cancelled_not_failed(
 
 
 def test_cancel_early_in_prepare_takes_effect_within_a_second(tmp_path):
-    from shapegen_core.datasets import make_vases
-    from shapegen_core.meshset import save_mesh_set
+    from shapegen_core.demo_data import make_vases
+    from shapegen_core.meshes.meshset import save_mesh_set
 
     meshes = [s.mesh for s in make_vases(12, seed=1)]
     save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
@@ -179,8 +179,8 @@ def _children(pid: int) -> list[int]:
 def test_registration_workers_exit_when_their_job_is_killed(tmp_path):
     """A worker terminated mid-correspondence (Blender's Cancel after its grace period)
     leaves no registration process behind: they used to run on, then wait forever."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.demo_data import make_vases
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=2)], PrepareSettings(n_landmarks=400))
     prepared.save(tmp_path / "prepared.npz")

@@ -1,4 +1,4 @@
-"""Part labels (core/labels.py): the PSB form read and written, mapped from a file's
+"""Part labels (core/meshes/labels.py): the PSB form read and written, mapped from a file's
 polygons onto the mesh the core reads and back onto the faces of a written copy."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.io import read_mesh
-from shapegen_core.labels import (LabelFileError, PartLabels, labels_beside, read_label_file, write_label_file,
-                                  written_face_labels)
+from shapegen_core.meshes.reading import read_mesh
+from shapegen_core.meshes.labels import (LabelFileError, PartLabels, labels_beside, read_label_file, write_label_file,
+                                         written_face_labels)
 
 CUBE = """v 0 0 0
 v 1 0 0

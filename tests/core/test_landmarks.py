@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from shapegen_core.io import read_mesh
-from shapegen_core.landmarks import radius_select, select_landmarks
+from shapegen_core.meshes.reading import read_mesh
+from shapegen_core.preprocess.landmarks import radius_select, select_landmarks
 from shapegen_core.preprocess import prepare_collection
 
 from conftest import psb_class

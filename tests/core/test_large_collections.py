@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from shapegen_core.correspond import groupwise, outliers
-from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.geometry import chamfer_matrix
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess.neighbours import field_descriptors, probe_grid
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.prepare import prepare_collection
@@ -150,8 +150,8 @@ def test_held_out_groups_flag_the_shape_leave_one_out_flags(monkeypatch):
 def test_prepare_cancels_within_its_pose_search(monkeypatch, exact_shapes):
     """Cancel is checked while the pose search compares shapes (every pair, or the
     proposed pairs), not only after it: the search stops at its next report."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.base.errors import Cancelled
     from shapegen_core.preprocess import posesearch
 
     monkeypatch.setattr(posesearch.PoseSearch.__init__, "__defaults__", (exact_shapes, None))
@@ -180,8 +180,8 @@ def test_prepare_reports_and_cancels_in_every_loop_over_the_shapes(loop):
     worth of pairs) and stops at its next report once Cancel is asked (a
     1000-shape Prepare spends minutes in each): cancelled at the loop's first report, the
     last report is that first one."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.base.errors import Cancelled
 
     messages, fractions = [], []
     meshes = [v.mesh for v in make_vases(5, seed=2, resolution=(12, 16))]

@@ -6,12 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings
+from shapegen_core.preprocess.collection import PrepareSettings
 from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.models import MODEL_TYPES
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.errors import ShapeGenError
-from shapegen_core.latent_units import SLIDER_LIMIT, LatentUnits
+from shapegen_core.base.errors import ShapeGenError
+from shapegen_core.models.latent_units import SLIDER_LIMIT, LatentUnits
 from shapegen_core.models import make_model
 
 

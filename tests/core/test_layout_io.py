@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.io import read_mesh, write_mesh
-from shapegen_core.layout import FaceLayout, pack_layouts, unpack_layouts
-from shapegen_core.mesh import Mesh
+from shapegen_core.meshes.reading import read_mesh
+from shapegen_core.meshes.writing import write_mesh
+from shapegen_core.meshes.layout import FaceLayout, pack_layouts, unpack_layouts
+from shapegen_core.meshes.mesh import Mesh
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 AROUND, RINGS = 12, 6
@@ -152,8 +153,8 @@ def test_fit_and_sample_write_the_template_faces_and_uvs(collection, model, tmp_
 
 
 def test_a_model_file_keeps_the_layouts_and_older_files_load(model, tmp_path):
-    from shapegen_core.npzfile import load_npz, save_npz
-    from shapegen_core.pipeline import MODEL_FILE_FORMAT, GenerativeShapeModel
+    from shapegen_core.base.npzfile import load_npz, save_npz
+    from shapegen_core.app.shape_model import MODEL_FILE_FORMAT, GenerativeShapeModel
 
     fitted = GenerativeShapeModel.load(model)
     assert all(m.report.layout is not None and m.report.layout.uv is not None for m in fitted.meshes)

@@ -148,7 +148,7 @@ def test_in_a_shared_frame_the_half_turn_of_a_doubly_symmetric_shape_is_rejected
 
 
 def _person(name: str):
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     folder = tosca_class("people")
     mesh = read_mesh(folder / f"{name}.off")

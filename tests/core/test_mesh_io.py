@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.errors import CollectionError, MeshError, MeshFileError
-from shapegen_core.io import read_folder, read_mesh, write_mesh
-from shapegen_core.mesh import Mesh
+from shapegen_core.base.errors import CollectionError, MeshError, MeshFileError
+from shapegen_core.meshes.reading import read_folder, read_mesh
+from shapegen_core.meshes.writing import write_mesh
+from shapegen_core.meshes.mesh import Mesh
 
 from conftest import random_mesh, random_surface
 
@@ -367,11 +368,12 @@ def test_folder_with_clashing_names(tmp_path, rng):
 
 
 def test_fast_obj_writer_round_trips_through_trimesh_with_vertex_order(tmp_path):
-    """io.ObjWriter / obj_bytes (used for mass generation) read back identically."""
+    """writing.ObjWriter / obj_bytes (used for mass generation) read back identically."""
     import trimesh as _trimesh
 
-    from shapegen_core.datasets import make_vases
-    from shapegen_core.io import ObjWriter, read_mesh, write_mesh
+    from shapegen_core.demo_data import make_vases
+    from shapegen_core.meshes.writing import ObjWriter, write_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     mesh = make_vases(1, seed=3, resolution=(12, 14))[0].mesh
     write_mesh(mesh, tmp_path / "a.obj")

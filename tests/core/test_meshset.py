@@ -1,13 +1,13 @@
-"""Many meshes in a few arrays (core/meshset.py): round trip, offset checks, hand-off file."""
+"""Many meshes in a few arrays (core/meshes/meshset.py): round trip, offset checks, hand-off file."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import ModelFileError
-from shapegen_core.meshset import load_mesh_set, pack, save_mesh_set, unpack
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import ModelFileError
+from shapegen_core.meshes.meshset import load_mesh_set, pack, save_mesh_set, unpack
 
 
 def test_pack_unpack_round_trip_keeps_every_mesh():

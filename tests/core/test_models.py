@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from shapegen_core.errors import Cancelled, ModelFileError
+from shapegen_core.base.errors import Cancelled, ModelFileError
 from shapegen_core.models import GPLVM, MODEL_TYPES, PPCA, BayesianGPLVM, kde, make_model, model_from_arrays
 from shapegen_core.models.base import ModelInputError, default_latent_dim, ledoit_wolf_shrinkage
 from shapegen_core.models.bgplvm import BoundLayout, bgplvm_bound, block_scales, profile_scale
@@ -502,10 +502,10 @@ def test_gplvm_does_not_collapse_to_a_white_noise_kernel_on_few_shapes():
     length-scale at or above the bound, and a latent between two training shapes decodes to
     something between them, not to the mean shape (before the bound and the latent prior the
     optimiser reached ℓ = 0.03 with latents spread 1–4: every new latent decoded to the mean)."""
-    from shapegen_core.collection import PrepareSettings, prepare_meshes
+    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.correspond import CorrespondenceSettings, correspond
     from shapegen_core.correspond.settings import IterationSettings, StiffnessSettings
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
     from shapegen_core.models.gplvm import MIN_LENGTHSCALE
 
     prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=1, resolution=(14, 20))], PrepareSettings(n_landmarks=100))

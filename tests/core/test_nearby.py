@@ -13,11 +13,11 @@ from scipy.spatial import cKDTree
 
 from shapegen_core.correspond.proxy import PlacementTask, place_on_full_surface
 from shapegen_core.correspond.registration import Registration
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import closest_points_on_triangles
 from shapegen_core.geometry.nearby import closest_within
 from shapegen_core.geometry.nearfaces import NearFaces
-from shapegen_core.simplify import proxy_mesh
+from shapegen_core.meshes.simplify import proxy_mesh
 
 CENTRE, SCALE = np.array([0.1, -0.2, 0.3]), 0.7
 MIN_COS = 0.5
@@ -129,7 +129,7 @@ def test_placement_equals_the_full_mesh_placement(dense, rng):
     """place_on_full_surface (faces near the landmarks only) equals the same placement over
     every face: points, faces, barycentrics, normals and residual, in the registration frame."""
     vertices, faces = dense
-    from shapegen_core.mesh import Mesh
+    from shapegen_core.meshes.mesh import Mesh
 
     mesh = Mesh(vertices, faces[:-5])
     proxy = proxy_mesh(mesh, 3000)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.datasets import make_barrels, make_vases
+from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.preprocess import ShapeTransform, prepare_collection
 from shapegen_core.preprocess.prepare import turn_as_flagged
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, describe_rotation, yaw_rotation

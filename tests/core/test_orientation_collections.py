@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from conftest import Y_UP_FILE, on_a_floor, placed, psb_class, tosca_class, turned
-from shapegen_core.datasets import make_mugs, make_vases
+from shapegen_core.demo_data import make_mugs, make_vases
 from shapegen_core.geometry import TargetSurface
-from shapegen_core.io import read_folder
+from shapegen_core.meshes.reading import read_folder
 from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.rotations import describe_rotation
 

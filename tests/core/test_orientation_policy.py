@@ -17,11 +17,12 @@ import pytest
 
 from conftest import Y_UP_FILE, on_a_floor, placed, turned
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.datasets import make_barrels, make_mugs, make_vases, write_collection
-from shapegen_core.errors import CollectionError
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.demo_data import make_barrels, make_mugs, make_vases, write_collection
+from shapegen_core.base.errors import CollectionError
 from shapegen_core.geometry import TargetSurface
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes
 from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.floors import FileFloors, Floor
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS
@@ -102,7 +103,7 @@ def test_cli_turn_flagged(tmp_path):
     shapes = turned(placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
     folder.mkdir()
     for mesh in shapes:
-        from shapegen_core.io import write_mesh
+        from shapegen_core.meshes.writing import write_mesh
         write_mesh(mesh, folder / f"{mesh.name}.obj")
     out = tmp_path / "prepared.npz"
     result = subprocess.run([str(SHAPEGEN), "prepare", str(folder), "-o", str(out), "--landmarks", "30",

@@ -130,7 +130,7 @@ def test_readme_is_short_and_opens_with_the_two_set_up_commands():
 def test_version_is_one_number_for_the_cli_the_package_and_the_extension(capsys):
     """`shapegen --version` prints the version pyproject.toml and blender_manifest.toml
     declare (one number for the pip package and the Blender extension)."""
-    from shapegen_core.cli import main
+    from shapegen_core.app.cli import main
 
     with pytest.raises(SystemExit) as stop:
         main(["--version"])
@@ -139,3 +139,67 @@ def test_version_is_one_number_for_the_cli_the_package_and_the_extension(capsys)
     extension = tomllib.loads((ROOT / "blender_manifest.toml").read_text())["version"]
     assert package == extension
     assert capsys.readouterr().out.split() == ["shapegen", package]
+
+
+#: the most `.py` modules the top of core/ may hold besides __init__.py: the rest live in
+#: the folders that are its layers
+TOP_MODULES = 12
+#: the longest a module of core/ or shapegen_addon/ may be, and the ones still longer
+MODULE_LINES = 500
+LONGER_FOR_NOW = {"core/preprocess/consensus.py"}
+
+
+def _pictured_layers() -> list[str]:
+    """The folders of core/ in the picture of docs/architecture.md's "Layers", top down."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    picture = text[text.index("## Layers"):]
+    picture = picture[picture.index("```") + 3:]
+    picture = picture[:picture.index("```")]
+    core = picture[picture.index("core (no bpy)"):]
+    return re.findall(r"^(?:core \(no bpy\))?\s+([a-z_]+)/\s", core, flags=re.MULTILINE)
+
+
+def _core_imports() -> dict[str, set[str]]:
+    """For each folder of core/ (or top-level module), the others its modules import."""
+    import ast
+
+    found: dict[str, set[str]] = {}
+    for path in CORE.rglob("*.py"):
+        if "__pycache__" in path.parts:
+            continue
+        parts = path.relative_to(CORE).with_suffix("").parts
+        package = parts[:-1]
+        layer = parts[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                target = list(package[:len(package) - (node.level - 1)]) + (node.module.split(".") if node.module else [])
+                names = target[:1] or [alias.name for alias in node.names]
+                found.setdefault(layer, set()).update(name for name in names if name != layer)
+    return found
+
+
+def test_the_picture_of_the_layers_is_the_folders():
+    """docs/architecture.md draws core/ as its folders, each above every folder it imports
+    from: every folder is drawn once, no module imports from a folder drawn above its own,
+    and the top of core/ holds at most TOP_MODULES modules."""
+    layers = _pictured_layers()
+    folders = sorted(path.parent.name for path in CORE.glob("*/__init__.py"))
+    assert sorted(layers) == folders, f"drawn {layers}, folders {folders}"
+    top = [path.name for path in CORE.glob("*.py") if path.name != "__init__.py"]
+    assert len(top) <= TOP_MODULES, top
+    height = {layer: len(layers) - index for index, layer in enumerate(layers)}
+    upward = {layer: sorted(other for other in imported if other in height and height[other] > height[layer])
+              for layer, imported in _core_imports().items() if layer in height}
+    upward = {layer: above for layer, above in upward.items() if above}
+    assert not upward, f"imports from a folder drawn above: {upward}"
+
+
+def test_no_module_is_longer_than_the_limit():
+    too_long = []
+    for top in ("core", "shapegen_addon"):
+        for path in (ROOT / top).rglob("*.py"):
+            name = path.relative_to(ROOT).as_posix()
+            if "__pycache__" not in path.parts and name not in LONGER_FOR_NOW \
+                    and len(path.read_text().splitlines()) > MODULE_LINES:
+                too_long.append(name)
+    assert not too_long, f"longer than {MODULE_LINES} lines: {too_long}"

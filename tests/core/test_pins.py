@@ -8,12 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import ShapeGenError
+from shapegen_core.preprocess.collection import PrepareSettings
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import ShapeGenError
 from shapegen_core.models import GPLVM, PPCA, BayesianGPLVM
 from shapegen_core.models.latent_variable import LatentVariableModel
-from shapegen_core.pipeline import FitSettings, fit_meshes
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes
 
 from conftest import central_diff
 

@@ -5,12 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import ModelFileError, ShapeGenError
+from shapegen_core.preprocess.collection import PrepareSettings
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.models import PPCA
-from shapegen_core.npzfile import save_npz
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.base.npzfile import save_npz
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +104,7 @@ def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_th
     0.75–1, never decreasing, ending at 1.0; a cancel (here an Event) stops it in any stage."""
     import threading
 
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     meshes = [s.mesh for s in make_vases(4, seed=5, resolution=(12, 16))]
     settings = FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca", jobs=1)
@@ -131,8 +133,8 @@ def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_th
 def test_the_model_file_holds_the_training_latents_and_slider_units(fitted, tmp_path, monkeypatch):
     """Encoded once where the model is fitted and saved: loading never encodes; a file
     written before these arrays existed still loads, and computes them on load."""
-    from shapegen_core.npzfile import load_npz
-    from shapegen_core.pipeline import MODEL_FILE_FORMAT, MODEL_FILE_VERSION
+    from shapegen_core.base.npzfile import load_npz
+    from shapegen_core.app.shape_model import MODEL_FILE_FORMAT, MODEL_FILE_VERSION
 
     model, path = fitted
     expected = model.model.encode(model.training_matrix())

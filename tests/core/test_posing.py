@@ -10,16 +10,18 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from shapegen_core.collection import PREPARED_FORMAT, PREPARED_VERSION, PreparedCollection, PrepareSettings, \
-    prepare_meshes
+from shapegen_core.preprocess.collection import (PREPARED_FORMAT, PREPARED_VERSION, PreparedCollection, PrepareSettings,
+                                                 prepare_meshes)
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.posing import apply_pose, landmark_poses, pose_angle, rigid_fit
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
-from shapegen_core.mesh import Mesh
-from shapegen_core.npzfile import save_npz
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.base.npzfile import save_npz
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
 from shapegen_core.preprocess import ShapeTransform
-from shapegen_core.stages import same_shapes
+from shapegen_core.app.stages import same_shapes
 
 #: the copy Prepare leaves lying: a quarter turn about x (its long z axis ends along −y)
 QUARTER_TURN = Rotation.from_euler("x", 90, degrees=True).as_matrix()
@@ -212,7 +214,8 @@ def test_the_command_line_says_who_was_posed_and_a_fit_from_the_file_meshes_in_t
     import sys
     from pathlib import Path
 
-    from shapegen_core.io import read_mesh, write_mesh
+    from shapegen_core.meshes.reading import read_mesh
+    from shapegen_core.meshes.writing import write_mesh
 
     shapegen = str(Path(sys.executable).with_name("shapegen"))
     folder = tmp_path / "blobs"

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import CollectionError
-from shapegen_core.mesh import Mesh
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import CollectionError
+from shapegen_core.meshes.mesh import Mesh
 from shapegen_core.preprocess import (
     ShapeTransform,
     prepare_collection,
@@ -258,7 +258,7 @@ def test_bad_arguments(small_vases):
 def test_flat_shape_cannot_be_scaled_by_bbox():
     flat = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), [[0, 1, 2]], name="flat")
     other = Mesh(np.eye(3) + 0.1, [[0, 1, 2]], name="tri")
-    from shapegen_core.errors import MeshError
+    from shapegen_core.base.errors import MeshError
 
     with pytest.raises(MeshError, match="flat: cannot scale by bbox"):
         prepare_collection([flat, other], align="none", scale="bbox")

@@ -1,4 +1,4 @@
-"""The one progress protocol (core/progress.py): the sub-range mapper and the cancel check."""
+"""The one progress protocol (core/base/progress.py): the sub-range mapper and the cancel check."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pytest
 
-from shapegen_core.errors import Cancelled
-from shapegen_core.progress import CancelCheck, no_progress, sub_range
+from shapegen_core.base.errors import Cancelled
+from shapegen_core.base.progress import CancelCheck, no_progress, sub_range
 
 
 def test_sub_range_maps_a_steps_fraction_into_the_callers_range():

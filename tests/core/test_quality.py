@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry.intersections import _segments_cross, candidate_pairs, intersecting_pairs
-from shapegen_core.mesh import Mesh
-from shapegen_core.quality import QualityGate, QualitySettings, training_extents
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.generate.quality import QualityGate, QualitySettings, training_extents
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +158,7 @@ def test_a_crumpled_mesh_fails_on_roughness(vases, gate):
 
 def test_roughness_is_the_mean_angle_between_adjacent_normals():
     """Two triangles folded by a known angle: the one adjacent pair's angle."""
-    from shapegen_core.quality import roughness
+    from shapegen_core.generate.quality import roughness
 
     angle = 0.7
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -np.cos(angle), np.sin(angle)]])

@@ -5,13 +5,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import RefinementSettings
 from shapegen_core.correspond.objective import (CompactnessTerm, LandmarkState, PopulationObjective, compactness,
                                                 density, spread)
 from shapegen_core.correspond.refine import interpolated_normals, landmark_state, refine_population
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import TargetSurface
 
 SMALL = dict(iterations=15)
@@ -254,21 +254,21 @@ def test_correspondence_file_records_the_refinement(vases, tmp_path):
     assert np.array_equal(loaded.points, refined.points)
     # a file written before refinement existed (no refinement arrays) loads as "none"
     from shapegen_core.correspond import CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION
-    from shapegen_core.npzfile import save_npz
+    from shapegen_core.base.npzfile import save_npz
     arrays = nicp.to_arrays()
     del arrays["refinement"], arrays["refinement_trace"]
     old = Correspondence.load(save_npz(tmp_path / "old.npz", CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, arrays))
     assert old.refinement == "none" and old.refinement_trace.shape == (0, 3)
     arrays["refinement"] = np.asarray("sideways")
     arrays["refinement_trace"] = np.zeros((0, 3))
-    from shapegen_core.errors import ModelFileError
+    from shapegen_core.base.errors import ModelFileError
     with pytest.raises(ModelFileError, match="unknown refinement 'sideways'"):
         Correspondence.load(save_npz(tmp_path / "bad.npz", CORRESPONDENCE_FORMAT, CORRESPONDENCE_VERSION, arrays))
 
 
 def test_command_line_refine_option():
-    from shapegen_core.cli import build_parser
-    from shapegen_core.cli_common import settings_from_args
+    from shapegen_core.app.cli import build_parser
+    from shapegen_core.app.cli_common import settings_from_args
 
     for command in (["correspond", "x", "-o", "y"], ["fit", "x", "-o", "y"], ["evaluate", "x", "-o", "y"]):
         args = build_parser().parse_args(command + ["--refine", "population"])
@@ -282,7 +282,7 @@ def test_command_line_refine_option():
 def test_progress_cancel_and_worker_processes(vases):
     """Refinement reports progress after NICP's share and can be cancelled; its per-shape
     work in two worker processes gives the same landmarks as in this process."""
-    from shapegen_core.errors import Cancelled
+    from shapegen_core.base.errors import Cancelled
 
     shapes, prepared, nicp = vases
     seen = []

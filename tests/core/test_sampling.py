@@ -8,13 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shapegen_core import sampling
-from shapegen_core.collection import PrepareSettings
-from shapegen_core.datasets import make_vases
-from shapegen_core.pipeline import FitSettings, fit_meshes
-from shapegen_core.quality import MeshQuality, QualitySettings
-from shapegen_core.sampling import (TEMPLATES_TRIED, GatedSample, draw_budget, failed_reasons, gate_summary,
-                                   gated_sample, gated_samples, pooled_samples, redraw_seed, shortfall)
+from shapegen_core.generate import sampling
+from shapegen_core.preprocess.collection import PrepareSettings
+from shapegen_core.demo_data import make_vases
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.pipeline import fit_meshes
+from shapegen_core.generate.quality import MeshQuality, QualitySettings
+from shapegen_core.generate.sampling import (TEMPLATES_TRIED, GatedSample, draw_budget, failed_reasons, gate_summary,
+                                             gated_sample, gated_samples, pooled_samples, redraw_seed, shortfall)
 
 
 @pytest.fixture(scope="module")

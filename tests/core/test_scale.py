@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import IterationSettings
 from shapegen_core.correspond import groupwise
 from shapegen_core.correspond.proxy import PlacementTask, place_on_full_surface
 from shapegen_core.correspond.registration import Registration
-from shapegen_core.datasets import make_vases
+from shapegen_core.demo_data import make_vases
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.geometry.nearby import closest_within
-from shapegen_core.mesh import Mesh
-from shapegen_core.simplify import proxy_mesh
+from shapegen_core.meshes.mesh import Mesh
+from shapegen_core.meshes.simplify import proxy_mesh
 
 from conftest import subdivided
 
@@ -159,7 +159,8 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
     """GP-LVM (O(N³) per iteration) notes its cost above CUBIC_NOTE_SHAPES shapes, as a
     ScaleWarning and a progress message; PPCA and the Bayesian GP-LVM never do."""
     from shapegen_core.models import scaling
-    from shapegen_core.pipeline import FitSettings, fit_shape_model
+    from shapegen_core.app.fit_settings import FitSettings
+    from shapegen_core.app.pipeline import fit_shape_model
 
     assert scaling.size_note("gplvm", scaling.CUBIC_NOTE_SHAPES) is None
     assert "N³" in scaling.size_note("gplvm", 1000) and "bgplvm" in scaling.size_note("gplvm", 1000)
@@ -178,7 +179,7 @@ def test_cubic_model_fits_of_many_shapes_say_so(vases, monkeypatch):
 def test_files_read_in_workers_equal_those_read_here(vases, tmp_path):
     """read_folder(jobs=2) (shapegen fit reads so) gives the meshes read in this process:
     same names, order, vertices and int32 faces, read-only either way."""
-    from shapegen_core.io import read_folder
+    from shapegen_core.meshes.reading import read_folder
 
     for index, mesh in enumerate(vases[:3]):
         dense = _subdivided(mesh, 1)
@@ -211,7 +212,7 @@ def test_meshes_streamed_into_files_uncompressed(vases, tmp_path):
     keys are written without compression, and the file reads back as before."""
     import zipfile
 
-    from shapegen_core.npzfile import Concatenation, save_npz
+    from shapegen_core.base.npzfile import Concatenation, save_npz
 
     parts = [m.vertices for m in vases[:3]]
     path = save_npz(tmp_path / "x.npz", "shapegen.test", 1,

@@ -10,14 +10,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, OutlierSettings, RefinementSettings,
                                                StiffnessSettings)
-from shapegen_core.deform import DeformSettings
-from shapegen_core.errors import ModelFileError, ShapeGenError
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, _nest_prepare, fit_meshes
-from shapegen_core.settings import Settings, SettingsError, group, option, recorded_settings
+from shapegen_core.generate.deform import DeformSettings
+from shapegen_core.base.errors import ModelFileError, ShapeGenError
+from shapegen_core.app.fit_settings import FitSettings, _nest_prepare
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes
+from shapegen_core.base.settings import Settings, SettingsError, group, option, recorded_settings
 
 #: the correspondence settings of the `corresponded` fixture as files written before the grouped settings
 #: record them: one flat JSON object (written by CorrespondenceSettings(alpha_steps=1,

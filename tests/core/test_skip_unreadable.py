@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PrepareSettings, PreparedCollection, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence
-from shapegen_core.datasets import make_vases, write_collection
-from shapegen_core.errors import CollectionError, MeshFileError, ModelFileError
-from shapegen_core.io import read_folder, read_readable
+from shapegen_core.demo_data import make_vases, write_collection
+from shapegen_core.base.errors import CollectionError, MeshFileError, ModelFileError
+from shapegen_core.meshes.reading import read_folder, read_readable
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 

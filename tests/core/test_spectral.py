@@ -11,13 +11,13 @@ import pytest
 import trimesh
 
 from conftest import tosca_class
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
 from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings
 from shapegen_core.correspond.functional_map import spectral_shape, spectral_start
 from shapegen_core.correspond.start import _start_on_shape, _StartItem
 from shapegen_core.geometry.spectral import SpectrumError, cotangent_laplacian, laplace_beltrami_spectrum
-from shapegen_core.settings import SettingsError
+from shapegen_core.base.settings import SettingsError
 
 
 
@@ -126,7 +126,7 @@ def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_poi
     z up and the facing) puts the landmarks far from their true places, the spectral start
     near them."""
     from shapegen_core.geometry import TargetSurface
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     cats = tosca_class("cat")
     meshes = [read_mesh(cats / f"{name}.off") for name in ("cat0", "cat1")]
@@ -184,14 +184,14 @@ def _evidence_of(meshes, landmarks: int = 300):
 
 
 def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
-    from shapegen_core.io import read_mesh
+    from shapegen_core.meshes.reading import read_mesh
 
     choice, why = _evidence_of([read_mesh(tosca_class("cat") / f"cat{i}.off") for i in range(4)])
     assert choice == "spectral", why
 
 
 def test_auto_takes_closest_points_for_vases_that_differ_in_proportion():
-    from shapegen_core.datasets import make_vases
+    from shapegen_core.demo_data import make_vases
 
     choice, why = _evidence_of([s.mesh for s in make_vases(5, seed=11, resolution=(30, 60))])
     assert choice == "closest", why

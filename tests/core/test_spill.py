@@ -1,4 +1,4 @@
-"""Dense meshes kept on disk for a run (core/spill.py): the main process keeps
+"""Dense meshes kept on disk for a run (core/meshes/spill.py): the main process keeps
 handles, not the meshes; the results equal the in-memory path's; the store's folder is
 removed after success, error and cancel. Small meshes stand in for dense ones (the
 store's size limit and the proxy size are lowered); bench/scale.py measures the real
@@ -15,13 +15,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from shapegen_core.collection import PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings, correspond
-from shapegen_core.datasets import make_vases
-from shapegen_core.errors import Cancelled
-from shapegen_core.io import read_folder
-from shapegen_core.pipeline import FitSettings, GenerativeShapeModel, fit_meshes, fit_shape_model
-from shapegen_core.spill import SpillStore, StoredMesh
+from shapegen_core.demo_data import make_vases
+from shapegen_core.base.errors import Cancelled
+from shapegen_core.meshes.reading import read_folder
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.shape_model import GenerativeShapeModel
+from shapegen_core.app.pipeline import fit_meshes, fit_shape_model
+from shapegen_core.meshes.spill import SpillStore, StoredMesh
 
 from conftest import subdivided
 
@@ -150,7 +152,7 @@ def test_the_store_is_removed_after_success_error_and_cancel(folder):
 
 def test_commands_remove_their_store(folder, tmp_path, monkeypatch):
     """`shapegen prepare` leaves no store behind, whether it succeeds or fails."""
-    from shapegen_core.cli import main
+    from shapegen_core.app.cli import main
 
     spill_parent = tmp_path / "tmp"
     spill_parent.mkdir()
@@ -165,7 +167,7 @@ def test_correspondence_reuses_the_proxy_prepare_built(folder, monkeypatch):
     """A stored shape's registration proxy is built once, by Prepare while the shape is at
     full density; correspondence registers against it without building another, with
     the same landmarks as when it builds the proxy itself."""
-    import shapegen_core.collection as collection
+    import shapegen_core.preprocess.collection as collection
     from shapegen_core.correspond.proxy import dense_limit
 
     key = (CORRESPONDENCE.proxy_faces, dense_limit(CORRESPONDENCE))

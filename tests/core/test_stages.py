@@ -1,6 +1,6 @@
 """`stages.plan_stages`: the one decision of which stages run and which earlier output is
 reused, for the CLI's given files and Blender's found Prepare and model (every row of the
-table in core/stages.py)."""
+table in core/app/stages.py)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from shapegen_core.collection import PreparedCollection, PrepareSettings, prepare_meshes
+from shapegen_core.preprocess.collection import PreparedCollection, PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings
-from shapegen_core.datasets import make_vases
-from shapegen_core.pipeline import FitSettings
-from shapegen_core.stages import Offered, SettingsConflict, plan_stages, read_offered, same_shapes
+from shapegen_core.demo_data import make_vases
+from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.stages import Offered, SettingsConflict, plan_stages, read_offered, same_shapes
 
 ASKED = FitSettings(prepare=PrepareSettings(n_landmarks=60), template=None)
 OTHER_PREPARE = PrepareSettings(n_landmarks=60, seed=4)

@@ -6,8 +6,8 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from shapegen_core.correspond.turning import LENGTH_SHARE, NO_LINE, facing_regions, position_between_turning_lines
-from shapegen_core.datasets import PROFILE_BREAKS, make_vases
-from shapegen_core.landmarks import select_landmarks
+from shapegen_core.demo_data import PROFILE_BREAKS, make_vases
+from shapegen_core.preprocess.landmarks import select_landmarks
 
 
 def _sphere(count: int) -> np.ndarray:

@@ -12,9 +12,9 @@ import sys
 import tempfile
 import time
 
-from shapegen_core.cli import main
+from shapegen_core.app.cli import main
 from shapegen_core.correspond.pool import KILL_ON_SHAPE_VARIABLE
-from shapegen_core.datasets import make_vases, write_collection
+from shapegen_core.demo_data import make_vases, write_collection
 
 
 def test_a_killed_worker_is_one_line_naming_the_shape_the_signal_and_what_to_try(tmp_path, capsys, monkeypatch):
@@ -51,7 +51,7 @@ def test_a_terminated_command_removes_its_temporary_folders(tmp_path):
     private_temp.mkdir()
     output = tmp_path / "model.npz"
     environment = dict(os.environ, TMPDIR=str(private_temp), PYTHONPATH=os.pathsep.join(sys.path))
-    process = subprocess.Popen([sys.executable, "-m", "shapegen_core.cli", "fit", str(folder), "-o", str(output),
+    process = subprocess.Popen([sys.executable, "-m", "shapegen_core.app.cli", "fit", str(folder), "-o", str(output),
                                 "--landmarks", "30", "--align", "none", "--jobs", "2", "--model", "ppca"],
                                stderr=subprocess.PIPE, text=True, env=environment)
     deadline = time.monotonic() + 60

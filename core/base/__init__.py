@@ -1,0 +1,3 @@
+"""The foundations every layer stands on: errors, typed settings, progress and cancel,
+versioned `.npz` files, child processes, and the optional Dask connection. Imports
+nothing else of the core."""
