@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 from conftest import placed
 from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.preprocess import ConsensusSettings, prepare_collection
-from shapegen_core.preprocess.consensus import CostSettings, PoseDecision, _combined
+from shapegen_core.preprocess.consensus import CostSettings, PoseDecision
+from shapegen_core.preprocess.consensus.state import combined
 from shapegen_core.preprocess.posesearch import PoseSearch
 from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, yaw_rotation
 from shapegen_core.preprocess.symmetry import AxisSymmetry, tilt_to_z
@@ -98,7 +99,7 @@ def test_tilt_to_z(direction):
 def test_turned_there_and_back_is_no_change():
     half = yaw_rotation(180.0)
     back = yaw_rotation(180.4) @ half
-    combined = _combined(PoseDecision(np.eye(3)), PoseDecision(half, "a"), PoseDecision(back, "b"))
-    assert not combined.changed and np.array_equal(combined.rotation, np.eye(3))
-    combined = _combined(PoseDecision(np.eye(3)), PoseDecision(half, "a"), PoseDecision(half))
-    assert combined.reason == "a" and np.array_equal(combined.rotation, half)
+    merged = combined(PoseDecision(np.eye(3)), PoseDecision(half, "a"), PoseDecision(back, "b"))
+    assert not merged.changed and np.array_equal(merged.rotation, np.eye(3))
+    merged = combined(PoseDecision(np.eye(3)), PoseDecision(half, "a"), PoseDecision(half))
+    assert merged.reason == "a" and np.array_equal(merged.rotation, half)
