@@ -16,7 +16,7 @@ import threading
 
 __all__ = ["exit_with_parent", "how_it_ended", "MEMORY_ADVICE"]
 
-#: what a worker that died of a signal most likely met, and what to try (issue 32)
+#: what a worker that died of a signal most likely met, and what to try
 MEMORY_ADVICE = ("most likely because the machine ran out of memory; try fewer parallel jobs (--jobs, or Jobs in "
                  "the panel)")
 

@@ -1,5 +1,5 @@
 """Connection to a Dask distributed cluster, the optional engine of the command line
-(issue 15): `tcp://host:8786` (a running scheduler) or `local:N` (a LocalCluster of N
+for large collections: `tcp://host:8786` (a running scheduler) or `local:N` (a LocalCluster of N
 single-threaded worker processes on this machine, closed again afterwards).
 
 Dask is an optional extra (`pip install ".[dask]"` in the checkout, or

@@ -7,7 +7,7 @@
 * Validated: the reader checks the keys it needs, their dtypes kinds and shapes.
 * Atomic: written to a temporary file in the same folder, then renamed, so a crash never
   leaves a half-written file where a good one was.
-* Large arrays cheaply (issue 15): a `Concatenation` (e.g. the vertices of every mesh of
+* Large arrays cheaply: a `Concatenation` (e.g. the vertices of every mesh of
   a model) is streamed into the file part by part, never built in memory, and arrays
   named in `stored` are written without compression (deflating a million-vertex mesh
   costs seconds and saves a third of its size). `np.load` reads both as usual.

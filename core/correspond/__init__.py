@@ -20,7 +20,7 @@ collection by one affine transform per landmark (Amberg et al. 2007):
   (**beyond**: the thesis snapped to the nearest vertex, kept as `snap_to_vertices`);
 * groupwise (§4.2.7): register the template to every shape, replace it by the mean
   landmark cloud, register again;
-* **beyond** (issue 13, `refine = "population"`): afterwards every landmark slides on its
+* **beyond** (`refine = "population"`): afterwards every landmark slides on its
   own surface to make the population compact (log-det of the regularised covariance in
   the N × N dual) while staying spread (Cates et al. 2007; Davies et al. 2002).
 
@@ -41,7 +41,7 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   pool.py          registration tasks in this process or in spawned worker processes, their
                    ICP iterations turned into progress fractions
   groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
-  functional_map.py  the intrinsic start (**beyond**, issue 34): a spectral map of the template's
+  functional_map.py  the intrinsic start (**beyond**): a spectral map of the template's
                    landmarks onto a shape (candidates, orientation, ZoomOut)
   start.py         `initialisation = "spectral"`: the starts of a collection and the check
                    against closest points that decides which start each shape keeps

@@ -1,5 +1,5 @@
 """Where registrations run: the local process pool (pool.py) or, given a scheduler, a
-Dask distributed cluster (issue 15). Both take the same tasks (one shape each, picklable)
+Dask distributed cluster. Both take the same tasks (one shape each, picklable)
 and give the same results; `make_runner` chooses. Dask is imported only when a scheduler
 is given (core/base/cluster.py), so the core runs without it."""
 

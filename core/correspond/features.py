@@ -1,5 +1,5 @@
 """Feature-space matches for non-rigid ICP (**beyond** the thesis, opt-in with
-`matching="features"` of `CorrespondenceSettings.data_term`; issue 13).
+`matching="features"` of `CorrespondenceSettings.data_term`).
 
 The thesis's data term (§4.2.2, 4.11) matches every template point to its closest
 (normal-compatible) target point. Along a smooth wall every nearby point is equally close,

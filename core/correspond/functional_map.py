@@ -1,4 +1,4 @@
-"""Intrinsic, pose-invariant start of non-rigid ICP (**beyond** the thesis: issue 34;
+"""Intrinsic, pose-invariant start of non-rigid ICP (**beyond** the thesis;
 docs/method.md, "Intrinsic start").
 
 Closest points cannot follow a limb that moved: the template's paw lands on whatever part

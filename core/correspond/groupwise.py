@@ -43,7 +43,7 @@ def chamfer_medoid(point_sets: Sequence[np.ndarray], max_points: int = 300) -> i
     """Index of the point set with the smallest summed symmetric Chamfer distance
     (geometry.chamfer) to all others. Each set is thinned to its first `max_points` points
     (landmarks are farthest-point ordered, so a prefix covers the surface). Above
-    MEDOID_EXACT_SHAPES sets (issue 15: every pair is O(N²), 1000 shapes about 200 s) the
+    MEDOID_EXACT_SHAPES sets (every pair is O(N²), 1000 shapes about 200 s) the
     sums are screened against MEDOID_REFERENCES sets spread over the collection and only
     the MEDOID_SHORTLIST best are summed over all sets."""
     sets = [np.asarray(s, dtype=np.float64)[:max_points] for s in point_sets]

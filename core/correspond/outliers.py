@@ -58,7 +58,7 @@ def held_out_groups(count: int) -> list[list[int]]:
     """The shapes each model of `leave_one_out_errors` leaves out: each shape alone up to
     LEAVE_ONE_OUT_SHAPES shapes, else LEAVE_OUT_GROUPS interleaved groups (i mod groups):
     a shape's model is still fitted without it, from all but 1/LEAVE_OUT_GROUPS of the
-    others (issue 15)."""
+    others."""
     if count <= LEAVE_ONE_OUT_SHAPES:
         return [[i] for i in range(count)]
     return [list(range(g, count, LEAVE_OUT_GROUPS)) for g in range(LEAVE_OUT_GROUPS)]

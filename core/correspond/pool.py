@@ -63,7 +63,7 @@ def _init_worker(progress_queue, cancel_event) -> None:
     _WORKER["cancel"] = cancel_event
 
 
-#: test hook (issue 32): a worker given a task of this shape name kills itself with SIGKILL,
+#: test hook: a worker given a task of this shape name kills itself with SIGKILL,
 #: as the out-of-memory killer would
 KILL_ON_SHAPE_VARIABLE = "SHAPEGEN_TEST_KILL_WORKER_ON"
 

@@ -1,5 +1,5 @@
 """Registration of dense shapes against their proxies, the final landmarks placed exactly
-on the full surfaces (issue 15).
+on the full surfaces.
 
 Every round of the groupwise registration (§4.2.7) needs closest points on each target,
 at the scale of the landmarks. A shape with more than 2.5 × `CorrespondenceSettings.proxy_faces` faces (100k)

@@ -3,7 +3,7 @@
 The file records how the correspondence was computed (`CorrespondenceSettings`) and how
 its collection was prepared (`PrepareSettings`), each as one JSON string ("null": not
 recorded); files written before held the correspondence settings as repr strings by key
-and no Prepare settings, and still load. Since issue 13 it also records which refinement
+and no Prepare settings, and still load. It also records which refinement
 ran after NICP ("population" or "none") and its objective trace (one row E, compactness,
 spread per accepted step, the start first); files without them load as "none" with an
 empty trace (optional arrays, so the format version stays 1). Likewise each shape's share
@@ -321,7 +321,7 @@ CORRESPONDENCE_SPEC = {
     "outlier_reasons": ArraySpec("U", ("M",)),
 }
 
-#: the optional refinement record (files before issue 13 lack it)
+#: the optional refinement record (older files lack it)
 _REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}
 #: the optional outcome of the feature-match fit check (files before it lack it)
 _FIT_CHECK_SPEC = {"feature_fit_worse": ArraySpec("b", ("S",))}

@@ -1,5 +1,5 @@
 """Where a surface point lies between the turning lines of its region (**beyond** the
-thesis; a feature of `matching="features"`, features.py; issue 13).
+thesis; a feature of `matching="features"`, features.py).
 
 A turning line is where the surface turns from facing down to facing up (n_z = 0 with +z
 up after Prepare): the belly and the neck of a vase, a shoulder, the equator of a sphere.

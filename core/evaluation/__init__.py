@@ -1,5 +1,5 @@
 """Evaluation of shape models: the thesis's §5.5 experiments plus the field's standard
-generative-shape metrics (issue 7; docs/method.md §5).
+generative-shape metrics (docs/method.md §5).
 
 Everything works on corresponding landmark sets: a shape is a row y ∈ R^{3L} of the landmark
 matrix Y (N × 3L, docs/method.md §4), i.e. L points p_1..p_L ∈ R^3 in the normalised frame

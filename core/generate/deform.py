@@ -64,8 +64,8 @@ class DeformSettings(Settings):
 
     final_alpha: stiffness of the last (or only) solve; low = follow landmarks closely,
         high = stay close to the template's shape (thesis: 3 vases, 5 cars, 10 teapots, in
-        its own units; ours is measured in the unit-RMS-radius frame). Default 5 (was 2
-        until issue 14): sampled landmark sets carry the correspondence's noise at the
+        its own units; ours is measured in the unit-RMS-radius frame). Default 5, not lower:
+        sampled landmark sets carry the correspondence's noise at the
         scale of the landmark spacing, and a template's landmarks cover it unevenly (a
         vertex up to 5-11 landmark spacings from the nearest one on PSB Fish), so a soft
         deformation follows the noise and crumples. Samples broken by the quality gate

@@ -1,4 +1,4 @@
-"""The quality gate: is a generated mesh one an artist can use? (issue 14)
+"""The quality gate: is a generated mesh one an artist can use?
 
 Every generated mesh is a deformed copy of a template training mesh (same faces, new
 positions, §6), so it is judged against that template and against the training shapes:
@@ -16,7 +16,7 @@ positions, §6), so it is judged against that template and against the training 
 * extent: the sample's bounding-box extents per axis and its diagonal against the
   smallest and largest of the training shapes' (all in the model's normalised frame);
 * roughness: the mean angle between the normals of faces sharing an edge, the sample's
-  over the template's (a crumpled shoulder renders as dark creases, issue 31);
+  over the template's (a crumpled shoulder renders as dark creases);
 * coincident faces: pairs of faces lying on top of each other (every corner of one within
   1e-6 of the bounding-box diagonal of a corner of the other), which z-fight when drawn.
 

@@ -1,5 +1,5 @@
 """Exact closest points on a large mesh for a few queries with known upper bounds, at a
-cost set by the queries, not by the mesh (issue 15: placing 800 landmarks on a
+cost set by the queries, not by the mesh (placing 800 landmarks on a
 million-vertex surface).
 
 `closest_within` answers, per query p with bound u (a point of the surface at distance u

@@ -1,6 +1,6 @@
 """The faces of a large mesh that may lie within given distances of a few points, paired
 with those points, found by integer cell arithmetic over its vertices and faces: no sort
-and no tree over the mesh, float work only near the points (issue 15: placing ~800
+and no tree over the mesh, float work only near the points (placing ~800
 landmarks on a surface of a million vertices costs what the landmarks need, not a search
 structure over every face).
 

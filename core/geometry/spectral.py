@@ -1,5 +1,5 @@
 """The Laplace–Beltrami spectrum of a triangle mesh and the descriptors read from it
-(**beyond** the thesis: issue 34, the intrinsic start of correspondence; docs/method.md).
+(**beyond** the thesis: the intrinsic start of correspondence; docs/method.md).
 
 The operator is the cotangent Laplacian with a lumped mass matrix (Pinkall & Polthier
 1993; Meyer et al. 2003): the stiffness W has w_ij = ½ (cot α_ij + cot β_ij) over the

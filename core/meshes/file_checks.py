@@ -1,4 +1,4 @@
-"""What a mesh file declares, checked against what it holds (issue 32).
+"""What a mesh file declares, checked against what it holds.
 
 trimesh parses the files (core/meshes/reading.py); it trusts their declarations: an OFF whose header
 counts more faces than the file holds, an ASCII PLY cut short, a glTF accessor counting

@@ -9,7 +9,7 @@ reading.read_mesh; Blender: convert.object_to_mesh, and meshset.load_mesh_set in
    other side of a double-sided surface (CAD files store every sheet twice, wound opposite
    ways) or a plain duplicate; one surface is kept, so every edge of a double-sided sheet
    has two faces again instead of four, and the dropped sides are recorded (`twin_source`,
-   `twin_of`) so a caller can map them back to the file's faces (issue 31);
+   `twin_of`) so a caller can map them back to the file's faces;
 4. `internal_faces`: a sheet inside a closed volume (the wall between two cells of a CAD
    model, met by the outer surface along edges of three or more faces) is dropped from the
    surface and counted: Prepare, correspondence and the closedness test see the outside;

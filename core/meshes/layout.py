@@ -1,7 +1,7 @@
 """A mesh's faces as its file had them: polygons (quads, n-gons) and UVs per face corner.
 
 The core works on welded triangles (`Mesh`); a `FaceLayout` remembers how the file laid the
-same surface out, so a deformed copy is written with the file's own faces and UVs (issue 14):
+same surface out, so a deformed copy is written with the file's own faces and UVs:
 
 * `vertex_map` (Vf,): the mesh vertex of each file vertex (welding merges coincident file
   vertices, e.g. the copies a glTF file makes along UV seams);
@@ -83,7 +83,7 @@ class FaceLayout:
     def one_sided(self) -> "FaceLayout":
         """The layout without the polygons on the same mesh vertices as an earlier one (the
         back of a double-sided sheet, or a repeat): written, the two would be coincident
-        faces that z-fight (issue 31). The first polygon of each vertex set is kept."""
+        faces that z-fight. The first polygon of each vertex set is kept."""
         on_mesh = self.vertex_map[self.corners]
         polygon = np.repeat(np.arange(len(self.sizes)), self.sizes)
         repeat = np.zeros(len(self.sizes), dtype=bool)

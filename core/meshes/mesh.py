@@ -8,7 +8,7 @@ immutable by convention (arrays are made read-only) and always valid:
   degenerate triangle.
 
 Faces are int32 and an array that is already read-only and of the right dtype is kept,
-not copied (issue 15: a mesh of a million vertices held its faces as int64 and every
+not copied (a mesh of a million vertices held its faces as int64 and every
 `with_vertices` copied them). Per-face quantities are computed in chunks of
 `FACE_CHUNK` faces (no (F, 3, 3) temporaries), and the used vertices come from a mask,
 not a sort, so the cost stays linear in the mesh.
@@ -59,7 +59,7 @@ class MeshReport:
     (corners 1 and 2 swapped), not counting the reversal of a mirrored read (`mirrored`).
     A double-sided surface is one surface in the mesh: `twin_source[k]` is the input
     triangle of the k-th dropped side and `twin_of[k]` the mesh face it lay on, so the
-    file's faces all map to a mesh face (issue 31). Written files have one side.
+    file's faces all map to a mesh face. Written files have one side.
     `layout` keeps the file's polygons and UVs (reading.read_mesh) so deformed copies, which
     keep the report (`Mesh.with_vertices`), are written with them.
     """

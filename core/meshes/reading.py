@@ -7,7 +7,7 @@ Supported: OBJ, PLY, STL, OFF, GLB/GLTF. Files are read with `process=False` and
 Mesh. Polygons are fan-triangulated by trimesh's readers. Every error message starts with
 the file's path.
 
-Damaged files (issue 32): trimesh trusts what a file declares, so before and after it reads
+Damaged files: trimesh trusts what a file declares, so before and after it reads
 one, core/meshes/file_checks.py compares the declarations (OFF and ASCII PLY counts, ASCII STL facets,
 glTF accessor counts, an OBJ's last line) with the content, and refuses coordinates that are
 not finite or too large to square in float64, before any geometry runs.
@@ -79,7 +79,7 @@ def read_mesh(path: str | os.PathLike, name: str | None = None) -> Mesh:
     check_not_repeated(label, welded)
     unused = mesh.n_vertices - len(np.unique(welded))  # of the file's faces: intake may leave slivers out
     unterminated = suffix == ".obj" and obj_unterminated(Path(path))
-    if unused or unterminated:  # reported: a file cut short may still read as a mesh (issue 32)
+    if unused or unterminated:  # reported: a file cut short may still read as a mesh
         mesh = Mesh(mesh.vertices, mesh.faces, name=mesh.name,
                     report=replace(mesh.report, vertices_unused=unused, unterminated=unterminated))
     return _with_layout(mesh, file_faces, len(vertices))
@@ -176,7 +176,7 @@ def _polygon_of(file_faces, triangles: np.ndarray) -> np.ndarray | None:
     """(T,) the file polygon each triangle trimesh read was cut from, or None when the file
     holds triangles only or a triangle is not one of its polygons' fans. Intake needs the
     map to recognise a double-sided quad or n-gon, whose back may be cut along the other
-    diagonal (issue 31). trimesh fans every polygon from its first corner but orders the
+    diagonal. trimesh fans every polygon from its first corner but orders the
     triangles its own way (an all-quad OBJ: every quad's first triangle, then every
     second), so each triangle is matched to a fan triangle with the same corners in the
     same cyclic order (a polygon and its reverse on the same vertices have opposite ones)."""

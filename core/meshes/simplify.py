@@ -10,7 +10,7 @@ cell of a uniform grid they fall in *and* by the main direction of their normal 
 its members' mean, every face whose corners land in three different groups is kept with
 its winding (duplicates dropped). The proxy stays within about one cell of the surface.
 
-Measured (issue 15, 1.8M-vertex subdivided PSB fish to 20k–40k faces, loaded machine):
+Measured (1.8M-vertex subdivided PSB fish to 20k–40k faces, loaded machine):
 quadric simplification took 23–37 s (fast-simplification 0.2.0) and 55–123 s (pyfqmr
 0.5.0, which stopped at 133k faces) against the ~1 s budget of a whole registration,
 so the proxy is built here in numpy (sorts and bincounts) and the quadric libraries are

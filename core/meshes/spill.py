@@ -1,4 +1,4 @@
-"""Full-density meshes kept on disk for one run instead of in memory (issue 15).
+"""Full-density meshes kept on disk for one run instead of in memory.
 
 `shapegen fit` on 20 sculpts of 1.4M vertices held every mesh (float64 vertices, int32
 faces: ~70 MB each, 1.4 GB) in the main process from reading to saving, while every stage

@@ -299,7 +299,7 @@ def outwardness(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray | None
 
 def _face_terms(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, start: int):
     """For the FACE_CHUNK faces from `start`: their parts, cross products (2 A_f n_f),
-    doubled areas and centroids (chunks bound a dense mesh's temporary memory, issue 15)."""
+    doubled areas and centroids (chunks bound a dense mesh's temporary memory)."""
     faces = faces[start:start + FACE_CHUNK]
     cross = triangle_cross(vertices, faces)
     centroid = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3.0
@@ -310,7 +310,7 @@ def shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     """Face pairs across manifold edges (edges used by exactly two faces): first (E,),
     second (E,), and whether both faces run along the edge in the same direction (E,);
     plus the faces with a border or non-manifold edge (a face per such half-edge).
-    Built with at most three int64 arrays of the half-edges alive at a time (issue 15: a
+    Built with at most three int64 arrays of the half-edges alive at a time (a
     reading worker's peak memory on a mesh of millions of faces)."""
     faces = np.asarray(faces)
     end = faces[:, [1, 2, 0]]  # half-edge h runs faces.ravel()[h] -> end.ravel()[h] in face h // 3

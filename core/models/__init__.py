@@ -1,4 +1,4 @@
-"""Shape models of thesis §5.3 behind one estimator API (issue 4; docs/method.md §4).
+"""Shape models of thesis §5.3 behind one estimator API (docs/method.md §4).
 
 - `PPCA`           probabilistic PCA with Ledoit-Wolf shrinkage (§5.3.2)
 - `GPLVM`          GP latent variable model, RBF kernel, KDE latent density (§5.3.3, §5.4.3)

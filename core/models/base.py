@@ -246,7 +246,7 @@ _PARAM_CODES: dict[str, dict[object, int]] = {"n_components": {None: -1, "heldou
 
 
 class ShapeModel:
-    """Common API of PPCA, GP-LVM and Bayesian GP-LVM (issue 4).
+    """Common API of PPCA, GP-LVM and Bayesian GP-LVM.
 
     The parameters are the constructor's arguments, each stored under its own name
     (scikit-learn's convention): `get_params` reads them through the signature, and `clone`

@@ -1,4 +1,4 @@
-"""Latent vectors in training standard deviations: the units of Explore's sliders (issue 14).
+"""Latent vectors in training standard deviations: the units of Explore's sliders.
 
 A value v_k stands for z_k = centre_k + v_k scale_k, where centre and scale are the mean and
 standard deviation of the training shapes' latents in dimension k. A dimension whose training

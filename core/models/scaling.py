@@ -1,5 +1,5 @@
 """How the shape models' cost grows with the number of training shapes N, and the note a
-fit gives when it will be slow (issue 15).
+fit gives when it will be slow.
 
 PPCA: one SVD of the N × D landmark matrix, O(N D min(N, D)). Bayesian GP-LVM: M
 inducing points (default 20), O(N M² Q + N² M) per iteration (bgplvm.py): it stays usable

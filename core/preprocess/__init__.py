@@ -11,9 +11,9 @@ Steps, in order (`prepare_collection`):
 2. Horizontal PCA (`align="pca"` only): the first principal axis of the x–y spread
    becomes x, sign by the rule "the heavier third moment goes to +x" (skewness of x
    positive). It turns every shape, also shapes whose inputs already agree, and its sign
-   is noise for near-symmetric shapes; consensus no longer starts from it (issue 12).
+   is noise for near-symmetric shapes; consensus no longer starts from it.
 3. Consensus (`align="consensus"`, default): the given up axis and every shape's pose
-   are trusted (issue 30). A shape is turned only by a file-convention turn (its own up
+   are trusted. A shape is turned only by a file-convention turn (its own up
    is clearly another axis of its file: a quarter turn, or a half turn when its top and
    bottom are clearly the other way round) or about up to line its facing up with the
    collection's, each on evidence that holds over the collection (every shape against

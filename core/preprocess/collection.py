@@ -5,7 +5,7 @@ This is the hand-off from intake (§3.4 alignment, §4.2.1 landmarks) to corresp
 persist the result (meshes in the normalised frame, the per-shape transforms back to input
 coordinates, each shape's pose report — `pose_change`, `pose_rotation`, `pose_outlier` —,
 the landmarks and the settings used, as one JSON string). `keep_pose` names the shapes
-whose pose Prepare must not turn (issue 12), recorded per shape (`pose_kept`, so the
+whose pose Prepare must not turn, recorded per shape (`pose_kept`, so the
 correspondence does not pose them by their landmarks either; files written before read as
 not kept). A collection read from a folder that left out files it could not read
 (`reading.read_readable`) records them by file name with the reader's message (`unreadable`),
@@ -130,7 +130,7 @@ class PreparedCollection:
     def turn_flagged(self, names: Sequence[str] | None = None) -> "PreparedCollection":
         """A copy with the named flagged shapes (None: every one) turned as their flags
         suggest (`preprocess.turn_as_flagged`), their landmarks carried along; the user's
-        answer to a flag, the one way Prepare's doubt becomes a turn (issue 30)."""
+        answer to a flag, the one way Prepare's doubt becomes a turn."""
         wanted = set(self.flagged() if names is None else names)
         unknown = wanted - set(self.names)
         if unknown:

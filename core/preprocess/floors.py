@@ -1,5 +1,5 @@
 """Where a collection's files put their floor: file-convention evidence for Prepare's
-consensus orientation (thesis §3.4; issue 30's policy, `consensus` steps 1 and 2).
+consensus orientation (thesis §3.4; `consensus` steps 1 and 2).
 
 Files of one source usually share a placement convention along their up axis: scans and
 statues stand on z = 0, the objects of a Blender scene rest on one ground plane or table.

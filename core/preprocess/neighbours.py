@@ -1,4 +1,4 @@
-"""Nearest shapes of a large collection without the Chamfer cost of every pair (issue 15).
+"""Nearest shapes of a large collection without the Chamfer cost of every pair.
 
 `PoseSearch`'s distance between two shapes is their smallest Chamfer cost over the 24 axis
 rotations: 24 screened costs and 4 full ones per pair, so a collection of N shapes took

@@ -21,7 +21,7 @@ turned by exactly 90°, not 89.6°).
 Nearest shapes are those with the smallest cost over the 24 axis rotations (screened on a
 quarter of the samples, the 4 best at full cost: the same distances on PSB and the
 procedural sets, a third of the time; above `neighbours.EXACT_SHAPES` shapes only for
-the pairs a pose-aware descriptor proposes, issue 15), so a shape in
+the pairs a pose-aware descriptor proposes), so a shape in
 a wrong pose still finds the shapes it resembles (a bowl finds bowls, not jugs: with a
 rotation-invariant descriptor of radii and spreads, PSB bowls found jugs and were laid on
 their sides to fit them).
@@ -215,7 +215,7 @@ class NearestInPool:
     kept as shapes join (consensus settles the shape closest to the settled ones next:
     asking `PoseSearch.nearest` of every unsettled shape after every join took N²
     queries over a pool of up to N, with an exact cost for every pair that a query's
-    estimates put first; issue 15). `closest` is the row minimum of the all-pairs matrix
+    estimates put first). `closest` is the row minimum of the all-pairs matrix
     over the pool (ties: the lowest row, the earliest pool shape); an entry resting on an
     estimate is made exact only when its row would come next, and the row is ranked
     again, so the answer is the all-pairs one wherever the estimates lie below the exact

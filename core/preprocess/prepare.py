@@ -39,7 +39,7 @@ def prepare_collection(
     keep_pose: per shape, True to never turn it beyond the up axis (any align mode); its
     pose is still checked and flagged (`PreparedShape.pose_outlier`).
     dense_faces: the pose search and signatures see a mesh with more faces through its
-    proxy of about POSE_PROXY_FACES faces (core/meshes/simplify.py; issue 15), so their cost does
+    proxy of about POSE_PROXY_FACES faces (core/meshes/simplify.py), so their cost does
     not grow with the density of the mesh.
     meshes may be `spill.StoredMesh`es (dense meshes kept on disk for the run): the pose
     search uses their proxies built when they were read, each per-shape step at full
@@ -134,7 +134,7 @@ def _measure(mesh: Mesh, transform: ShapeTransform, scale: str) -> float:
     """Step 5's measure (`scale_measure`) of one shape after `transform`. The surface
     variance of a mesh above FACE_CHUNK faces comes from its own moments (a similarity's
     rotation and shift leave it, its scale multiplies it by scale²), not from a transformed
-    copy (issue 15)."""
+    copy."""
     if scale == "variance" and mesh.n_faces > FACE_CHUNK:
         value = transform.scale ** 2 * scale_measure(mesh, scale)
     else:

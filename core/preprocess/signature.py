@@ -51,7 +51,7 @@ class Signatures:
     """Every shape's exact third moments in its base pose (centred, unit total variance);
     its quadrature points and weights, and the vertices that bound its height, are made
     again from its mesh when a facing is asked for (kept, they took 23 MB per 20k-vertex
-    shape: 23 GB for a collection of 1000; issue 15)."""
+    shape: 23 GB for a collection of 1000)."""
 
     def __init__(self, meshes: Sequence[Mesh], base: Sequence[np.ndarray], order: int,
                  progress: Progress | None = None):

@@ -1,5 +1,5 @@
 """Which axis of a shape is its up, by the symmetries the collection's shapes share about
-their up axes (issue 12): evidence for "up" that needs no nearest shapes in the right pose,
+their up axes: evidence for "up" that needs no nearest shapes in the right pose,
 so a group of similar shapes lying on their side together (PSB cups 26, 27, 29, teapots
 367, 379) is stood up, while a bowl among jugs, whose jugs would rather see it on its
 side, stays upright.

@@ -9,7 +9,7 @@ differing by more than `facing.angle`), with `_settle`'s majority: the poses mos
 shapes share are the collection's and are never changed. Inputs turned about up at
 random share no facing (at most `facing.shared_facing` of the votes agree): one
 shape's facing is then the collection's, and the others are turned to it (beyond the
-thesis, issue 13).
+thesis).
 
 4. Last (`outlier_flags`), a shape fitting its nearest shapes `outlier_factor` times
 worse than the median shape does is flagged (an unusual shape, or a pose no turn
@@ -191,7 +191,7 @@ def _settle(state: ConsensusState, test: _CostFacing | _SignatureFacing, keep: S
     references_pool = list(decisions)  # shapes whose pose is trusted: kept ones only from the majority
     decisions.update({j: PoseDecision(test.start[j]) for j in range(n) if keep[j] and j not in decisions})
     # the next shape is the one closest to its nearest trusted shape (kept up to date as
-    # the pool grows, not asked of every shape after every decision: issue 15)
+    # the pool grows, not asked of every shape after every decision, which is quadratic in a large collection)
     waiting = NearestInPool(search, references_pool, [r for r in range(n) if r not in decisions])
     while len(decisions) < n:
         j = waiting.closest()
