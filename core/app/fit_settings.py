@@ -4,12 +4,12 @@ before they were one JSON string."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from ..base.errors import ModelFileError, ShapeGenError
 from ..base.npzfile import ArraySpec, validate_arrays
-from ..base.settings import Settings, SettingsError, legacy_settings, option
+from ..base.compat import is_key_value_layout, old_model_settings
+from ..base.settings import Settings, SettingsError, option
 from ..correspond import CorrespondenceSettings
 from ..generate.deform import DeformSettings
 from ..models import MODEL_TYPES
@@ -52,16 +52,6 @@ class FitSettings(Settings):
             raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's name")
 
 
-def _nest_prepare(data: Mapping) -> dict:
-    """`data` with Prepare options given flat at the top level (n_landmarks, up_axis, ...;
-    as the key/value settings of model files before issue 11 hold them) moved under
-    "prepare"."""
-    names = {f.name for f in fields(PrepareSettings)}
-    nested = {key: value for key, value in data.items() if key not in names}
-    nested["prepare"] = {key: value for key, value in data.items() if key in names}
-    return nested
-
-
 def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
     """The default meshing template must be a choice or one of the training shapes."""
     if settings.mesh_template not in TEMPLATE_CHOICES and settings.mesh_template not in names:
@@ -69,28 +59,14 @@ def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
                             f"name; no shape is named {settings.mesh_template!r}")
 
 
-#: Model files before issue 11: settings as repr strings by (dotted) key, deformation
-#: settings as numbers by key.
-_LEGACY_SETTINGS_SPEC = {
-    "settings_keys": ArraySpec("U", ("S",)),
-    "settings_values": ArraySpec("U", ("S",)),
-    "deform_keys": ArraySpec("U", ("K",)),
-    "deform_values": ArraySpec("f", ("K",)),
-}
-
-
 def _load_fit_settings(arrays: dict, path) -> FitSettings:
     """The FitSettings a model file records (one JSON string, or the key/value arrays of
-    files written before); invalid settings are a ModelFileError naming the file."""
+    files written before, `compat.old_model_settings`); invalid settings are a
+    ModelFileError naming the file."""
     try:
-        if "settings" in arrays or "settings_keys" not in arrays:
+        if not is_key_value_layout(arrays):
             validate_arrays(arrays, {"settings": ArraySpec("U", ())}, str(path))
             return FitSettings.from_json(str(arrays["settings"]), recorded=True)
-        validate_arrays(arrays, _LEGACY_SETTINGS_SPEC, str(path))
-        options = _nest_prepare(legacy_settings(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist()))
-        defaults = DeformSettings()
-        options["deform"] = {key: type(getattr(defaults, key, 0.0))(value)
-                             for key, value in zip(arrays["deform_keys"].tolist(), arrays["deform_values"].tolist())}
-        return FitSettings.from_dict(options, recorded=True)
+        return FitSettings.from_dict(old_model_settings(arrays, str(path)), recorded=True)
     except SettingsError as exc:
         raise ModelFileError(f"{path}: recorded settings are invalid: {exc}") from None

@@ -9,6 +9,17 @@ class ShapeGenError(Exception):
     """Base class for every error the core raises on purpose."""
 
 
+class SettingsError(ShapeGenError, ValueError):
+    """A setting outside its allowed values. `option` names it (a field name, or a dotted
+    path into nested settings); the message is "<prefix><option> <problem>"."""
+
+    def __init__(self, option: str, problem: str, prefix: str = ""):
+        super().__init__(f"{prefix}{option} {problem}")
+        self.option = option
+        self.problem = problem
+        self.prefix = prefix
+
+
 class MeshError(ShapeGenError, ValueError):
     """A mesh is unusable (empty, NaN coordinates, bad indices, ...)."""
 

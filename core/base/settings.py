@@ -6,34 +6,23 @@ here, the command line (`cli_common.add_settings_options`) and the saved JSON al
 the same declaration. Nested settings (e.g. `FitSettings.prepare`) are dataclass fields
 and nest in the JSON. A subsystem's options inside one settings class are a `group` field
 (e.g. `CorrespondenceSettings.stiffness`): nested in the JSON, offered on the command line
-with their parent's options; `Settings.FIELDS_MOVED` reads data that still names them flat
-(files written before they were grouped, the add-on's option dicts).
+with their parent's options. What files written before hold, and flat option dicts such as
+the add-on's, read as today's settings through the tables and code of `compat.py`.
 """
 
 from __future__ import annotations
 
-import ast
 import json
 import types
 from dataclasses import MISSING, asdict, field, fields, is_dataclass
 from typing import Any, Mapping, Sequence, Union, get_args, get_origin, get_type_hints
 
-from .errors import ModelFileError, ShapeGenError
+from .compat import is_key_value_layout, key_value_settings, nested_data, read_as_today
+from .errors import ModelFileError, SettingsError
 from .npzfile import ArraySpec, validate_arrays
 
 __all__ = ["Settings", "SettingsError", "option", "group", "is_group", "check_fields", "settings_from_dict",
-           "settings_from_json", "settings_to_json", "nested_data", "legacy_settings", "recorded_settings"]
-
-
-class SettingsError(ShapeGenError, ValueError):
-    """A setting outside its allowed values. `option` names it (a field name, or a dotted
-    path into nested settings); the message is "<prefix><option> <problem>"."""
-
-    def __init__(self, option: str, problem: str, prefix: str = ""):
-        super().__init__(f"{prefix}{option} {problem}")
-        self.option = option
-        self.problem = problem
-        self.prefix = prefix
+           "settings_from_json", "settings_to_json", "nested_data", "recorded_settings"]
 
 
 def option(default: Any = MISSING, help: str = "", *, flag: str | None = None, choices: Sequence | None = None,
@@ -105,16 +94,15 @@ def settings_from_dict(cls, data: Mapping, path: str = "", recorded: bool = Fals
     """A settings dataclass `cls` from plain data (parsed JSON): nested settings from
     nested objects, missing fields at their defaults. Unknown names and invalid values
     raise SettingsError; an error of nested settings names the option by its dotted path
-    ("deform.final_alpha"). Options named by their flat names of before (`cls.FIELDS_MOVED`)
-    are read into their nested places. `recorded`: the data is what a file recorded, so a
-    field the file predates takes the value its run used (`FIELDS_ADDED_LATER` of the class
-    that holds it), not today's default."""
+    ("deform.final_alpha"). Names of before are read as today's (`compat.read_as_today`:
+    flat names moved into their groups, removed fields left out or refused). `recorded`:
+    the data is what a file recorded, so a field the file predates takes the value its run
+    used (`FIELDS_ADDED_LATER` of the class that holds it), not today's default, and a
+    removed field it records is left out silently."""
     label = path or cls.__name__
     if not isinstance(data, Mapping):
         raise SettingsError(label, f"must be a JSON object, got {data!r}")
-    if recorded:
-        data = {**getattr(cls, "FIELDS_ADDED_LATER", {}), **data}
-    data = _moved_into_place(cls, _without_removed(cls, data, path, recorded), path)
+    data = read_as_today(cls, data, path, recorded)
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -142,44 +130,6 @@ def _is_settings(hint) -> bool:
     return isinstance(hint, type) and is_dataclass(hint)
 
 
-def _moved_into_place(cls, data: Mapping, path: str) -> dict:
-    """`data` with every option named by a flat name of before (`cls.FIELDS_MOVED`: flat
-    name → dotted place, e.g. "gamma" → "stiffness.gamma") moved to its nested place, so
-    files written before options were grouped, and option dicts that still name them flat
-    (the add-on's, a worker's), read as the nested settings. An option named both ways
-    takes its nested value: the add-on's panel options are flat, and Extra Settings that
-    name an option nested override them as they would flat."""
-    moved = getattr(cls, "FIELDS_MOVED", {})
-    flat = {name: value for name, value in data.items() if name in moved}
-    if not flat:
-        return dict(data)
-    result = {name: value for name, value in data.items() if name not in moved}
-    for name, value in flat.items():
-        *parents, leaf = moved[name].split(".")
-        target = result
-        for parent in parents:
-            inner = target.get(parent, {})
-            if not isinstance(inner, Mapping):
-                raise SettingsError(f"{path}.{name}" if path else name,
-                                    f"cannot be given flat beside {parent!r} given as settings")
-            target[parent] = dict(inner)  # a copy: the caller's data stays as it was
-            target = target[parent]
-        target.setdefault(leaf, value)  # named both ways: today's nested name wins
-    return result
-
-
-def _without_removed(cls, data: Mapping, path: str, recorded: bool) -> Mapping:
-    """`data` without the fields `cls.FIELDS_REMOVED` names (name → why it went). A file
-    (`recorded`) that records one is read as if it had not: the field's removal kept the
-    behaviour of its default, which the class documents. Settings given now (JSON, command
-    line, the add-on) that name one are refused, naming the option and why it went."""
-    removed = getattr(cls, "FIELDS_REMOVED", {})
-    named = [name for name in data if name in removed]
-    if named and not recorded:
-        raise SettingsError(f"{path}.{named[0]}" if path else named[0], f"was removed: {removed[named[0]]}")
-    return {name: value for name, value in data.items() if name not in removed}
-
-
 def settings_from_json(cls, text: str, recorded: bool = False):
     """`settings_from_dict` of one JSON string; a broken string raises SettingsError."""
     try:
@@ -189,46 +139,18 @@ def settings_from_json(cls, text: str, recorded: bool = False):
     return settings_from_dict(cls, data, recorded=recorded)
 
 
-def nested_data(dotted: Mapping) -> dict:
-    """Plain data with dotted names ("deform.gamma": 2.0) as nested objects
-    ({"deform": {"gamma": 2.0}})."""
-    data: dict = {}
-    for key, value in dotted.items():
-        *parents, name = key.split(".")
-        target = data
-        for parent in parents:
-            target = target.setdefault(parent, {})
-        target[name] = value
-    return data
-
-
-def legacy_settings(keys: Sequence[str], values: Sequence[str]) -> dict:
-    """Plain data from the key/value string arrays of files written before settings were
-    one JSON string: values were str() or repr() of scalars ("800", "'z'", "consensus",
-    "None"); dotted keys ("deform.gamma") name nested settings."""
-    data = {}
-    for key, text in zip(keys, values):
-        try:
-            data[key] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            data[key] = text  # str() of a word, e.g. consensus
-    return nested_data(data)
-
-
 def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
     """The `cls` settings a loaded file records in array `key`: one JSON string ("null":
-    none recorded), or in files written before that, the key/value string arrays
-    `<key>_keys` / `<key>_values` (`legacy_settings`; none: nothing recorded). Invalid
-    settings are a ModelFileError starting with `label`."""
-    keys, values = f"{key}_keys", f"{key}_values"
+    none recorded), or in files written before that, key/value string arrays
+    (`compat.key_value_settings`; none: nothing recorded). Invalid settings are a
+    ModelFileError starting with `label`."""
     try:
-        if key in arrays or keys not in arrays:
+        if not is_key_value_layout(arrays, key):
             validate_arrays(arrays, {key: ArraySpec("U", ())}, label)
             text = str(arrays[key])
             return None if text == "null" else cls.from_json(text, recorded=True)
-        validate_arrays(arrays, {keys: ArraySpec("U", ("S",)), values: ArraySpec("U", ("S",))}, label)
-        legacy = legacy_settings(arrays[keys].tolist(), arrays[values].tolist())
-        return cls.from_dict(legacy, recorded=True) if legacy else None
+        data = key_value_settings(arrays, label, key)
+        return cls.from_dict(data, recorded=True) if data else None
     except SettingsError as exc:
         raise ModelFileError(f"{label}: recorded settings are invalid: {exc}") from None
 
@@ -236,17 +158,8 @@ def recorded_settings(cls, arrays: Mapping, label: str, key: str = "settings"):
 class Settings:
     """Base of frozen settings dataclasses: checks its fields after construction and
     round-trips through plain data / JSON. Class attributes (not fields) keep files of
-    before readable (`settings_from_dict`):
-
-    - `FIELDS_ADDED_LATER`: a field added after files were written → the value runs
-      recorded in those files used (when it differs from the field's default);
-    - `FIELDS_REMOVED`: a field taken out → why (files that record it still load,
-      `_without_removed`);
-    - `FIELDS_MOVED`: a flat name of before → the dotted place the option moved to when
-      options were grouped (`group`), e.g. {"gamma": "stiffness.gamma", "refine":
-      "refinement.method"}: data naming it flat is read into that place
-      (`_moved_into_place`), so flat JSON and key/value files of before load as the
-      nested settings, and option dicts may keep naming it flat."""
+    before readable, each pointing to its table in `compat.py` (which says what they
+    mean): `FIELDS_ADDED_LATER`, `FIELDS_REMOVED`, `FIELDS_MOVED`."""
 
     def __post_init__(self):
         check_fields(self)

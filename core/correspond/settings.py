@@ -1,7 +1,8 @@
 """Every tunable parameter of the correspondence engine: `CorrespondenceSettings`, one
 frozen settings dataclass (core/settings.py: checks itself, travels as one JSON string)
 nesting one group per subsystem — stiffness, data term, iterations, outliers, refinement.
-Files written before the grouping record the options flat; `FIELDS_MOVED` reads them."""
+Files written before the grouping record the options flat; `FIELDS_MOVED` (its table in
+core/base/compat.py) reads them."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..base.compat import CORRESPONDENCE_MOVED, CORRESPONDENCE_REMOVED, DATA_TERM_ADDED_LATER
 from ..base.settings import Settings, SettingsError, group, option
 from ..meshes.simplify import REGISTRATION_PROXY_FACES
 
@@ -121,9 +123,8 @@ class DataTermSettings(Settings):
       spectral start mirrors (docs/results.md).
     """
 
-    #: files written before these fields existed ran with these values (settings.Settings);
-    #: not annotated: a class attribute, not a field
-    FIELDS_ADDED_LATER = {"feature_between": 0.0, "initialisation": "closest"}
+    #: files written before these fields existed ran with other values (core/base/compat.py)
+    FIELDS_ADDED_LATER = DATA_TERM_ADDED_LATER
 
     bidirectional_weight: float = option(1.0, "λ: weight of target landmarks pulling the template", minimum=0)
     normal_max_angle: float | None = option(60.0, "largest angle (degrees) between matched normals; None: off")
@@ -256,12 +257,6 @@ class RefinementSettings(Settings):
     tolerance: float = option(1e-6, "refinement: stop below this relative decrease of the objective", minimum=0)
 
 
-def _moved(group_name: str, names: tuple[str, ...], prefix: str = "") -> dict[str, str]:
-    """{flat name of before: its dotted place} of the options now in one group: `prefix` +
-    name before, group.name now."""
-    return {f"{prefix}{name}": f"{group_name}.{name}" for name in names}
-
-
 @dataclass(frozen=True)
 class CorrespondenceSettings(Settings):
     """Every parameter of the correspondence engine, with the thesis defaults (§4.2.8)
@@ -278,25 +273,10 @@ class CorrespondenceSettings(Settings):
       all shapes registered again (thesis 1; 0 = pairwise registration only).
     """
 
-    #: where each option of the flat settings of before (files written before issue 35, the
-    #: add-on's option dicts) now lives (settings.Settings); not annotated: a class attribute
-    FIELDS_MOVED = {
-        **_moved("stiffness", ("gamma", "k_neighbours", "alpha_start", "alpha_end", "alpha_steps")),
-        **_moved("data_term", ("bidirectional_weight", "normal_max_angle", "matching", "feature_between",
-                               "initialisation", "distance_weights", "snap_to_vertices")),
-        **_moved("iterations", ("update_template", "tolerance", "max_iterations_per_alpha", "max_iterations", "ridge")),
-        "outlier_mad_factor": "outliers.residual_mad_factor", "outlier_min_ratio": "outliers.residual_min_ratio",
-        **_moved("outliers", ("max_residual", "max_scale_ratio", "loo_mad_factor", "loo_min_ratio", "loo_variance")),
-        "refine": "refinement.method",
-        **_moved("refinement", ("iterations", "compactness", "spread", "regulariser", "normals", "smooth_fields",
-                                "sigma", "step", "max_move", "alignment", "tolerance"), prefix="refine_"),
-    }
-    #: fields taken out (settings.Settings), by their flat names of before: files that record
-    #: them load as today's settings; settings given now that name them are refused, saying why
-    FIELDS_REMOVED = dict.fromkeys(
-        ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
-         "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
-        "a research knob of feature matches, now a constant of core/correspond/features.py (issue 34)")
+    #: flat names of before and fields taken out (core/base/compat.py); not annotated: class
+    #: attributes, not fields
+    FIELDS_MOVED = CORRESPONDENCE_MOVED
+    FIELDS_REMOVED = CORRESPONDENCE_REMOVED
 
     stiffness: StiffnessSettings = group(StiffnessSettings, "the stiffness term and its schedule (§4.2.4, §4.2.6)")
     data_term: DataTermSettings = group(DataTermSettings, "matches, their weights and the start (§4.2.2)")

@@ -16,9 +16,10 @@ from shapegen_core.correspond.settings import (DataTermSettings, IterationSettin
                                                StiffnessSettings)
 from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
-from shapegen_core.app.fit_settings import FitSettings, _nest_prepare
+from shapegen_core.app.fit_settings import FitSettings
 from shapegen_core.app.shape_model import GenerativeShapeModel
 from shapegen_core.app.pipeline import fit_meshes
+from shapegen_core.base.compat import old_model_settings
 from shapegen_core.base.settings import Settings, SettingsError, group, option, recorded_settings
 
 #: the correspondence settings of the `corresponded` fixture as files written before the grouped settings
@@ -165,7 +166,13 @@ def test_fit_settings_round_trip_nested_and_old_files_flat(fitted):
             "model": "ppca", "latent_dim": None, "correspondence": {"alpha_end": 3.0}, "deform": {"final_alpha": 2.5}}
     with pytest.raises(SettingsError, match="has no option 'align'"):  # Prepare options nest under "prepare"
         FitSettings.from_dict(flat)
-    nested = FitSettings.from_dict(_nest_prepare(flat))  # how the settings of old model files are read
+    # model files of the key/value layout record them so, deformation settings as numbers by key
+    keys = {"n_landmarks": "40", "up_axis": "'y'", "align": "pca", "scale": "'bbox'", "centre": "none", "seed": "3",
+            "model": "'ppca'", "latent_dim": "None", "correspondence.alpha_end": "3.0"}
+    arrays = {"settings_keys": np.asarray(list(keys)), "settings_values": np.asarray(list(keys.values())),
+              "deform_keys": np.asarray(["final_alpha", "n_stages"]), "deform_values": np.asarray([2.5, 8.0])}
+    nested = FitSettings.from_dict(old_model_settings(arrays, "old.npz"), recorded=True)
+    assert isinstance(nested.deform.n_stages, int)
     assert nested.prepare == PrepareSettings(n_landmarks=40, up_axis="y", align="pca", scale="bbox", centre="none",
                                              seed=3)
     assert nested.correspondence.stiffness.alpha_end == 3.0 and nested.deform.final_alpha == 2.5
