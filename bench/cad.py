@@ -110,7 +110,7 @@ def written_twins(writers: MeshWriters, mesh: Mesh, template: int, path: Path) -
 
 def measure(meshes: list[Mesh], up_axis: str, n_samples: int, folder: Path) -> dict:
     start = time.perf_counter()
-    model = fit_meshes(meshes, FitSettings(prepare=PrepareSettings(up_axis=up_axis), jobs=1))
+    model = fit_meshes(meshes, FitSettings(prepare=PrepareSettings(up_axis=up_axis)), jobs=1)
     fit_seconds = time.perf_counter() - start
     samples = gated_samples(model, n_samples, 0)
     writers = MeshWriters(model.meshes)

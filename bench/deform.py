@@ -191,7 +191,7 @@ def main() -> int:
 
     start = time.perf_counter()
     vases = make_vases(12, seed=0)
-    model = fit_meshes([v.mesh for v in vases], FitSettings(prepare=PrepareSettings(n_landmarks=args.landmarks), model="bgplvm", jobs=2))
+    model = fit_meshes([v.mesh for v in vases], FitSettings(prepare=PrepareSettings(n_landmarks=args.landmarks), model="bgplvm"), jobs=2)
     print(f"procedural vases: fitted {model.model_type} Q={model.latent_dim} in {time.perf_counter() - start:.1f} s")
     speed(model, results, args.quick)
     quality(model, "procedural vases", 5 if args.quick else 20, results)
@@ -203,7 +203,7 @@ def main() -> int:
             continue
         start = time.perf_counter()
         model = fit_meshes(read_folder(folder), FitSettings(
-            prepare=PrepareSettings(n_landmarks=args.landmarks, up_axis="y"), model="bgplvm", jobs=2))
+            prepare=PrepareSettings(n_landmarks=args.landmarks, up_axis="y"), model="bgplvm"), jobs=2)
         print(f"PSB {cls}: fitted {model.model_type} Q={model.latent_dim} in {time.perf_counter() - start:.1f} s; "
               f"{int(model.correspondence.outliers.sum())} correspondence outlier(s)")
         quality(model, f"PSB {cls}", 5 if args.quick else 20, results)

@@ -80,7 +80,7 @@ def class_model(data: str) -> GenerativeShapeModel:
         return GenerativeShapeModel.load(path)
     start = time.perf_counter()
     meshes, up_axis = class_meshes(data)
-    model = fit_meshes(meshes, FitSettings(prepare=PrepareSettings(up_axis=up_axis), jobs=1))
+    model = fit_meshes(meshes, FitSettings(prepare=PrepareSettings(up_axis=up_axis)), jobs=1)
     path.parent.mkdir(parents=True, exist_ok=True)
     model.save(path)
     print(f"  {data}: fitted {model.model_type} Q={model.latent_dim} in {time.perf_counter() - start:.0f} s "

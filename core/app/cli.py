@@ -23,7 +23,7 @@ from .cli_generate import add_generate_commands
 from ..preprocess.collection import PrepareSettings
 from ..correspond import CorrespondenceSettings
 from ..base.errors import ShapeGenError
-from .fit_settings import FitSettings
+from .fit_settings import FitSettings, RunOptions
 from ..meshes.spill import SpillStore
 
 __all__ = ["main", "build_parser"]
@@ -57,8 +57,9 @@ def cmd_correspond(args: argparse.Namespace) -> int:
                              last="correspond")
         print(f"[correspond] {source.plan.reason}", file=sys.stderr)
         settings = source.plan.settings
-        result = correspond_on_console(prepare_source(source), template=settings.template, jobs=settings.jobs,
-                                       settings=settings.correspondence, scheduler=settings.scheduler)
+        run = settings_from_args(RunOptions, args)
+        result = correspond_on_console(prepare_source(source), template=settings.template, jobs=run.jobs,
+                                       settings=settings.correspondence, scheduler=run.scheduler)
     result.save(args.output)
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
@@ -123,7 +124,7 @@ def _evaluated_correspondence(source, args: argparse.Namespace):
         return source.correspondence
     if args.folds > len(source.meshes):
         raise EvaluationError(f"--folds {args.folds} is more than the {len(source.meshes)} shapes in {source.path}")
-    corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(FitSettings, args).jobs,
+    corr = correspond_on_console(prepare_source(source), jobs=settings_from_args(RunOptions, args).jobs,
                                  settings=settings_from_args(CorrespondenceSettings, args))
     if args.save_correspondence is not None:
         corr.save(args.save_correspondence)
@@ -155,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
     add_skip_unreadable_option(p)
-    add_settings_options(p, FitSettings, ("template", "jobs", "scheduler"))
+    add_settings_options(p, FitSettings, ("template",))
+    add_settings_options(p, RunOptions)
     add_settings_options(p, CorrespondenceSettings)
     p.set_defaults(func=cmd_correspond)
 
@@ -173,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="latent dimension of every model (default: each model's 80 %% variance rule)")
     p.add_argument("--regions", default="top,middle,rear",
                    help="completion regions: top, middle (thirds along up), rear (lowest third along x) (default %(default)s)")
-    add_settings_options(p, FitSettings, ("jobs",))
+    add_settings_options(p, RunOptions, ("jobs",))
     add_settings_options(p, CorrespondenceSettings)
     p.add_argument("--no-figures", action="store_true", help="write report.json and summary.md only")
     p.add_argument("--save-correspondence", type=Path, default=None, metavar="NPZ",

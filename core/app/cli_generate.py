@@ -32,7 +32,7 @@ from .cli_common import (CommandError, _StagedOutput, add_keep_pose_option, add_
                          add_skip_unreadable_option, console_progress, positive_int, prepare_source, read_mesh_folder,
                          read_source, requested_settings, settings_from_args)
 from .cli_sample import cmd_sample
-from .fit_settings import FitSettings
+from .fit_settings import FitSettings, RunOptions
 from .pipeline import fit_meshes, fit_shape_model
 from .shape_model import GenerativeShapeModel
 
@@ -81,7 +81,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"[fit] {source.plan.reason}", file=sys.stderr)
         report = console_progress("fit")
         if source.correspondence is None:
-            model = fit_meshes(prepare_source(source), source.plan.settings, progress=report)
+            run = settings_from_args(RunOptions, args)
+            model = fit_meshes(prepare_source(source), source.plan.settings, progress=report, jobs=run.jobs,
+                               scheduler=run.scheduler)
         else:
             meshes, corr = _meshes_for_correspondence(source.correspondence, args.meshes, args, spill)
             model = fit_shape_model(meshes, corr, source.plan.settings, progress=report)
@@ -276,6 +278,7 @@ def add_generate_commands(sub) -> None:
     p.add_argument("source", type=Path, help="folder of meshes, prepared .npz, or correspondence .npz (+ --meshes)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output model .npz")
     add_settings_options(p, FitSettings)
+    add_settings_options(p, RunOptions)
     add_settings_options(p, PrepareSettings)
     add_keep_pose_option(p)
     p.add_argument("--meshes", type=Path, default=None, help="mesh folder of a correspondence .npz source")

@@ -26,7 +26,7 @@ __all__ = ["fit_meshes", "fit_shape_model", "posed_meshes"]
 
 
 def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progress: Progress | None = None,
-               should_cancel=None) -> GenerativeShapeModel:
+               should_cancel=None, jobs: int | None = None, scheduler: str | None = None) -> GenerativeShapeModel:
     """The whole fit: prepare (§3.4, §4.2.1) → correspond (§4.2) → shape model (§5.3).
 
     Given a PreparedCollection, its own recorded settings win over `settings.prepare`
@@ -36,6 +36,9 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
     Progress fractions (core/base/progress.py): prepare 0–0.15, correspondence 0.15–0.75,
     model 0.75–1. `should_cancel` (None, a callable or an Event) is polled inside every
     step and between them; a cancel raises errors.Cancelled and nothing is returned.
+    `jobs`, `scheduler`: where the registrations run (`RunOptions`, `correspond`): worker
+    processes (None: all cores; 1: in this process) or a Dask cluster. They change how long
+    the fit takes, not the model.
     """
     cancel = CancelCheck(should_cancel, "fit")
     start = time.perf_counter()
@@ -51,9 +54,9 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
                                   should_cancel=cancel)
     cancel()
     _check_variation([s.mesh for s in prepared.shapes])  # before the correspondence's work
-    corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=settings.jobs,
+    corr = correspond(prepared, settings.correspondence, template=settings.template, jobs=jobs,
                       progress=sub_range(progress, 0.15, 0.75, "correspondence: "), should_cancel=cancel,
-                      scheduler=settings.scheduler)
+                      scheduler=scheduler)
     cancel()
     return fit_shape_model(posed_meshes([s.mesh for s in prepared.shapes], corr), corr, settings,
                            progress=sub_range(progress, 0.75, 1.0), should_cancel=cancel, started=start)

@@ -76,16 +76,18 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
     already prepared collection (`prepared`: PreparedCollection .npz; no second Prepare) or
     from the meshes and correspondence of an earlier model (`correspondence_of`: a model
     file; only the shape model is fitted); `settings` are FitSettings as plain data
-    (FitSettings.from_dict)."""
+    (FitSettings.from_dict); `jobs` and `scheduler`, where the registrations run
+    (`RunOptions`), are arguments of their own, as in task_correspond."""
     from ..preprocess.collection import PreparedCollection, prepare_meshes
     from ..meshes.meshset import load_mesh_set
-    from .fit_settings import FitSettings
+    from .fit_settings import FitSettings, RunOptions
     from .shape_model import GenerativeShapeModel
     from .pipeline import fit_meshes, fit_shape_model
     from ..base.progress import sub_range
     from ..meshes.spill import SpillStore
 
     settings = FitSettings.from_dict(arguments.get("settings", {}))
+    run = RunOptions(jobs=arguments.get("jobs"), scheduler=arguments.get("scheduler"))
     if "correspondence_of" in arguments:
         earlier = GenerativeShapeModel.load(arguments["correspondence_of"])
         model = fit_shape_model(earlier.meshes, earlier.correspondence, settings, progress=progress,
@@ -98,7 +100,8 @@ def task_fit(arguments: dict, progress, should_cancel) -> str:
             source = prepare_meshes(_kept(load_mesh_set(arguments["meshes"]), spill), settings.prepare,
                                     progress=sub_range(progress, 0.0, 0.15, "prepare: "), should_cancel=should_cancel,
                                     keep_pose=arguments.get("keep_pose"))
-        model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel)
+        model = fit_meshes(source, settings, progress=progress, should_cancel=should_cancel, jobs=run.jobs,
+                           scheduler=run.scheduler)
         return _save_result(model, arguments, should_cancel, "fit")
 
 
@@ -139,14 +142,18 @@ def task_prepare(arguments: dict, progress, should_cancel) -> str:
 
 
 def task_correspond(arguments: dict, progress, should_cancel) -> str:
-    """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save)."""
+    """Dense correspondence of a prepared collection (.npz written by PreparedCollection.save);
+    `settings` are CorrespondenceSettings as plain data, `jobs` and `scheduler` where the
+    registrations run (`RunOptions`)."""
     from ..preprocess.collection import PreparedCollection
     from ..correspond import CorrespondenceSettings, correspond
+    from .fit_settings import RunOptions
 
     prepared = PreparedCollection.load(arguments["prepared"])
     settings = CorrespondenceSettings.from_dict(arguments.get("settings", {}))
-    result = correspond(prepared, settings, template=arguments.get("template") or None,
-                        jobs=arguments.get("jobs"), progress=progress, should_cancel=should_cancel)
+    run = RunOptions(jobs=arguments.get("jobs"), scheduler=arguments.get("scheduler"))
+    result = correspond(prepared, settings, template=arguments.get("template") or None, jobs=run.jobs,
+                        scheduler=run.scheduler, progress=progress, should_cancel=should_cancel)
     return _save_result(result, arguments, should_cancel, "correspondence")
 
 

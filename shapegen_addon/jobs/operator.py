@@ -1,6 +1,7 @@
 """`JobOperator`: what the operators that run core work in a worker (Prepare, Find
 Correspondences, Fit) share — the collection they work on, Extra Settings as JSON over
-the panel's settings, `wait`, and one background job at a time."""
+the panel's settings (run options such as `jobs` among them, handed to the job beside its
+settings, never recorded), `wait`, and one background job at a time."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Callable
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
+from ...core.app.fit_settings import split_run_options
 from .runtime import no_job_running, run_worker_job
 
 __all__ = ["JobOperator", "merge_settings"]
@@ -47,7 +49,8 @@ class JobOperator:
     extra_settings: StringProperty(
         name="Extra Settings", default="",
         description='More settings as JSON over the panel\'s: Prepare options, CorrespondenceSettings fields '
-                    '(Find Correspondences) or FitSettings fields, nested as FitSettings nests them (Fit), '
+                    '(Find Correspondences) or FitSettings fields, nested as FitSettings nests them (Fit), and '
+                    'how the job runs ("jobs": worker processes, "scheduler": a Dask cluster), '
                     'e.g. {"jobs": 1, "prepare": {"seed": 2}}',
     )
     wait: BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
@@ -71,17 +74,18 @@ class JobOperator:
             self.report({"ERROR"}, f"No collection named '{name}'" if name else "Choose a training collection first")
         return collection
 
-    def job_options(self, base: dict, check: Callable[[dict], object]) -> dict | None:
-        """`base` (from the panel) merged with Extra Settings, checked by `check(options)`
-        (which raises TypeError or ValueError) before any worker starts. None (reported)
-        when the settings are invalid."""
+    def job_options(self, base: dict, check: Callable[[dict], object]) -> tuple[dict, dict] | None:
+        """(options, run): `base` (from the panel) merged with Extra Settings, checked by
+        `check(options)` (which raises TypeError or ValueError) before any worker starts,
+        and the run options Extra Settings name (core.app.fit_settings.RunOptions: `jobs`,
+        `scheduler`), for the job's arguments. None (reported) when either is invalid."""
         try:
-            options = merge_settings(base, _parse_extra_settings(self.extra_settings))
+            run, options = split_run_options(merge_settings(base, _parse_extra_settings(self.extra_settings)))
             check(options)
         except (TypeError, ValueError) as exc:
             self.report({"ERROR"}, f"Invalid {self.job_name} settings: {exc}")
             return None
-        return options
+        return options, {name: value for name, value in run.as_dict().items() if value is not None}
 
     def run_job(self, context, start: Callable, started: str) -> set[str]:
         """Start the job (`start(folder)`, see runtime.run_worker_job), then wait for it

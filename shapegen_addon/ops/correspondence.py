@@ -87,15 +87,16 @@ class SHAPEGEN_OT_find_correspondences(JobOperator, bpy.types.Operator):
         if len(objects) < 2:
             self.report({"ERROR"}, f"'{collection.name}' has {len(objects)} prepared shape(s); need at least 2")
             return {"CANCELLED"}
-        options = self.job_options(context.scene.shapegen.correspondence_options(), _check_correspondence_settings)
-        if options is None:
+        checked = self.job_options(context.scene.shapegen.correspondence_options(), _check_correspondence_settings)
+        if checked is None:
             return {"CANCELLED"}
+        options, run = checked
 
         def start(folder: Path) -> None:
             prepared = to_prepared_collection(objects)
             prepared.settings = recorded_prepare_settings(collection)  # the correspondence records them
             prepared.save(folder / "prepared.npz")
-            job = BackgroundJob("correspond", {"prepared": str(folder / "prepared.npz"), "settings": options,
+            job = BackgroundJob("correspond", {"prepared": str(folder / "prepared.npz"), "settings": options, **run,
                                                "output": str(folder / "correspondence.npz")})
             MANAGER.start(job, _finish, label=f"correspond '{collection.name}'", folder=folder,
                           payload={"scene": context.scene.name, "collection": collection.name}, prepare=_load)

@@ -254,9 +254,10 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
         triangulated = _triangulation_line(meshes)
         if triangulated:
             self.report({"INFO"}, triangulated)
-        options = self.job_options(settings.prepare_options(), _check_prepare_options)
-        if options is None:
+        checked = self.job_options(settings.prepare_options(), _check_prepare_options)
+        if checked is None:
             return {"CANCELLED"}
+        options, run = checked
         payload = {"scene": context.scene.name, "source": source.name, "objects": [o.name for o in mesh_objects],
                    "vertex_counts": [r.n_vertices for r in readings], "evaluated": evaluated,
                    "reversed_polygons": [r.reversed_polygons for r in readings], "notes": notes,
@@ -267,7 +268,7 @@ class SHAPEGEN_OT_prepare(JobOperator, bpy.types.Operator):
         def start(folder: Path) -> None:
             mesh_file = folder / "meshes.npz"
             job = BackgroundJob("prepare", {"meshes": str(mesh_file), "settings": options, "keep_pose": keep_pose,
-                                            "output": str(folder / "prepared.npz")})
+                                            **run, "output": str(folder / "prepared.npz")})
             MANAGER.start(job, _finish_prepare, label=f"prepare '{source.name}'", folder=folder, payload=payload,
                           prepare=_load_prepared,
                           setup=lambda: save_mesh_set(mesh_file, [m.name for m in meshes], [m.vertices for m in meshes],

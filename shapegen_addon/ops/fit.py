@@ -55,9 +55,10 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
             self.report({"ERROR"}, f"Collection '{collection.name}' has {len(objects)} mesh object(s); "
                         "a shape model needs at least 2")
             return {"CANCELLED"}
-        options = self.job_options(settings.fit_options(), fitting.check_fit_settings)
-        if options is None:
+        checked = self.job_options(settings.fit_options(), fitting.check_fit_settings)
+        if checked is None:
             return {"CANCELLED"}
+        options, run = checked
         evaluated = not settings.prepare.use_base_mesh
         try:
             plan = fitting.plan_fit(scene, collection, objects, options, evaluated)
@@ -68,7 +69,7 @@ class SHAPEGEN_OT_fit(JobOperator, bpy.types.Operator):
 
         def start(folder: Path) -> None:
             inputs, setup = fitting.fit_inputs(plan, settings, objects, evaluated, folder)
-            job = BackgroundJob("fit", {**inputs, "settings": options, "output": str(folder / "model.npz")})
+            job = BackgroundJob("fit", {**inputs, **run, "settings": options, "output": str(folder / "model.npz")})
             MANAGER.start(job, fitting.finish, label=f"fit '{collection.name}'", folder=folder,
                           payload={"scene": scene.name, "name": collection.name, "reused": plan.reused_labels},
                           prepare=fitting.load_result, setup=setup)

@@ -139,7 +139,7 @@ def fit_vase_models(extension: str, kinds, n: int, latent_dim: int | None) -> di
     correspond = addon_module(extension, "core.correspond")
     collection = addon_module(extension, "core.preprocess.collection")
     meshes = [s.mesh for s in datasets.make_vases(n, seed=VASE_SEED, resolution=VASE_RESOLUTION)]
-    settings = fit_settings.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim, jobs=1,
+    settings = fit_settings.FitSettings(prepare=collection.PrepareSettings(n_landmarks=100), latent_dim=latent_dim,
                                     correspondence=correspond.CorrespondenceSettings.from_dict(FAST_FIT["correspondence"]))
     prepared = collection.prepare_meshes(meshes, settings.prepare)
     corr = correspond.correspond(prepared, settings.correspondence, template=settings.template, jobs=1)

@@ -82,11 +82,13 @@ def test_fit_worker_keeps_the_flagged_poses(extension, tmp_path):
     meshes[2] = meshes[2].with_vertices(meshes[2].vertices * [1.0, -1.0, -1.0])
     meshset.save_mesh_set(tmp_path / "meshes.npz", [m.name for m in meshes], [m.vertices for m in meshes],
                           [m.faces for m in meshes])
-    options = {**FAST_FIT, "model": "ppca", "latent_dim": 1, "prepare": {"n_landmarks": 50}}
+    fast = {name: value for name, value in FAST_FIT.items() if name != "jobs"}  # jobs: an argument of its own
+    options = {**fast, "model": "ppca", "latent_dim": 1, "prepare": {"n_landmarks": 50}}
     fitted = []
     for keep in ([False] * 8, [i == 2 for i in range(8)]):
         output = worker.task_fit({"meshes": str(tmp_path / "meshes.npz"), "keep_pose": keep, "settings": options,
-                                  "output": str(tmp_path / f"model{len(fitted)}.npz")}, lambda f, stage: None, None)
+                                  "jobs": FAST_FIT["jobs"], "output": str(tmp_path / f"model{len(fitted)}.npz")},
+                                 lambda f, stage: None, None)
         fitted.append(shape_model.GenerativeShapeModel.load(output).meshes)
     turned, kept = fitted
     np.testing.assert_allclose(turned[0].vertices, kept[0].vertices, rtol=0, atol=1e-12)

@@ -122,8 +122,8 @@ def test_changing_only_the_model_type_reuses_the_correspondence(extension, jobs)
     first = store.get_model(bpy.context.scene)
     assert "correspondence of model" not in settings.job_message
 
-    settings.fit.model, settings.fit.latent_dim = "gplvm", 1
-    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json()) == {"FINISHED"}
+    settings.fit.model, settings.fit.latent_dim = "gplvm", 1  # and another run option: how a run is scheduled
+    assert bpy.ops.shapegen.fit(wait=True, extra_settings=fast_fit_json(jobs=2)) == {"FINISHED"}
     assert "reusing 'vases Prepared' and the correspondence of model 'vases'" in settings.job_message
     second = store.get_model(bpy.context.scene)
     assert second.model_type == "gplvm" and second.latent_dim == 1
@@ -223,6 +223,8 @@ def test_fit_refuses_bad_input_before_starting_a_worker(extension, jobs):
         bpy.ops.shapegen.fit(extra_settings='{"correspondence": {"no_such_option": 1}}')
     with pytest.raises(RuntimeError, match=r"Invalid fit settings: prepare\.n_landmarks must be at least 4, got 2"):
         bpy.ops.shapegen.fit(extra_settings='{"prepare": {"n_landmarks": 2}}')  # nested over the panel's
+    with pytest.raises(RuntimeError, match="Invalid fit settings: jobs must be at least 1, got 0"):
+        bpy.ops.shapegen.fit(extra_settings='{"jobs": 0}')  # a run option, checked as the core checks it
     with pytest.raises(RuntimeError, match="Invalid fit settings: FitSettings has no option 'seed'"):
         bpy.ops.shapegen.fit(extra_settings='{"seed": 2}')  # Prepare's options nest under "prepare"
     with pytest.raises(RuntimeError, match="No collection named 'missing'"):

@@ -104,9 +104,9 @@ def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
     from shapegen_core.app.pipeline import fit_meshes
 
     meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
-    settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca", jobs=1,
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca",
                            correspondence=CorrespondenceSettings(iterations=IterationSettings(max_iterations=6)))
-    model_path = fit_meshes(meshes, settings).save(tmp_path / "model.npz")
+    model_path = fit_meshes(meshes, settings, jobs=1).save(tmp_path / "model.npz")
     common = ["sample", str(model_path), "-n", "64", "--seed", "3"]
     assert main(common + ["-o", str(tmp_path / "pool"), "--jobs", "2"]) == 0
     assert main(common + ["-o", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0

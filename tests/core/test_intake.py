@@ -260,7 +260,7 @@ def stl_model(tmp_path_factory):
     shapes = make_vases(6, seed=2, resolution=(14, 18))
     write_collection(shapes, folder, "stl")
     meshes = read_folder(folder)
-    return folder, shapes, meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", jobs=1))
+    return folder, shapes, meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca"), jobs=1)
 
 
 def test_stl_files_are_read_as_connected_outward_surfaces(stl_model):
@@ -369,7 +369,7 @@ def cad_model(tmp_path_factory):
     for shape in make_vases(4, seed=2, resolution=(12, 16)):
         _cad_obj(shape.mesh, folder / f"{shape.name}.obj", rng)
     meshes = read_folder(folder)
-    return meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", jobs=1))
+    return meshes, fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca"), jobs=1)
 
 
 def test_samples_of_a_double_sided_class_are_written_one_sided_outward_with_their_label(cad_model, tmp_path):

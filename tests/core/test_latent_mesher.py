@@ -19,11 +19,11 @@ from shapegen_core.app.pipeline import fit_meshes
 @pytest.fixture(scope="module")
 def fitted():
     shapes = make_vases(6, seed=1, resolution=(12, 16))
-    settings = FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", latent_dim=2, jobs=1,
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", latent_dim=2,
                            correspondence=CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=2),
                                                                  iterations=IterationSettings(max_iterations=6),
                                                                  groupwise_rounds=0))
-    return fit_meshes([s.mesh for s in shapes], settings)
+    return fit_meshes([s.mesh for s in shapes], settings, jobs=1)
 
 
 @pytest.mark.parametrize("kind", ["ppca", "gplvm", "bgplvm"])

@@ -155,7 +155,7 @@ def test_a_pin_far_outside_the_class_is_followed_as_far_as_the_model_allows(mode
 def vase_model():
     shapes = make_vases(6, seed=2, resolution=(14, 18))
     return fit_meshes([s.mesh for s in shapes],
-                      FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca", jobs=1))
+                      FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca"), jobs=1)
 
 
 def test_pins_at_a_training_shape_give_that_shape_within_its_reconstruction_error(vase_model):

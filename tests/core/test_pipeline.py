@@ -18,7 +18,7 @@ from shapegen_core.app.pipeline import fit_meshes
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     shapes = make_vases(6, seed=2, resolution=(14, 18))
-    model = fit_meshes([s.mesh for s in shapes], FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca", jobs=1))
+    model = fit_meshes([s.mesh for s in shapes], FitSettings(prepare=PrepareSettings(n_landmarks=80), model="ppca"), jobs=1)
     path = tmp_path_factory.mktemp("model") / "model.npz"
     model.save(path)
     return model, path
@@ -107,9 +107,9 @@ def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_th
     from shapegen_core.base.errors import Cancelled
 
     meshes = [s.mesh for s in make_vases(4, seed=5, resolution=(12, 16))]
-    settings = FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca", jobs=1)
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca")
     events = []
-    fit_meshes(meshes, settings, progress=lambda f, m: events.append((f, m)))
+    fit_meshes(meshes, settings, progress=lambda f, m: events.append((f, m)), jobs=1)
     fractions = [f for f, _ in events]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0 and events[-1][1] == "fitted"
     stages = [m.split(":")[0] for _, m in events]
@@ -126,7 +126,7 @@ def test_fit_progress_runs_through_its_stages_forward_and_cancel_stops_any_of_th
                 stop.set()
 
         with pytest.raises(Cancelled):
-            fit_meshes(meshes, settings, progress=progress, should_cancel=stop)
+            fit_meshes(meshes, settings, progress=progress, should_cancel=stop, jobs=1)
         assert seen[-1].startswith(stage)  # stopped at the next check, before another report
 
 

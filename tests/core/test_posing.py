@@ -186,8 +186,8 @@ def test_the_poses_round_trip_through_the_correspondence_file_and_older_files_lo
 
 
 def test_the_model_learns_and_meshes_in_the_model_frame_and_its_file_keeps_the_poses(prepared, tmp_path):
-    settings = FitSettings(model="ppca", latent_dim=1, template="blob1", jobs=1, correspondence=_settings("spectral"))
-    model = fit_meshes(prepared, settings)
+    settings = FitSettings(model="ppca", latent_dim=1, template="blob1", correspondence=_settings("spectral"))
+    model = fit_meshes(prepared, settings, jobs=1)
     corr = model.correspondence
     turned = model.names.index(TURNED)
     assert corr.posed[turned]

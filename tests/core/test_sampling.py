@@ -21,7 +21,7 @@ from shapegen_core.generate.sampling import (TEMPLATES_TRIED, GatedSample, draw_
 @pytest.fixture(scope="module")
 def model():
     meshes = [s.mesh for s in make_vases(6, seed=5, resolution=(14, 18))]
-    return fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca", jobs=1))
+    return fit_meshes(meshes, FitSettings(prepare=PrepareSettings(n_landmarks=60), model="ppca"), jobs=1)
 
 
 class FailingGate:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -16,7 +17,7 @@ from shapegen_core.correspond.settings import (DataTermSettings, IterationSettin
                                                StiffnessSettings)
 from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
-from shapegen_core.app.fit_settings import FitSettings
+from shapegen_core.app.fit_settings import FitSettings, RunOptions, split_run_options
 from shapegen_core.app.shape_model import GenerativeShapeModel
 from shapegen_core.app.pipeline import fit_meshes
 from shapegen_core.base.compat import old_model_settings
@@ -52,10 +53,10 @@ def corresponded(prepared):
 
 @pytest.fixture(scope="module")
 def fitted(small_vases, tmp_path_factory):
-    settings = FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", jobs=1, mesh_template="vase_003",
+    settings = FitSettings(prepare=PrepareSettings(n_landmarks=40), model="ppca", mesh_template="vase_003",
                            correspondence=replace(SMALL, stiffness=StiffnessSettings(alpha_steps=2),
                                                   iterations=IterationSettings(max_iterations=6)))
-    model = fit_meshes([s.mesh for s in small_vases[:4]], settings)
+    model = fit_meshes([s.mesh for s in small_vases[:4]], settings, jobs=1)
     return model, model.save(tmp_path_factory.mktemp("model") / "model.npz")
 
 
@@ -87,7 +88,6 @@ def test_invalid_prepare_settings_name_the_option_and_what_is_allowed(options, n
 
 @pytest.mark.parametrize("options,named", [
     ({"latent_dim": 0}, "latent_dim"),
-    ({"jobs": 0}, "jobs"),
     ({"mesh_template": ""}, "mesh_template"),
     ({"deform": {"final_alpha": 0.0}}, "deform.final_alpha"),
     ({"deform": {"gamma": -1.0}}, "deform.gamma"),
@@ -316,6 +316,29 @@ def test_model_files_of_the_previous_version_still_load(fitted, tmp_path):
     assert isinstance(loaded.deform_settings.n_stages, int)
 
 
+def test_run_options_are_options_of_the_run_never_recorded(fitted, tmp_path, capsys):
+    """How a run is scheduled (`RunOptions`: jobs, scheduler) is not what the model is: a
+    model file records neither; a file that records them (as model files did) reads as if
+    it had not, without a word; named among the model's settings now they are refused,
+    saying where they go."""
+    model, path = fitted
+    with np.load(path) as data:
+        recorded = json.loads(str(data["settings"]))
+    assert not {"jobs", "scheduler"} & set(recorded)
+    old = _rewrite(path, tmp_path / "old.npz",
+                   settings=np.asarray(json.dumps({**recorded, "jobs": 3, "scheduler": "local:2"})))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert GenerativeShapeModel.load(old).settings == model.settings
+    assert capsys.readouterr() == ("", "")
+    with pytest.raises(SettingsError, match=r"^jobs was removed: .*an option of the run \(--jobs, --scheduler"):
+        FitSettings.from_dict({"jobs": 1})
+    assert split_run_options({"jobs": 2, "model": "ppca"}) == (RunOptions(jobs=2), {"model": "ppca"})
+    assert split_run_options({}) == (RunOptions(), {})
+    with pytest.raises(SettingsError, match="^jobs must be at least 1, got 0$"):
+        split_run_options({"jobs": 0})
+
+
 # ---------------------------------------------------------------------------- defaults it records
 def test_choose_template_reads_the_recorded_mesh_template(fitted):
     """The default meshing template is a recorded setting (it read a key nothing wrote)."""
@@ -335,8 +358,8 @@ def test_an_unknown_mesh_template_is_refused_before_fitting(small_vases):
 
 def test_a_prepared_collection_fits_with_its_own_settings(prepared):
     """The model records how its shapes were prepared, not FitSettings' defaults."""
-    settings = FitSettings(model="ppca", jobs=1, correspondence=SMALL)
-    model = fit_meshes(prepared, settings)
+    settings = FitSettings(model="ppca", correspondence=SMALL)
+    model = fit_meshes(prepared, settings, jobs=1)
     assert model.settings.prepare == PrepareSettings(n_landmarks=30, up_axis="y", seed=2)
     unrecorded = PreparedCollection(prepared.shapes, prepared.landmarks)
-    assert fit_meshes(unrecorded, settings).settings.prepare == settings.prepare
+    assert fit_meshes(unrecorded, settings, jobs=1).settings.prepare == settings.prepare

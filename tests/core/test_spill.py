@@ -143,8 +143,8 @@ def test_the_store_is_removed_after_success_error_and_cancel(folder):
             def progress(fraction, message):
                 if "correspondence" in message:
                     asked.set()  # cancel once correspondence has started
-            fit_meshes(meshes, FitSettings(prepare=SETTINGS, model="ppca", jobs=1, correspondence=CORRESPONDENCE),
-                       progress=progress, should_cancel=asked)
+            fit_meshes(meshes, FitSettings(prepare=SETTINGS, model="ppca", correspondence=CORRESPONDENCE),
+                       progress=progress, should_cancel=asked, jobs=1)
     assert asked.is_set() and not store.folder.exists()
     with pytest.raises(Exception, match="spill store was closed"):
         meshes[0].load()

@@ -12,8 +12,8 @@ import pytest
 from shapegen_core.preprocess.collection import PreparedCollection, PrepareSettings, prepare_meshes
 from shapegen_core.correspond import CorrespondenceSettings
 from shapegen_core.demo_data import make_vases
-from shapegen_core.app.fit_settings import FitSettings
-from shapegen_core.app.stages import Offered, SettingsConflict, plan_stages, read_offered, same_shapes
+from shapegen_core.app.fit_settings import RUN_OPTIONS, FitSettings
+from shapegen_core.app.stages import Offered, SettingsConflict, _leaves, plan_stages, read_offered, same_shapes
 
 ASKED = FitSettings(prepare=PrepareSettings(n_landmarks=60), template=None)
 OTHER_PREPARE = PrepareSettings(n_landmarks=60, seed=4)
@@ -96,6 +96,17 @@ def test_changed_files_are_not_reused(stale):
 def test_the_first_current_candidate_is_reused():
     newest_stale, older = found_prepared("'vases Prepared.001'", current=False), found_prepared()
     assert plan_stages(ASKED, [newest_stale, older]).reused == (older,)
+
+
+def test_run_options_never_prevent_reuse():
+    """How a run was scheduled is not what it made: no settings an output records name a run
+    option, and a model whose file recorded some (as model files did) offers its
+    correspondence to a fit that runs otherwise."""
+    assert not {name.split(".")[-1] for name in _leaves(ASKED)} & set(RUN_OPTIONS)
+    had = FitSettings.from_dict({**ASKED.as_dict(), "jobs": 4, "scheduler": "tcp://host:8786"}, recorded=True)
+    assert had == ASKED
+    correspondence, _ = found_correspondence(settings=had.correspondence, prepare=had.prepare, template=had.template)
+    assert plan_stages(ASKED, [found_prepared(), correspondence]).run == ("fit",)
 
 
 def test_found_outputs_without_recorded_settings_are_not_reused():
