@@ -5,7 +5,7 @@ process caches (decoded models, latent meshers) belong to the old file and are d
 every scene's packed model is decoded again, pins are re-applied only once they move
 (depsgraph_update_post, pins.py), a job state left at RUNNING when the file
 was saved (its worker is gone) is reset, and panel settings saved before they were grouped
-by section are moved into their groups (ui.properties.regroup_flat_settings).
+by section are moved into their groups (compat.regroup_flat_settings).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from bpy.app.handlers import persistent
 
 from ..core.base.errors import ShapeGenError
 from . import latent, pins, store
+from .compat import regroup_flat_settings
 from .jobs import MANAGER
-from .ui.properties import regroup_flat_settings
 
 __all__ = ["register_handlers", "unregister_handlers"]
 

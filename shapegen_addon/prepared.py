@@ -132,7 +132,7 @@ def recorded_prepare_settings(collection: bpy.types.Collection) -> PrepareSettin
     unreadable)."""
     text = collection.get(PREPARE_SETTINGS_KEY)
     try:
-        return None if text is None else PrepareSettings.from_json(text)
+        return None if text is None else PrepareSettings.from_json(text, recorded=True)
     except SettingsError:
         return None
 

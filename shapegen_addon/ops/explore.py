@@ -85,12 +85,14 @@ class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
             scene = context.scene
             model = store.require_model(scene)
             seed = scene.shapegen.explore.seed
-            drawn = slider_units(scene).random(model.model.sample_latents, np.random.default_rng(seed))
+            units = slider_units(scene)
+            drawn = units.random(model.model.sample_latents, np.random.default_rng(seed))
             set_values(scene, drawn.values)
             scene.shapegen.explore.seed = seed + 1
+            limit = f"±{units.limit:g}"
             if drawn.clipped:
-                return f"Random shape (seed {seed}): no draw within ±3 in {drawn.redraws + 1}, clipped to ±3"
-            return f"Random shape (seed {seed}{f', {drawn.redraws} redrawn beyond ±3' if drawn.redraws else ''})"
+                return f"Random shape (seed {seed}): no draw within {limit} in {drawn.redraws + 1}, clipped to {limit}"
+            return f"Random shape (seed {seed}{f', {drawn.redraws} redrawn beyond {limit}' if drawn.redraws else ''})"
 
         return _run(self, work)
 

@@ -10,17 +10,67 @@ The running job's progress itself is runtime state (jobs.MANAGER), mirrored into
 from __future__ import annotations
 
 import sys
+from dataclasses import fields
 
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty,
                        PointerProperty, StringProperty)
 
 from ...core.app.fit_settings import FitSettings
+from ...core.models.latent_units import SLIDER_LIMIT
 from ..latent import on_slider_changed
 from ..prepared import PREPARE_SETTINGS
 
 #: the core's defaults, the one source of every default below: Blender and `shapegen` agree
 CORE_DEFAULTS = FitSettings()
+
+#: each panel setting that is a core option: (group of `scene.shapegen`, property) → the
+#: option's dotted path in FitSettings. Its default and limits are the core's (`core_option`);
+#: Shapes Differ in Pose shows `data_term.initialisation` as Auto / On / Off, Latent
+#: Dimension shows None as 0 (Blender has no empty number)
+CORE_OPTIONS = {
+    **{("prepare", name): f"prepare.{name}" for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")},
+    ("correspondence", "stiffness"): "correspondence.stiffness.alpha_end",
+    ("correspondence", "matching"): "correspondence.data_term.matching",
+    ("correspondence", "refine"): "correspondence.refinement.method",
+    ("correspondence", "differ_in_pose"): "correspondence.data_term.initialisation",
+    ("fit", "model"): "model",
+    ("fit", "latent_dim"): "latent_dim",
+    ("fit", "mesh_stiffness"): "deform.final_alpha",
+    ("generate", "sample_template"): "mesh_template",
+}
+#: the panel settings the core has no option for, and why
+BLENDER_ONLY = {
+    ("prepare", "preview_spacing"): "where new objects go in the scene",
+    ("prepare", "use_base_mesh"): "which mesh of an object Prepare reads (modifiers applied or not)",
+    ("generate", "sample_count"): "how many objects Sample adds (`shapegen sample -n` has no default)",
+    ("generate", "interpolate_a"): "an object of the scene",
+    ("generate", "interpolate_b"): "an object of the scene",
+    ("generate", "interpolate_steps"): "in-between objects, ends not counted (`shapegen interpolate -n` counts them)",
+    ("generate", "interpolate_mode"): "objects or a shape-key animation",
+    ("generate", "interpolate_frames"): "animation frames",
+    ("explore", "seed"): "the next Randomise draw's seed, one more after each",
+    ("explore", "map_size"): "pixels of the latent map picture",
+    ("explore", "show_uncertainty"): "a viewport colour attribute",
+}
+
+
+def core_option(path: str, precision: int = 2) -> dict:
+    """Blender property keywords of the FitSettings option at dotted `path` (its place in
+    CORE_OPTIONS): the core's default, and as `min` the lower limit the core checks
+    (`option(minimum=...)`; an exclusive `above` bound becomes the smallest value a field
+    of `precision` decimals shows above it, Blender's limits being inclusive)."""
+    *parents, name = path.split(".")
+    owner = CORE_DEFAULTS
+    for parent in parents:
+        owner = getattr(owner, parent)
+    meta = next(f for f in fields(owner) if f.name == name).metadata
+    keywords = {"default": getattr(owner, name)}
+    if meta.get("minimum") is not None:
+        keywords["min"] = meta["minimum"]
+    elif meta.get("above") is not None:
+        keywords["min"] = meta["above"] + 10 ** -precision
+    return keywords
 
 UP_AXIS_ITEMS = [
     ("z", "Z", "The input's +Z points up (Blender's convention)"),
@@ -104,8 +154,8 @@ class ShapeGenLatent(bpy.types.PropertyGroup):
     and scale are the training latents' mean and standard deviation in that dimension."""
 
     value: FloatProperty(
-        name="Value", default=0.0, soft_min=-3.0, soft_max=3.0, precision=3,
-        description="Move to change the shape; ±3 reaches every training shape",
+        name="Value", default=0.0, soft_min=-SLIDER_LIMIT, soft_max=SLIDER_LIMIT, precision=3,
+        description=f"Move to change the shape; ±{SLIDER_LIMIT:g} reaches every training shape",
         update=_on_latent_changed,
     )
     centre: FloatProperty(name="Centre", default=0.0, options={"HIDDEN"})
@@ -117,18 +167,19 @@ class ShapeGenPrepareSettings(bpy.types.PropertyGroup):
     scales and landmarks the collection, and the gap between the objects it lays out."""
 
     n_landmarks: IntProperty(
-        name="Landmarks", default=CORE_DEFAULTS.prepare.n_landmarks, min=16, max=5000,
+        name="Landmarks", **core_option("prepare.n_landmarks"),
+        soft_max=5000,  # the drag range only: the core sets no upper limit, a typed value may exceed it
         description="Points placed on every shape to compare them. More follow finer detail and take longer",
     )
-    up_axis: EnumProperty(name="Up Axis", items=UP_AXIS_ITEMS, default=CORE_DEFAULTS.prepare.up_axis,
+    up_axis: EnumProperty(name="Up Axis", items=UP_AXIS_ITEMS, **core_option("prepare.up_axis"),
                           description="Which axis points up in your objects (Z in Blender; Y in many OBJ files)")
-    align: EnumProperty(name="Align", items=ALIGN_ITEMS, default=CORE_DEFAULTS.prepare.align,
+    align: EnumProperty(name="Align", items=ALIGN_ITEMS, **core_option("prepare.align"),
                         description="How Prepare turns the shapes to face alike")
-    scale: EnumProperty(name="Scale", items=SCALE_ITEMS, default=CORE_DEFAULTS.prepare.scale,
+    scale: EnumProperty(name="Scale", items=SCALE_ITEMS, **core_option("prepare.scale"),
                         description="How Prepare makes the shapes one size")
-    centre: EnumProperty(name="Centre", items=CENTRE_ITEMS, default=CORE_DEFAULTS.prepare.centre,
+    centre: EnumProperty(name="Centre", items=CENTRE_ITEMS, **core_option("prepare.centre"),
                          description="Which point of each shape Prepare puts over the origin")
-    seed: IntProperty(name="Seed", default=CORE_DEFAULTS.prepare.seed, min=0,
+    seed: IntProperty(name="Seed", **core_option("prepare.seed"),
                       description="Change it for different random landmarks and samples; the same seed gives "
                                   "the same result")
     preview_spacing: FloatProperty(name="Spacing", default=1.5, min=0.0,
@@ -147,13 +198,14 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
     """The Correspondence panel's settings (`scene.shapegen.correspondence`)."""
 
     stiffness: FloatProperty(
-        name="Stiffness", default=CORE_DEFAULTS.correspondence.stiffness.alpha_end, min=0.01, soft_max=100.0,
+        name="Stiffness", **core_option("correspondence.stiffness.alpha_end"),
+        soft_max=CORE_DEFAULTS.correspondence.stiffness.alpha_start,  # drag up to where the schedule starts
         description="How stiffly the landmarks move when matched to each shape: higher keeps them evenly "
                     "spread, lower follows each shape's details closely (5 suits vases and mugs, 10 cars)",
     )
-    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default=CORE_DEFAULTS.correspondence.data_term.matching,
+    matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, **core_option("correspondence.data_term.matching"),
                            description="What each landmark is matched to on every shape")
-    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refinement.method,
+    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, **core_option("correspondence.refinement.method"),
                          description="An extra pass after matching")
     differ_in_pose: EnumProperty(
         name="Shapes Differ in Pose", items=POSE_ITEMS,
@@ -166,23 +218,29 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
 
     def options(self) -> dict:
         """CorrespondenceSettings options by their flat names (`CorrespondenceSettings.FIELDS_MOVED`
-        reads them into its groups): the stiffness schedule ends at `stiffness`; `matching`,
-        `refine`; `initialisation` from Shapes Differ in Pose (Auto / On: spectral / Off: closest)."""
-        return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
+        reads them into its groups): the stiffness schedule ends at `stiffness` and starts where
+        the core's does, or at `stiffness` when that is higher (the core's check: the first α is
+        at least the last); `matching`, `refine`; `initialisation` from Shapes Differ in Pose
+        (Auto / On: spectral / Off: closest)."""
+        start = max(CORE_DEFAULTS.correspondence.stiffness.alpha_start, self.stiffness)
+        return {"alpha_end": self.stiffness, "alpha_start": start, "matching": self.matching,
                 "refine": self.refine, "initialisation": INITIALISATION_OF[self.differ_in_pose]}
 
 
 class ShapeGenFitSettings(bpy.types.PropertyGroup):
     """The Model panel's settings (`scene.shapegen.fit`): the shape model and its meshing."""
 
-    model: EnumProperty(name="Model", items=MODEL_ITEMS, default=CORE_DEFAULTS.model,
+    model: EnumProperty(name="Model", items=MODEL_ITEMS, **core_option("model"),
                         description="The kind of model that learns the shapes")
     latent_dim: IntProperty(
-        name="Latent Dimension", default=CORE_DEFAULTS.latent_dim or 0, min=0, soft_max=20,
+        name="Latent Dimension", default=CORE_DEFAULTS.latent_dim or 0,
+        min=0,  # 0 shows the core's None (the 80 % rule); every other value is at least the core's minimum, 1
+        soft_max=20,  # the drag range only: the core's limit is the collection's
         description="How many ways the shapes may vary (one slider each). 0: as many as the collection needs",
     )
     mesh_stiffness: FloatProperty(
-        name="Meshing Stiffness", default=CORE_DEFAULTS.deform.final_alpha, min=0.01, soft_max=100.0,
+        name="Meshing Stiffness", **core_option("deform.final_alpha"),
+        soft_max=CORE_DEFAULTS.deform.start_alpha,  # drag up to where the meshing schedule starts
         description="How stiffly new shapes are bent out of a training object: higher keeps its surface smooth "
                     "and unbroken, lower follows the new shape more closely",
     )
@@ -192,7 +250,7 @@ class ShapeGenGenerateSettings(bpy.types.PropertyGroup):
     """The Generate panel's settings (`scene.shapegen.generate`): samples and in-betweens."""
 
     sample_count: IntProperty(name="Count", default=6, min=1, soft_max=100, description="How many new shapes to make")
-    sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, default=CORE_DEFAULTS.mesh_template,
+    sample_template: EnumProperty(name="Template", items=TEMPLATE_ITEMS, **core_option("mesh_template"),
                                   description="Which training object a new shape's mesh is made from")
     interpolate_a: PointerProperty(name="From", type=bpy.types.Object,
                                    description="The first shape: a training object or a ShapeGen sample")
@@ -259,50 +317,16 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
 
     def fit_options(self) -> dict:
         """FitSettings as plain data (`FitSettings.as_dict()`-shaped): Prepare's options
-        nested under "prepare", the model's, correspondence and meshing stiffness."""
+        nested under "prepare", the model's, correspondence and meshing stiffness (its
+        schedule starting where the core's does, or at the stiffness when that is higher)."""
         fit = self.fit
         return {
             "prepare": self.prepare_options(),
             "model": fit.model, "latent_dim": fit.latent_dim or None,
             "correspondence": self.correspondence_options(),
-            "deform": {"final_alpha": fit.mesh_stiffness, "start_alpha": max(100.0, fit.mesh_stiffness)},
+            "deform": {"final_alpha": fit.mesh_stiffness,
+                       "start_alpha": max(CORE_DEFAULTS.deform.start_alpha, fit.mesh_stiffness)},
         }
-
-
-#: where each panel setting lived in files saved before the settings were grouped by panel
-#: section: old name on `scene.shapegen` → (group, name)
-FLAT_NAMES = {
-    **{name: ("prepare", name) for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed",
-                                            "preview_spacing", "use_base_mesh")},
-    **{name: ("correspondence", name) for name in ("stiffness", "matching", "refine", "differ_in_pose")},
-    "fit_model": ("fit", "model"), "latent_dim": ("fit", "latent_dim"), "mesh_stiffness": ("fit", "mesh_stiffness"),
-    **{name: ("generate", name) for name in ("sample_count", "sample_template", "interpolate_a", "interpolate_b",
-                                             "interpolate_steps", "interpolate_mode", "interpolate_frames")},
-    "explore_seed": ("explore", "seed"), "map_size": ("explore", "map_size"),
-}
-
-
-def regroup_flat_settings(settings: ShapeGenSettings) -> list[str]:
-    """Move the panel settings a .blend saved before they were grouped (Blender keeps them
-    as plain ID properties of `scene.shapegen`: enums as item numbers, booleans as 0/1)
-    into their groups, so an artist's settings survive the update. Returns the old names
-    moved (Blender clamps a value out of range); one of the wrong type is dropped, its name
-    followed by "?"."""
-    moved = []
-    for old, (group, name) in FLAT_NAMES.items():
-        if old not in settings.keys():
-            continue
-        value, target = settings[old], getattr(settings, group)
-        kind = target.bl_rna.properties[name]
-        if kind.type == "ENUM":
-            value = next((item.identifier for item in kind.enum_items if item.value == value), value)
-        try:
-            setattr(target, name, bool(value) if kind.type == "BOOLEAN" else value)
-            moved.append(old)
-        except (TypeError, ValueError):
-            moved.append(f"{old}?")
-        del settings[old]
-    return moved
 
 
 #: the groups before the settings that point to them (Blender registers them in this order)

@@ -197,3 +197,46 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
         core_field = next(f for f in dataclasses.fields(owner) if f.name == field_name)
         enum = rna[group].fixed_type.properties[name]
         assert set(enum.enum_items.keys()) == set(core_field.metadata["choices"]), path
+
+
+def test_each_panel_setting_that_is_a_core_option_has_the_cores_default_and_limits(extension):
+    """A panel setting that is a core option (properties.CORE_OPTIONS) takes its default, its
+    allowed values and its lower limit from the core's settings field, and sets no upper
+    limit the core does not (a soft, drag-only one at most); every other panel setting is
+    named Blender-only with a reason, so no setting holds a default of its own unnoticed."""
+    properties = addon_module(extension, "shapegen_addon.ui.properties")
+    latent_units = addon_module(extension, "core.models.latent_units")
+    defaults = addon_module(extension, "core.app.fit_settings").FitSettings()
+    rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
+    sections = ("prepare", "correspondence", "fit", "generate", "explore")
+    panel = {(section, p.identifier) for section in sections for p in rna[section].fixed_type.properties
+             if p.identifier not in ("rna_type", "name")}
+    assert panel == set(properties.CORE_OPTIONS) | set(properties.BLENDER_ONLY)
+    assert not set(properties.CORE_OPTIONS) & set(properties.BLENDER_ONLY)
+    assert all(properties.BLENDER_ONLY.values())  # each says why the core has no such option
+    for (section, name), path in properties.CORE_OPTIONS.items():
+        prop = rna[section].fixed_type.properties[name]
+        *parents, leaf = path.split(".")
+        owner = defaults
+        for parent in parents:
+            owner = getattr(owner, parent)
+        core, meta = getattr(owner, leaf), next(f for f in dataclasses.fields(owner) if f.name == leaf).metadata
+        if prop.type == "ENUM":
+            shown = properties.INITIALISATION_OF if name == "differ_in_pose" else {k: k for k in prop.enum_items.keys()}
+            assert shown[prop.default] == core, path
+            if meta["choices"] is not None:
+                assert {shown[k] for k in prop.enum_items.keys()} == set(meta["choices"]), path
+            continue
+        if name == "latent_dim":  # 0 shows the core's None
+            assert (prop.default, core, prop.hard_min, meta["minimum"]) == (0, None, 0, 1)
+        else:
+            assert prop.default == pytest.approx(core, rel=1e-6), path
+            if meta["minimum"] is not None:
+                assert prop.hard_min == meta["minimum"], path
+            elif meta["above"] is not None:  # inclusive in Blender: the next value the field shows
+                assert prop.hard_min == pytest.approx(meta["above"] + 10 ** -prop.precision), path
+            else:
+                assert prop.hard_min < -1e9, path
+        assert prop.hard_max > 1e9, path  # the core sets no upper limit
+    value = properties.ShapeGenLatent.bl_rna.properties["value"]
+    assert (value.soft_min, value.soft_max) == (-latent_units.SLIDER_LIMIT, latent_units.SLIDER_LIMIT)
