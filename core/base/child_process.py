@@ -16,9 +16,10 @@ import threading
 
 __all__ = ["exit_with_parent", "how_it_ended", "MEMORY_ADVICE"]
 
-#: what a worker that died of a signal most likely met, and what to try
-MEMORY_ADVICE = ("most likely because the machine ran out of memory; try fewer parallel jobs (--jobs, or Jobs in "
-                 "the panel)")
+#: what a worker that died of a signal most likely met, and what to try: a signal with no
+#: message is most often the kernel's out-of-memory killer, and fewer workers need less memory
+MEMORY_ADVICE = ("most likely because the machine ran out of memory; try fewer parallel jobs (--jobs, or \"jobs\" "
+                 "in Extra Settings)")
 
 #: exit status of a worker ended because its parent went away
 ORPHAN_EXIT_CODE = 70
