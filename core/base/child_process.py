@@ -16,8 +16,7 @@ import threading
 
 __all__ = ["exit_with_parent", "how_it_ended", "MEMORY_ADVICE"]
 
-#: what a worker that died of a signal most likely met, and what to try: a signal with no
-#: message is most often the kernel's out-of-memory killer, and fewer workers need less memory
+#: what a worker that died of a signal most likely met, and what to try
 MEMORY_ADVICE = ("most likely because the machine ran out of memory; try fewer parallel jobs (--jobs, or \"jobs\" "
                  "in Extra Settings)")
 
