@@ -2,8 +2,16 @@
 
     python bench/correspondence_truth.py [--quick] [--method NAME:key=value,...] [--classes a,b]
                                          [--rows closest,spectral,auto] [--psb-shapes N]
+                                         [--seed N] [--output NAME]
 
-Writes bench_output/correspondence_truth.{json,txt}. Not part of the tests.
+Writes bench_output/correspondence_truth.{json,txt} (--output: bench_output/NAME.{json,txt}).
+Not part of the tests.
+
+Seeds: --seed (default 0) is Prepare's `seed`, the one random choice of a run: the
+surface samples of the pose evidence and each shape's landmarks (shape i's from seed + i).
+The correspondence itself is deterministic (its samples have fixed seeds), and the
+classes' shapes do not change with it (the procedural ones are generated from seed 11).
+Two runs with different seeds of the same method measure its run-to-run noise.
 
 Classes (one PrepareSettings for all but the up axis their files use; no setting tuned
 per class):
@@ -319,9 +327,9 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
     return out
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, population: bool = True) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, population: bool = True, seed: int = 0) -> dict:
     start = time.perf_counter()
-    prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=0))
+    prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=seed))
     vertices = [m.n_vertices for m in bench.meshes]
     log(f"\n== {bench.name}: {len(bench.meshes)} shapes, {min(vertices)}–{max(vertices)} vertices, prepare "
         f"{time.perf_counter() - start:.1f} s" + "".join(f"; {note}" for note in bench.notes))
@@ -438,6 +446,10 @@ def main() -> int:
                         help="comma-separated rows to run (e.g. closest,spectral,auto; population and nricp_amberg "
                              "only when named; default: all)")
     parser.add_argument("--psb-shapes", type=int, default=None, help="shapes per PSB class (default 10, --quick 5)")
+    parser.add_argument("--seed", type=int, default=0, help="Prepare's seed: pose evidence samples and landmarks "
+                                                                 "(default 0)")
+    parser.add_argument("--output", default="correspondence_truth", metavar="NAME",
+                        help="write bench_output/NAME.{json,txt} (default correspondence_truth)")
     parser.add_argument("--table", metavar="JSON", help="only print the table of a report (a run cut short too)")
     args = parser.parse_args()
     if args.table:
@@ -446,22 +458,22 @@ def main() -> int:
     methods, population, nricp = chosen_rows(settings_methods(args.method), args.rows)
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
-    report = {"quick": args.quick, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
+    report = {"quick": args.quick, "seed": args.seed, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
               "load_average_start": os.getloadavg()[0], "classes": {}}
     log(f"methods: {', '.join([*methods, *['population'][:population], *['nricp_amberg'][:nricp]])}; "
-        f"{LANDMARKS} landmarks; jobs {JOBS}")
+        f"{LANDMARKS} landmarks; jobs {JOBS}; Prepare's seed {args.seed}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only, args.psb_shapes):
         pairs = (1 if args.quick or name.startswith("TOSCA") else 2) if nricp else 0
-        report["classes"][name] = run_class(make(), methods, pairs, log, population)
-        (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
+        report["classes"][name] = run_class(make(), methods, pairs, log, population, args.seed)
+        (OUTPUT / f"{args.output}.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "
         "seconds per shape; mean rank over the classes (nricp_amberg not ranked: 2 pairs)")
     for line in table(report):
         log(line)
-    (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
-    (OUTPUT / "correspondence_truth.txt").write_text("\n".join(lines) + "\n")
+    (OUTPUT / f"{args.output}.json").write_text(json.dumps(report, indent=2))
+    (OUTPUT / f"{args.output}.txt").write_text("\n".join(lines) + "\n")
     return 0
 
 
