@@ -60,12 +60,14 @@ from .outliers import flag_outliers, leave_one_out_errors
 from .data_terms import Anchors
 from .registration import Registration, RegistrationProblem, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
+from .diagnostics import CorrespondenceDiagnostics
 from .refine import Refinement, refine_population
 from .settings import MATCHING_METHODS, REFINE_METHODS, CorrespondenceSettings
 
 __all__ = [
     "CorrespondenceSettings",
     "Correspondence",
+    "CorrespondenceDiagnostics",
     "Registration",
     "RegistrationProblem",
     "Anchors",
