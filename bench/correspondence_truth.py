@@ -39,23 +39,22 @@ full 10 per procedural class, every TOSCA shape, the first 10 of each PSB class
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
 shapes other than the template ("mean") and the worst shape's ("max"). Every row is scored
 against its own landmarks on the template shape (the template shape is registered too, so
-landmark i lies elsewhere on it from row to row; population also against the first row's, as
-the tables of docs/results.md measured before were). Time is the correspondence wall time
+landmark i lies elsewhere on it from row to row). Time is the correspondence wall time
 per shape in this process (jobs=1).
 
 Methods:
 * one row per choice of the start (`initialisation`: closest, spectral, auto), the
   default's first, marked "(default)", `CorrespondenceSettings()`;
 * features: `matching="features"`;
-* population: the default's result refined by `refine_population` with `refine="population"`
-  (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
+* (groupwise refinement after NICP had a row, "population", until it was removed: it won
+  no class beyond run-to-run noise, docs/results.md; the code before its removal is in git;)
 * nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes of each procedural
   class and 1 of each TOSCA class (--quick: 1; not on PSB: its dense meshes make it far
   from cheap), compared with closest points on the same pairs;
 * (kernel warps, core/correspond/warps.py, had a row until they were removed: their
   figures are in docs/history.md, the code at bfbd68b;)
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words).
-`--rows` runs only the rows named (population and nricp_amberg only when named).
+`--rows` runs only the rows named (nricp_amberg only when named).
 """
 
 from __future__ import annotations
@@ -74,7 +73,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
-from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
+from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.demo_data import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.base.errors import MeshFileError  # noqa: E402
@@ -280,32 +279,14 @@ def settings_methods(extra: list) -> dict:
     return methods
 
 
-def chosen_rows(methods: dict, rows: str | None) -> tuple[dict, bool, bool]:
+def chosen_rows(methods: dict, rows: str | None) -> tuple[dict, bool]:
     """(the methods named in `rows`, comma-separated names or their first words, e.g.
-    "closest,spectral,auto"; whether population and nricp_amberg run). None: all."""
+    "closest,spectral,auto"; whether nricp_amberg runs). None: all."""
     if rows is None:
-        return methods, True, True
+        return methods, True
     wanted = [r.strip() for r in rows.split(",") if r.strip()]
     kept = {name: options for name, options in methods.items() if name in wanted or name.split()[0] in wanted}
-    return kept, "population" in wanted, "nricp_amberg" in wanted
-
-
-REFINED = CorrespondenceSettings.from_dict({"refine": "population"})
-
-
-def refined_rows(prepared, nicp, nicp_seconds: float) -> dict:
-    """The default's landmarks refined by population descent (the shapes NICP kept;
-    outliers keep NICP's), input frame, with time per shape."""
-    keep = ~nicp.outliers
-    meshes = [s.mesh for s, k in zip(prepared.shapes, keep) if k]
-    start = time.perf_counter()
-    result = refine_population(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
-                               edges=nicp.edges, jobs=JOBS)
-    seconds = time.perf_counter() - start
-    points = nicp.points.copy()
-    points[keep] = result.points
-    return {"population": (np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, points)]),
-                           nicp_seconds + seconds / len(points))}
+    return kept, "nricp_amberg" in wanted
 
 
 def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, shapes=None) -> dict:
@@ -330,7 +311,7 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
     return out
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, population: bool = True, seed: int = 0) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, seed: int = 0) -> dict:
     start = time.perf_counter()
     prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=seed))
     vertices = [m.n_vertices for m in bench.meshes]
@@ -354,12 +335,6 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, populatio
         rows[name]["outliers"] = int(result.outliers.sum())
         rows[name]["starts"] = [m for m in messages if "start" in m and ": " in m]
         log(row_text(name, rows[name], bench.measure))
-    for name, (points_input, seconds) in (refined_rows(prepared, *default) if population else {}).items():
-        rows[name] = summary(bench, t, points_input[t], points_input, seconds)
-        # as scored before rows were scored against their own template landmarks
-        rows[name]["mean_against_first_row"] = summary(bench, t, reference, points_input, seconds)["mean"]
-        log(row_text(name, rows[name], bench.measure) + f"   (against the first row's template landmarks "
-            f"{rows[name]['mean_against_first_row']:.2f})")
     if nricp_pairs and bench.measure == "error":
         targets = [m for m in range(len(bench.meshes)) if m != t][:nricp_pairs]
         theirs = nricp_baseline(prepared, t, targets)
@@ -451,8 +426,8 @@ def main() -> int:
                         help="another row: CorrespondenceSettings fields (repeatable)")
     parser.add_argument("--classes", default=None, help="comma-separated class names (default: all)")
     parser.add_argument("--rows", default=None, metavar="NAMES",
-                        help="comma-separated rows to run (e.g. closest,spectral,auto; population and nricp_amberg "
-                             "only when named; default: all)")
+                        help="comma-separated rows to run (e.g. closest,spectral,auto; nricp_amberg only when named; "
+                             "default: all)")
     parser.add_argument("--psb-shapes", type=int, default=None, help="shapes per PSB class (default 10, --quick 5)")
     parser.add_argument("--seed", type=int, default=0, help="Prepare's seed: pose evidence samples and landmarks "
                                                                  "(default 0)")
@@ -463,17 +438,17 @@ def main() -> int:
     if args.table:
         print("\n".join(table(json.loads(Path(args.table).read_text()))))
         return 0
-    methods, population, nricp = chosen_rows(settings_methods(args.method), args.rows)
+    methods, nricp = chosen_rows(settings_methods(args.method), args.rows)
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
     report = {"quick": args.quick, "seed": args.seed, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
               "load_average_start": os.getloadavg()[0], "classes": {}}
-    log(f"methods: {', '.join([*methods, *['population'][:population], *['nricp_amberg'][:nricp]])}; "
+    log(f"methods: {', '.join([*methods, *['nricp_amberg'][:nricp]])}; "
         f"{LANDMARKS} landmarks; jobs {JOBS}; Prepare's seed {args.seed}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only, args.psb_shapes):
         pairs = (1 if args.quick or name.startswith("TOSCA") else 2) if nricp else 0
-        report["classes"][name] = run_class(make(), methods, pairs, log, population, args.seed)
+        report["classes"][name] = run_class(make(), methods, pairs, log, args.seed)
         (OUTPUT / f"{args.output}.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "

@@ -243,8 +243,8 @@ class Settings:
     - `FIELDS_REMOVED`: a field taken out → why (files that record it still load,
       `_without_removed`);
     - `FIELDS_MOVED`: a flat name of before → the dotted place the option moved to when
-      options were grouped (`group`), e.g. {"gamma": "stiffness.gamma", "refine":
-      "refinement.method"}: data naming it flat is read into that place
+      options were grouped (`group`), e.g. {"gamma": "stiffness.gamma",
+      "outlier_mad_factor": "outliers.residual_mad_factor"}: data naming it flat is read into that place
       (`_moved_into_place`), so flat JSON and key/value files of before load as the
       nested settings, and option dicts may keep naming it flat."""
 

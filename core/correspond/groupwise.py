@@ -17,13 +17,11 @@ from scipy.spatial import cKDTree
 from ..base.errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
 from ..base.progress import Progress, no_progress, sub_range
-from ..meshes.spill import full_mesh
 from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .posing import landmark_poses
-from .refine import refine_population
 from .diagnostics import CorrespondenceDiagnostics
 from .matching import DataTerm, data_term_for
 from .registration import Registration
@@ -138,14 +136,12 @@ def correspond(
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
     rounds = settings.groupwise_rounds + 1
-    refining = settings.refinement.method == "population"
-    nicp_report = sub_range(report, 0.0, REFINE_START) if refining else report
     runner = make_runner(jobs, scheduler, should_cancel)
     dense = dense_shapes(collection.shapes, settings)
     try:
         # dense shapes: proxies first (0-5 % of NICP), exact placement on their full surfaces last (95-100 %)
-        surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(nicp_report, 0.0, 0.05))
-        rounds_report = sub_range(nicp_report, 0.05, 0.95) if dense else nicp_report
+        surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(report, 0.0, 0.05))
+        rounds_report = sub_range(report, 0.05, 0.95) if dense else report
         chosen, rounds_report = start_for(settings).chosen([s.mesh for s in surfaces], landmark_sets, start, runner,
                                                            rounds_report)
         data_term = data_term_for(settings)
@@ -162,7 +158,7 @@ def correspond(
                                       False, surfaces, chosen, data_term)
         if dense:
             registrations = place_dense(outcome.registrations, collection, surfaces, dense, settings, outcome.centre,
-                                       outcome.scale, runner, sub_range(nicp_report, 0.95, 1.0))
+                                       outcome.scale, runner, sub_range(report, 0.95, 1.0))
             outcome = replace(outcome, registrations=registrations,
                               results=[_to_normalised(r, outcome.centre, outcome.scale) for r in registrations],
                               residuals=_relative_residuals(registrations, outcome.scale, collection.shapes))
@@ -174,11 +170,6 @@ def correspond(
     points = np.stack([r.placed.points for r in results])
     face_index = np.stack([r.placed.face_index for r in results])
     barycentric = np.stack([r.placed.barycentric for r in results])
-    trace = np.zeros((0, 3))
-    if refining:
-        points, face_index, barycentric, trace = _refined(collection, outcome.keep, points, face_index, barycentric,
-                                                          outcome.edges, settings,
-                                                          sub_range(report, REFINE_START, 1.0), should_cancel, jobs)
     poses, pose_notes = _posed(collection, names, points, outcome, report)
     report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
     transforms = [shape.transform for shape in collection.shapes]
@@ -201,9 +192,7 @@ def correspond(
         poses=poses,
         diagnostics=CorrespondenceDiagnostics(
             iterations=np.array([r.iterations for r in registrations]), start=chosen.kind, start_reason=chosen.reason,
-            shape_starts=list(outcome.shape_starts), pose_notes=pose_notes,
-            refinement=settings.refinement.method if len(trace) else "none", refinement_trace=trace,
-            **outcome.matching),
+            shape_starts=list(outcome.shape_starts), pose_notes=pose_notes, **outcome.matching),
     )
 
 
@@ -219,25 +208,6 @@ def _posed(collection, names: list[str], points: np.ndarray, outcome: _Rounds, r
         if note:
             report(1.0, f"{name}: {note}")
     return poses, notes
-
-
-#: with refinement, NICP's progress fills [0, REFINE_START] and the refinement the rest
-REFINE_START = 0.8
-
-
-def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
-    """The landmarks of the shapes that fit (`keep`) refined together (refine.py); outliers
-    keep theirs. Returns points, face_index, barycentric and the objective trace."""
-    active = np.flatnonzero(keep)
-    if len(active) < 3:  # no population to speak of: the objective's covariance is degenerate
-        report(1.0, f"refinement skipped: {len(active)} shapes fit")
-        return points, face_index, barycentric, np.zeros((0, 3))
-    meshes = [full_mesh(collection.shapes[i].mesh) for i in active]  # a stored dense mesh loaded (core/spill.py)
-    result = refine_population(meshes, points[active], face_index[active], barycentric[active], settings, report,
-                               should_cancel, edges, jobs)
-    points, face_index, barycentric = points.copy(), face_index.copy(), barycentric.copy()
-    points[active], face_index[active], barycentric[active] = result.points, result.face_index, result.barycentric
-    return points, face_index, barycentric, result.trace
 
 
 def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,

@@ -65,11 +65,6 @@ POSE_ITEMS = [
 #: the core's `data_term.initialisation` of each item and back
 INITIALISATION_OF = {"AUTO": "auto", "ON": "spectral", "OFF": "closest"}
 POSE_ITEM_OF = {value: key for key, value in INITIALISATION_OF.items()}
-REFINE_ITEMS = [
-    ("none", "None", "Use the landmarks as matched (recommended)"),
-    ("population", "Population", "Experimental: afterwards slide the landmarks over the surfaces to make the "
-                                 "collection more alike; slower, not measured better"),
-]
 
 
 MODEL_ITEMS = [
@@ -153,8 +148,6 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
     )
     matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, default=CORE_DEFAULTS.correspondence.data_term.matching,
                            description="What each landmark is matched to on every shape")
-    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, default=CORE_DEFAULTS.correspondence.refinement.method,
-                         description="An extra pass after matching")
     differ_in_pose: EnumProperty(
         name="Shapes Differ in Pose", items=POSE_ITEMS,
         default=POSE_ITEM_OF[CORE_DEFAULTS.correspondence.data_term.initialisation],
@@ -166,10 +159,10 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
 
     def options(self) -> dict:
         """CorrespondenceSettings options by their flat names (`CorrespondenceSettings.FIELDS_MOVED`
-        reads them into its groups): the stiffness schedule ends at `stiffness`; `matching`,
-        `refine`; `initialisation` from Shapes Differ in Pose (Auto / On: spectral / Off: closest)."""
+        reads them into its groups): the stiffness schedule ends at `stiffness`; `matching`;
+        `initialisation` from Shapes Differ in Pose (Auto / On: spectral / Off: closest)."""
         return {"alpha_end": self.stiffness, "alpha_start": max(100.0, self.stiffness), "matching": self.matching,
-                "refine": self.refine, "initialisation": INITIALISATION_OF[self.differ_in_pose]}
+                "initialisation": INITIALISATION_OF[self.differ_in_pose]}
 
 
 class ShapeGenFitSettings(bpy.types.PropertyGroup):
@@ -274,7 +267,7 @@ class ShapeGenSettings(bpy.types.PropertyGroup):
 FLAT_NAMES = {
     **{name: ("prepare", name) for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed",
                                             "preview_spacing", "use_base_mesh")},
-    **{name: ("correspondence", name) for name in ("stiffness", "matching", "refine", "differ_in_pose")},
+    **{name: ("correspondence", name) for name in ("stiffness", "matching", "differ_in_pose")},
     "fit_model": ("fit", "model"), "latent_dim": ("fit", "latent_dim"), "mesh_stiffness": ("fit", "mesh_stiffness"),
     **{name: ("generate", name) for name in ("sample_count", "sample_template", "interpolate_a", "interpolate_b",
                                              "interpolate_steps", "interpolate_mode", "interpolate_frames")},

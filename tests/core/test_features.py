@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from shapegen_core.app.cli import build_parser
 from shapegen_core.app.cli_common import settings_from_args
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond, groupwise,
+from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond,
                                       pool, register)
 from shapegen_core.correspond import data_terms, matching
 from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO_REGION, TRIM, FeatureMatcher,
