@@ -8,7 +8,7 @@ landmarks (posing.py), and each shape's start and pose are recorded."""
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -82,7 +82,7 @@ class _Rounds:
     centre: np.ndarray | None = None  # the registration frame of these rounds
     scale: float = 1.0
     shape_starts: list[str] | None = None  # per shape, its start: "spectral", "closest" or "template"
-    matching: dict | None = None  # what the data term decided (matching.py `RoundMatches.record`)
+    matching: dict = field(default_factory=dict)  # what the data term decided (matching.py `RoundMatches.record`)
 
     @property
     def keep(self) -> np.ndarray:
