@@ -110,7 +110,7 @@ class DataTermSettings(Settings):
       shapes in different poses is no start). "auto": the collection chooses one of the
       two from how its shapes differ (start.py `chosen_start`: far more in space than in
       their Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every
-      shape and records it in the correspondence (`Correspondence.start`). Not the default:
+      shape and records it in the correspondence (`Correspondence.diagnostics.start`). Not the default:
       it misses where closest points fail for reasons other than pose, and where the
       spectral start mirrors (docs/results.md).
     """
