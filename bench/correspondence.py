@@ -17,13 +17,10 @@ Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three part
 3. PSB (shared/data/psb/*, up axis y): label-transfer accuracy = share of landmarks whose
    part label matches the reference (template) shape's, and time per shape.
 
-Groupwise refinement (`refine="population"`, core/correspond/refine.py) adds to
-part 1 a refinement row and ablations (no spread term, no compactness term, fewer
-iterations, no similarity removal, no normals, plain gradient steps), the error decomposition of the refined result, the
-objective at NICP / refined / ground truth and a refinement started at the ground truth,
-and model quality on NICP vs refined landmarks (PPCA held-out log-likelihood, Table 5.1
-completion error, 5 folds); to part 2 the refinement's time on the same collection; to
-part 3 the refined label transfer and model quality per class.
+Parts 1 and 3 also measure the model quality of the landmarks (PPCA held-out
+log-likelihood, Table 5.1 completion error, 5 folds). (Groupwise refinement after NICP had
+rows and ablations here until it was removed: it won no class beyond run-to-run noise,
+docs/results.md; the code before its removal is in git.)
 """
 
 from __future__ import annotations
@@ -43,11 +40,8 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
 from shapegen_core.correspond import (Anchors, CorrespondenceSettings, RegistrationProblem, correspond,  # noqa: E402
-                                      refine_population, register)
-from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, RefinementSettings,  # noqa: E402
-                                               StiffnessSettings)
-from shapegen_core.correspond.objective import PopulationObjective  # noqa: E402
-from shapegen_core.correspond.refine import landmark_state  # noqa: E402
+                                      register)
+from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, StiffnessSettings  # noqa: E402
 from shapegen_core.evaluation.completion import hidden_coordinates, region_mask  # noqa: E402
 from shapegen_core.evaluation.protocol import heldout_folds  # noqa: E402
 from shapegen_core.models.ppca import PPCA  # noqa: E402
@@ -273,15 +267,7 @@ def objective_diagnosis(shapes, prepared, template_index, log, band: float = 0.0
     return out
 
 
-# ---------------------------------------------------------------------------- refinement
-def refined_by(**options) -> CorrespondenceSettings:
-    """The default settings with population refinement (`options`: RefinementSettings')."""
-    return CorrespondenceSettings(refinement=RefinementSettings(method="population", **options))
-
-
-REFINED = refined_by()
-
-
+# ---------------------------------------------------------------------------- model quality
 def model_quality(landmark_matrix: np.ndarray, folds: int = 5, seed: int = 0, meshes=None) -> dict:
     """PPCA (80 % rule) on the landmark rows, k-fold: mean held-out log-likelihood per shape
     and the Table 5.1 completion error of the middle third along z (hidden landmarks chosen
@@ -324,49 +310,6 @@ def completion_on_surface(completed: np.ndarray, own: np.ndarray, mesh) -> float
     return float(100 * (to_surface + to_completed) / 2 / mesh.bbox_diagonal())
 
 
-def population_objective(prepared, corr, settings=REFINED) -> PopulationObjective:
-    """The refinement's objective anchored at NICP's landmarks `corr` (as refine does)."""
-    meshes = [s.mesh for s in prepared.shapes]
-    return PopulationObjective(landmark_state(meshes, corr.points, corr.face_index, corr.barycentric),
-                               [m.area() for m in meshes], settings.refinement.compactness,
-                               settings.refinement.spread, settings.refinement.regulariser, settings.refinement.sigma,
-                               settings.refinement.alignment, settings.refinement.normals)
-
-
-def refined_diagnosis(shapes, prepared, nicp, refined, template_index, log) -> dict:
-    """Is the ground truth closer to the optimum of the refinement's objective? E at NICP,
-    at the refined landmarks and at the ground truth (landmarks at the template landmark's
-    (s, θ) on every shape), and the refinement started AT the ground truth: how far it walks."""
-    lm = prepared.landmarks[template_index]
-    st = shapes[template_index].surface_coordinates(lm.face_index, lm.barycentric)
-    truth_points, truth_faces, truth_barys = [], [], []
-    for m, shape in enumerate(prepared.shapes):
-        placed = TargetSurface(shape.mesh.vertices, shape.mesh.faces).closest(
-            shape.transform.to_normalised(shapes[m].points_at(st)))
-        truth_points.append(placed.points)
-        truth_faces.append(placed.face_index)
-        truth_barys.append(placed.barycentric)
-    truth_points, truth_faces, truth_barys = map(np.stack, (truth_points, truth_faces, truth_barys))
-    objective = population_objective(prepared, nicp)
-    meshes = [s.mesh for s in prepared.shapes]
-    values = {name: objective.evaluate(landmark_state(meshes, *where))[0]
-              for name, where in (("nicp", (nicp.points, nicp.face_index, nicp.barycentric)),
-                                  ("refined", (refined.points, refined.face_index, refined.barycentric)),
-                                  ("ground truth", (truth_points, truth_faces, truth_barys)))}
-    walked = refine_population([s.mesh for s in prepared.shapes], truth_points, truth_faces, truth_barys, REFINED,
-                               edges=nicp.edges)
-    to_input = lambda pts: np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, pts)])  # noqa: E731
-    walk_error = 100 * float(error_vs_template(shapes, template_index, lm, to_input(walked.points)).mean())
-    out = {"objective": {k: {"total": v.total, "compactness": v.compactness, "spread": v.spread}
-                         for k, v in values.items()},
-           "started_at_truth_error_pct": walk_error, "started_at_truth_steps": len(walked.trace) - 1}
-    log("refinement objective (anchored at NICP): " + ", ".join(
-        f"{k} E {v.total:.3f} (C {v.compactness:.3f}, S {v.spread:.4f})" for k, v in values.items()))
-    log(f"refinement started at the ground truth: {len(walked.trace) - 1} steps, error {walk_error:.2f} % "
-        f"(E {walked.trace[0, 0]:.3f} → {walked.trace[-1, 0]:.3f})")
-    return out
-
-
 # ---------------------------------------------------------------------------- part 1
 def procedural(quick: bool, log) -> dict:
     n = 6 if quick else 16
@@ -395,27 +338,6 @@ def procedural(quick: bool, log) -> dict:
             f"{seconds:7.2f} s/shape")
 
     record("ours (groupwise, jobs=1)", group.points, group.face_index, group.barycentric, group_seconds)
-    refinements = {
-        "ours + refinement (population)": REFINED,
-        "refinement - spread term": refined_by(spread=0.0),
-        "refinement - compactness term": refined_by(compactness=0.0),
-        "refinement, 10 iterations": refined_by(iterations=10),
-        "refinement - similarity removal": refined_by(alignment="none"),
-        "refinement - normals": refined_by(normals=0.0),
-        "refinement - smooth fields": refined_by(smooth_fields=0),
-    }
-    refined_results = {}
-    for name, settings in refinements.items():
-        start = time.perf_counter()
-        refined = replace_points(group, refine_population([s.mesh for s in prepared.shapes], group.points,
-                                                          group.face_index, group.barycentric, settings,
-                                                          edges=group.edges))
-        seconds = time.perf_counter() - start
-        refined_results[name] = refined
-        record(name, refined.points, refined.face_index, refined.barycentric, group_seconds + seconds / n)
-        rows[name]["refine_seconds"] = seconds
-        rows[name]["refine_steps"] = len(refined.refinement_trace) - 1
-    refined = refined_results["ours + refinement (population)"]
     variants = {
         "ours pairwise": CorrespondenceSettings(groupwise_rounds=0),
         "- bidirectional term (λ=0)": pairwise(data_term=DataTermSettings(bidirectional_weight=0.0)),
@@ -430,7 +352,6 @@ def procedural(quick: bool, log) -> dict:
     record("naive (bbox + closest point)", *naive_points)
 
     diagnosis = {"ours (groupwise)": decompose(shapes, t, template_lm, group.face_index, group.barycentric),
-                 "ours + refinement": decompose(shapes, t, template_lm, refined.face_index, refined.barycentric),
                  "naive": decompose(shapes, t, template_lm, naive_points[1], naive_points[2])}
     log("error decomposition (vs template, % of the diagonal, shapes other than the template):")
     for name, d in diagnosis.items():
@@ -468,36 +389,16 @@ def procedural(quick: bool, log) -> dict:
         f"at ≤ its error ({ratios['error_ratio_nricp_over_ours']:.2f}); error ≤ 0.4 % "
         f"({ours['error_vs_template_pct']:.2f} %); ≥ 4× below naive ({ratios['naive_over_ours_vs_template']:.2f}×)")
     objective = objective_diagnosis(shapes, prepared, t, log)
-    objective["refinement"] = refined_diagnosis(shapes, prepared, group, refined, t, log)
-    ours_refined = rows["ours + refinement (population)"]["error_vs_template_pct"]
-    d_nicp, d_refined = diagnosis["ours (groupwise)"], diagnosis["ours + refinement"]
-    ratios["naive_over_refined_vs_template"] = float(naive / ours_refined)
-    ratios["profile_part_nicp_over_refined"] = float(d_nicp["profile (s)"] / d_refined["profile (s)"])
-    log(f"refinement targets: error ≤ 1.0 % ({ours_refined:.2f} %), ≥ 2.5× below naive "
-        f"({ratios['naive_over_refined_vs_template']:.2f}×), profile part halved "
-        f"({ratios['profile_part_nicp_over_refined']:.2f}×)")
-    quality = {"nicp": model_quality(group.landmark_matrix()), "refined": model_quality(refined.landmark_matrix())}
+    quality = model_quality(group.landmark_matrix())
     log_quality("procedural", quality, log)
     return {"shapes": n, "vertices": [min(vertices), max(vertices)], "methods": rows, "ratios": ratios,
             "outliers": int(group.outliers.sum()), "diagnosis": diagnosis, "objective": objective,
             "model_quality": quality}
 
 
-def replace_points(corr, refinement):
-    """`corr` with the landmarks and trace of a `refine_population` result (all shapes)."""
-    from dataclasses import replace as replaced
-
-    return replaced(corr, points=refinement.points, face_index=refinement.face_index,
-                    barycentric=refinement.barycentric, refinement="population",
-                    refinement_trace=refinement.trace)
-
-
 def log_quality(label: str, quality: dict, log) -> None:
-    nicp, refined = quality["nicp"], quality["refined"]
-    log(f"{label}: PPCA held-out log-likelihood / shape NICP {nicp['heldout_log_likelihood']:.1f}, refined "
-        f"{refined['heldout_log_likelihood']:.1f}; completion error (middle third) NICP "
-        f"{nicp['completion_error_middle']:.4g}, refined {refined['completion_error_middle']:.4g} "
-        f"(ratio {refined['completion_error_middle'] / nicp['completion_error_middle']:.3f})")
+    log(f"{label}: PPCA held-out log-likelihood / shape {quality['heldout_log_likelihood']:.1f}; completion error "
+        f"(middle third) {quality['completion_error_middle']:.4g}")
 
 
 # ---------------------------------------------------------------------------- part 2
@@ -510,20 +411,12 @@ def collection_timing(quick: bool, log) -> dict:
     start = time.perf_counter()
     result = correspond(prepared, CorrespondenceSettings(), jobs=2)
     seconds = time.perf_counter() - start
-    keep = ~result.outliers
-    start = time.perf_counter()
-    refined = refine_population([s.mesh for s, k in zip(prepared.shapes, keep) if k], result.points[keep],
-                                result.face_index[keep], result.barycentric[keep], REFINED, edges=result.edges,
-                                jobs=2)
-    refine_seconds = time.perf_counter() - start
     load = os.getloadavg()[0]
     log(f"\n== {n} vases, {LANDMARKS} landmarks, groupwise, 2 processes: correspond {seconds:.1f} s "
         f"(target ≤ 120 s for 131), prepare {prepare_seconds:.1f} s, outliers {int(result.outliers.sum())}; "
-        f"refinement (2 processes) {refine_seconds:.1f} s, {len(refined.trace) - 1} steps; NICP + refinement "
-        f"{seconds + refine_seconds:.1f} s (target ≤ 180 s); load average {load:.1f}")
+        f"load average {load:.1f}")
     return {"shapes": n, "correspond_seconds": seconds, "prepare_seconds": prepare_seconds,
-            "outliers": int(result.outliers.sum()), "refine_seconds": refine_seconds,
-            "refine_steps": len(refined.trace) - 1, "load_average": load}
+            "outliers": int(result.outliers.sum()), "load_average": load}
 
 
 # ---------------------------------------------------------------------------- part 3
@@ -558,33 +451,12 @@ def psb(quick: bool, log) -> dict:
             tlo, thi = shape.mesh.bounds()
             placed = TargetSurface(shape.mesh.vertices, shape.mesh.faces).closest(tlo + (lm.points - lo) * (thi - tlo) / (hi - lo))
             naive.append(np.mean(labels[shape.name][placed.face_index] == labels[result.template_name][lm.face_index]))
-        keep = ~result.outliers
-        start = time.perf_counter()
-        refinement = refine_population([s.mesh for s, k in zip(prepared.shapes, keep) if k], result.points[keep],
-                                       result.face_index[keep], result.barycentric[keep], REFINED,
-                                       edges=result.edges)
-        refine_seconds = time.perf_counter() - start
-        faces = result.face_index.copy()
-        faces[keep] = refinement.face_index
-        points = result.points.copy()
-        points[keep] = refinement.points
-        refined_ref = labels[result.template_name][faces[ref]]
-        refined_accuracy = [np.mean(labels[name][faces[m]] == refined_ref)
-                            for m, name in enumerate(result.names) if m != ref]
-        quality = {"nicp": model_quality(result.landmark_matrix()),
-                   "refined": model_quality(points.reshape(len(points), -1))}
+        quality = model_quality(result.landmark_matrix())
         out[folder.name] = {"accuracy": float(np.mean(accuracy)), "accuracy_plain_closest": float(np.mean(plain_accuracy)),
                             "naive_accuracy": float(np.mean(naive)), "seconds_per_shape": seconds,
                             "shapes": len(meshes), "outliers": int(result.outliers.sum()),
-                            "refined_accuracy": float(np.mean(refined_accuracy)),
-                            "refined_accuracy_per_shape": [float(a) for a in refined_accuracy],
                             "accuracy_per_shape": [float(a) for a in accuracy],
-                            "naive_accuracy_per_shape": [float(a) for a in naive],
-                            "refine_seconds": refine_seconds, "model_quality": quality}
-        below = sum(r < nv for r, nv in zip(refined_accuracy, naive))
-        log(f"{folder.name:10s} refined {100 * np.mean(refined_accuracy):5.1f} % (below naive on {below} of "
-            f"{len(naive)} shapes; NICP below naive on {sum(a < nv for a, nv in zip(accuracy, naive))}), "
-            f"refinement {refine_seconds:.1f} s")
+                            "naive_accuracy_per_shape": [float(a) for a in naive], "model_quality": quality}
         log_quality(folder.name, quality, log)
         log(f"{folder.name:10s} label transfer {100 * np.mean(accuracy):5.1f} % (plain closest points "
             f"{100 * np.mean(plain_accuracy):5.1f} %, naive {100 * np.mean(naive):5.1f} %), "

@@ -2,8 +2,16 @@
 
     python bench/correspondence_truth.py [--quick] [--method NAME:key=value,...] [--classes a,b]
                                          [--rows closest,spectral,auto] [--psb-shapes N]
+                                         [--seed N] [--output NAME]
 
-Writes bench_output/correspondence_truth.{json,txt}. Not part of the tests.
+Writes bench_output/correspondence_truth.{json,txt} (--output: bench_output/NAME.{json,txt}).
+Not part of the tests.
+
+Seeds: --seed (default 0) is Prepare's `seed`, the one random choice of a run: the
+surface samples of the pose evidence and each shape's landmarks (shape i's from seed + i).
+The correspondence itself is deterministic (its samples have fixed seeds), and the
+classes' shapes do not change with it (the procedural ones are generated from seed 11).
+Two runs with different seeds of the same method measure its run-to-run noise.
 
 Classes (one PrepareSettings for all but the up axis their files use; no setting tuned
 per class):
@@ -29,22 +37,24 @@ Shapes: --quick 5 per procedural class, 4 cats, 3 men + 3 women, 4 gorillas, 5 P
 full 10 per procedural class, every TOSCA shape, the first 10 of each PSB class
 (--psb-shapes: another count). 800 landmarks (the default).
 True error is the mean distance / the shape's bounding-box diagonal (%), averaged over the
-shapes other than the template ("mean") and the worst shape's ("max"). Time is the
-correspondence wall time per shape in this process (jobs=1).
+shapes other than the template ("mean") and the worst shape's ("max"). Every row is scored
+against its own landmarks on the template shape (the template shape is registered too, so
+landmark i lies elsewhere on it from row to row). Time is the correspondence wall time
+per shape in this process (jobs=1).
 
 Methods:
 * one row per choice of the start (`initialisation`: closest, spectral, auto), the
   default's first, marked "(default)", `CorrespondenceSettings()`;
 * features: `matching="features"`;
-* population: the default's result refined by `refine_population` with `refine="population"`
-  (what `correspond` does with that setting, without running NICP twice; time = NICP + refinement);
+* (groupwise refinement after NICP had a row, "population", until it was removed: it won
+  no class beyond run-to-run noise, docs/results.md; the code before its removal is in git;)
 * nricp_amberg: trimesh's, deforming the template mesh onto 2 shapes of each procedural
   class and 1 of each TOSCA class (--quick: 1; not on PSB: its dense meshes make it far
   from cheap), compared with closest points on the same pairs;
 * (kernel warps, core/correspond/warps.py, had a row until they were removed: their
   figures are in docs/history.md, the code at bfbd68b;)
 * any `--method NAME:key=value,...` (CorrespondenceSettings fields, values as JSON or words).
-`--rows` runs only the rows named (population and nricp_amberg only when named).
+`--rows` runs only the rows named (nricp_amberg only when named).
 """
 
 from __future__ import annotations
@@ -63,7 +73,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
-from shapegen_core.correspond import CorrespondenceSettings, correspond, refine_population  # noqa: E402
+from shapegen_core.correspond import CorrespondenceSettings, correspond  # noqa: E402
 from shapegen_core.correspond.settings import DataTermSettings  # noqa: E402
 from shapegen_core.demo_data import make_handled_mugs, make_quadrupeds, make_vases  # noqa: E402
 from shapegen_core.base.errors import MeshFileError  # noqa: E402
@@ -269,32 +279,14 @@ def settings_methods(extra: list) -> dict:
     return methods
 
 
-def chosen_rows(methods: dict, rows: str | None) -> tuple[dict, bool, bool]:
+def chosen_rows(methods: dict, rows: str | None) -> tuple[dict, bool]:
     """(the methods named in `rows`, comma-separated names or their first words, e.g.
-    "closest,spectral,auto"; whether population and nricp_amberg run). None: all."""
+    "closest,spectral,auto"; whether nricp_amberg runs). None: all."""
     if rows is None:
-        return methods, True, True
+        return methods, True
     wanted = [r.strip() for r in rows.split(",") if r.strip()]
     kept = {name: options for name, options in methods.items() if name in wanted or name.split()[0] in wanted}
-    return kept, "population" in wanted, "nricp_amberg" in wanted
-
-
-REFINED = CorrespondenceSettings.from_dict({"refine": "population"})
-
-
-def refined_rows(prepared, nicp, nicp_seconds: float) -> dict:
-    """The default's landmarks refined by population descent (the shapes NICP kept;
-    outliers keep NICP's), input frame, with time per shape."""
-    keep = ~nicp.outliers
-    meshes = [s.mesh for s, k in zip(prepared.shapes, keep) if k]
-    start = time.perf_counter()
-    result = refine_population(meshes, nicp.points[keep], nicp.face_index[keep], nicp.barycentric[keep], REFINED,
-                               edges=nicp.edges, jobs=JOBS)
-    seconds = time.perf_counter() - start
-    points = nicp.points.copy()
-    points[keep] = result.points
-    return {"population": (np.stack([s.transform.to_input(p) for s, p in zip(prepared.shapes, points)]),
-                           nicp_seconds + seconds / len(points))}
+    return kept, "nricp_amberg" in wanted
 
 
 def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, shapes=None) -> dict:
@@ -319,9 +311,9 @@ def summary(bench: BenchClass, t: int, reference, points_input, seconds: float, 
     return out
 
 
-def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, population: bool = True) -> dict:
+def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, seed: int = 0) -> dict:
     start = time.perf_counter()
-    prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=0))
+    prepared = prepare_meshes(bench.meshes, PrepareSettings(n_landmarks=LANDMARKS, up_axis=bench.up_axis, seed=seed))
     vertices = [m.n_vertices for m in bench.meshes]
     log(f"\n== {bench.name}: {len(bench.meshes)} shapes, {min(vertices)}–{max(vertices)} vertices, prepare "
         f"{time.perf_counter() - start:.1f} s" + "".join(f"; {note}" for note in bench.notes))
@@ -337,12 +329,11 @@ def run_class(bench: BenchClass, methods: dict, nricp_pairs: int, log, populatio
             t = result.names.index(template)
             reference = result.points_input[t]
             default = result, seconds
-        rows[name] = summary(bench, t, reference, result.points_input, seconds)
+        # each row against its own template landmarks: the template shape is registered in
+        # every round too, so where landmark i lies on it differs from row to row
+        rows[name] = summary(bench, t, result.points_input[t], result.points_input, seconds)
         rows[name]["outliers"] = int(result.outliers.sum())
         rows[name]["starts"] = [m for m in messages if "start" in m and ": " in m]
-        log(row_text(name, rows[name], bench.measure))
-    for name, (points_input, seconds) in (refined_rows(prepared, *default) if population else {}).items():
-        rows[name] = summary(bench, t, reference, points_input, seconds)
         log(row_text(name, rows[name], bench.measure))
     if nricp_pairs and bench.measure == "error":
         targets = [m for m in range(len(bench.meshes)) if m != t][:nricp_pairs]
@@ -435,33 +426,37 @@ def main() -> int:
                         help="another row: CorrespondenceSettings fields (repeatable)")
     parser.add_argument("--classes", default=None, help="comma-separated class names (default: all)")
     parser.add_argument("--rows", default=None, metavar="NAMES",
-                        help="comma-separated rows to run (e.g. closest,spectral,auto; population and nricp_amberg "
-                             "only when named; default: all)")
+                        help="comma-separated rows to run (e.g. closest,spectral,auto; nricp_amberg only when named; "
+                             "default: all)")
     parser.add_argument("--psb-shapes", type=int, default=None, help="shapes per PSB class (default 10, --quick 5)")
+    parser.add_argument("--seed", type=int, default=0, help="Prepare's seed: pose evidence samples and landmarks "
+                                                                 "(default 0)")
+    parser.add_argument("--output", default="correspondence_truth", metavar="NAME",
+                        help="write bench_output/NAME.{json,txt} (default correspondence_truth)")
     parser.add_argument("--table", metavar="JSON", help="only print the table of a report (a run cut short too)")
     args = parser.parse_args()
     if args.table:
         print("\n".join(table(json.loads(Path(args.table).read_text()))))
         return 0
-    methods, population, nricp = chosen_rows(settings_methods(args.method), args.rows)
+    methods, nricp = chosen_rows(settings_methods(args.method), args.rows)
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
-    report = {"quick": args.quick, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
+    report = {"quick": args.quick, "seed": args.seed, "landmarks": LANDMARKS, "jobs": JOBS, "numpy": np.__version__,
               "load_average_start": os.getloadavg()[0], "classes": {}}
-    log(f"methods: {', '.join([*methods, *['population'][:population], *['nricp_amberg'][:nricp]])}; "
-        f"{LANDMARKS} landmarks; jobs {JOBS}")
+    log(f"methods: {', '.join([*methods, *['nricp_amberg'][:nricp]])}; "
+        f"{LANDMARKS} landmarks; jobs {JOBS}; Prepare's seed {args.seed}")
     only = None if args.classes is None else set(args.classes.split(","))
     for name, make in classes(args.quick, only, args.psb_shapes):
         pairs = (1 if args.quick or name.startswith("TOSCA") else 2) if nricp else 0
-        report["classes"][name] = run_class(make(), methods, pairs, log, population)
-        (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
+        report["classes"][name] = run_class(make(), methods, pairs, log, args.seed)
+        (OUTPUT / f"{args.output}.json").write_text(json.dumps(report, indent=2))
     report["load_average_end"] = os.getloadavg()[0]
     log("\nmethod × class: true error mean/worst shape (% of the bounding-box diagonal) or PSB label transfer (%), "
         "seconds per shape; mean rank over the classes (nricp_amberg not ranked: 2 pairs)")
     for line in table(report):
         log(line)
-    (OUTPUT / "correspondence_truth.json").write_text(json.dumps(report, indent=2))
-    (OUTPUT / "correspondence_truth.txt").write_text("\n".join(lines) + "\n")
+    (OUTPUT / f"{args.output}.json").write_text(json.dumps(report, indent=2))
+    (OUTPUT / f"{args.output}.txt").write_text("\n".join(lines) + "\n")
     return 0
 
 

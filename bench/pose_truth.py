@@ -76,8 +76,8 @@ def main() -> None:
         mirror = np.linalg.norm(corr.points_input[i] - meshes[n].vertices[sym[n][nearest]], axis=1).mean() / diagonal
         before = up_and_whole(common[n], common[names[t]])
         after = up_and_whole(apply_pose(corr.model_poses[i], common[n]), common[names[t]])
-        start = corr.shape_starts[i] if corr.shape_starts else "?"
-        note = corr.pose_notes[i] if corr.pose_notes else ""
+        start = corr.recorded.shape_starts[i] if corr.recorded.shape_starts else "?"
+        note = corr.recorded.pose_notes[i] if corr.recorded.pose_notes else ""
         print(f"| {n} | {start} | {100 * error:.1f} | {'yes' if mirror < 0.8 * error else ''} | "
               f"{before[0]:.0f} → {after[0]:.0f} | {before[1]:.0f} → {after[1]:.0f} | {note} |")
     print("\n| landmarks | variance share of principal directions 1-4 (%) | directions for 80 % |")

@@ -18,7 +18,7 @@ __all__ = ["FLAT_NAMES", "regroup_flat_settings"]
 FLAT_NAMES = {
     **{name: f"prepare.{name}" for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed",
                                             "preview_spacing", "use_base_mesh")},
-    **{name: f"correspondence.{name}" for name in ("stiffness", "matching", "refine", "differ_in_pose")},
+    **{name: f"correspondence.{name}" for name in ("stiffness", "matching", "differ_in_pose")},
     "fit_model": "fit.model", "latent_dim": "fit.latent_dim", "mesh_stiffness": "fit.mesh_stiffness",
     **{name: f"generate.{name}" for name in ("sample_count", "sample_template", "interpolate_a", "interpolate_b",
                                              "interpolate_steps", "interpolate_mode", "interpolate_frames")},

@@ -7,7 +7,7 @@ Settings classes point to their tables here through class attributes, which
 
 - `FIELDS_MOVED`: a flat name of before → the dotted place the option moved to when
   options were grouped by subsystem (`settings.group`), e.g. "gamma" →
-  "stiffness.gamma", "refine" → "refinement.method". Files written before the grouping
+  "stiffness.gamma". Files written before the grouping
   record them flat, and option dicts may still name them flat (the add-on's panel
   options do, so that Extra Settings naming an option nested override the panel's).
 - `FIELDS_REMOVED`: a field taken out → why. A file that records one reads as if it had
@@ -45,7 +45,7 @@ def _moved(group_name: str, names: tuple[str, ...], prefix: str = "") -> dict[st
 
 
 #: CorrespondenceSettings.FIELDS_MOVED: its options were flat until they were grouped by
-#: subsystem; the outlier and refinement options lost their prefixes then
+#: subsystem; the outlier options lost their prefixes then
 CORRESPONDENCE_MOVED = {
     **_moved("stiffness", ("gamma", "k_neighbours", "alpha_start", "alpha_end", "alpha_steps")),
     **_moved("data_term", ("bidirectional_weight", "normal_max_angle", "matching", "feature_between",
@@ -53,17 +53,24 @@ CORRESPONDENCE_MOVED = {
     **_moved("iterations", ("update_template", "tolerance", "max_iterations_per_alpha", "max_iterations", "ridge")),
     "outlier_mad_factor": "outliers.residual_mad_factor", "outlier_min_ratio": "outliers.residual_min_ratio",
     **_moved("outliers", ("max_residual", "max_scale_ratio", "loo_mad_factor", "loo_min_ratio", "loo_variance")),
-    "refine": "refinement.method",
-    **_moved("refinement", ("iterations", "compactness", "spread", "regulariser", "normals", "smooth_fields",
-                            "sigma", "step", "max_move", "alignment", "tolerance"), prefix="refine_"),
 }
 
 #: CorrespondenceSettings.FIELDS_REMOVED, by their flat names of before: the research knobs
 #: of feature matches, fixed at the values every file that records them ran with
-CORRESPONDENCE_REMOVED = dict.fromkeys(
-    ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
-     "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
-    "a research knob of feature matches, now a constant of core/correspond/features.py")
+#: and the group of groupwise refinement after NICP with its flat names of before (files
+#: that ran it load as today's settings; its record stays in the diagnostics)
+CORRESPONDENCE_REMOVED = {
+    **dict.fromkeys(
+        ("feature_normals", "feature_tilt", "feature_up", "feature_up_width", "feature_stiffness", "feature_trim",
+         "feature_merged_regions", "feature_samples", "feature_fit_check", "feature_fallback_share"),
+        "a research knob of feature matches, now a constant of core/correspond/features.py"),
+    **dict.fromkeys(
+        ("refinement", "refine", *(f"refine_{name}" for name in (
+            "iterations", "compactness", "spread", "regulariser", "normals", "smooth_fields", "sigma", "step",
+            "max_move", "alignment", "tolerance"))),
+        "groupwise refinement after NICP (refine population) was removed: it won no class beyond run-to-run "
+        "noise (docs/results.md, Correspondence across classes); files that ran it still load"),
+}
 
 #: DataTermSettings.FIELDS_ADDED_LATER: files written before these fields existed ran with
 #: the turning-line feature off and every registration started from the template as it is

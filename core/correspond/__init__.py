@@ -19,10 +19,7 @@ collection by one affine transform per landmark (Amberg et al. 2007):
 * final placement: every template point goes to its closest point on the target surface
   (**beyond**: the thesis snapped to the nearest vertex, kept as `snap_to_vertices`);
 * groupwise (§4.2.7): register the template to every shape, replace it by the mean
-  landmark cloud, register again;
-* **beyond** (`refine = "population"`): afterwards every landmark slides on its
-  own surface to make the population compact (log-det of the regularised covariance in
-  the N × N dual) while staying spread (Cates et al. 2007; Davies et al. 2002).
+  landmark cloud, register again.
 
 Note on α: the thesis writes E = E_D + α E_s (4.18) but stacks α (M⊗G) into B (4.29),
 as Amberg et al. do; we follow the stacked system, i.e. the stiffness energy is weighted
@@ -33,7 +30,7 @@ Everything tunable lives in `CorrespondenceSettings` (thesis defaults, one place
 
 Modules, one layer each (the geometry they share with meshing is core/geometry):
   settings.py      CorrespondenceSettings and its groups (stiffness, data term, iterations,
-                   outliers, refinement)
+                   outliers)
   registration.py  one template → target registration (Alg. 3): `register` of a
                    `RegistrationProblem`
   data_terms.py    the data term's pieces (forward, bidirectional, known pairs `Anchors`),
@@ -41,18 +38,20 @@ Modules, one layer each (the geometry they share with meshing is core/geometry):
   pool.py          registration tasks in this process or in spawned worker processes, their
                    ICP iterations turned into progress fractions
   groupwise.py     `correspond`: template choice (never an outlier), groupwise rounds
+  starting.py      the start, one plug chosen once from the settings (`start_for`: closest,
+                   spectral, auto), wrapping start.py
+  matching.py      the data term's part in the rounds, one plug chosen once from the settings
+                   (`data_term_for`: closest points, or feature matches with their checks)
   functional_map.py  the intrinsic start (**beyond**): a spectral map of the template's
                    landmarks onto a shape (candidates, orientation, ZoomOut)
   start.py         `initialisation = "spectral"`: the starts of a collection and the check
                    against closest points that decides which start each shape keeps
   outliers.py      outlier flags and their reasons (residual, size, leave-one-out
                    reconstruction in a PPCA model of the other shapes)
-  objective.py     the population objective of refinement: compactness + spread, gradients
-  refine.py        `refine_population`: projected, backtracking descent on the surfaces
-  shards.py        refinement's per-shape state (surfaces, moves, spread) in worker processes
   posing.py        each intrinsically started shape's rigid pose in the model frame from its
                    landmarks (Procrustes onto the template shape's); Keep Pose shapes kept
   result.py        `Correspondence` and its .npz file
+  diagnostics.py   `CorrespondenceDiagnostics`: the optional record of how it came about
 """
 
 from .groupwise import chamfer_medoid, correspond
@@ -60,12 +59,13 @@ from .outliers import flag_outliers, leave_one_out_errors
 from .data_terms import Anchors
 from .registration import Registration, RegistrationProblem, register
 from .result import CORRESPONDENCE_FORMAT, CORRESPONDENCE_SPEC, CORRESPONDENCE_VERSION, Correspondence
-from .refine import Refinement, refine_population
-from .settings import MATCHING_METHODS, REFINE_METHODS, CorrespondenceSettings
+from .diagnostics import CorrespondenceDiagnostics
+from .settings import MATCHING_METHODS, CorrespondenceSettings
 
 __all__ = [
     "CorrespondenceSettings",
     "Correspondence",
+    "CorrespondenceDiagnostics",
     "Registration",
     "RegistrationProblem",
     "Anchors",
@@ -74,10 +74,7 @@ __all__ = [
     "chamfer_medoid",
     "flag_outliers",
     "leave_one_out_errors",
-    "refine_population",
-    "Refinement",
     "MATCHING_METHODS",
-    "REFINE_METHODS",
     "CORRESPONDENCE_FORMAT",
     "CORRESPONDENCE_SPEC",
     "CORRESPONDENCE_VERSION",

@@ -8,7 +8,7 @@ landmarks (posing.py), and each shape's start and pose are recorded."""
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -17,20 +17,17 @@ from scipy.spatial import cKDTree
 from ..base.errors import CollectionError, MeshError
 from ..geometry import SurfacePoints, chamfer_distance, chamfer_matrix, knn_graph, registration_frame
 from ..base.progress import Progress, no_progress, sub_range
-from ..meshes.simplify import Proxy
-from ..meshes.spill import full_mesh
 from .engine import make_runner
 from .pool import RegistrationRunner, RegistrationTask
 from .proxy import dense_shapes, face_normals_at, place_dense, proxies_of
 from .outliers import flag_outliers
 from .posing import landmark_poses
-from .refine import refine_population
-from .features import agreement_weights, checks_fit, checks_regions, keeps_features, merged_regions, uses_between, \
-    worse_fits
+from .diagnostics import CorrespondenceDiagnostics
+from .matching import DataTerm, data_term_for
 from .registration import Registration
 from .result import Correspondence
 from .settings import CorrespondenceSettings
-from .start import checked_spectral_fits, chosen_start, pose_evidence, signature_error, spectral_starts
+from .starting import RoundsSetup, Start, start_for
 
 __all__ = ["chamfer_medoid", "correspond"]
 
@@ -84,10 +81,8 @@ class _Rounds:
     rounds_run: int
     centre: np.ndarray | None = None  # the registration frame of these rounds
     scale: float = 1.0
-    between_shares: np.ndarray | None = None  # (M,) each shape's share of feature_between (None: not compared)
-    feature_fit_worse: np.ndarray | None = None  # (M,) bool: feature matches fitted worse (None: not checked)
-    plain_shares: np.ndarray | None = None  # (M,) share of template points matched plainly (None: not checked)
     shape_starts: list[str] | None = None  # per shape, its start: "spectral", "closest" or "template"
+    matching: dict = field(default_factory=dict)  # what the data term decided (matching.py `RoundMatches.record`)
 
     @property
     def keep(self) -> np.ndarray:
@@ -141,25 +136,17 @@ def correspond(
     jobs = (os.cpu_count() or 1) if jobs is None else int(jobs)
     jobs = max(1, min(jobs, len(names)))
     rounds = settings.groupwise_rounds + 1
-    refining = settings.refinement.method == "population"
-    nicp_report = sub_range(report, 0.0, REFINE_START) if refining else report
     runner = make_runner(jobs, scheduler, should_cancel)
     dense = dense_shapes(collection.shapes, settings)
     try:
         # dense shapes: proxies first (0-5 % of NICP), exact placement on their full surfaces last (95-100 %)
-        surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(nicp_report, 0.0, 0.05))
-        rounds_report = sub_range(nicp_report, 0.05, 0.95) if dense else nicp_report
-        initialisation, start_reason = settings.data_term.initialisation, "asked for"
-        if initialisation == "auto":
-            evidence = pose_evidence([s.mesh for s in surfaces], landmark_sets, start, runner,
-                                     sub_range(rounds_report, 0.0, EVIDENCE_SHARE))
-            initialisation, start_reason = chosen_start(evidence)
-            rounds_report(EVIDENCE_SHARE, f"{'intrinsic (spectral)' if initialisation == 'spectral' else 'closest-point'}"
-                                          f" start chosen for the collection: {start_reason}")
-            rounds_report = sub_range(rounds_report, EVIDENCE_SHARE, 1.0)
-        settings_run = replace(settings, data_term=replace(settings.data_term, initialisation=initialisation))
-        outcome = _run_rounds(collection, start, settings_run, runner, rounds_report,
-                              stop_if_template_flagged=template is None, surfaces=surfaces, start_reason=start_reason)
+        surfaces = proxies_of(collection.shapes, dense, settings, runner, sub_range(report, 0.0, 0.05))
+        rounds_report = sub_range(report, 0.05, 0.95) if dense else report
+        chosen, rounds_report = start_for(settings).chosen([s.mesh for s in surfaces], landmark_sets, start, runner,
+                                                           rounds_report)
+        data_term = data_term_for(settings)
+        outcome = _run_rounds(collection, start, settings, runner, rounds_report, template is None, surfaces, chosen,
+                              data_term)
         if template is None and outcome.reasons[start]:
             fits = np.flatnonzero(outcome.keep)
             if len(fits):
@@ -167,11 +154,11 @@ def correspond(
                 done = outcome.rounds_run / rounds
                 rounds_report(done, f"template {names[start]} ({names[outcome.start]} is an outlier: "
                                     f"{outcome.reasons[outcome.start]})")
-                outcome = _run_rounds(collection, start, settings_run, runner, sub_range(rounds_report, done, 1.0),
-                                      stop_if_template_flagged=False, surfaces=surfaces, start_reason=start_reason)
+                outcome = _run_rounds(collection, start, settings, runner, sub_range(rounds_report, done, 1.0),
+                                      False, surfaces, chosen, data_term)
         if dense:
             registrations = place_dense(outcome.registrations, collection, surfaces, dense, settings, outcome.centre,
-                                       outcome.scale, runner, sub_range(nicp_report, 0.95, 1.0))
+                                       outcome.scale, runner, sub_range(report, 0.95, 1.0))
             outcome = replace(outcome, registrations=registrations,
                               results=[_to_normalised(r, outcome.centre, outcome.scale) for r in registrations],
                               residuals=_relative_residuals(registrations, outcome.scale, collection.shapes))
@@ -183,11 +170,6 @@ def correspond(
     points = np.stack([r.placed.points for r in results])
     face_index = np.stack([r.placed.face_index for r in results])
     barycentric = np.stack([r.placed.barycentric for r in results])
-    trace = np.zeros((0, 3))
-    if refining:
-        points, face_index, barycentric, trace = _refined(collection, outcome.keep, points, face_index, barycentric,
-                                                          outcome.edges, settings,
-                                                          sub_range(report, REFINE_START, 1.0), should_cancel, jobs)
     poses, pose_notes = _posed(collection, names, points, outcome, report)
     report(1.0, f"corresponded {len(names)} shapes (template {template_name})")
     transforms = [shape.transform for shape in collection.shapes]
@@ -202,22 +184,15 @@ def correspond(
         template_name=template_name,
         transforms=np.stack([t.matrix for t in transforms]),
         residuals=outcome.residuals,
-        iterations=np.array([r.iterations for r in registrations]),
         outliers=~outcome.keep,
         outlier_reasons=outcome.reasons,
         settings=settings,
         prepare=collection.settings,
-        refinement=settings.refinement.method if len(trace) else "none",
-        refinement_trace=trace,
-        between_shares=np.zeros(0) if outcome.between_shares is None else outcome.between_shares,
-        feature_fit_worse=np.zeros(0, dtype=bool) if outcome.feature_fit_worse is None else outcome.feature_fit_worse,
-        plain_shares=np.zeros(0) if outcome.plain_shares is None else outcome.plain_shares,
         unreadable=dict(collection.unreadable),
-        start=initialisation,
-        start_reason=start_reason,
-        shape_starts=list(outcome.shape_starts),
         poses=poses,
-        pose_notes=pose_notes,
+        diagnostics=CorrespondenceDiagnostics(
+            iterations=np.array([r.iterations for r in registrations]), start=chosen.kind, start_reason=chosen.reason,
+            shape_starts=list(outcome.shape_starts), pose_notes=pose_notes, **outcome.matching),
     )
 
 
@@ -235,40 +210,16 @@ def _posed(collection, names: list[str], points: np.ndarray, outcome: _Rounds, r
     return poses, notes
 
 
-#: with refinement, NICP's progress fills [0, REFINE_START] and the refinement the rest
-REFINE_START = 0.8
-#: with the spectral start, the intrinsic maps fill this share of the rounds' progress
-SPECTRAL_SHARE = 0.2
-#: with the automatic start, the evidence (the shapes' spectra) fills this share of it
-EVIDENCE_SHARE = 0.05
-
-
-def _refined(collection, keep, points, face_index, barycentric, edges, settings, report, should_cancel, jobs):
-    """The landmarks of the shapes that fit (`keep`) refined together (refine.py); outliers
-    keep theirs. Returns points, face_index, barycentric and the objective trace."""
-    active = np.flatnonzero(keep)
-    if len(active) < 3:  # no population to speak of: the objective's covariance is degenerate
-        report(1.0, f"refinement skipped: {len(active)} shapes fit")
-        return points, face_index, barycentric, np.zeros((0, 3))
-    meshes = [full_mesh(collection.shapes[i].mesh) for i in active]  # a stored dense mesh loaded (core/spill.py)
-    result = refine_population(meshes, points[active], face_index[active], barycentric[active], settings, report,
-                               should_cancel, edges, jobs)
-    points, face_index, barycentric = points.copy(), face_index.copy(), barycentric.copy()
-    points[active], face_index[active], barycentric[active] = result.points, result.face_index, result.barycentric
-    return points, face_index, barycentric, result.trace
-
-
 def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner: RegistrationRunner,
-                report: Progress, stop_if_template_flagged: bool, surfaces: Sequence | None = None,
-                start_reason: str = "asked for") -> _Rounds:
+                report: Progress, stop_if_template_flagged: bool, surfaces: Sequence, chosen: Start,
+                data_term: DataTerm) -> _Rounds:
     """The R = groupwise_rounds + 1 rounds from the landmarks of shape `start` (§4.2.7):
     register the template to every shape, flag outliers, replace the template by the mean
     landmark cloud of the shapes that fit, again. With `stop_if_template_flagged`, stops
     after the first round that flags shape `start`. `surfaces`: per shape, the mesh to
-    register against (a dense shape's proxy; default each shape's own mesh). `settings`
-    name the start ("closest" or "spectral", "auto" resolved by the caller); `start_reason`
-    says why, in each shape's message."""
-    surfaces = [Proxy(s.mesh) for s in collection.shapes] if surfaces is None else surfaces
+    register against (a dense shape's proxy). Where each shape starts is the `chosen`
+    start's (starting.py), what the registrations match and how each round runs is the
+    `data_term`'s (matching.py)."""
     names = list(collection.names)
     template_points = np.asarray(collection.landmarks[start].points, dtype=np.float64)
     centre, scale = registration_frame(template_points, names[start])
@@ -279,125 +230,41 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
     template_diagonal = collection.shapes[start].mesh.bbox_diagonal()
     ratios = np.array([s.mesh.bbox_diagonal() / template_diagonal for s in collection.shapes])
     rounds = settings.groupwise_rounds + 1
-    starts = None
-    if settings.data_term.initialisation == "spectral":
-        # a shape Prepare flagged (on its side, upside down, unusual) may not face as the others do
-        in_frame = [not shape.pose_outlier for shape in collection.shapes]
-        starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
-                                                      sub_range(report, 0.0, SPECTRAL_SHARE), in_frame)
-        for name, spectral in zip(names, starts):
-            if spectral is not None:
-                report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
-        report = sub_range(report, SPECTRAL_SHARE, 1.0)
-    else:
-        for index, name in enumerate(names):
-            if index != start:
-                report(0.0, f"{name}: closest-point start ({start_reason})")
+    in_frame = [not shape.pose_outlier for shape in collection.shapes]
+    starter, report = chosen.begin(RoundsSetup(names, surfaces, start, template_points, in_frame, to_frame, runner),
+                                   report)
+    matches = data_term.begin(start, template_normals)
     outcome = None
     shape_starts = ["template" if index == start else "closest" for index in range(len(names))]
-    current_template, current_normals, current_between = template_points, template_normals, None
-    round_settings, shares, worse = settings, None, None  # round_settings: closest points after a failed fit check
-    plain = None  # per shape, the template points matched plainly (features.merged_regions), from round 2 on
+    current_template, current_normals = template_points, template_normals
     for round_index in range(rounds):
         label = f"round {round_index + 1} of {rounds}"
         round_report = sub_range(report, round_index / rounds, (round_index + 1) / rounds)
         if outcome is not None:
             current_template, current_normals = _mean_template(outcome.results, outcome.keep)
-            message = f"mean template ({label})"
-            if current_between is None and uses_between(round_settings):
-                current_between = _template_between(outcome, start)
-                shares = agreement_weights(current_between, [r.between for r in outcome.results])
-                message += f"; turning lines compared on {int(np.count_nonzero(shares))} of {len(names)} shapes"
-            if plain is None and checks_regions(round_settings):
-                template_regions = outcome.results[start].regions
-                plain = [merged_regions(template_regions, template_normals, r.regions) for r in outcome.results]
-                message += f"; regions merged on {sum(int(p.any()) for p in plain)} of {len(names)} shapes"
-            report(round_index / rounds, message)
         template_in_frame = to_frame(current_template)
-        shape_settings = ([round_settings] * len(names) if shares is None else
-                          [_with_between_share(round_settings, share) for share in shares])
-        tasks = [
+        tasks, message = matches.tasks([
             RegistrationTask(i, names[i], surface.mesh.vertices, surface.mesh.faces, landmarks.points,
-                             landmark_normals[i], template_in_frame, current_normals, edges, shape_settings[i], centre,
-                             scale, current_between, None if plain is None else plain[i])
+                             landmark_normals[i], template_in_frame, current_normals, edges, settings, centre, scale)
             for i, (surface, landmarks) in enumerate(zip(surfaces, collection.landmarks))
-        ]
-        if starts is not None:
-            registrations, taken = _from_spectral_starts(tasks, starts, template_signatures, outcome, to_frame,
-                                                         runner, round_report, label)
-            shape_starts = taken or shape_starts
-        elif round_index == 0 and checks_fit(settings):
-            registrations, round_settings, worse = _checked_feature_fits(tasks, start, runner, round_report, label)
-        else:
-            registrations = runner.run(tasks, round_report, label)
+        ], outcome)
+        if outcome is not None:
+            report(round_index / rounds, f"mean template ({label}){message}")
+
+        def run(tasks, report, label, round_index=round_index):
+            return matches.run(round_index, tasks, runner, report, label)
+
+        registrations, taken = starter.registrations(round_index, tasks, outcome, run, round_report, label)
+        shape_starts = taken or shape_starts
         results = [_to_normalised(r, centre, scale) for r in registrations]
         residuals = _relative_residuals(registrations, scale, collection.shapes)
         reasons = _with_pose_flags(flag_outliers(residuals, ratios, settings,
                                                  np.stack([r.placed.points for r in results])), collection.shapes)
         outcome = _Rounds(start, edges, current_template, registrations, results, residuals, reasons,
-                          round_index + 1, centre, scale, shares, worse,
-                          None if plain is None else np.array([p.mean() for p in plain]), list(shape_starts))
+                          round_index + 1, centre, scale, list(shape_starts), matches.record())
         if stop_if_template_flagged and reasons[start]:
             break
     return outcome
-
-
-def _from_spectral_starts(tasks: list[RegistrationTask], starts: list, template_signatures, previous: _Rounds | None,
-                          to_frame, runner: RegistrationRunner, report: Progress, label: str
-                          ) -> tuple[list[Registration], list[str] | None]:
-    """(the spectral start, **beyond** the thesis; start.py) the round's registrations. The
-    first round registers every shape from its spectral start (`starts[i]`, None for the
-    template's own shape) beside the closest-point start, which replaces it where the
-    spectrum was not trusted, the spectral fit is clearly worse or its landmarks do not
-    match the template's signatures clearly better (start.py; said per shape). Later
-    rounds start every shape from its previous round's landmarks: the mean template of
-    shapes in different poses is no start, and the affines then act on those landmarks.
-    Returns the registrations and, from the first round, the start each shape kept
-    ("spectral", "closest", "template" for the template's own shape; None in later rounds,
-    which keep the first's)."""
-    if previous is not None:
-        return runner.run([replace(task, template=r.placed.points, template_normals=r.normals)
-                           for task, r in zip(tasks, previous.registrations)], report, label), None
-    spectral = [task if s is None or s.points is None else
-                replace(task, template=to_frame(s.points), template_normals=s.normals)
-                for task, s in zip(tasks, starts)]
-
-    def signature_errors(index: int, registration: Registration) -> float:
-        return signature_error(template_signatures, starts[index], registration.placed.points, to_frame)
-
-    registrations, reasons = checked_spectral_fits(spectral, tasks, runner, report, label,
-                                                   None if template_signatures is None else signature_errors)
-    for task, reason in zip(tasks, reasons):
-        if reason:
-            report(1.0, f"{task.name}: {reason}")
-    taken = ["template" if s is None else "spectral" if s.points is not None and not reason else "closest"
-             for s, reason in zip(starts, reasons)]
-    return registrations, taken
-
-
-def _checked_feature_fits(tasks: list[RegistrationTask], start: int, runner: RegistrationRunner, report: Progress,
-                          label: str) -> tuple[list[Registration], CorrespondenceSettings, np.ndarray]:
-    """(feature matches, **beyond** the thesis) the first round by
-    feature matches and by closest points side by side, from the same template. When
-    feature matches fit more than features.FALLBACK_SHARE of the shapes worse
-    (features.worse_fits: the template collapsed onto part of them), the collection is
-    matched by closest points, and the result is the closest-point correspondence exactly;
-    else by feature matches, as without the check. The template's own shape decides nothing
-    (it fits itself either way). Returns the round's registrations, the settings of the
-    rounds to come and (M,) bool: the shapes feature matches fitted worse."""
-    settings = tasks[0].settings
-    closest_settings = replace(settings, data_term=replace(settings.data_term, matching="closest"))
-    closest_tasks = [replace(task, index=len(tasks) + task.index, name=f"{task.name} (closest points)",
-                             settings=closest_settings, template_between=None) for task in tasks]
-    both = runner.run(tasks + closest_tasks, report, f"{label}, feature matches checked against closest points")
-    by_features, by_closest = both[:len(tasks)], both[len(tasks):]
-    worse = worse_fits([r.residual for r in by_features], [r.residual for r in by_closest])
-    worse[start] = False
-    if keeps_features(worse):
-        return by_features, settings, worse
-    report(1.0, f"feature matches fit {int(worse.sum())} of {len(tasks)} shapes worse than closest points "
-                f"({', '.join(t.name for t, w in zip(tasks, worse) if w)}): closest points for the collection")
-    return by_closest, closest_settings, worse
 
 
 def _relative_residuals(registrations: Sequence[Registration], scale: float, shapes) -> np.ndarray:
@@ -439,19 +306,3 @@ def _mean_template(results: Sequence[Registration], keep: np.ndarray) -> tuple[n
 def _fitting(results: Sequence[Registration], keep: np.ndarray) -> list[Registration]:
     """The registrations of the shapes that fit (all, if none does)."""
     return [r for r, k in zip(results, keep) if k] or list(results)
-
-
-def _with_between_share(settings: CorrespondenceSettings, share: float) -> CorrespondenceSettings:
-    """`settings` comparing positions between turning lines with `share` of `feature_between`
-    (features.agreement_weights)."""
-    data_term = settings.data_term
-    return replace(settings, data_term=replace(data_term, feature_between=data_term.feature_between * share))
-
-
-def _template_between(outcome: _Rounds, start: int) -> np.ndarray:
-    """(feature matches, **beyond** the thesis; features.py) the template's positions
-    between turning lines from the groupwise round on: those of the shape it was made from,
-    at its own landmarks (its registration onto itself in the first round). The population's
-    mean at the first round's matches carries that round's bias (it compares sides only),
-    and measured worse (docs/results.md, Correspondence)."""
-    return outcome.results[start].between

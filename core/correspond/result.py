@@ -3,28 +3,14 @@
 The file records how the correspondence was computed (`CorrespondenceSettings`) and how
 its collection was prepared (`PrepareSettings`), each as one JSON string ("null": not
 recorded); files written before held the correspondence settings as repr strings by key
-and no Prepare settings, and still load. It also records which refinement
-ran after NICP ("population" or "none") and its objective trace (one row E, compactness,
-spread per accepted step, the start first); files without them load as "none" with an
-empty trace (optional arrays, so the format version stays 1). Likewise each shape's share
-of `feature_between` (features.agreement_weights: 0 when its turning lines disagree with
-the template's and it was matched without them); empty when positions between turning
-lines were not compared, and in files written before. Likewise the outcome of the
-feature-match fit check (`feature_fit_worse`: the shapes feature matches fitted worse than
-closest points, groupwise.py `_checked_feature_fits`; `feature_matches_ran` says whether
-they then matched the collection): empty when they were not checked, and in files written
-before. Likewise each shape's share of template points matched plainly because their
-regions merge on it (`plain_shares`, features.merged_regions): empty when not checked.
-Likewise the files its collection's folder left out because they could not be read
-(`unreadable`, carried from the prepared collection): none in files written before.
-Likewise the start registration took (`start`: "closest" or "spectral", what
-`initialisation="auto"` chose, and `start_reason`): empty in files written before, which
-took the start their settings name (`start_used`). Likewise the start each shape's
-registration took (`shape_starts`: "spectral", "closest", or "template" for the template's
-own shape; a spectral start falls back per shape, start.py), and each shape's pose in the
-model frame from its landmarks (`poses`, rigid, prepared → model frame, posing.py) with a
-note saying how it was posed or why not (`pose_notes`): files written before hold none,
-and their shapes enter the model as Prepare left them.
+and no Prepare settings, and still load. Likewise the files its collection's folder left
+out because they could not be read (`unreadable`, carried from the prepared collection):
+none in files written before. Likewise each shape's pose in the model frame from its
+landmarks (`poses`, rigid, prepared → model frame, posing.py): files written before hold
+none, and their shapes enter the model as Prepare left them. How the correspondence came
+about (iterations, the start each shape took, the notes of posing, the outcome of feature
+matches' checks) is an optional record beside it, `diagnostics` (diagnostics.py), saved
+in the same file as optional arrays (the format version stays 1).
 
 Frames: `points`, `transforms`, `face_index` and `barycentric` stay in the prepared frame,
 where the correspondence was made on the prepared meshes (Blender marks them on the
@@ -45,9 +31,10 @@ from ..preprocess.collection import PrepareSettings, recorded_unreadable, unread
 from ..base.errors import ModelFileError
 from ..base.npzfile import ArraySpec, load_npz, save_npz, validate_arrays
 from ..base.settings import recorded_settings
+from .diagnostics import CorrespondenceDiagnostics
 from .posing import apply_pose
 from .features import FALLBACK_SHARE, keeps_features, uses_features
-from .settings import REFINE_METHODS, CorrespondenceSettings
+from .settings import CorrespondenceSettings
 
 __all__ = ["Correspondence", "CORRESPONDENCE_FORMAT", "CORRESPONDENCE_SPEC", "CORRESPONDENCE_VERSION"]
 
@@ -69,22 +56,19 @@ class Correspondence:
     template_name: str  # the shape the first template came from
     transforms: np.ndarray  # (M, 4, 4) input → normalised frame of every shape
     residuals: np.ndarray  # (M,) fit residual / the shape's bounding-box diagonal
-    iterations: np.ndarray  # (M,) ICP iterations of the last round
     outliers: np.ndarray  # (M,) bool: fits badly (see outlier_reasons)
     outlier_reasons: list[str]  # "" for shapes that fit
     settings: CorrespondenceSettings | None = None  # how it was computed (None: not recorded)
     prepare: PrepareSettings | None = None  # how its collection was prepared (None: not recorded)
-    refinement: str = "none"  # the refinement that ran after NICP (refine.py): "population" or "none"
-    refinement_trace: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) E, compactness, spread
-    between_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not compared
-    feature_fit_worse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (M,) or (0,): not checked
-    plain_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) or (0,): not checked
     unreadable: dict[str, str] = field(default_factory=dict)  # files left out of the folder: {file name: why}
-    start: str = ""  # the start registration took ("closest" or "spectral"; "": not recorded)
-    start_reason: str = ""  # why ("asked for", or the evidence `initialisation="auto"` read)
-    shape_starts: list[str] = field(default_factory=list)  # per shape, its start ([]: not recorded)
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # (M, 4, 4) prepared → model, or (0,)
-    pose_notes: list[str] = field(default_factory=list)  # per shape, how it was posed or why not ([]: not recorded)
+    diagnostics: CorrespondenceDiagnostics | None = None  # how it came about (None: not recorded)
+
+    @property
+    def recorded(self) -> CorrespondenceDiagnostics:
+        """The diagnostics, or an empty record when there are none (as files written
+        before each record read)."""
+        return self.diagnostics if self.diagnostics is not None else CorrespondenceDiagnostics()
 
     @property
     def model_poses(self) -> np.ndarray:
@@ -119,8 +103,8 @@ class Correspondence:
     def start_used(self) -> str:
         """The start the correspondence took: as recorded, else (files written before the
         record) the one its settings name, "closest" when they name none."""
-        if self.start:
-            return self.start
+        if self.recorded.start:
+            return self.recorded.start
         return "closest" if self.settings is None else self.settings.data_term.initialisation
 
     def __len__(self) -> int:
@@ -138,7 +122,7 @@ class Correspondence:
         (`features.keeps_features`)."""
         if self.settings is None or not uses_features(self.settings):
             return False
-        return keeps_features(self.feature_fit_worse)
+        return keeps_features(self.recorded.feature_fit_worse)
 
     def matching_summary(self) -> str:
         """One line for people: which data term matched the landmarks, and whether the fit
@@ -147,13 +131,13 @@ class Correspondence:
             return "matches not recorded"
         if not uses_features(self.settings):
             return "closest points"
-        worse = np.asarray(self.feature_fit_worse, dtype=bool)
+        worse = np.asarray(self.recorded.feature_fit_worse, dtype=bool)
         count = f"{int(worse.sum())} of {len(self)} shapes"
         if not self.feature_matches_ran:
             return (f"closest points: feature matches fitted {count} worse "
                     f"(more than {FALLBACK_SHARE:.0%})")
         summary = "feature matches" + (f" (they fitted {count} worse than closest points)" if len(worse) else "")
-        merged = int(np.count_nonzero(self.plain_shares))
+        merged = int(np.count_nonzero(self.recorded.plain_shares))
         if merged:  # features.merged_regions
             summary += (f"; template regions merged on {merged} of {len(self)} shapes, matched there by position "
                         "and normal")
@@ -163,7 +147,7 @@ class Correspondence:
         """"12 of 19 shapes posed by their landmarks, 1 kept by request" (posing.py; "" when
         no shape was posed or kept)."""
         posed = int(self.posed.sum())
-        kept = sum(note.startswith("pose kept by request") for note in self.pose_notes)
+        kept = sum(note.startswith("pose kept by request") for note in self.recorded.pose_notes)
         if not posed and not kept:
             return ""
         return f"{posed} of {len(self)} shapes posed by their landmarks" + (f", {kept} kept by request" if kept else "")
@@ -184,22 +168,13 @@ class Correspondence:
             "template_name": np.asarray(self.template_name, dtype=str),
             "transforms": self.transforms,
             "residuals": self.residuals,
-            "iterations": self.iterations.astype(np.int64),
             "outliers": self.outliers.astype(bool),
             "outlier_reasons": np.asarray(self.outlier_reasons, dtype=str),
             "settings": np.asarray(_json(self.settings)),
             "prepare_settings": np.asarray(_json(self.prepare)),
-            "refinement": np.asarray(self.refinement, dtype=str),
-            "refinement_trace": np.asarray(self.refinement_trace, dtype=np.float64).reshape(-1, 3),
-            "between_shares": np.asarray(self.between_shares, dtype=np.float64).reshape(-1),
-            "feature_fit_worse": np.asarray(self.feature_fit_worse, dtype=bool).reshape(-1),
-            "plain_shares": np.asarray(self.plain_shares, dtype=np.float64).reshape(-1),
             **unreadable_arrays(self.unreadable),
-            "start": np.asarray(self.start, dtype=str),
-            "start_reason": np.asarray(self.start_reason, dtype=str),
-            "shape_starts": np.asarray(self.shape_starts, dtype=str).reshape(-1),
             "poses": np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4),
-            "pose_notes": np.asarray(self.pose_notes, dtype=str).reshape(-1),
+            **({} if self.diagnostics is None else self.diagnostics.to_arrays()),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -228,63 +203,23 @@ class Correspondence:
             raise ModelFileError(f"{label}: landmark graph refers to landmarks outside [0, {n_landmarks})")
         if len(set(a["names"].tolist())) != len(a["names"]):
             raise ModelFileError(f"{label}: shape names are not unique")
-        refinement = str(a["refinement"]) if "refinement" in a else "none"
-        trace = np.asarray(a["refinement_trace"]) if "refinement_trace" in a else np.zeros((0, 3))
-        validate_arrays({"refinement": np.asarray(refinement), "refinement_trace": trace}, _REFINEMENT_SPEC, label)
-        if refinement not in REFINE_METHODS:
-            raise ModelFileError(f"{label}: unknown refinement {refinement!r} (expected {' or '.join(REFINE_METHODS)})")
-        shares, plain = (_optional_shares(a, key, label) for key in ("between_shares", "plain_shares"))
-        worse = np.asarray(a["feature_fit_worse"]) if "feature_fit_worse" in a else np.zeros(0, dtype=bool)
-        validate_arrays({"feature_fit_worse": worse}, _FIT_CHECK_SPEC, label)
-        if len(worse) not in (0, len(a["names"])):
-            raise ModelFileError(f"{label}: feature_fit_worse must be empty or one flag per shape "
-                                 f"({len(a['names'])}), got {len(worse)}")
         return cls(
             names=a["names"].tolist(), points=a["points"], points_input=a["points_input"],
             face_index=a["face_index"], barycentric=a["barycentric"], edges=edges,
             template_points=a["template_points"], template_name=str(a["template_name"]),
-            transforms=a["transforms"], residuals=a["residuals"], iterations=a["iterations"],
+            transforms=a["transforms"], residuals=a["residuals"],
             outliers=a["outliers"], outlier_reasons=a["outlier_reasons"].tolist(),
             settings=recorded_settings(CorrespondenceSettings, a, label),
             prepare=recorded_settings(PrepareSettings, a, label, "prepare_settings") if "prepare_settings" in a else None,
-            refinement=refinement, refinement_trace=trace, between_shares=shares,
-            feature_fit_worse=worse, plain_shares=plain, unreadable=recorded_unreadable(a, label),
-            start=_optional_text(a, "start", label), start_reason=_optional_text(a, "start_reason", label),
-            **_optional_poses(a, label),
+            unreadable=recorded_unreadable(a, label), poses=_optional_poses(a, label),
+            diagnostics=CorrespondenceDiagnostics.from_arrays(a, len(a["names"]), label),
         )
 
 
-def _optional_shares(a: dict, key: str, label: str) -> np.ndarray:
-    """An optional per-shape share array of a correspondence file (`between_shares`,
-    `plain_shares`): empty when absent; else one share in [0, 1] per shape."""
-    shares = np.asarray(a[key]) if key in a else np.zeros(0)
-    validate_arrays({key: shares}, {key: ArraySpec("f", ("S",))}, label)
-    if len(shares) not in (0, len(a["names"])) or not np.all((shares >= 0) & (shares <= 1)):
-        raise ModelFileError(f"{label}: {key} must be empty or one share in [0, 1] per shape "
-                             f"({len(a['names'])}), got {len(shares)} values")
-    return shares
-
-
-def _optional_text(a: dict, key: str, label: str) -> str:
-    """An optional text of a correspondence file ("" when absent: files written before it)."""
-    if key not in a:
-        return ""
-    validate_arrays({key: np.asarray(a[key])}, {key: ArraySpec("U", ())}, label)
-    return str(a[key])
-
-
-def _optional_poses(a: dict, label: str) -> dict:
-    """The optional per-shape start and pose record of a correspondence file (none in files
-    written before it): `shape_starts` and `pose_notes`, one text per shape or none;
-    `poses`, one rigid motion (rotation with det +1, last row 0 0 0 1) per shape or none."""
+def _optional_poses(a: dict, label: str) -> np.ndarray:
+    """The optional poses of a correspondence file (none in files written before them):
+    one rigid motion (rotation with det +1, last row 0 0 0 1) per shape, or none."""
     n = len(a["names"])
-    found = {}
-    for key in ("shape_starts", "pose_notes"):
-        texts = np.asarray(a[key]) if key in a else np.zeros(0, dtype=str)
-        validate_arrays({key: texts}, {key: ArraySpec("U", ("S",))}, label)
-        if len(texts) not in (0, n):
-            raise ModelFileError(f"{label}: {key} must be empty or one text per shape ({n}), got {len(texts)}")
-        found[key] = texts.tolist()
     poses = np.asarray(a["poses"]) if "poses" in a else np.zeros((0, 4, 4))
     validate_arrays({"poses": poses}, {"poses": ArraySpec("f", ("S", 4, 4))}, label)
     if len(poses) not in (0, n):
@@ -295,8 +230,7 @@ def _optional_poses(a: dict, label: str) -> dict:
                        or not np.allclose(np.linalg.det(rotations), 1.0, atol=1e-6)
                        or not np.allclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0])):
         raise ModelFileError(f"{label}: array 'poses' holds a matrix that is not a rigid motion")
-    found["poses"] = poses.astype(np.float64)
-    return found
+    return poses.astype(np.float64)
 
 
 def _json(settings) -> str:
@@ -316,12 +250,6 @@ CORRESPONDENCE_SPEC = {
     "template_name": ArraySpec("U", ()),
     "transforms": ArraySpec("f", ("M", 4, 4)),
     "residuals": ArraySpec("f", ("M",)),
-    "iterations": ArraySpec("i", ("M",)),
     "outliers": ArraySpec("b", ("M",)),
     "outlier_reasons": ArraySpec("U", ("M",)),
 }
-
-#: the optional refinement record (older files lack it)
-_REFINEMENT_SPEC = {"refinement": ArraySpec("U", ()), "refinement_trace": ArraySpec("f", ("T", 3))}
-#: the optional outcome of the feature-match fit check (files before it lack it)
-_FIT_CHECK_SPEC = {"feature_fit_worse": ArraySpec("b", ("S",))}

@@ -1,6 +1,6 @@
 """Every tunable parameter of the correspondence engine: `CorrespondenceSettings`, one
 frozen settings dataclass (core/settings.py: checks itself, travels as one JSON string)
-nesting one group per subsystem — stiffness, data term, iterations, outliers, refinement.
+nesting one group per subsystem — stiffness, data term, iterations, outliers.
 Files written before the grouping record the options flat; `FIELDS_MOVED` (its table in
 core/base/compat.py) reads them."""
 
@@ -15,8 +15,7 @@ from ..base.settings import Settings, SettingsError, group, option
 from ..meshes.simplify import REGISTRATION_PROXY_FACES
 
 __all__ = ["CorrespondenceSettings", "StiffnessSettings", "DataTermSettings", "IterationSettings", "OutlierSettings",
-           "RefinementSettings", "FEATURE_STIFFNESS", "MATCHING_METHODS", "REFINE_METHODS", "REFINE_ALIGNMENTS",
-           "INITIALISATIONS"]
+           "FEATURE_STIFFNESS", "MATCHING_METHODS", "INITIALISATIONS"]
 
 #: `data_term.matching`: the data term's matches (registration.py, features.py)
 MATCHING_METHODS = ("closest", "features")
@@ -29,11 +28,6 @@ FEATURE_STIFFNESS = 0.4
 
 #: `data_term.initialisation`: where each shape's registration starts (start.py)
 INITIALISATIONS = ("auto", "closest", "spectral")
-
-#: `refinement.method`: "population" slides the landmarks on their surfaces after NICP (refine.py)
-REFINE_METHODS = ("population", "none")
-#: `refinement.alignment`: what is removed from every shape before the compactness term
-REFINE_ALIGNMENTS = ("similarity", "scale", "none")
 
 
 @dataclass(frozen=True)
@@ -118,7 +112,7 @@ class DataTermSettings(Settings):
       shapes in different poses is no start). "auto": the collection chooses one of the
       two from how its shapes differ (start.py `chosen_start`: far more in space than in
       their Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every
-      shape and records it in the correspondence (`Correspondence.start`). Not the default:
+      shape and records it in the correspondence (`Correspondence.diagnostics.start`). Not the default:
       it misses where closest points fail for reasons other than pose, and where the
       spectral start mirrors (docs/results.md).
     """
@@ -199,62 +193,6 @@ class OutlierSettings(Settings):
             raise SettingsError("loo_variance", f"must be at most 1, got {self.loo_variance!r}")
 
 
-@dataclass(frozen=True)
-class RefinementSettings(Settings):
-    """Groupwise refinement after NICP (**beyond** the thesis, opt-in; refine.py, objective.py).
-
-    method: "population": after NICP every landmark slides on its own surface to lower
-      E = w_c · compactness + w_s · spread (Cates et al. 2007; Davies et al. 2002). "none"
-      (default): NICP's landmarks as they are (the thesis). The default stays "none": the
-      refinement lowers its objective but not the true correspondence error.
-    iterations: accepted descent steps at most.
-    compactness: w_c, weight of ½ log det(I + K/δ) (K: the N × N dual Gram matrix of the
-      aligned, centred landmark vectors). 0: spread term only.
-    spread: w_s, weight of the mean over shapes of the spread term (a Parzen estimate of
-      each shape's landmark density, lowest when they are spread out). 0: compactness only
-      (landmarks may bunch up).
-    regulariser: ρ / RMS landmark radius, δ = L ρ²: modes of variation that move the
-      landmarks by less than ρ count as squared size, larger ones by their log (see
-      objective.py). Small values reward few dimensions; large ones make the term a plain
-      sum of squares.
-    normals: κ: the compactness term sees every landmark's smooth surface normal beside its
-      position, scaled by κ × the population's RMS landmark radius (ShapeWorks' "use
-      normals"): features where the surface turns (belly, neck, rim) then cost variance
-      when they are not lined up. 0: positions only.
-    smooth_fields: K > 0: every step is a combination of the K smoothest fields on the
-      landmark graph (Laplacian eigenvectors) per coordinate, so whole regions slide
-      together instead of the gradient's noisy, landmark-by-landmark pattern; 0: the plain
-      (projected) gradient.
-    sigma: width of the spread kernel in landmark spacings √(area / L).
-    step: the first step moves the landmarks by this many spacings (RMS); it then grows by
-      1.5 after an accepted step and halves after a rejected one.
-    max_move: no landmark moves by more than this many spacings in one step (the step must
-      stay local for the closest point to follow the surface).
-    alignment: "similarity": compactness after removing every shape's scale and rotation
-      (generalised Procrustes, estimated again every 10 steps when that lowers the
-      objective) and centroid; "scale": its centroid and size only (the rotation Prepare
-      gave it stays); "none": on the prepared shapes as they are.
-    tolerance: stop when an accepted step lowers E by less than this (relative).
-    """
-
-    method: str = option("none", "groupwise refinement after non-rigid ICP (population: landmarks slide on their "
-                         "surfaces to make the population compact; none: the thesis)", flag="--refine",
-                         choices=REFINE_METHODS)
-    iterations: int = option(30, "refinement: accepted descent steps at most", minimum=0)
-    compactness: float = option(1.0, "refinement: weight of the compactness term", minimum=0)
-    spread: float = option(1.0, "refinement: weight of the spread term", minimum=0)
-    regulariser: float = option(0.001, "refinement: ρ of the covariance regulariser δ = L ρ², relative to the RMS "
-                                "landmark radius", above=0)
-    normals: float = option(1.0, "refinement: weight of the surface normals beside the positions in the "
-                            "compactness term (× the RMS landmark radius)", minimum=0)
-    smooth_fields: int = option(30, "refinement: steps restricted to this many smoothest displacement fields of the "
-                                "landmark graph (0: plain gradient)", minimum=0)
-    sigma: float = option(1.0, "refinement: spread kernel width in landmark spacings", above=0)
-    step: float = option(0.3, "refinement: RMS move of the first step in landmark spacings", above=0)
-    max_move: float = option(0.5, "refinement: largest move of a landmark in one step, in spacings", above=0)
-    alignment: str = option("similarity", "refinement: similarity removed before the compactness term",
-                            choices=REFINE_ALIGNMENTS)
-    tolerance: float = option(1e-6, "refinement: stop below this relative decrease of the objective", minimum=0)
 
 
 @dataclass(frozen=True)
@@ -285,7 +223,6 @@ class CorrespondenceSettings(Settings):
                               "is registered against", minimum=100)
     groupwise_rounds: int = option(1, "rounds with the mean landmark cloud as template", minimum=0)
     outliers: OutlierSettings = group(OutlierSettings, "when a shape is flagged an outlier (outliers.py)")
-    refinement: RefinementSettings = group(RefinementSettings, "groupwise refinement after NICP (refine.py)")
 
     @property
     def alphas(self) -> np.ndarray:

@@ -195,7 +195,7 @@ class SHAPEGEN_PT_correspondence(_SubPanel, bpy.types.Panel):
 class SHAPEGEN_PT_correspondence_advanced(_AdvancedPanel, bpy.types.Panel):
     bl_idname = "SHAPEGEN_PT_correspondence_advanced"
     bl_parent_id = "SHAPEGEN_PT_correspondence"
-    properties = ("correspondence.stiffness", "correspondence.matching", "correspondence.refine")
+    properties = ("correspondence.stiffness", "correspondence.matching")
 
 
 class SHAPEGEN_PT_model(_SubPanel, bpy.types.Panel):

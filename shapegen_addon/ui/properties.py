@@ -32,7 +32,6 @@ CORE_OPTIONS = {
     **{("prepare", name): f"prepare.{name}" for name in ("n_landmarks", "up_axis", "align", "scale", "centre", "seed")},
     ("correspondence", "stiffness"): "correspondence.stiffness.alpha_end",
     ("correspondence", "matching"): "correspondence.data_term.matching",
-    ("correspondence", "refine"): "correspondence.refinement.method",
     ("correspondence", "differ_in_pose"): "correspondence.data_term.initialisation",
     ("fit", "model"): "model",
     ("fit", "latent_dim"): "latent_dim",
@@ -115,11 +114,6 @@ POSE_ITEMS = [
 #: the core's `data_term.initialisation` of each item and back
 INITIALISATION_OF = {"AUTO": "auto", "ON": "spectral", "OFF": "closest"}
 POSE_ITEM_OF = {value: key for key, value in INITIALISATION_OF.items()}
-REFINE_ITEMS = [
-    ("none", "None", "Use the landmarks as matched (recommended)"),
-    ("population", "Population", "Experimental: afterwards slide the landmarks over the surfaces to make the "
-                                 "collection more alike; slower, not measured better"),
-]
 
 
 MODEL_ITEMS = [
@@ -205,8 +199,6 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
     )
     matching: EnumProperty(name="Matches", items=MATCHING_ITEMS, **core_option("correspondence.data_term.matching"),
                            description="What each landmark is matched to on every shape")
-    refine: EnumProperty(name="Refine", items=REFINE_ITEMS, **core_option("correspondence.refinement.method"),
-                         description="An extra pass after matching")
     differ_in_pose: EnumProperty(
         name="Shapes Differ in Pose", items=POSE_ITEMS,
         default=POSE_ITEM_OF[CORE_DEFAULTS.correspondence.data_term.initialisation],
@@ -220,11 +212,11 @@ class ShapeGenCorrespondenceSettings(bpy.types.PropertyGroup):
         """CorrespondenceSettings options by their flat names (`CorrespondenceSettings.FIELDS_MOVED`
         reads them into its groups): the stiffness schedule ends at `stiffness` and starts where
         the core's does, or at `stiffness` when that is higher (the core's check: the first α is
-        at least the last); `matching`, `refine`; `initialisation` from Shapes Differ in Pose
+        at least the last); `matching`; `initialisation` from Shapes Differ in Pose
         (Auto / On: spectral / Off: closest)."""
         start = max(CORE_DEFAULTS.correspondence.stiffness.alpha_start, self.stiffness)
         return {"alpha_end": self.stiffness, "alpha_start": start, "matching": self.matching,
-                "refine": self.refine, "initialisation": INITIALISATION_OF[self.differ_in_pose]}
+                "initialisation": INITIALISATION_OF[self.differ_in_pose]}
 
 
 class ShapeGenFitSettings(bpy.types.PropertyGroup):

@@ -74,24 +74,21 @@ def test_find_correspondences_on_a_named_collection_needs_it_prepared(prepared):
     assert bpy.context.scene.shapegen.job_state == "DONE"  # Prepare's; no job started
 
 
-def test_refine_and_matching_choices_reach_the_job(prepared, extension, monkeypatch):
-    """The panel's Refine and Matches choices (Correspondence panel) are passed to the
-    worker's CorrespondenceSettings; "none" and "closest" (the thesis) are the defaults."""
+def test_matching_choice_reaches_the_job(prepared, extension, monkeypatch):
+    """The panel's Matches choice (Correspondence panel) is passed to the worker's
+    CorrespondenceSettings; "closest" (the thesis) is the default."""
     ops = importlib.import_module(f"{extension}.shapegen_addon.ops.correspondence")
     sent = []
     original = ops.BackgroundJob
     monkeypatch.setattr(ops, "BackgroundJob",
                         lambda task, arguments: sent.append(arguments) or original(task, arguments))
     settings = bpy.context.scene.shapegen
-    assert settings.correspondence.refine == "none" and settings.correspondence.matching == "closest"
-    extra = '{"groupwise_rounds": 0, "refine_iterations": 3}'
+    assert settings.correspondence.matching == "closest"
+    extra = '{"groupwise_rounds": 0, "max_iterations": 3}'
     assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
-    settings.correspondence.refine = "population"
     settings.correspondence.matching = "features"
     assert bpy.ops.shapegen.find_correspondences(wait=True, extra_settings=extra) == {"FINISHED"}
     assert settings.job_state == "DONE"
-    assert [arguments["settings"]["refine"] for arguments in sent] == ["none", "population"]
     assert [arguments["settings"]["matching"] for arguments in sent] == ["closest", "features"]
-    assert sent[1]["settings"]["refine_iterations"] == 3
-    assert settings.fit_options()["correspondence"]["refine"] == "population"  # Fit passes it too
+    assert sent[1]["settings"]["max_iterations"] == 3
     assert settings.fit_options()["correspondence"]["matching"] == "features"

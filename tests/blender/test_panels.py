@@ -20,7 +20,7 @@ PANELS = STAGES + ADVANCED
 #: research and rarely needed settings: only in a stage's Advanced sub-panel
 RARELY_NEEDED = ("prepare.n_landmarks", "prepare.align", "prepare.scale", "prepare.centre", "prepare.seed",
                  "prepare.preview_spacing", "correspondence.stiffness", "correspondence.matching",
-                 "correspondence.refine", "fit.mesh_stiffness", "generate.sample_template")
+                 "fit.mesh_stiffness", "generate.sample_template")
 ICONS = set(bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items.keys())
 
 
@@ -190,7 +190,7 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
     choices = {"prepare.up_axis": (defaults.prepare, "up_axis"), "prepare.align": (defaults.prepare, "align"),
                "prepare.scale": (defaults.prepare, "scale"), "prepare.centre": (defaults.prepare, "centre"),
                "correspondence.matching": (defaults.correspondence.data_term, "matching"),
-               "correspondence.refine": (defaults.correspondence.refinement, "method"), "fit.model": (defaults, "model")}
+               "fit.model": (defaults, "model")}
     rna = bpy.types.Scene.bl_rna.properties["shapegen"].fixed_type.properties
     for path, (owner, field_name) in choices.items():
         group, name = path.split(".")

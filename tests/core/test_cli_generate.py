@@ -262,9 +262,9 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert f"[fit] using {corr} as given (with the settings it records); fitting" in result.stderr
     result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--landmarks", 100)
     assert result.returncode == 2 and f"--landmarks 100 conflicts with {corr}" in result.stderr
-    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--refine", "population")
+    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--matching", "features")
     assert result.returncode == 2  # the model records the file's correspondence settings: others cannot be asked for
-    assert f"--refine population conflicts with {corr}, corresponded with --refine none" in result.stderr
+    assert f"--matching features conflicts with {corr}, corresponded with --matching closest" in result.stderr
 
 
 # ---------------------------------------------------------------------------- settings on the command line

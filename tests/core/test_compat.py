@@ -124,7 +124,7 @@ def test_oldest_correspondence_files_read(today, tmp_path, capsys):
                **_key_value("settings", OLDEST_CORRESPONDENCE_SETTINGS))
     loaded, now = _loaded_quietly(Correspondence.load, old, capsys), Correspondence.load(path)
     assert loaded.settings == OLDEST_READ and loaded.prepare is None
-    assert loaded.refinement == "none" and loaded.start_used == "closest" and loaded.unreadable == {}
+    assert loaded.recorded.refinement == "none" and loaded.start_used == "closest" and loaded.unreadable == {}
     np.testing.assert_array_equal(loaded.points, now.points)
     np.testing.assert_array_equal(loaded.model_points(), now.model_points())  # no poses: the prepared frame
 

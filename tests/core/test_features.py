@@ -13,9 +13,9 @@ from scipy.spatial import cKDTree
 from shapegen_core.app.cli import build_parser
 from shapegen_core.app.cli_common import settings_from_args
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond, groupwise,
+from shapegen_core.correspond import (Correspondence, CorrespondenceSettings, RegistrationProblem, correspond,
                                       pool, register)
-from shapegen_core.correspond import data_terms
+from shapegen_core.correspond import data_terms, matching
 from shapegen_core.correspond.features import (FALLBACK_SHARE, FIT_TOLERANCE, NO_REGION, TRIM, FeatureMatcher,
                                                agreement_weights, keeps_features, kept_matches, merged_regions,
                                                point_features, worse_fits)
@@ -151,7 +151,7 @@ def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours(mo
         return np.array([np.linalg.norm(result.points_input[m] - shapes[m].points_at(st), axis=1).mean()
                          / shapes[m].mesh.bbox_diagonal() for m in range(len(shapes))])
 
-    monkeypatch.setattr(groupwise, "checks_regions", lambda settings: False)  # as measured: without merged regions
+    monkeypatch.setattr(matching, "checks_regions", lambda settings: False)  # as measured: without merged regions
     trimmed = errors(FEATURES)
     monkeypatch.setattr(data_terms, "kept_matches", lambda distance: kept_matches(distance, 0.0))
     kept_all = errors(FEATURES)
@@ -224,7 +224,8 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(four_
     result, seen = four_vases_between
     # the first round by feature matches, then by closest points for the fit check
     first_round, checked, second_round = seen[:4], seen[4:8], seen[8:]
-    assert [task.settings.data_term.matching for task, _ in checked] == ["closest"] * 4 and not result.feature_fit_worse.any()
+    assert [task.settings.data_term.matching for task, _ in checked] == ["closest"] * 4
+    assert not result.diagnostics.feature_fit_worse.any()
     assert all(task.template_between is None for task, _ in first_round) and len(second_round) == 4
     # the template's positions are the template shape's own, at its landmarks, for every shape
     template = result.names.index(result.template_name)
@@ -237,18 +238,19 @@ def test_the_template_keeps_its_own_positions_and_each_shape_its_agreement(four_
     assert shares[template] == 1.0
     for (task, _), share in zip(second_round, shares):
         assert task.settings.data_term.feature_between == BETWEEN.data_term.feature_between * share
-    np.testing.assert_array_equal(result.between_shares, shares)  # recorded with the correspondence
+    np.testing.assert_array_equal(result.diagnostics.between_shares, shares)  # recorded with the correspondence
 
 
 def test_correspondence_files_record_each_shapes_share_of_the_positions(three_vases, tmp_path):
     prepared, result = three_vases
-    assert result.between_shares.shape == (3,) and ((result.between_shares >= 0) & (result.between_shares <= 1)).all()
+    shares = result.diagnostics.between_shares
+    assert shares.shape == (3,) and ((shares >= 0) & (shares <= 1)).all()
     loaded = Correspondence.load(result.save(tmp_path / "c.npz"))
-    np.testing.assert_array_equal(loaded.between_shares, result.between_shares)
-    assert correspond(prepared, FEATURES, jobs=1).between_shares.shape == (0,)  # not compared: empty
+    np.testing.assert_array_equal(loaded.diagnostics.between_shares, result.diagnostics.between_shares)
+    assert correspond(prepared, FEATURES, jobs=1).diagnostics.between_shares.shape == (0,)  # not compared: empty
     arrays = result.to_arrays()
     del arrays["between_shares"]  # a file written before the shares
-    assert Correspondence.from_arrays(arrays, "old").between_shares.shape == (0,)
+    assert Correspondence.from_arrays(arrays, "old").diagnostics.between_shares.shape == (0,)
     _refused(arrays, "between_shares", (np.full(2, 0.5), np.array([0.5, 1.5, 0.0]), np.array([0.5, np.nan, 0.0])))
 
 
@@ -337,7 +339,7 @@ def test_worse_fits_and_the_collection_rule():
 def _unchecked(prepared, settings, monkeypatch):
     """The correspondence as without the fit check (its first round by feature matches only)."""
     with monkeypatch.context() as patched:
-        patched.setattr(groupwise, "checks_fit", lambda settings: False)
+        patched.setattr(matching, "checks_fit", lambda settings: False)
         return correspond(prepared, settings, jobs=1)
 
 
@@ -354,12 +356,12 @@ def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_pa
     np.testing.assert_array_equal(checked.points, closest.points)
     np.testing.assert_array_equal(checked.face_index, closest.face_index)
     np.testing.assert_array_equal(checked.residuals, closest.residuals)
-    worse = checked.feature_fit_worse
+    worse = checked.diagnostics.feature_fit_worse
     assert worse.sum() >= 2 and not worse[checked.names.index("cup_003")]
     assert not checked.feature_matches_ran and unchecked.feature_matches_ran
     assert checked.matching_summary().startswith(f"closest points: feature matches fitted {int(worse.sum())} of 8")
     loaded = Correspondence.load(checked.save(tmp_path / "cups.npz"))
-    np.testing.assert_array_equal(loaded.feature_fit_worse, worse)
+    np.testing.assert_array_equal(loaded.diagnostics.feature_fit_worse, worse)
     assert loaded.matching_summary() == checked.matching_summary()
 
 
@@ -367,12 +369,12 @@ def test_the_fit_check_changes_nothing_where_feature_matches_fit(four_vases, fou
     prepared, (checked, _) = four_vases, four_vases_between
     unchecked = _unchecked(prepared, BETWEEN, monkeypatch)
     np.testing.assert_array_equal(checked.points, unchecked.points)
-    np.testing.assert_array_equal(checked.between_shares, unchecked.between_shares)
-    np.testing.assert_array_equal(checked.feature_fit_worse, np.zeros(4, bool))
+    np.testing.assert_array_equal(checked.diagnostics.between_shares, unchecked.diagnostics.between_shares)
+    np.testing.assert_array_equal(checked.diagnostics.feature_fit_worse, np.zeros(4, bool))
     assert checked.feature_matches_ran and checked.matching_summary().startswith("feature matches (they")
-    assert unchecked.feature_fit_worse.shape == (0,) and unchecked.matching_summary().split(";")[0] == "feature matches"
+    assert unchecked.diagnostics.feature_fit_worse.shape == (0,) and unchecked.matching_summary().split(";")[0] == "feature matches"
     closest = correspond(prepared, CorrespondenceSettings(), jobs=1)
-    assert closest.feature_fit_worse.shape == (0,) and closest.matching_summary() == "closest points"
+    assert closest.diagnostics.feature_fit_worse.shape == (0,) and closest.matching_summary() == "closest points"
     assert not closest.feature_matches_ran
 
 
@@ -380,7 +382,7 @@ def test_files_before_the_fit_check_load_and_bad_records_are_refused(three_vases
     arrays = three_vases[1].to_arrays()
     del arrays["feature_fit_worse"]
     old = Correspondence.from_arrays(arrays, "old")
-    assert old.feature_fit_worse.shape == (0,) and old.feature_matches_ran
+    assert old.diagnostics.feature_fit_worse.shape == (0,) and old.feature_matches_ran
     _refused(arrays, "feature_fit_worse", (np.zeros(2, bool), np.zeros(3)))
 
 
@@ -446,22 +448,22 @@ def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_pa
     assert neckless == [1, 4]
     checked = correspond(prepared, BETWEEN, jobs=1)
     with monkeypatch.context() as patched:
-        patched.setattr(groupwise, "checks_regions", lambda settings: False)
+        patched.setattr(matching, "checks_regions", lambda settings: False)
         unchecked = correspond(prepared, BETWEEN, jobs=1)
     assert checked.template_name == unchecked.template_name == "vase_002"
-    np.testing.assert_array_equal(np.flatnonzero(checked.plain_shares), neckless)
-    assert (checked.plain_shares[neckless] > 0.3).all()
+    np.testing.assert_array_equal(np.flatnonzero(checked.diagnostics.plain_shares), neckless)
+    assert (checked.diagnostics.plain_shares[neckless] > 0.3).all()
     others = [i for i in range(6) if i not in neckless]
     np.testing.assert_array_equal(checked.points[others], unchecked.points[others])
     error = lambda result: np.array([_shape_error(shapes, prepared, result, m) for m in neckless])  # noqa: E731
     assert (error(checked) < 0.85 * error(unchecked)).all(), (error(checked), error(unchecked))
     assert "template regions merged on 2 of 6 shapes" in checked.matching_summary()
-    assert unchecked.plain_shares.shape == (0,) and "merged" not in unchecked.matching_summary()
+    assert unchecked.diagnostics.plain_shares.shape == (0,) and "merged" not in unchecked.matching_summary()
     loaded = Correspondence.load(checked.save(tmp_path / "c.npz"))
-    np.testing.assert_array_equal(loaded.plain_shares, checked.plain_shares)
+    np.testing.assert_array_equal(loaded.diagnostics.plain_shares, checked.diagnostics.plain_shares)
     arrays = checked.to_arrays()
     del arrays["plain_shares"]  # a file written before the check
-    assert Correspondence.from_arrays(arrays, "old").plain_shares.shape == (0,)
+    assert Correspondence.from_arrays(arrays, "old").diagnostics.plain_shares.shape == (0,)
     _refused(arrays, "plain_shares", (np.full(5, 0.5), np.r_[np.zeros(5), 1.5]))
 
 

@@ -113,15 +113,16 @@ def test_poses_only_intrinsic_starts_never_kept_ones():
 def test_a_shape_left_lying_enters_the_model_upright_with_the_intrinsic_start(spectral, prepared):
     result, messages = spectral
     turned, template = result.names.index(TURNED), result.names.index(result.template_name)
-    assert result.shape_starts[turned] == "spectral" and result.shape_starts[template] == "template"
+    starts = result.diagnostics.shape_starts
+    assert starts[turned] == "spectral" and starts[template] == "template"
     # as corresponded (the prepared frame) it lies a quarter turn from the template; in the model frame it stands
     assert _turn_from_template(result.points[turned], result.points[template]) > 80
     model_points = result.model_points()
     assert _turn_from_template(model_points[turned], model_points[template]) < 1.0
     angle = pose_angle(result.poses[turned])
     assert 80 < angle < 100
-    assert result.pose_notes[turned] == f"posed by its landmarks: turned {angle:.0f}° onto the template"
-    assert f"{TURNED}: {result.pose_notes[turned]}" in messages
+    assert result.diagnostics.pose_notes[turned] == f"posed by its landmarks: turned {angle:.0f}° onto the template"
+    assert f"{TURNED}: {result.diagnostics.pose_notes[turned]}" in messages
     np.testing.assert_array_equal(result.landmark_matrix(), model_points.reshape(len(result), -1))
     # the standing shapes hardly turn; the template is the reference
     assert np.array_equal(result.poses[template], np.eye(4))
@@ -142,9 +143,9 @@ def test_a_shape_left_lying_enters_the_model_upright_with_the_intrinsic_start(sp
 def test_a_shape_marked_keep_pose_keeps_its_pose(blobs):
     result = correspond(_prepared(blobs, keep_pose=[TURNED]), _settings("spectral"), template="blob1", jobs=1)
     turned = result.names.index(TURNED)
-    assert result.shape_starts[turned] == "spectral"
+    assert result.diagnostics.shape_starts[turned] == "spectral"
     assert np.array_equal(result.poses[turned], np.eye(4))
-    assert result.pose_notes[turned].startswith("pose kept by request (Keep Pose)")
+    assert result.diagnostics.pose_notes[turned].startswith("pose kept by request (Keep Pose)")
     np.testing.assert_array_equal(result.model_points()[turned], result.points[turned])
     assert _turn_from_template(result.model_points()[turned], result.points[result.names.index("blob1")]) > 80
 
@@ -161,8 +162,8 @@ def test_keep_pose_is_recorded_in_the_prepared_file_and_older_files_read_as_not_
 
 def test_a_closest_point_start_is_not_posed(prepared):
     result = correspond(prepared, _settings("closest"), template="blob1", jobs=1)
-    assert result.shape_starts == ["closest", "template", "closest", "closest"]
-    assert not result.posed.any() and result.pose_notes == ["", "", "", ""]
+    assert result.diagnostics.shape_starts == ["closest", "template", "closest", "closest"]
+    assert not result.posed.any() and result.diagnostics.pose_notes == ["", "", "", ""]
     np.testing.assert_array_equal(result.model_points(), result.points)  # bit for bit
     np.testing.assert_array_equal(result.model_transforms(), result.transforms)
     np.testing.assert_array_equal(result.landmark_matrix(), result.points.reshape(len(result), -1))
@@ -172,11 +173,12 @@ def test_the_poses_round_trip_through_the_correspondence_file_and_older_files_lo
     result, _ = spectral
     loaded = Correspondence.load(result.save(tmp_path / "corr.npz"))
     np.testing.assert_array_equal(loaded.poses, result.poses)
-    assert loaded.pose_notes == result.pose_notes and loaded.shape_starts == result.shape_starts
+    assert (loaded.diagnostics.pose_notes, loaded.diagnostics.shape_starts) == \
+        (result.diagnostics.pose_notes, result.diagnostics.shape_starts)
     np.testing.assert_array_equal(loaded.model_points(), result.model_points())
     old = Correspondence.from_arrays({k: v for k, v in result.to_arrays().items()
                                       if k not in ("poses", "pose_notes", "shape_starts")})
-    assert not old.posed.any() and old.pose_notes == [] and old.shape_starts == []
+    assert not old.posed.any() and old.diagnostics.pose_notes == [] and old.diagnostics.shape_starts == []
     np.testing.assert_array_equal(old.model_points(), result.points)
     bad = dict(result.to_arrays())
     bad["poses"] = bad["poses"].copy()

@@ -13,8 +13,7 @@ import pytest
 
 from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
 from shapegen_core.correspond import Correspondence, CorrespondenceSettings, correspond
-from shapegen_core.correspond.settings import (DataTermSettings, IterationSettings, OutlierSettings, RefinementSettings,
-                                               StiffnessSettings)
+from shapegen_core.correspond.settings import DataTermSettings, IterationSettings, OutlierSettings, StiffnessSettings
 from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.base.errors import ModelFileError, ShapeGenError
 from shapegen_core.app.fit_settings import FitSettings, RunOptions, split_run_options
@@ -126,7 +125,6 @@ def test_deform_settings_check_themselves(options, message):
     ("iterations", {"max_iterations": 0}, "max_iterations must be at least 1, got 0"),
     ("iterations", {"max_iterations_per_alpha": 0}, "max_iterations_per_alpha must be at least 1, got 0"),
     ("outliers", {"loo_variance": 1.5}, "loo_variance must be at most 1, got 1.5"),
-    ("refinement", {"sigma": 0.0}, "sigma must be greater than 0, got 0.0"),
 ])
 def test_correspondence_settings_check_themselves(group_name, options, message):
     """Each group checks its own options; nested, an error names the option by its dotted path."""
@@ -227,7 +225,8 @@ def test_correspondence_files_of_the_previous_version_still_load(corresponded, t
 def test_flat_correspondence_settings_of_before_read_into_their_groups(corresponded, tmp_path):
     """Files written before the grouped settings record CorrespondenceSettings flat (one JSON object, or
     before that key/value strings); `FIELDS_MOVED` reads them into the groups, renamed
-    options (refine_sigma → refinement.sigma) included, and files written now nest them."""
+    options (outlier_mad_factor → outliers.residual_mad_factor) included, and files written now
+    nest them; the refinement options they record (an option since removed) are read past."""
     assert CorrespondenceSettings.from_json(FLAT_JSON, recorded=True) == SMALL
     flat = json.loads(FLAT_JSON)
     legacy = {"settings_keys": np.asarray(list(flat)), "settings_values": np.asarray([repr(v) for v in flat.values()])}
@@ -240,16 +239,32 @@ def test_flat_correspondence_settings_of_before_read_into_their_groups(correspon
     fit = FitSettings(correspondence=SMALL).as_dict()
     fit["correspondence"] = flat  # a model file's FitSettings before the grouped settings
     assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == SMALL
-    renamed = {"refine": "population", "refine_sigma": 2.0, "outlier_mad_factor": 4.0}
+    renamed = {"outlier_mad_factor": 4.0}
     assert CorrespondenceSettings.from_dict(renamed) == CorrespondenceSettings(
-        refinement=RefinementSettings(method="population", sigma=2.0), outliers=OutlierSettings(residual_mad_factor=4.0))
+        outliers=OutlierSettings(residual_mad_factor=4.0))
+
+
+def test_population_refinement_files_still_read_and_settings_naming_it_now_say_it_went():
+    """Groupwise refinement after NICP was removed: settings files recorded naming it, flat or
+    nested, read as today's settings; settings given now that name it are refused, saying why."""
+    nested = json.loads(SMALL.to_json())
+    nested["refinement"] = {"method": "population", "iterations": 30, "sigma": 1.0}
+    assert CorrespondenceSettings.from_json(json.dumps(nested), recorded=True) == SMALL
+    flat = {**json.loads(FLAT_JSON), "refine": "population"}
+    assert CorrespondenceSettings.from_dict(flat, recorded=True) == SMALL
+    fit = FitSettings(correspondence=SMALL).as_dict()
+    fit["correspondence"]["refinement"] = {"method": "population"}  # a model file's settings
+    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == SMALL
+    for given in ({"refine": "population"}, {"refine_sigma": 2.0}, {"refinement": {"method": "none"}}):
+        with pytest.raises(SettingsError, match="was removed: groupwise refinement after NICP"):
+            CorrespondenceSettings.from_dict(given)
 
 
 def test_options_given_flat_are_accepted_beside_nested_ones():
     """The add-on and the worker pass options as flat dicts: accepted beside nested ones; an
     option named both ways (the panel's flat one, Extra Settings' nested one) takes the
     nested value."""
-    mixed = CorrespondenceSettings.from_dict({"alpha_end": 10.0, "data_term": {"matching": "features"}, "refine": "none"})
+    mixed = CorrespondenceSettings.from_dict({"alpha_end": 10.0, "data_term": {"matching": "features"}, "gamma": 3.0})
     assert mixed.stiffness.alpha_end == 10.0 and mixed.data_term.matching == "features"
     both = CorrespondenceSettings.from_dict({"alpha_end": 10.0, "alpha_steps": 2, "stiffness": {"alpha_end": 3.0}})
     assert both.stiffness == StiffnessSettings(alpha_end=3.0, alpha_steps=2)

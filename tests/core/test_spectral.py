@@ -201,18 +201,18 @@ def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vase
     from shapegen_core.correspond import Correspondence
 
     result, messages = _short_correspondence(small_vases, "auto")
-    assert result.start in ("closest", "spectral") and result.start_reason
+    assert result.diagnostics.start in ("closest", "spectral") and result.diagnostics.start_reason
     for name in (n for n in result.names if n != result.template_name):
         assert any(m.startswith(f"{name}: ") and "start" in m for m in messages), messages
     loaded = Correspondence.load(result.save(tmp_path / "auto.npz"))
-    assert (loaded.start, loaded.start_reason, loaded.settings.data_term.initialisation) == \
-        (result.start, result.start_reason, "auto")
+    assert (loaded.diagnostics.start, loaded.diagnostics.start_reason, loaded.settings.data_term.initialisation) == \
+        (result.diagnostics.start, result.diagnostics.start_reason, "auto")
     # a file written before the record and the option: the start its settings name, closest
     arrays = {k: v for k, v in result.to_arrays().items() if k not in ("start", "start_reason")}
     recorded = json.loads(result.settings.to_json())
     del recorded["data_term"]["initialisation"]
     old = Correspondence.from_arrays({**arrays, "settings": np.asarray(json.dumps(recorded))})
-    assert old.start == "" and old.start_used == "closest"
+    assert old.diagnostics.start == "" and old.start_used == "closest"
 
 
 @dataclass(frozen=True)
