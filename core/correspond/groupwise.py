@@ -285,9 +285,10 @@ def _run_rounds(collection, start: int, settings: CorrespondenceSettings, runner
         in_frame = [not shape.pose_outlier for shape in collection.shapes]
         starts, template_signatures = spectral_starts(names, surfaces, start, template_points, runner,
                                                       sub_range(report, 0.0, SPECTRAL_SHARE), in_frame)
+        chosen = "" if start_reason == "asked for" else f"; chosen for the collection: {start_reason}"
         for name, spectral in zip(names, starts):
             if spectral is not None:
-                report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
+                report(SPECTRAL_SHARE, f"{name}: {spectral.message}{chosen}")
         report = sub_range(report, SPECTRAL_SHARE, 1.0)
     else:
         for index, name in enumerate(names):
