@@ -64,8 +64,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
-    reason = result.recorded.start_reason
-    chosen = f"{result.start_used} start ({reason}); " if reason and reason != "asked for" else ""  # initialisation auto
+    chosen = f"{result.start_summary()}; " if result.start_summary() else ""
     posed = f"{result.pose_summary()}; " if result.pose_summary() else ""
     print(
         f"corresponded {len(result)} shapes x {result.n_landmarks} landmarks -> {args.output}; "

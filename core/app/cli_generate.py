@@ -96,10 +96,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
     posed = f"; {model.correspondence.pose_summary()}" if model.correspondence.pose_summary() else ""
+    chosen = f"; {model.correspondence.start_summary()}" if model.correspondence.start_summary() else ""
     labelled = "" if model.part_labels is None else \
         f"; part labels of {sum(bool((p >= 0).any()) for p in model.part_labels.parts)} shape(s)"
     print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
-          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}{posed}; "
+          f"{model.n_landmarks} landmarks -> {args.output}; {len(outliers)} outlier(s){labelled}{chosen}{posed}; "
           f"{time.perf_counter() - start:.1f} s")
     return 0
 

@@ -107,6 +107,15 @@ class Correspondence:
             return self.recorded.start
         return "closest" if self.settings is None else self.settings.data_term.initialisation
 
+    def start_summary(self) -> str:
+        """"spectral start (the shapes lie 11.1× farther apart in space …)": the start
+        `initialisation="auto"` chose for the collection and why ("" when the settings
+        named the start, and in files written before the record)."""
+        reason = self.recorded.start_reason
+        if not reason or reason == "asked for":
+            return ""
+        return f"{self.start_used} start ({reason})"
+
     def __len__(self) -> int:
         return len(self.names)
 

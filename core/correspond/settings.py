@@ -113,8 +113,8 @@ class DataTermSettings(Settings):
       two from how its shapes differ (start.py `chosen_start`: far more in space than in
       their Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every
       shape and records it in the correspondence (`Correspondence.diagnostics.start`). Not the default:
-      it misses where closest points fail for reasons other than pose, and where the
-      spectral start mirrors (docs/results.md).
+      it keeps closest points where they fail for reasons other than pose (a shape Prepare
+      left facing away), where the intrinsic start would win (docs/results.md).
     """
 
     #: files written before these fields existed ran with other values (core/base/compat.py)

@@ -127,9 +127,10 @@ class SpectralStart:
         # a shape Prepare flagged (on its side, upside down, unusual) may not face as the others do
         starts, signatures = spectral_starts(setup.names, setup.surfaces, setup.template, setup.template_points,
                                              setup.runner, sub_range(report, 0.0, SPECTRAL_SHARE), setup.in_frame)
+        chosen = "" if self.reason == "asked for" else f"; chosen for the collection: {self.reason}"
         for name, spectral in zip(setup.names, starts):
             if spectral is not None:
-                report(SPECTRAL_SHARE, f"{name}: {spectral.message}")
+                report(SPECTRAL_SHARE, f"{name}: {spectral.message}{chosen}")
         return _FromSpectral(starts, signatures, setup), sub_range(report, SPECTRAL_SHARE, 1.0)
 
 

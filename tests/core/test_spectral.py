@@ -202,8 +202,9 @@ def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vase
 
     result, messages = _short_correspondence(small_vases, "auto")
     assert result.diagnostics.start in ("closest", "spectral") and result.diagnostics.start_reason
+    assert result.start_summary() == f"{result.diagnostics.start} start ({result.diagnostics.start_reason})"
     for name in (n for n in result.names if n != result.template_name):
-        assert any(m.startswith(f"{name}: ") and "start" in m for m in messages), messages
+        assert any(m.startswith(f"{name}: ") and "start" in m and result.diagnostics.start_reason in m for m in messages), messages
     loaded = Correspondence.load(result.save(tmp_path / "auto.npz"))
     assert (loaded.diagnostics.start, loaded.diagnostics.start_reason, loaded.settings.data_term.initialisation) == \
         (result.diagnostics.start, result.diagnostics.start_reason, "auto")
@@ -212,7 +213,21 @@ def test_auto_says_its_choice_for_every_shape_and_the_file_records_it(small_vase
     recorded = json.loads(result.settings.to_json())
     del recorded["data_term"]["initialisation"]
     old = Correspondence.from_arrays({**arrays, "settings": np.asarray(json.dumps(recorded))})
-    assert old.diagnostics.start == "" and old.start_used == "closest"
+    assert old.diagnostics.start == "" and old.start_used == "closest" and old.start_summary() == ""
+
+
+def test_auto_s_intrinsic_choice_is_said_on_every_shape_s_line(small_vases, monkeypatch):
+    """Where the collection takes the intrinsic start, each shape's line names its start
+    (or why it fell back) and why the collection took it."""
+    from shapegen_core.correspond import starting
+
+    monkeypatch.setattr(starting, "chosen_start", lambda evidence: ("spectral", "as the evidence said"))
+    result, messages = _short_correspondence(small_vases, "auto")
+    assert result.diagnostics.start == "spectral" and result.start_summary() == "spectral start (as the evidence said)"
+    for name in (n for n in result.names if n != result.template_name):
+        said = [m for m in messages if m.startswith(f"{name}: ") and m.endswith("chosen for the collection: as the "
+                                                                                 "evidence said")]
+        assert len(said) == 1 and "start" in said[0], messages
 
 
 @dataclass(frozen=True)
