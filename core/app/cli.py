@@ -77,7 +77,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- evaluate
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    """Evaluate shape models on a folder of meshes or a correspondence .npz (issue 7)."""
+    """Evaluate shape models on a folder of meshes or a correspondence .npz."""
     from ..evaluation import EvaluationSettings, parse_model_names, run_evaluation
     from ..evaluation.report import write_report
 
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _terminate_as_interrupt():
     """SIGTERM (a `kill`, a scheduler's timeout) ends a command as Ctrl-C does, so its
-    temporary folders and pools are closed on the way out (issue 32). Returns the handler
+    temporary folders and pools are closed on the way out. Returns the handler
     it replaced (None when not in the main thread, where handlers cannot be set)."""
     def interrupt(signum, frame):
         raise KeyboardInterrupt

@@ -112,7 +112,7 @@ def requested_settings(args: argparse.Namespace, **fixed) -> FitSettings:
 
 
 def add_keep_pose_option(parser: argparse.ArgumentParser) -> None:
-    """--keep-pose NAME [NAME ...]: shapes of a folder whose pose Prepare keeps (issue 12)."""
+    """--keep-pose NAME [NAME ...]: shapes of a folder whose pose Prepare keeps."""
     parser.add_argument("--keep-pose", nargs="+", metavar="NAME", default=None,
                         help="shapes (file names without extension) whose pose Prepare keeps: never turned beyond "
                              "the up axis, still flagged when their pose looks wrong")
@@ -240,7 +240,7 @@ def prepare_source(source: Source) -> PreparedCollection:
         source.prepared = prepare_meshes(source.meshes, source.prepare, progress=console_progress("prepare"),
                                          keep_pose=source.keep_pose)
         source.prepared.unreadable = dict(source.unreadable or {})
-        source.meshes = None  # the input meshes are not needed again: free them (dense meshes, issue 15)
+        source.meshes = None  # the input meshes are not needed again: free them (dense meshes)
         for line in pose_lines(source.prepared):
             print(line, file=sys.stderr)
     return source.prepared

@@ -115,7 +115,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     _check_mesh_template(settings, list(corr.names))
     _check_variation(meshes)
     note = size_note(settings.model, len(corr.names))
-    if note is not None:  # an N³ fit of many shapes: say so (issue 15)
+    if note is not None:  # an N³ fit of many shapes: say so
         warnings.warn(note, ScaleWarning, stacklevel=2)
         report(0.0, note)
     model = make_model(settings.model, settings.latent_dim, settings.prepare.seed)

@@ -96,9 +96,9 @@ class DataTermSettings(Settings):
     The other weights and rules of feature matches are constants of features.py (the
     normal's and the up-component's weights, the up-width, trimmed matches, merged regions,
     surface samples, the fit check against closest points and its fallback share) and
-    FEATURE_STIFFNESS: they were research knobs, removed in issue 34
-    (`CorrespondenceSettings.FIELDS_REMOVED`; their measurements are in docs/results.md).
-    Start (**beyond** the thesis, opt-in; issue 34, start.py, functional_map.py):
+    FEATURE_STIFFNESS: they were research knobs, removed as options
+    (`CorrespondenceSettings.FIELDS_REMOVED`; their measurements are in docs/history.md).
+    Start (**beyond** the thesis, opt-in; start.py, functional_map.py):
     initialisation: "closest" (default; files written before it record it): every shape's
       registration starts from the template as it is (the thesis). "spectral": from the
       template's landmarks carried to the shape by an intrinsic map (Laplace–Beltrami

@@ -1,4 +1,4 @@
-"""Where each shape's registration starts (**beyond** the thesis: issue 34,
+"""Where each shape's registration starts (**beyond** the thesis;
 `CorrespondenceSettings.data_term.initialisation`).
 
 "closest" (the thesis): the template as it is; non-rigid ICP finds closest points from

@@ -13,7 +13,7 @@ into scene data; they hold no algorithm.
   flagged shapes.
 * `SHAPEGEN_OT_toggle_keep_pose` — flip the active object's Keep Pose flag.
 * `SHAPEGEN_OT_turn_flagged` — turn the prepared copies Prepare flagged (it never turns a
-  shape on doubtful evidence) as their flags suggest, in one undo step (issue 30).
+  shape on doubtful evidence) as their flags suggest, in one undo step.
 """
 
 from __future__ import annotations
