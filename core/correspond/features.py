@@ -18,7 +18,7 @@ matches towards equal slope, a different height on every flaring lip); the secon
 saturated up-component, marks where the surface turns from facing down to facing up: a
 belly or a neck (n_z = 0 between the two) is a level set of it whatever the shape's
 proportions, so matching it lines such features up (the constants below say why each
-value; docs/results.md, Correspondence, what they measured).
+value; docs/history.md, Correspondence: feature matches, what they measured).
 
 The template point's features are its normals as the first (stiffest, nearly affine) α of
 the schedule left them (`register`): a taller target tilts every normal less, and the
@@ -89,13 +89,13 @@ FALLBACK_SHARE = 0.1
 #: by `NO_AGREEMENT` or more not at all, linearly between. Positions of unrelated structures
 #: differ by 1/3 on average (two independent uniform values); after the first round shapes
 #: of one turned class stay below 0.15, most real-class shapes are above 0.2
-#: (docs/results.md, Correspondence).
+#: (docs/history.md, Correspondence: feature matches).
 FULL_AGREEMENT = 0.1
 NO_AGREEMENT = 0.2
 #: feature matches fit a shape worse when their residual exceeds the closest-point fit's by
 #: more than this fraction (`worse_fits`). Lining features up costs some distance (about a
 #: fifth at most on the procedural vases); a template collapsed onto part of a shape costs
-#: more, from 1.4 × up (Blender mugs, PSB cups; docs/results.md, Correspondence)
+#: more, from 1.4 × up (Blender mugs, PSB cups; docs/history.md, Correspondence: feature matches)
 FIT_TOLERANCE = 0.25
 #: a template region counts in `merged_regions` when it holds at least this share of the
 #: template's points (smaller ones are noise of a near-vertical wall or a rim's edge)

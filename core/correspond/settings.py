@@ -23,7 +23,7 @@ MATCHING_METHODS = ("closest", "features")
 #: with feature matches the stiffness schedule ends at this fraction of `stiffness.alpha_end`: the
 #: features pull only the points between the template's turning line and the target's, and
 #: a softer last α lets the wall around them follow (with closest points a softer end does
-#: not help, so the schedule changes only there; docs/results.md, Correspondence)
+#: not help, so the schedule changes only there; docs/history.md, Correspondence: feature matches)
 FEATURE_STIFFNESS = 0.4
 
 #: `data_term.initialisation`: where each shape's registration starts (start.py)
@@ -200,7 +200,7 @@ class CorrespondenceSettings(Settings):
     """Every parameter of the correspondence engine, with the thesis defaults (§4.2.8)
     except where a measurement said otherwise, one group per subsystem (each group's
     docstring says what its options do). The figures behind each non-thesis value are in
-    docs/results.md ("Measurements behind the correspondence settings").
+    docs/history.md ("Measurements behind the correspondence settings").
 
     proxy_faces (dense shapes): a shape with more than 2.5 times this many faces is
       registered against its vertex-clustering proxy of about this many faces

@@ -322,7 +322,7 @@ def pose_evidence(meshes: Sequence, landmark_sets: Sequence[np.ndarray], templat
 #: bending moves a shape in space but hardly changes its spectrum, a change of proportion
 #: changes both alike. The value lies between the ratios of classes that differ in
 #: proportion and of classes that differ in pose (bench/start_evidence.py; docs/results.md,
-#: "People, the gorilla and the automatic start")
+#: "How auto chooses")
 POSE_RATIO = 5.0
 
 

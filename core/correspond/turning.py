@@ -5,7 +5,7 @@ A turning line is where the surface turns from facing down to facing up (n_z = 0
 up after Prepare): the belly and the neck of a vase, a shoulder, the equator of a sphere.
 The saturated up-feature of features.py tells which side of such a line a point is on;
 it pulls only the points lying between the template's line and the target's, which pile
-up just beyond it (docs/results.md, Correspondence). This module gives every
+up just beyond it (docs/history.md, Correspondence: feature matches). This module gives every
 point a position along its region instead, so points on both sides of a line are pulled
 in proportion:
 
@@ -21,7 +21,7 @@ middle below its height middle, by a different amount on every vase). The line l
 the up-component of the normal crosses zero between two neighbouring points (interpolated
 along their edge), not at the points beside it, which lie up to half a spacing inside the
 region by an amount that differs per shape. (Both choices removed an S-shaped bias of g
-against the true height fraction; figures in docs/results.md, Correspondence.) A line
+against the true height fraction; figures in docs/history.md, Correspondence: feature matches.) A line
 often comes in pieces (on a wide belly whose normals are nearly horizontal over a band,
 the sign change breaks into arcs): pieces at about the same height are one line
 (`SAME_LINE`), since taking only the lowest piece would measure g around the shape from
