@@ -20,6 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 DIST = ROOT / "dist"
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: where the real mesh collections are
 MODULE = "bl_ext.user_default.shapegen"
 
 _USER_RESOURCES = tempfile.mkdtemp(prefix="shapegen-blender-user-")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 # before numpy is imported: OpenBLAS reads it once, when the library loads (set after the
@@ -16,9 +17,8 @@ from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform  # noqa: E402
 
-PSB = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb"
-if not PSB.is_dir():
-    PSB = Path("/work/shared/data/psb")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: shared_data, where the real collections are
+from shared_data import folder_or_skip  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -103,17 +103,13 @@ def turned(meshes, turns: dict) -> list[Mesh]:
 
 
 def tosca_class(name: str) -> Path:
-    folder = PSB.parent / "tosca" / name
-    if not folder.is_dir() or not any(folder.glob("*.off")):
-        pytest.skip(f"real data folder {folder} is absent")
-    return folder
+    """The TOSCA folder `name` (an animal, or people); the test is skipped, naming it, when absent."""
+    return folder_or_skip("tosca", name)
 
 
 def psb_class(name: str) -> Path:
-    folder = PSB / name
-    if not folder.is_dir() or not any(folder.glob("*.off")):
-        pytest.skip(f"real data folder {folder} is absent")
-    return folder
+    """The PSB class folder `name`; the test is skipped, naming it, when absent."""
+    return folder_or_skip("psb", name)
 
 
 def central_diff(f, x, h=1e-5):

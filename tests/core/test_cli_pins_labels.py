@@ -1,4 +1,4 @@
-"""`shapegen complete --pins` and `shapegen sample --labels` round trips on the shared PSB
+"""`shapegen complete --pins` and `shapegen sample --labels` round trips on the PSB
 Vase class (meshes with part labels beside them), as a user runs them (subprocesses)."""
 
 from __future__ import annotations
@@ -15,12 +15,9 @@ import pytest
 from shapegen_core.base.npzfile import load_npz, save_npz
 from shapegen_core.app.shape_model import GenerativeShapeModel
 
-SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
-VASE = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb" / "Vase"
-if not VASE.is_dir():
-    VASE = Path("/work/shared/data/psb/Vase")
+from conftest import psb_class
 
-pytestmark = pytest.mark.skipif(not VASE.is_dir(), reason=f"the shared PSB Vase class is not here ({VASE})")
+SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 
 
 def run(*args):
@@ -31,12 +28,13 @@ def run(*args):
 def vase(tmp_path_factory):
     """A small PPCA model of 8 PSB vases (40 landmarks) fitted from a folder that holds
     their part labels; returns (model file, data folder, loaded model)."""
+    vases = psb_class("Vase")
     folder = tmp_path_factory.mktemp("vase")
     data = folder / "data"
     data.mkdir()
-    for off in sorted(VASE.glob("*.off"))[:8]:
+    for off in sorted(vases.glob("*.off"))[:8]:
         shutil.copy(off, data / off.name)
-        shutil.copy(VASE / f"{off.stem}_labels.txt", data / f"{off.stem}_labels.txt")
+        shutil.copy(vases / f"{off.stem}_labels.txt", data / f"{off.stem}_labels.txt")
     result = run("fit", data, "-o", folder / "model.npz", "--model", "ppca", "--landmarks", 40, "--up", "y",
                  "--jobs", 1)
     assert result.returncode == 0, result.stderr
