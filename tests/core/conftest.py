@@ -9,6 +9,12 @@ from pathlib import Path
 # before numpy is imported: OpenBLAS reads it once, when the library loads (set after the
 # import, numpy's BLAS ran on every core while scipy's ran on one)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Python keeps what it compiles (__pycache__), here and in every process a test starts: the
+# environments are installed without compiling (Makefile), and where PYTHONDONTWRITEBYTECODE
+# is set every `shapegen` a test ran compiled numpy, scipy, trimesh and the core anew (1-1.7
+# CPU-s a launch, against 0.3-0.7 with the compiled files kept)
+sys.dont_write_bytecode = False
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
