@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -126,3 +129,20 @@ def central_diff(f, x, h=1e-5):
         e[i] = h
         out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
     return out
+
+
+def in_process(*args) -> subprocess.CompletedProcess:
+    """`shapegen ARGS` run by `shapegen_core.app.cli.main` in this process, its exit status,
+    stdout and stderr given as a subprocess gives them (argparse's exits included). For the
+    checks of parsing, validation and their one-line errors: a `shapegen` process costs a
+    second of CPU before it reads its arguments. The runs that check the installed entry
+    point end to end stay subprocesses."""
+    from shapegen_core.app.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = main([str(arg) for arg in args])
+        except SystemExit as exc:  # argparse: a usage error (2), --help or --version (0)
+            status = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    return subprocess.CompletedProcess(["shapegen", *map(str, args)], status, out.getvalue(), err.getvalue())
