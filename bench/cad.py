@@ -33,6 +33,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / ".pyshim"))
 sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
 
 import numpy as np  # noqa: E402
 
@@ -44,8 +45,8 @@ from shapegen_core.app.fit_settings import FitSettings
 from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
 from shapegen_core.generate.quality import coincident_faces  # noqa: E402
 from shapegen_core.generate.sampling import gated_samples  # noqa: E402
+from shared_data import folder_or_exit  # noqa: E402
 
-PSB = Path("/work/shared/data/psb")
 OUTPUT = ROOT / "bench_output"
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # (x, y, z) -> (x, z, -y)
 
@@ -53,7 +54,7 @@ Z_UP_TO_Y_UP = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # (x, y, z) -
 def clean_class(name: str, n: int) -> tuple[list[Mesh], str]:
     """The class's first `n` meshes as they are, and their up axis."""
     if name.startswith("psb:"):
-        return read_folder(PSB / name[4:])[:n], "y"
+        return read_folder(folder_or_exit("psb", name[4:]))[:n], "y"
     if name == "vases":
         from shapegen_core.demo_data import make_vases
 
@@ -163,14 +164,15 @@ def thinnest_faces() -> None:
         edges = corners[:, [1, 2, 0]] - corners
         return 2 * mesh.face_areas() / np.einsum("fki,fki->fk", edges, edges).max(axis=1)
 
-    classes = {folder.name: folder for root in (PSB, Path("/work/shared/data/tosca")) for folder in sorted(root.iterdir())}
+    classes = {folder.name: folder for root in (folder_or_exit("psb"), folder_or_exit("tosca"))
+               for folder in sorted(root.iterdir()) if folder.is_dir()}
     print(f"{'class':>10} {'meshes':>6} {'thinnest':>9}  {'faces < SLIVER_RATIO':>20}")
     for name, folder in classes.items():
         meshes = []
         for path in list_mesh_files(folder):
             try:
                 meshes.append(read_mesh(path))
-            except Exception as exc:  # a damaged file of the shared data (TOSCA horse7) is named
+            except Exception as exc:  # a damaged file of the real collections (TOSCA horse7) is named
                 print(f"{'':>10} skipped: {exc}")
         values = [ratios(m) for m in meshes]
         dropped = sum(m.report.sliver_faces_dropped for m in meshes)  # read: loose slivers already left out
@@ -185,7 +187,7 @@ def thinnest_faces() -> None:
 
 
 def cad_files(name: str, n: int, folder: Path, rng: np.random.Generator) -> tuple[list[Mesh], str]:
-    """The class's CAD-like files written to `folder`: a shared or procedural class made
+    """The class's CAD-like files written to `folder`: a real or procedural class made
     CAD-like (`write_cad_obj`), or the Blender bottles (bench/blender_cad.py); and the
     clean meshes it was made from with their up axis (none for the Blender class)."""
     if name == "blender:bottles":

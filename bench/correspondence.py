@@ -14,7 +14,8 @@ Writes bench_output/correspondence.{json,txt}. Not part of the tests. Three part
    sit at the same (s, θ) on every shape; does not penalise moving away from the template,
    which groupwise re-estimation does by design).
 2. 131 vases (the thesis's count), 800 landmarks, groupwise, 2 processes: wall time.
-3. PSB (shared/data/psb/*, up axis y): label-transfer accuracy = share of landmarks whose
+3. PSB (psb/* of the real collections, tests/shared_data.py; up axis y): label-transfer
+   accuracy = share of landmarks whose
    part label matches the reference (template) shape's, and time per shape.
 
 Parts 1 and 3 also measure the model quality of the landmarks (PPCA held-out
@@ -54,7 +55,9 @@ from shapegen_core.meshes.reading import read_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
-PSB = ROOT.parent / "shared" / "data" / "psb"
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
+
 LANDMARKS = 800
 
 
@@ -424,7 +427,7 @@ def psb(quick: bool, log) -> dict:
     out = {}
     landmarks = 400 if quick else LANDMARKS
     log(f"\n== PSB label transfer ({landmarks} landmarks, groupwise, 2 processes)")
-    for folder in sorted(p for p in PSB.iterdir() if p.is_dir()):
+    for folder in sorted(p for p in folder_or_exit("psb").iterdir() if p.is_dir()):
         meshes = read_folder(folder)
         if quick:
             meshes = meshes[:8]
@@ -485,11 +488,13 @@ def main() -> int:
     report = {"quick": args.quick, "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
               "numpy": np.__version__}
     parts = args.parts.split(",")
+    if "3" in parts:
+        folder_or_exit("psb")  # before parts 1 and 2 run (--parts 1,2 runs without it)
     if "1" in parts:
         report["procedural"] = procedural(args.quick, log)
     if "2" in parts:
         report["collection"] = collection_timing(args.quick, log)
-    if "3" in parts and PSB.is_dir():
+    if "3" in parts:
         report["psb"] = psb(args.quick, log)
     (OUTPUT / "correspondence.json").write_text(json.dumps(report, indent=2))
     (OUTPUT / "correspondence.txt").write_text("\n".join(lines) + "\n")

@@ -45,8 +45,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # shared_data: the real collections
 from blender_mugs import mug_meshes  # noqa: E402
-from correspondence import (LANDMARKS, OUTPUT, PSB, console_log, decompose, error_vs_template,  # noqa: E402
+from shared_data import folder_or_exit  # noqa: E402
+from correspondence import (LANDMARKS, OUTPUT, console_log, decompose, error_vs_template,  # noqa: E402
                             face_labels, model_quality, naive_baseline)
 
 from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes  # noqa: E402
@@ -183,6 +185,8 @@ def main() -> int:
     parser.add_argument("--truth", action="store_true",
                         help="also the ground truth's landmarks as a row (model quality of the true correspondence)")
     args = parser.parse_args()
+    if args.psb:
+        folder_or_exit("psb")  # before the procedural collections run
     OUTPUT.mkdir(exist_ok=True)
     log, lines = console_log()
     log(f"{args.shapes} procedural vases per seed, {LANDMARKS} landmarks; errors in % of the diagonal")
@@ -209,13 +213,13 @@ def main() -> int:
             f"{mean['naive_pct']:.3f} | {mean['naive_over_ours']:.2f} | {mean['heldout_log_likelihood']:.1f} | "
             f"{mean['completion_error_middle']:.3f} | {mean['completion_surface_pct']:.3f} | {mean['seconds']:.1f} |")
     psb = {}
-    if args.psb and PSB.is_dir():
+    if args.psb:
         log(f"PSB, {args.psb} shapes per class, 400 landmarks: label transfer, PPCA held-out log-likelihood, "
             "completion error (on the landmarks and on the surface)")
         log("| class | variant | accuracy % | naive % | below naive | held-out LL | completion | "
             "completion on the surface % | s |")
         log("|---|---|---|---|---|---|---|---|---|")
-        for folder in sorted(p for p in PSB.iterdir() if p.is_dir()):
+        for folder in sorted(p for p in folder_or_exit("psb").iterdir() if p.is_dir()):
             psb[folder.name] = psb_class(folder, args.psb, args.variants)
             for name, r in psb[folder.name].items():
                 log(f"| {folder.name} | {name} | {r['accuracy_pct']:.1f} | {r['naive_pct']:.1f} | "

@@ -20,17 +20,18 @@ per class):
   (`make_quadrupeds`: not a body of revolution; neck and tail raised by per-shape angles).
   True error: landmark i of shape m against the point of m at the surface coordinates of
   landmark i on the template shape (the coordinates of the generator's parametrisation).
-* TOSCA cat, centaur, dog, horse (shared/data/tosca; one animal in many poses, z up).
+* TOSCA cat, centaur, dog, horse (the real collections, tests/shared_data.py; one animal
+  in many poses, z up).
   True error: landmark i of the template goes to its nearest common point k of the class
   (`corres/<name>.vts`), whose point on shape m is the truth. The template landmark's own
   distance to its common point is the protocol's floor (logged). horse7.off is cut short
   mid-line and refused by the reader: left out (said in the log).
-* TOSCA people (man + woman, one collection) and TOSCA gorilla (shared/data/tosca/people):
+* TOSCA people (man + woman, one collection) and TOSCA gorilla (tosca/people):
   the truth runs across individuals (900 common points), scored as the animals. For every
   TOSCA class also the mirrored shapes (error against `.sym.vts` below MIRRORED × the error
   against `.vts`) and the field's unit: mean geodesic error ÷ √(surface area) × 100, the
   geodesic by Dijkstra on the mesh's edge graph (an approximation from above).
-* PSB Vase, Cup, Fish, Airplane (shared/data/psb, up axis y): label transfer = share of
+* PSB Vase, Cup, Fish, Airplane (psb/<Class>, up axis y): label transfer = share of
   landmarks whose part label on shape m is the label of landmark i on the template.
 
 Shapes: --quick 5 per procedural class, 4 cats, 3 men + 3 women, 4 gorillas, 5 PSB vases;
@@ -82,13 +83,12 @@ from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 from shapegen_core.base.settings import nested_data  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # shared_data: the real collections
 from correspondence import console_log, face_labels, nricp_baseline  # noqa: E402
+from shared_data import folder_or_exit  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
-#: the shared data (README.md there): $SHAPEGEN_SHARED_DATA, else shared/data beside an ancestor of this checkout
-DATA = Path(os.environ.get("SHAPEGEN_SHARED_DATA") or next(
-    (p / "shared" / "data" for p in ROOT.parents if (p / "shared" / "data").is_dir()), ROOT.parent / "shared" / "data"))
 LANDMARKS = 800
 JOBS = 1
 #: a shape came out mirrored when its error against the mirrored truth (`.sym.vts`) is below
@@ -199,16 +199,16 @@ def tosca_class(name: str, stems, folder: Path, limit: int | None) -> BenchClass
 
 
 def tosca_animal(animal: str, limit: int | None) -> BenchClass:
-    """One TOSCA animal in many poses (shared/data/tosca/<animal>)."""
-    folder = DATA / "tosca" / animal
+    """One TOSCA animal in many poses (tosca/<animal>)."""
+    folder = folder_or_exit("tosca", animal)
     stems = sorted((p.stem for p in folder.glob("*.off")), key=lambda s: int(s[len(animal):]))
     return tosca_class(f"TOSCA {animal}", stems, folder, limit)
 
 
 def tosca_people(kinds: tuple[str, ...], name: str, limit: int | None) -> BenchClass:
-    """TOSCA's people (shared/data/tosca/people): the shapes whose names hold one of
+    """TOSCA's people (tosca/people): the shapes whose names hold one of
     `kinds` ("man", "woman", "gorilla"), truth across individuals (900 common points)."""
-    folder = DATA / "tosca" / "people"
+    folder = folder_or_exit("tosca", "people")
     stems = sorted(p.stem for p in folder.glob("*.off") if p.stem.split("_")[1] in kinds)
     if limit is not None:  # a quick run keeps every kind
         by_kind = [[s for s in stems if s.split("_")[1] == kind] for kind in kinds]
@@ -243,7 +243,7 @@ def classes(quick: bool, only: set | None, psb_shapes: int | None = None) -> lis
     makers["TOSCA people"] = lambda: tosca_people(("man", "woman"), "TOSCA people", 6 if quick else None)
     makers["TOSCA gorilla"] = lambda: tosca_people(("gorilla",), "TOSCA gorilla", 4 if quick else None)
     for folder in (["Vase"] if quick else ["Vase", "Cup", "Fish", "Airplane"]):
-        makers[f"PSB {folder}"] = lambda folder=folder: psb_class(DATA / "psb" / folder, psb_shapes)
+        makers[f"PSB {folder}"] = lambda folder=folder: psb_class(folder_or_exit("psb", folder), psb_shapes)
     return [(name, make) for name, make in makers.items() if only is None or name in only]
 
 

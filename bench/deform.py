@@ -5,7 +5,8 @@ on real data. Not part of the test suite; run `python bench/deform.py [--quick]`
    landmarks path (decode → LinearMeshMap.vertices) and the model basis path
    (mesh = V(mean) + features(z) @ mesh basis, precomputed once).
 2. 1000 samples of a ~20k-vertex template written as OBJ.
-3. PSB Fish and Airplane (../shared/data/psb, up axis y): fit BGP-LVM, sample, mesh;
+3. PSB Fish and Airplane (the real collections, tests/shared_data.py; up axis y): fit
+   BGP-LVM, sample, mesh;
    flipped triangles (face normal against the normal the local affine predicts), edge-length
    distortion against the template, landmark fit residual, and the distance between the
    linear fast path and the full stiffness relaxation.
@@ -36,7 +37,8 @@ from shapegen_core.app.shape_model import GenerativeShapeModel
 from shapegen_core.app.pipeline import fit_meshes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-PSB = ROOT.parent / "shared" / "data" / "psb"
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
 
 
 def subdivide_to(mesh: Mesh, target_vertices: int) -> Mesh:
@@ -185,6 +187,7 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="fewer repeats and samples")
     parser.add_argument("--landmarks", type=int, default=800)
     args = parser.parse_args()
+    psb = {cls: folder_or_exit("psb", cls) for cls in ("Fish", "Airplane")}  # before any work
     out = ROOT / "bench_output"
     out.mkdir(exist_ok=True)
     results: dict = {}
@@ -196,11 +199,7 @@ def main() -> int:
     speed(model, results, args.quick)
     quality(model, "procedural vases", 5 if args.quick else 20, results)
 
-    for cls in ("Fish", "Airplane"):
-        folder = PSB / cls
-        if not folder.is_dir():
-            print(f"{cls}: {folder} not found, skipped")
-            continue
+    for cls, folder in psb.items():
         start = time.perf_counter()
         model = fit_meshes(read_folder(folder), FitSettings(
             prepare=PrepareSettings(n_landmarks=args.landmarks, up_axis="y"), model="bgplvm"), jobs=2)

@@ -1,7 +1,7 @@
 """Regression table of Prepare's orientation decisions and part-label transfer on the
-shared PSB classes, paired against other git revisions.
+PSB classes, paired against other git revisions.
 
-For every class of shared/data/psb (all 20 shapes each, files read with up y, as
+For every class of the real PSB collection (tests/shared_data.py; all 20 shapes each, files read with up y, as
 `shapegen correspond --up y` reads them): Prepare at its defaults (`PrepareSettings(up_axis="y")`),
 its decision for each shape (kept, turned how, flagged why), and the correspondence at
 its defaults (`CorrespondenceSettings()`) scored by part-label transfer: the share of
@@ -37,9 +37,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from psb_labels import face_labels  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-PSB = ROOT.parent / "shared" / "data" / "psb"
-if not PSB.is_dir():
-    PSB = Path("/work/shared/data/psb")
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
+
 CACHE = ROOT / "bench_output" / "label_transfer"
 CLASSES = ("Airplane", "Cup", "Fish", "Vase")
 
@@ -66,7 +66,7 @@ def measure_class(name: str, jobs: int, decisions_only: bool) -> dict:
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.meshes.reading import read_folder
 
-    folder = PSB / name
+    folder = folder_or_exit("psb", name)
     meshes = read_folder(folder)
     start = time.perf_counter()
     prepared = prepare_meshes(meshes, PrepareSettings(up_axis="y"))
@@ -189,6 +189,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.child:
         return child(args)
+    for name in args.classes:  # every class there before any version runs
+        folder_or_exit("psb", name)
     versions = {}
     for revision in args.revisions:
         versions[revision] = run_version(revision, revision, args)

@@ -13,7 +13,7 @@ unshrunk total), and the Ledoit-Wolf shrinkage ("LW"). Writes bench_output/laten
 
 Data (--data, comma-separated):
   vases        `make_vases(20, seed)` (procedural, z up)
-  psb:<Class>  every mesh of /work/shared/data/psb/<Class> (20 shapes, y up)
+  psb:<Class>  every mesh of that PSB class (tests/shared_data.py; 20 shapes, y up)
 Target: automatic dimension <= 8 on every class and fold (the former rule jumped between 2 and 19).
 """
 
@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -36,8 +37,10 @@ from shapegen_core.preprocess.landmarks import DEFAULT_LANDMARKS  # noqa: E402
 from shapegen_core.models import MODEL_TYPES, make_model  # noqa: E402
 from shapegen_core.models.base import ledoit_wolf_shrinkage, principal_axes, shrunk_spectrum  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
+
 BENCH_OUTPUT = Path(__file__).resolve().parents[1] / "bench_output"
-PSB = Path("/work/shared/data/psb")
 DEFAULT_DATA = "vases,psb:Airplane,psb:Cup,psb:Fish,psb:Vase"
 
 
@@ -52,7 +55,7 @@ def landmark_matrix(data: str, n_landmarks: int, seed: int) -> np.ndarray:
             meshes, up_axis = [s.mesh for s in make_vases(20, seed=seed)], "z"
         elif data.startswith("psb:"):
             from shapegen_core.meshes.reading import read_folder
-            meshes, up_axis = read_folder(PSB / data[4:]), "y"
+            meshes, up_axis = read_folder(folder_or_exit("psb", data[4:])), "y"
         else:
             raise SystemExit(f"unknown --data {data!r} (vases, psb:<Class>)")
         prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=n_landmarks, up_axis=up_axis, seed=0))

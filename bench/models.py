@@ -27,7 +27,7 @@ shapes <= 1 s (PPCA), <= 10 s (GP-LVMs).
 Data (--data):
   vases       (default) `make_vases(--shapes, seed)` -> prepare_meshes -> correspond (our pipeline),
               --landmarks landmarks; the correspondence is cached in bench_output/ so reruns are cheap.
-  psb:<Class> every mesh of /work/shared/data/psb/<Class> (20 shapes), up_axis = 'y', same pipeline.
+  psb:<Class> every mesh of that PSB class (tests/shared_data.py; 20 shapes), up_axis = 'y', same pipeline.
   synthetic   a template of L points on the unit sphere, stretched along x/y by a (linear), bulged
               along z by sin(2b), sheared by b x^2, plus 1e-3 noise (nearly linear: ARD
               length-scales run off; kept for comparison with earlier runs).
@@ -50,6 +50,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
 
 
 def import_models():
@@ -83,7 +86,6 @@ def synthetic_shapes(n: int, n_landmarks: int, rng: np.random.Generator, noise: 
 
 
 BENCH_OUTPUT = Path(__file__).resolve().parents[1] / "bench_output"
-PSB = Path("/work/shared/data/psb")
 DEFAULT_GPY_PYTHON = "/tmp/venvbench/bin/python"
 
 
@@ -110,7 +112,7 @@ def real_landmarks(data: str, n_shapes: int, n_landmarks: int, seed: int):
             meshes, up_axis = [s.mesh for s in make_vases(n_shapes, seed=seed)], "z"
         else:
             from shapegen_core.meshes.reading import read_folder
-            meshes, up_axis = read_folder(PSB / data[4:]), "y"
+            meshes, up_axis = read_folder(folder_or_exit("psb", data[4:])), "y"
         prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=n_landmarks, up_axis=up_axis, seed=0))
         corr = correspond(prepared, CorrespondenceSettings(), jobs=1)
         BENCH_OUTPUT.mkdir(exist_ok=True)

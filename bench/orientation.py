@@ -10,7 +10,7 @@ Sets:
   (b) the same with a known subset (--perturbed shapes) turned by a random one of the 23
       non-identity axis rotations (axis permutations, half turns), or by a random turn
       about up of 45°-315° (every third perturbed shape);
-  (c) the shared PSB classes (files y-up: --up y);
+  (c) the real PSB classes (files y-up: --up y);
   (d) mugs modelled in Blender through bpy (bench/blender_mugs.py `model_mugs`: quads,
       32-gon caps, UVs, a material, a handle as a second part; plain, mirrored, parented,
       rotated and subdivided objects, all +Z up facing +x in world coordinates), read as
@@ -59,6 +59,8 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import missing, shared_path  # noqa: E402
 
 try:
     import shapegen_core
@@ -232,12 +234,9 @@ PSB_AS_FILED: dict[tuple[str, str], tuple[list, float]] = {}
 
 
 def psb_classes(data: Path, classes, label: str):
-    """(class, its meshes) for every PSB class folder present; a missing one is named and skipped."""
+    """(class, its meshes) for every PSB class (main checked that each folder is there)."""
     for cls in classes:
         folder = data / cls
-        if not folder.is_dir():
-            print(f"{label} {cls}: {folder} missing, skipped")
-            continue
         if cls not in PSB_MESHES:
             PSB_MESHES[cls] = read_folder(folder)
         yield cls, PSB_MESHES[cls]
@@ -389,7 +388,7 @@ def render(prepared, turned, flagged, path: Path, title: str, view: np.ndarray |
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=Path("/work/shared/data/psb"))
+    parser.add_argument("--data", type=Path, default=shared_path("psb"), help="the PSB folder (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench_output")
     parser.add_argument("--classes", nargs="+", default=list(CLASSES))
     parser.add_argument("--up", default="y")
@@ -407,6 +406,10 @@ def main(argv=None) -> int:
     parser.add_argument("--no-render", action="store_true")
     parser.add_argument("--oblique", action="store_true", help="also draw each PSB class from front-left, above")
     args = parser.parse_args(argv)
+    if "c" in args.sets or "e" in args.sets:
+        for cls in args.classes:
+            if missing(args.data / cls):
+                raise SystemExit(f"orientation.py: {missing(args.data / cls)}")
     revisions = dict(item.split("=", 1) for item in args.revisions)
     names = args.methods or [*revisions, "after"]
     methods = {name: prepare_collection if name == "after" else load_revision(name, revisions[name]) for name in names}

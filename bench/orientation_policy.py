@@ -9,7 +9,7 @@ also each procedural class on one floor, its files' origins under their bases):
   of the height), cups (make_cups: open, leaning in or out, no handle), vases
   (make_vases), barrels (make_barrels), bottles and teddies (bench/orientation_classes.py;
   teddies half sitting, half standing), mugs modelled in Blender (--blender:
-  bench/blender_mugs.py, read as the add-on reads objects), the shared PSB classes (files
+  bench/blender_mugs.py, read as the add-on reads objects), the real PSB classes (files
   y-up; not consistent as filed, so "as given" there is a measurement, not a truth) and
   the TOSCA animals (z-up, one animal in many poses).
 
@@ -50,6 +50,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
 
 from orientation import load_revision  # noqa: E402
 from orientation_classes import make_bottles, make_teddies  # noqa: E402
@@ -58,10 +59,8 @@ from shapegen_core.base.errors import MeshFileError  # noqa: E402
 from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform, prepare_collection  # noqa: E402
 from shapegen_core.preprocess.rotations import up_rotation, yaw_rotation  # noqa: E402
+from shared_data import folder_or_exit  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data")
 QUARTERS = [np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([[0, 0, 1.0], [0, 1, 0], [-1, 0, 0]]),
             np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]), np.array([[0, 0, -1.0], [0, 1, 0], [1, 0, 0]])]
 HALVES = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])]
@@ -123,9 +122,9 @@ def collection(name: str, n: int, seed: int) -> tuple[list, str]:
         return model_mugs(n, seed)[0], "z"
     source, cls = name.split()
     if source == "PSB":
-        return read_folder(DATA / "psb" / cls)[:2 * n], "y"
+        return read_folder(folder_or_exit("psb", cls))[:2 * n], "y"
     meshes = []
-    for path in sorted((DATA / "tosca" / cls).glob("*.off")):
+    for path in sorted(folder_or_exit("tosca", cls).glob("*.off")):
         try:
             meshes.append(read_mesh(path))
         except MeshFileError as exc:  # TOSCA horse7.off is cut short mid-line: refused, said, left out

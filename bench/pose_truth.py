@@ -3,7 +3,7 @@ correspondence poses it by its landmarks (core/correspond/posing.py). Not part o
 
     shapegen prepare DIR --up z -o prepared.npz          # DIR: TOSCA man + woman files
     shapegen correspond prepared.npz --initialisation spectral -o corr.npz
-    python bench/pose_truth.py prepared.npz corr.npz [--data shared/data/tosca/people]
+    python bench/pose_truth.py prepared.npz corr.npz [--data FOLDER]   # default: tosca/people
 
 The truth is TOSCA's common points (`corres/<name>.vts`, the same body point on every
 person), not the landmarks: each shape's common points (prepared frame) are fitted rigidly
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -32,7 +33,8 @@ from shapegen_core.correspond import Correspondence  # noqa: E402
 from shapegen_core.correspond.posing import apply_pose, pose_angle, rigid_fit  # noqa: E402
 from shapegen_core.meshes.reading import read_mesh  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tosca" / "people"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # shared_data: the real collections
+from shared_data import missing, shared_path  # noqa: E402
 
 
 def up_and_whole(points: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
@@ -55,8 +57,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("prepared", type=Path)
     parser.add_argument("correspondence", type=Path)
-    parser.add_argument("--data", type=Path, default=DATA, help="the TOSCA people folder (with corres/)")
+    parser.add_argument("--data", type=Path, default=shared_path("tosca", "people"),
+                        help="the TOSCA people folder, with corres/ (default: %(default)s)")
     args = parser.parse_args()
+    if missing(args.data):
+        raise SystemExit(f"pose_truth.py: {missing(args.data)}")
     prepared, corr = PreparedCollection.load(args.prepared), Correspondence.load(args.correspondence)
     names, t = corr.names, corr.names.index(corr.template_name)
     meshes = {n: read_mesh(args.data / f"{n}.off") for n in names}

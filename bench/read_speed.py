@@ -6,7 +6,7 @@ paired file by file in one run.
     python bench/read_speed.py [--repeats 3] [--collections psb,tosca,bottles,cad-vases]
 
 Collections:
-* `psb`, `tosca`: every file of the shared PSB and TOSCA collections (clean OFF files);
+* `psb`, `tosca`: every file of the real PSB and TOSCA collections (tests/shared_data.py; clean OFF files);
 * `bottles`: ten CAD-like bottles modelled in Blender (bench/blender_cad.py: soups with
   UV seams, double-sided, separate parts), made when bpy can be imported (the project's
   .venv), else left out with a note;
@@ -32,23 +32,23 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
 
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from shapegen_core.base.errors import MeshError, MeshFileError  # noqa: E402
 from shapegen_core.meshes.reading import list_mesh_files, read_mesh  # noqa: E402
+from shared_data import folder_or_exit  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data")
 OUTPUT = ROOT / "bench_output"
 TARGET = 5.0
 
 
-def shared_files(name: str) -> list[Path]:
-    """Every mesh file of the shared collection `name` (psb or tosca), class by class."""
-    return [path for folder in sorted((DATA / name).iterdir()) if folder.is_dir() for path in list_mesh_files(folder)]
+def collection_files(name: str) -> list[Path]:
+    """Every mesh file of the real collection `name` (psb or tosca), class by class."""
+    return [path for folder in sorted(folder_or_exit(name).iterdir()) if folder.is_dir()
+            for path in list_mesh_files(folder)]
 
 
 def bottle_files(folder: Path) -> list[Path]:
@@ -69,7 +69,7 @@ def cad_vase_files(folder: Path) -> list[Path]:
 
     rng = np.random.default_rng(0)
     paths = []
-    for path in list_mesh_files(DATA / "psb" / "Vase"):
+    for path in list_mesh_files(folder_or_exit("psb", "Vase")):
         mesh = read_mesh(path)
         paths.append(folder / f"{path.stem}.obj")
         write_cad_obj(mesh, paths[-1], "y", rng)
@@ -89,7 +89,7 @@ def time_files(paths: list[Path], repeats: int) -> list[dict]:
     for path in paths:
         try:
             mesh = read_mesh(path)
-        except (MeshError, MeshFileError) as exc:  # a damaged file of the shared data (TOSCA horse7) is named
+        except (MeshError, MeshFileError) as exc:  # a damaged file of the real collections (TOSCA horse7) is named
             rows.append({"file": str(path), "refused": str(exc)})
             print(f"  {path.name}: refused ({exc})")
             continue
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
         for name in args.collections.split(","):
             made = Path(folder) / name
             made.mkdir()
-            paths = {"psb": lambda: shared_files("psb"), "tosca": lambda: shared_files("tosca"),
+            paths = {"psb": lambda: collection_files("psb"), "tosca": lambda: collection_files("tosca"),
                      "bottles": lambda: bottle_files(made), "cad-vases": lambda: cad_vase_files(made)}[name]()
             print(f"{name}: {len(paths)} files", flush=True)
             results[name] = time_files(paths, args.repeats)

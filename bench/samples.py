@@ -21,7 +21,7 @@ Data (--data, comma-separated):
   mugs         bench/blender_mugs.py `mug_meshes()`: 14 Blender-made mugs (quads, n-gon caps,
                a handle as a second part, UVs, a material, one mirrored), read as Blender's
                Prepare reads them
-  psb:<Class>  every mesh of /work/shared/data/psb/<Class> (20 shapes, y up)
+  psb:<Class>  every mesh of that PSB class (tests/shared_data.py; 20 shapes, y up)
 Writes bench_output/samples.json.
 """
 
@@ -51,7 +51,8 @@ from shapegen_core.generate.sampling import gated_samples  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
-PSB = Path("/work/shared/data/psb")
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
 DEFAULT_DATA = "vases,mugs,psb:Airplane,psb:Cup,psb:Fish,psb:Vase"
 
 
@@ -69,7 +70,7 @@ def class_meshes(data: str) -> tuple[list[Mesh], str]:
     if data.startswith("psb:"):
         from shapegen_core.meshes.reading import read_folder
 
-        return read_folder(PSB / data[4:]), "y"
+        return read_folder(folder_or_exit("psb", data[4:])), "y"
     raise SystemExit(f"unknown --data {data!r} (vases, mugs, psb:<Class>)")
 
 

@@ -7,7 +7,7 @@ Rows (each runs in its own child process; peak memory is the largest summed resi
 memory of that process and every process it started, sampled every 20 ms):
 
 * dense-100k / dense-300k / dense-1M: the first `--dense-shapes` meshes (default 20) of a
-  shared PSB class (`--psb-class`, default Fish: 4k–10k vertices) subdivided in memory
+  PSB class (`--psb-class`, default Fish: 4k–10k vertices) subdivided in memory
   (trimesh's midpoint subdivision, 4x the faces per step, as many steps as bring each
   mesh nearest to the target) and written as binary PLY to a cache folder outside the
   repository (`--cache`, default /tmp/shapegen-scale; never committed); then the stages of
@@ -47,7 +47,9 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "bench_output"
-PSB = ROOT.parent / "shared" / "data" / "psb"
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
+
 DENSE_TARGETS = {"dense-100k": 100_000, "dense-300k": 300_000, "dense-1M": 1_000_000}
 VASE_ROWS = {"vases-20": 20, "vases-200": 200, "vases-1000": 1000}
 ALL_ROWS = tuple(DENSE_TARGETS) + tuple(VASE_ROWS)
@@ -164,9 +166,10 @@ def dense_folder(cache: Path, psb_class: str, target: int, shapes: int) -> Path:
 
     folder = cache / f"{psb_class}-{target}"
     folder.mkdir(parents=True, exist_ok=True)
-    sources = sorted((PSB / psb_class).glob("*.off"), key=lambda p: int(p.stem))
+    source = folder_or_exit("psb", psb_class)
+    sources = sorted(source.glob("*.off"), key=lambda p: int(p.stem))
     if len(sources) < shapes:
-        raise SystemExit(f"{PSB / psb_class}: {len(sources)} meshes, fewer than --dense-shapes {shapes}")
+        raise SystemExit(f"{source}: {len(sources)} meshes, fewer than --dense-shapes {shapes}")
     for path in sources[:shapes]:
         out = folder / f"{psb_class.lower()}_{path.stem}.ply"
         if out.exists():
@@ -333,7 +336,7 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help=f"rows {', '.join(QUICK_ROWS)} only")
     parser.add_argument("--rows", default=",".join(ALL_ROWS), help="comma-separated rows (default all)")
     parser.add_argument("--dense-shapes", type=int, default=20, help="meshes per dense row (default 20)")
-    parser.add_argument("--psb-class", default="Fish", help="shared PSB class of the dense rows (default Fish)")
+    parser.add_argument("--psb-class", default="Fish", help="PSB class of the dense rows (default Fish)")
     parser.add_argument("--models", default="ppca,gplvm,bgplvm", help="models of the vase rows")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes for reading and correspondence (default 2)")
     parser.add_argument("--cache", default="/tmp/shapegen-scale", help="folder of the dense PLY files")
@@ -355,6 +358,8 @@ def main() -> int:
     unknown = [r for r in rows if r not in ALL_ROWS]
     if unknown:
         parser.error(f"unknown rows {unknown}; choose from {', '.join(ALL_ROWS)}")
+    if any(row in DENSE_TARGETS for row in rows):
+        folder_or_exit("psb", args.psb_class)  # before any row runs
     load = [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ vases and PSB label transfer, for today's start (closest points) and the spectra
 Not part of the tests. Every class is run with the same settings (nothing tuned per
 class). Figures go to stdout and bench_output/spectral_probe_<pid>.json.
 
-TOSCA (shared/data/tosca/<class>, z up): true error of a template landmark = distance, in
+TOSCA (tosca/<class>, tests/shared_data.py; z up): true error of a template landmark = distance, in
 the input frame, from where the correspondence put it on a shape to where the ground truth
 puts it (the three corners of its template face carried by the `.vts` maps, blended by its
 barycentrics), over the shape's bounding-box diagonal; mean over landmarks and shapes other
@@ -38,9 +38,9 @@ from shapegen_core.meshes.reading import read_folder, read_mesh  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/correspondence.py: the vase and PSB measures
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent.parent / "shared" / "data"
-if not DATA.exists():
-    DATA = Path("/work/shared/data")
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import folder_or_exit  # noqa: E402
+
 OUTPUT = ROOT / "bench_output"
 TOSCA_CLASSES = ("cat", "centaur", "dog", "horse")
 
@@ -48,7 +48,7 @@ TOSCA_CLASSES = ("cat", "centaur", "dog", "horse")
 def tosca_class(name: str, limit: int | None = None):
     """(meshes, ground-truth maps) of one TOSCA class; a file the reader refuses is left out (said)."""
     meshes, maps = [], []
-    for path in sorted((DATA / "tosca" / name).glob("*.off"), key=lambda p: int(p.stem[len(name):])):
+    for path in sorted(folder_or_exit("tosca", name).glob("*.off"), key=lambda p: int(p.stem[len(name):])):
         try:
             mesh = read_mesh(path)
         except MeshFileError as exc:  # horse7.off is cut short mid-line
@@ -156,7 +156,7 @@ def run_psb(name: str, initialisations, shapes: int | None) -> dict:
     label is the template landmark's."""
     from correspondence import face_labels
 
-    folder = DATA / "psb" / name
+    folder = folder_or_exit("psb", name)
     meshes = read_folder(folder)[:shapes] if shapes else read_folder(folder)
     labels = {m.name: face_labels(folder / f"{m.name}.off", m) for m in meshes}
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=800, up_axis="y", seed=0))

@@ -34,6 +34,9 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
+from shared_data import shared_path  # noqa: E402
+
 CLASSES = ("people", "cat", "dog", "horse", "quadrupeds")
 STARTS = {"default": [], "auto": ["--initialisation", "auto"]}
 COLOURS = {"training": (0.8, 0.82, 0.86, 1.0), "sample": (0.45, 0.65, 0.95, 1.0), "failed": (0.95, 0.35, 0.3, 1.0)}
@@ -176,8 +179,8 @@ def render(rows, output: Path, azimuth: float, cell: int) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tosca", type=Path, default=ROOT.parent / "shared" / "data" / "tosca",
-                        help="TOSCA folder (cat/, dog/, horse/, people/)")
+    parser.add_argument("--tosca", type=Path, default=shared_path("tosca"),
+                        help="TOSCA folder: cat/, dog/, horse/, people/ (default: %(default)s)")
     parser.add_argument("--work", type=Path, default=ROOT / "bench_output" / "samples_articulated",
                         help="collections, models, samples and logs (kept: a second run only renders)")
     parser.add_argument("--starts", default="default,auto", help="comma-separated: default, auto")

@@ -20,6 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 DIST = ROOT / "dist"
+sys.path.insert(0, str(ROOT / "tests"))  # shared_data: where the real mesh collections are
 MODULE = "bl_ext.user_default.shapegen"
 
 _USER_RESOURCES = tempfile.mkdtemp(prefix="shapegen-blender-user-")
@@ -28,6 +29,12 @@ _USER_RESOURCES = tempfile.mkdtemp(prefix="shapegen-blender-user-")
 atexit.register(shutil.rmtree, _USER_RESOURCES, True)
 os.environ["BLENDER_USER_RESOURCES"] = _USER_RESOURCES
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Python keeps what it compiles (__pycache__), here and in the processes the tests start
+# (the Blender 4.2 and 5.2 smokes): the environments are installed without compiling
+# (Makefile), and where PYTHONDONTWRITEBYTECODE is set every process compiled anew all it
+# imported (bpy's scripts, numpy, scipy, trimesh, the core)
+sys.dont_write_bytecode = False
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 import bpy  # noqa: E402  (after the environment is set)
 

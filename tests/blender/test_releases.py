@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROOT, _platform_zip
+from conftest import _platform_zip
+from shared_data import folder_or_skip
 
 SMOKE = Path(__file__).with_name("release_smoke.py")
-FISH = ROOT.parent / "shared" / "data" / "psb" / "Fish"
 RELEASES = ("4.2", "5.2")
 #: the smoke imports and fits the first 10 of the 20 PSB fish (Blender 5.2: 15 CPU-s, all 20: 24)
 FISH_SHAPES = 10
@@ -35,11 +35,10 @@ def test_install_import_fit_sample_and_exit_cleanly(release, tmp_path):
     python = release_pythons()[release]
     if not python or not Path(python).is_file():
         pytest.skip(f"no Python with Blender {release} as a module (make test sets SHAPEGEN_BLENDER_RELEASES)")
-    if not FISH.is_dir():
-        pytest.skip(f"shared data folder {FISH} is absent")
+    psb_fish = folder_or_skip("psb", "Fish")
     fish = tmp_path / "Fish"  # FISH_SHAPES of the class: the pass has only to end well
     fish.mkdir()
-    for off in sorted(FISH.glob("*.off"))[:FISH_SHAPES]:
+    for off in sorted(psb_fish.glob("*.off"))[:FISH_SHAPES]:
         shutil.copy(off, fish / off.name)
     env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user"), "PYTHONFAULTHANDLER": "1"}
     env.pop("PYTHONPATH", None)

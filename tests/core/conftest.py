@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 # before numpy is imported: OpenBLAS reads it once, when the library loads (set after the
 # import, numpy's BLAS ran on every core while scipy's ran on one)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Python keeps what it compiles (__pycache__), here and in every process a test starts: the
+# environments are installed without compiling (Makefile), and where PYTHONDONTWRITEBYTECODE
+# is set every `shapegen` a test ran compiled numpy, scipy, trimesh and the core anew (1-1.7
+# CPU-s a launch, against 0.3-0.7 with the compiled files kept)
+sys.dont_write_bytecode = False
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -16,9 +26,8 @@ from shapegen_core.demo_data import make_vases  # noqa: E402
 from shapegen_core.meshes.mesh import Mesh  # noqa: E402
 from shapegen_core.preprocess import ShapeTransform  # noqa: E402
 
-PSB = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb"
-if not PSB.is_dir():
-    PSB = Path("/work/shared/data/psb")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: shared_data, where the real collections are
+from shared_data import folder_or_skip  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -103,17 +112,13 @@ def turned(meshes, turns: dict) -> list[Mesh]:
 
 
 def tosca_class(name: str) -> Path:
-    folder = PSB.parent / "tosca" / name
-    if not folder.is_dir() or not any(folder.glob("*.off")):
-        pytest.skip(f"real data folder {folder} is absent")
-    return folder
+    """The TOSCA folder `name` (an animal, or people); the test is skipped, naming it, when absent."""
+    return folder_or_skip("tosca", name)
 
 
 def psb_class(name: str) -> Path:
-    folder = PSB / name
-    if not folder.is_dir() or not any(folder.glob("*.off")):
-        pytest.skip(f"real data folder {folder} is absent")
-    return folder
+    """The PSB class folder `name`; the test is skipped, naming it, when absent."""
+    return folder_or_skip("psb", name)
 
 
 def central_diff(f, x, h=1e-5):
@@ -124,3 +129,20 @@ def central_diff(f, x, h=1e-5):
         e[i] = h
         out[i] = (8 * (f(x + e) - f(x - e)) - (f(x + 2 * e) - f(x - 2 * e))) / (12 * h)
     return out
+
+
+def in_process(*args) -> subprocess.CompletedProcess:
+    """`shapegen ARGS` run by `shapegen_core.app.cli.main` in this process, its exit status,
+    stdout and stderr given as a subprocess gives them (argparse's exits included). For the
+    checks of parsing, validation and their one-line errors: a `shapegen` process costs a
+    second of CPU before it reads its arguments. The runs that check the installed entry
+    point end to end stay subprocesses."""
+    from shapegen_core.app.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = main([str(arg) for arg in args])
+        except SystemExit as exc:  # argparse: a usage error (2), --help or --version (0)
+            status = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    return subprocess.CompletedProcess(["shapegen", *map(str, args)], status, out.getvalue(), err.getvalue())

@@ -1,4 +1,5 @@
-"""`shapegen fit | info | sample | complete | morph` as a user runs them (subprocesses)."""
+"""`shapegen fit | info | sample | complete | morph` as a user runs them (subprocesses); the
+refusals, which end before any work, through `main` in this process (`in_process`)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import trimesh
 
 from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.npzfile import load_npz, save_npz, ArraySpec
+
+from conftest import in_process
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 
@@ -65,7 +68,7 @@ def test_sample_reports_the_quality_gate_and_records_seeds(model_file, tmp_path)
     assert saved["seeds"].tolist() == [3, 4, 5]  # no redraws: sample i keeps seed 3 + i
     assert len(saved["rejected_seed"]) == len(saved["rejected_reasons"]) == len(saved["rejected_sample"])
     assert saved["quality"].shape == (3,)
-    result = run("sample", model_file, "-n", 2, "-o", tmp_path / "bad", "--max-redraws", -1)
+    result = in_process("sample", model_file, "-n", 2, "-o", tmp_path / "bad", "--max-redraws", -1)
     assert result.returncode == 2 and "--max-redraws must be at least 0" in result.stderr
 
 
@@ -161,11 +164,11 @@ def test_sample_refuses_a_non_empty_folder_and_unknown_template_writes_nothing(m
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "keep.txt").write_text("mine")
-    result = run("sample", model_file, "-n", 2, "-o", busy)
+    result = in_process("sample", model_file, "-n", 2, "-o", busy)
     assert result.returncode == 2 and "not empty" in result.stderr
     assert sorted(p.name for p in busy.iterdir()) == ["keep.txt"]
     fresh = tmp_path / "fresh"
-    result = run("sample", model_file, "-n", 2, "-o", fresh, "--template", "no_such_vase")
+    result = in_process("sample", model_file, "-n", 2, "-o", fresh, "--template", "no_such_vase")
     assert result.returncode == 2 and "no_such_vase" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))
@@ -242,7 +245,7 @@ def test_a_morph_on_a_named_template_uses_its_mesh(model_file, tmp_path):
 def test_a_corrupt_model_file_is_one_line_naming_it(tmp_path):
     bad = tmp_path / "model.npz"
     bad.write_bytes(b"not a zip")
-    result = run("sample", bad, "-n", 1, "-o", tmp_path / "out")
+    result = in_process("sample", bad, "-n", 1, "-o", tmp_path / "out")
     assert result.returncode == 2
     assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
 
@@ -252,7 +255,7 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     corr = tmp_path / "corr.npz"
     result = run("correspond", data, "-o", corr, "--landmarks", 60, "--jobs", 1)
     assert result.returncode == 0, result.stderr
-    result = run("fit", corr, "-o", tmp_path / "m.npz", "--model", "ppca")
+    result = in_process("fit", corr, "-o", tmp_path / "m.npz", "--model", "ppca")
     assert result.returncode == 2 and "--meshes" in result.stderr
     assert not (tmp_path / "m.npz").exists()
     result = run("fit", corr, "-o", tmp_path / "m.npz", "--model", "ppca", "--meshes", data)
@@ -262,9 +265,9 @@ def test_fit_from_a_correspondence_file_needs_and_uses_the_mesh_folder(model_fil
     assert info["settings"]["prepare"]["n_landmarks"] == 60  # the file records how it was prepared
     assert "note:" not in result.stderr
     assert f"[fit] using {corr} as given (with the settings it records); fitting" in result.stderr
-    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--landmarks", 100)
+    result = in_process("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--landmarks", 100)
     assert result.returncode == 2 and f"--landmarks 100 conflicts with {corr}" in result.stderr
-    result = run("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--matching", "features")
+    result = in_process("fit", corr, "-o", tmp_path / "m2.npz", "--meshes", data, "--matching", "features")
     assert result.returncode == 2  # the model records the file's correspondence settings: others cannot be asked for
     assert f"--matching features conflicts with {corr}, corresponded with --matching closest" in result.stderr
 
@@ -289,7 +292,7 @@ def test_every_source_command_takes_the_same_prepare_options(tmp_path):
 ])
 def test_fit_refuses_bad_settings_in_one_line_before_any_work(model_file, tmp_path, option, message):
     """--stiffness 0 was saved, and `sample` then failed with "Factor is exactly singular"."""
-    result = run("fit", model_file.parent / "data", "-o", tmp_path / "m.npz", *option)
+    result = in_process("fit", model_file.parent / "data", "-o", tmp_path / "m.npz", *option)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"shapegen fit: error: {message}"]
     assert not (tmp_path / "m.npz").exists()
@@ -315,7 +318,7 @@ def test_fit_of_a_prepared_file_records_its_settings_and_refuses_conflicts(model
     written = trimesh.load(tmp_path / "samples" / "sample_0000.obj", process=False).extents
     given = trimesh.load(next((model_file.parent / "data").glob("*.obj")), process=False).extents
     assert np.argmax(written) == np.argmax(given) == 2
-    result = run("fit", prepared, "-o", tmp_path / "m2.npz", "--model", "ppca", "--up", "z")
+    result = in_process("fit", prepared, "-o", tmp_path / "m2.npz", "--model", "ppca", "--up", "z")
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert f"--up z conflicts with {prepared}, prepared with --up y" in result.stderr
     assert not (tmp_path / "m2.npz").exists()

@@ -1,5 +1,6 @@
-"""`shapegen complete --pins` and `shapegen sample --labels` round trips on the shared PSB
-Vase class (meshes with part labels beside them), as a user runs them (subprocesses)."""
+"""`shapegen complete --pins` and `shapegen sample --labels` round trips on the PSB
+Vase class (meshes with part labels beside them), as a user runs them (subprocesses); the
+refusals, which end before any work, through `main` in this process (`in_process`)."""
 
 from __future__ import annotations
 
@@ -15,12 +16,9 @@ import pytest
 from shapegen_core.base.npzfile import load_npz, save_npz
 from shapegen_core.app.shape_model import GenerativeShapeModel
 
-SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
-VASE = Path(__file__).resolve().parents[3] / "shared" / "data" / "psb" / "Vase"
-if not VASE.is_dir():
-    VASE = Path("/work/shared/data/psb/Vase")
+from conftest import in_process, psb_class
 
-pytestmark = pytest.mark.skipif(not VASE.is_dir(), reason=f"the shared PSB Vase class is not here ({VASE})")
+SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 
 
 def run(*args):
@@ -31,12 +29,13 @@ def run(*args):
 def vase(tmp_path_factory):
     """A small PPCA model of 8 PSB vases (40 landmarks) fitted from a folder that holds
     their part labels; returns (model file, data folder, loaded model)."""
+    vases = psb_class("Vase")
     folder = tmp_path_factory.mktemp("vase")
     data = folder / "data"
     data.mkdir()
-    for off in sorted(VASE.glob("*.off"))[:8]:
+    for off in sorted(vases.glob("*.off"))[:8]:
         shutil.copy(off, data / off.name)
-        shutil.copy(VASE / f"{off.stem}_labels.txt", data / f"{off.stem}_labels.txt")
+        shutil.copy(vases / f"{off.stem}_labels.txt", data / f"{off.stem}_labels.txt")
     result = run("fit", data, "-o", folder / "model.npz", "--model", "ppca", "--landmarks", 40, "--up", "y",
                  "--jobs", 1)
     assert result.returncode == 0, result.stderr
@@ -98,16 +97,17 @@ def test_complete_from_pins_round_trip(vase, tmp_path):
 ])
 def test_bad_pins_files_are_one_line_errors(vase, tmp_path, pins, message):
     (tmp_path / "pins.json").write_text(pins)
-    result = run("complete", vase[0], "--pins", tmp_path / "pins.json", "-o", tmp_path / "out")
+    result = in_process("complete", vase[0], "--pins", tmp_path / "pins.json", "-o", tmp_path / "out")
     assert result.returncode == 2 and message in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
 
 
 def test_partial_and_pins_exclude_each_other_and_std_needs_pins(vase, tmp_path):
     (tmp_path / "pins.json").write_text('[{"landmark": 0, "position": [0, 0, 0]}]')
-    both = run("complete", vase[0], tmp_path / "partial.npz", "--pins", tmp_path / "pins.json", "-o", tmp_path / "a")
-    neither = run("complete", vase[0], "-o", tmp_path / "b")
-    std = run("complete", vase[0], tmp_path / "partial.npz", "--std", "-o", tmp_path / "c")
+    both = in_process("complete", vase[0], tmp_path / "partial.npz", "--pins", tmp_path / "pins.json",
+                      "-o", tmp_path / "a")
+    neither = in_process("complete", vase[0], "-o", tmp_path / "b")
+    std = in_process("complete", vase[0], tmp_path / "partial.npz", "--std", "-o", tmp_path / "c")
     for result, message in ((both, "not both"), (neither, "give PARTIAL"), (std, "--std needs --pins")):
         assert result.returncode == 2 and message in result.stderr
 
@@ -150,6 +150,6 @@ def test_models_without_labels_load_and_refuse_sample_labels(vase, tmp_path):
     old = tmp_path / "old.npz"
     save_npz(old, "shapegen.model", version, arrays)
     assert GenerativeShapeModel.load(old).part_labels is None
-    result = run("sample", old, "-n", 1, "-o", tmp_path / "out", "--labels")
+    result = in_process("sample", old, "-n", 1, "-o", tmp_path / "out", "--labels")
     assert result.returncode == 2 and "records no part labels" in result.stderr
     assert not (tmp_path / "out").exists()

@@ -1,4 +1,5 @@
-"""PreparedCollection persistence (safe .npz) and the `shapegen prepare` command."""
+"""PreparedCollection persistence (safe .npz) and the `shapegen prepare` command (its runs
+as a user runs them, in subprocesses; its refusals through `main` in this process)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from shapegen_core.preprocess.collection import PREPARED_FORMAT, PrepareSettings
 from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, ModelFileError
 from shapegen_core.base.npzfile import save_npz
+
+from conftest import in_process
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
@@ -176,7 +179,7 @@ def test_cli_bad_file_exits_2_with_one_line_naming_it(vase_folder, tmp_path, pro
     (folder / "broken.obj").write_text(content)
     out = tmp_path / "prepared.npz"
     out.write_bytes(b"previous good result")
-    result = _run("prepare", folder, "-o", out, "--landmarks", "40")
+    result = in_process("prepare", folder, "-o", out, "--landmarks", "40")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
@@ -195,7 +198,7 @@ def test_cli_bad_folder_exits_2(vase_folder, tmp_path, content, fragment):
         first = sorted(vase_folder.iterdir())[0]
         (folder / first.name).write_bytes(first.read_bytes())
     out = tmp_path / "prepared.npz"
-    result = _run("prepare", folder, "-o", out)
+    result = in_process("prepare", folder, "-o", out)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and str(folder) in lines[0] and fragment in lines[0], result.stderr
@@ -218,7 +221,7 @@ def test_cli_interrupted_save_leaves_no_file(prepared, tmp_path, monkeypatch):
 
 
 def test_cli_usage_error_exits_2(tmp_path):
-    result = _run("prepare", tmp_path)  # missing -o
+    result = _run("prepare", tmp_path)  # missing -o (argparse's exit, through the installed command)
     assert result.returncode == 2 and "-o/--output" in result.stderr
 
 
@@ -226,7 +229,7 @@ def test_cli_usage_error_exits_2(tmp_path):
 def test_cli_too_few_landmarks_is_one_line_naming_the_option(vase_folder, tmp_path, count):
     """It was a traceback (select_landmarks' ValueError); now PrepareSettings refuses it."""
     out = tmp_path / "prepared.npz"
-    result = _run("prepare", vase_folder, "-o", out, "--landmarks", count)
+    result = in_process("prepare", vase_folder, "-o", out, "--landmarks", count)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"shapegen prepare: error: --landmarks must be at least 4, got {count}"]
     assert not out.exists()
@@ -303,8 +306,8 @@ def test_cli_prints_pose_lines_and_keeps_poses_by_name(upright_folder, tmp_path)
 
 
 def test_cli_keep_pose_unknown_name_or_file_source_exits_2(upright_folder, saved, tmp_path):
-    result = _run("correspond", upright_folder, "-o", tmp_path / "c.npz", "--keep-pose", "jug_1")
+    result = in_process("correspond", upright_folder, "-o", tmp_path / "c.npz", "--keep-pose", "jug_1")
     assert result.returncode == 2
     assert "no shape named 'jug_1'" in result.stderr and len(result.stderr.strip().splitlines()) == 1
-    result = _run("correspond", saved, "-o", tmp_path / "c.npz", "--keep-pose", "vase_000")
+    result = in_process("correspond", saved, "-o", tmp_path / "c.npz", "--keep-pose", "vase_000")
     assert result.returncode == 2 and "--keep-pose applies to a folder of meshes" in result.stderr

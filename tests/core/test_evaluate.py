@@ -24,6 +24,8 @@ from shapegen_core.evaluation import (EvaluationError, EvaluationSettings, Train
                                     procrustes_rms_matrix, region_mask, run_evaluation, specificity)
 from shapegen_core.models import PPCA
 
+from conftest import in_process
+
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
 
@@ -254,12 +256,13 @@ def test_cli_from_a_folder_and_its_errors(tiny_collection, tmp_path):
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["report.json", "summary.md"]
 
-    bad = run_cli(corr, "--folds", 20, "-o", tmp_path / "x")
+    # the refusals, before any work: through `main` in this process
+    bad = in_process("evaluate", corr, "--folds", 20, "-o", tmp_path / "x")
     assert bad.returncode == 2
     assert "--folds 20 is more than the 8 shapes" in bad.stderr
-    bad = run_cli(folder, "--models", "ppca,vae", "-o", tmp_path / "x")
+    bad = in_process("evaluate", folder, "--models", "ppca,vae", "-o", tmp_path / "x")
     assert bad.returncode == 2
     assert "unknown model name(s) 'vae'" in bad.stderr
-    bad = run_cli(tmp_path / "missing.npz", "-o", tmp_path / "x")
+    bad = in_process("evaluate", tmp_path / "missing.npz", "-o", tmp_path / "x")
     assert bad.returncode == 2 and "no such folder or correspondence file" in bad.stderr
     assert not (tmp_path / "x").exists()

@@ -1,4 +1,4 @@
-"""Prepare's orientation decisions on whole collections: the shared PSB Airplane and Cup
+"""Prepare's orientation decisions on whole collections: the PSB Airplane and Cup
 classes as filed (every shape's decision pinned; no airplane laid on its side), a class
 whose files mix the two common up conventions (it ends as the single-convention class
 does, PSB cups among them), and upright shapes on one floor (never turned).

@@ -1,7 +1,7 @@
 """The README's pipeline lines, run as a new user runs them: a fresh virtual environment,
 `pip install .` of this checkout (the newest releases the ranges allow, pinned by
-requirements/newest.txt), then `shapegen fit` and `shapegen sample` on a shared PSB class
-and on a procedural class.
+requirements/newest.txt), then `shapegen fit` and `shapegen sample` on a PSB class (the
+real collections beside the checkout) and on a procedural class.
 
 It runs in the newest tier (Python 3.13, what newest.txt is resolved for); the oldest tier
 skips it with that reason.
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import pytest
 
+from conftest import psb_class
+
 ROOT = Path(__file__).resolve().parents[2]
 NEWEST = ROOT / "requirements" / "newest.txt"
-FISH = ROOT.parent / "shared" / "data" / "psb" / "Fish"
 #: the README's lines: `pip install .`, then `shapegen fit meshes/ -o model.npz --up y` and
 #: `shapegen sample model.npz -n 100 -o samples/ --format obj` (fewer shapes, landmarks and
 #: samples here: the runs only have to end well and write their samples; the fit of all 20
@@ -74,13 +75,12 @@ def test_installed_packages_are_the_newest_pins(installed):
     assert "shapegen" in listed and "bpy" not in listed and "matplotlib" not in listed  # the core needs neither
 
 
-def test_fit_and_sample_a_shared_psb_class(installed, tmp_path):
-    if not FISH.is_dir():
-        pytest.skip(f"shared data folder {FISH} is absent")
+def test_fit_and_sample_a_psb_class(installed, tmp_path):
+    fish = psb_class("Fish")
     meshes = tmp_path / "fish"
     meshes.mkdir()
-    for off in sorted(FISH.glob("*.off"))[:FISH_SHAPES]:  # each with its part labels
-        for path in (off, FISH / f"{off.stem}_labels.txt"):
+    for off in sorted(fish.glob("*.off"))[:FISH_SHAPES]:  # each with its part labels
+        for path in (off, fish / f"{off.stem}_labels.txt"):
             if path.is_file():
                 shutil.copy(path, meshes / path.name)
     samples = fit_and_sample(installed, meshes, tmp_path, "--up", "y")

@@ -1,6 +1,9 @@
 """Unreadable files of a folder: refused as a whole by default, left out with
 --skip-unreadable (named on stderr with their reasons and recorded in every file written
-from the folder: prepared, correspondence and model .npz, the evaluation report)."""
+from the folder: prepared, correspondence and model .npz, the evaluation report).
+
+The commands that run run as a user runs them (subprocesses); the refusals, which end
+before any work, through `main` in this process (`in_process`)."""
 
 from __future__ import annotations
 
@@ -18,6 +21,8 @@ from shapegen_core.correspond import Correspondence
 from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.base.errors import CollectionError, MeshFileError, ModelFileError
 from shapegen_core.meshes.reading import read_folder, read_readable
+
+from conftest import in_process
 
 SHAPEGEN = Path(sys.executable).parent / "shapegen"
 
@@ -78,7 +83,7 @@ def test_read_readable_with_fewer_than_two_readable_files_is_an_error_naming_the
 # ---------------------------------------------------------------------------- prepare
 def test_cli_prepare_without_the_flag_exits_2_naming_both(mixed_folder, tmp_path):
     out = tmp_path / "prepared.npz"
-    result = _run("prepare", mixed_folder, "-o", out, "--landmarks", 40)
+    result = in_process("prepare", mixed_folder, "-o", out, "--landmarks", 40)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "2 of 6 files could not be read" in lines[0], result.stderr
@@ -103,7 +108,7 @@ def test_cli_prepare_skips_the_unreadable_names_each_and_records_them(mixed_fold
 def test_cli_prepare_with_one_readable_file_is_still_an_error(tmp_path):
     folder = _with_broken(tmp_path / "in", good=1)
     out = tmp_path / "prepared.npz"
-    result = _run("prepare", folder, "-o", out, "--skip-unreadable")
+    result = in_process("prepare", folder, "-o", out, "--skip-unreadable")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "at least 2 meshes" in lines[0], result.stderr
@@ -137,7 +142,7 @@ def test_cli_fit_skips_the_unreadable_and_info_shows_them(skipped_model, mixed_f
 
 
 def test_cli_fit_without_the_flag_exits_2_naming_both(mixed_folder, tmp_path):
-    result = _run("fit", mixed_folder, "-o", tmp_path / "model.npz", "--model", "ppca", "--jobs", 1)
+    result = in_process("fit", mixed_folder, "-o", tmp_path / "model.npz", "--model", "ppca", "--jobs", 1)
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
     _assert_names_both(result.stderr, mixed_folder)
     assert not (tmp_path / "model.npz").exists()
@@ -152,7 +157,7 @@ def test_cli_correspond_records_the_skipped_and_fit_from_it_needs_the_flag_for_i
     assert len(corr) == 4 and list(corr.unreadable) == ["cracked.obj", "nan.off"]
     # the folder of its meshes still holds the unreadable files: refused as a whole without the flag
     model = tmp_path / "model.npz"
-    refused = _run("fit", corr_file, "--meshes", mixed_folder, "-o", model, "--model", "ppca")
+    refused = in_process("fit", corr_file, "--meshes", mixed_folder, "-o", model, "--model", "ppca")
     assert refused.returncode == 2 and not model.exists()
     _assert_names_both(refused.stderr, mixed_folder)
     result = _run("fit", corr_file, "--meshes", mixed_folder, "-o", model, "--model", "ppca", "--skip-unreadable")
@@ -167,7 +172,7 @@ def test_cli_fit_from_a_correspondence_refuses_a_needed_shape_whose_file_became_
     corr_file = tmp_path / "corr.npz"
     assert _run("correspond", folder, "-o", corr_file, "--landmarks", 40, "--jobs", 1).returncode == 0
     (folder / "vase_001.obj").write_text(BROKEN["cracked.obj"][0])
-    result = _run("fit", corr_file, "--meshes", folder, "-o", tmp_path / "model.npz", "--skip-unreadable")
+    result = in_process("fit", corr_file, "--meshes", folder, "-o", tmp_path / "model.npz", "--skip-unreadable")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert "could not be read" in lines[-1] and f"{folder / 'vase_001.obj'}: {BROKEN['cracked.obj'][1]}" in lines[-1]
@@ -179,7 +184,7 @@ def test_cli_evaluate_skips_the_unreadable_and_its_report_names_them(tmp_path):
     report = tmp_path / "report"
     args = ("evaluate", folder, "-o", report, "--no-figures", "--folds", 2, "--samples", 10, "--models", "ppca",
             "--landmarks", 40, "--jobs", 1)
-    refused = _run(*args)
+    refused = in_process(*args)
     assert refused.returncode == 2 and not report.exists()
     _assert_names_both(refused.stderr, folder)
     result = _run(*args, "--skip-unreadable")
