@@ -90,7 +90,7 @@ def test_fit_and_sample_a_psb_class(installed, tmp_path):
 def test_fit_and_sample_a_procedural_class(installed, tmp_path):
     """Procedural mugs written as OBJ files by the installed package itself."""
     write = ("import sys\nfrom pathlib import Path\nfrom shapegen_core.demo_data import make_handled_mugs\n"
-             "from shapegen_core.meshes.reading import write_mesh\n"
+             "from shapegen_core.meshes.writing import write_mesh\n"
              "for shape in make_handled_mugs(8, seed=2, resolution=(16, 24)):\n"
              "    write_mesh(shape.mesh, Path(sys.argv[1]) / f'{shape.mesh.name}.obj')\n")
     (tmp_path / "mugs").mkdir()
