@@ -98,8 +98,14 @@ class DataTermSettings(Settings):
     surface samples, the fit check against closest points and its fallback share) and
     FEATURE_STIFFNESS: they were research knobs, removed as options
     (`CorrespondenceSettings.FIELDS_REMOVED`; their measurements are in docs/history.md).
-    Start (**beyond** the thesis, opt-in; start.py, functional_map.py):
-    initialisation: "closest" (default; files written before it record it): every shape's
+    Start (**beyond** the thesis; start.py, functional_map.py):
+    initialisation: "auto" (default): the collection chooses one of the two starts below
+      from how its shapes differ (start.py `chosen_start`: far more in space than in their
+      Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every shape
+      and records it in the correspondence (`Correspondence.diagnostics.start`). It took the
+      better start on every measured class but PSB cups, where it keeps closest points and
+      the intrinsic start wins through one cup Prepare left facing away (docs/results.md).
+      "closest" (files written before the option record it, and read so): every shape's
       registration starts from the template as it is (the thesis). "spectral": from the
       template's landmarks carried to the shape by an intrinsic map (Laplace–Beltrami
       eigenfunctions, sign search, orientation, ZoomOut), which bending does not change: for
@@ -109,12 +115,7 @@ class DataTermSettings(Settings):
       worse or its landmarks match the template's wave-kernel signatures no clearly better
       (start.py), the closest-point start is used and the shape's message says so. Rounds
       after the first start every shape from its previous landmarks (a mean template of
-      shapes in different poses is no start). "auto": the collection chooses one of the
-      two from how its shapes differ (start.py `chosen_start`: far more in space than in
-      their Laplace–Beltrami spectra is pose, so spectral; else closest), says so for every
-      shape and records it in the correspondence (`Correspondence.diagnostics.start`). Not the default:
-      it keeps closest points where they fail for reasons other than pose (a shape Prepare
-      left facing away), where the intrinsic start would win (docs/results.md).
+      shapes in different poses is no start).
     """
 
     #: files written before these fields existed ran with other values (core/base/compat.py)
@@ -127,9 +128,9 @@ class DataTermSettings(Settings):
                            choices=MATCHING_METHODS)
     feature_between: float = option(1.0, "features: weight of a point's position between the turning lines of its "
                                     "region, from the groupwise round on (0: off)", flag="--feature-between", minimum=0)
-    initialisation: str = option("closest", "where registration starts: closest (the template as it is, the "
-                                 "thesis); spectral (an intrinsic map, for shapes that differ in pose); auto (chosen "
-                                 "from how the collection's shapes differ)",
+    initialisation: str = option("auto", "where registration starts: auto (chosen from how the collection's shapes "
+                                 "differ: spectral where they differ in pose, else closest); closest (the template as "
+                                 "it is, the thesis); spectral (an intrinsic map, for shapes that differ in pose)",
                                  flag="--initialisation", choices=INITIALISATIONS)
     distance_weights: bool = option(False, "weight matches by 1 / (1 + d)")
     snap_to_vertices: bool = option(False, "closest points on target vertices instead of the surface")

@@ -129,4 +129,5 @@ def test_shapes_differ_in_pose_saved_as_a_checkbox_reads_as_on_or_off(extension,
         assert correspondence.options()["initialisation"] == {"ON": "spectral", "OFF": "closest"}[expected]
     bpy.ops.wm.read_homefile(use_empty=True)
     default = addon_module(extension, "core.correspond").CorrespondenceSettings().data_term.initialisation
-    assert bpy.context.scene.shapegen.correspondence.options()["initialisation"] == default
+    assert bpy.context.scene.shapegen.correspondence.options()["initialisation"] == default == "auto"
+    assert bpy.context.scene.shapegen.correspondence.differ_in_pose == "AUTO"  # the core's default, not the add-on's

@@ -35,9 +35,10 @@ FLAT_JSON = (
     '"refine_iterations": 30, "refine_compactness": 1.0, "refine_spread": 1.0, "refine_regulariser": 0.001, '
     '"refine_normals": 1.0, "refine_smooth_fields": 30, "refine_sigma": 1.0, "refine_step": 0.3, '
     '"refine_max_move": 0.5, "refine_alignment": "similarity", "refine_tolerance": 1e-06}')
-#: the same settings, nested by subsystem
+#: the same settings, nested by subsystem (the start they record, closest points, is no
+#: longer the default)
 SMALL = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=1), iterations=IterationSettings(max_iterations=3),
-                               groupwise_rounds=0)
+                               groupwise_rounds=0, data_term=DataTermSettings(initialisation="closest"))
 
 
 @pytest.fixture(scope="module")
@@ -239,6 +240,10 @@ def test_flat_correspondence_settings_of_before_read_into_their_groups(correspon
     fit = FitSettings(correspondence=SMALL).as_dict()
     fit["correspondence"] = flat  # a model file's FitSettings before the grouped settings
     assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence == SMALL
+    # a model file written before the start was an option: closest points, not today's default
+    fit["correspondence"] = {k: v for k, v in flat.items() if k != "initialisation"}
+    assert FitSettings.from_json(json.dumps(fit), recorded=True).correspondence.data_term.initialisation == "closest"
+    assert FitSettings().correspondence.data_term.initialisation == "auto"
     renamed = {"outlier_mad_factor": 4.0}
     assert CorrespondenceSettings.from_dict(renamed) == CorrespondenceSettings(
         outliers=OutlierSettings(residual_mad_factor=4.0))

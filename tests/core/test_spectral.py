@@ -142,12 +142,14 @@ def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_poi
     assert spectral_error < 0.05 and spectral_error < 0.3 * closest_error, (spectral_error, closest_error)
 
 
-def test_initialisation_is_a_checked_recorded_setting_and_old_files_read_closest():
+def test_initialisation_is_a_checked_recorded_setting_auto_by_default_and_old_files_read_closest():
+    assert CorrespondenceSettings().data_term.initialisation == "auto"
     settings = CorrespondenceSettings(data_term=DataTermSettings(initialisation="spectral"))
     assert CorrespondenceSettings.from_json(settings.to_json()) == settings
     recorded = json.loads(settings.to_json())
     del recorded["data_term"]["initialisation"]  # a file written before the option existed
     assert CorrespondenceSettings.from_dict(recorded, recorded=True).data_term.initialisation == "closest"
+    assert CorrespondenceSettings.from_dict(recorded).data_term.initialisation == "auto"  # options asked for now
     with pytest.raises(SettingsError, match="unknown initialisation 'intrinsic'; choose from auto, closest, spectral"):
         DataTermSettings(initialisation="intrinsic")
 
