@@ -33,8 +33,9 @@ from shapegen_core.generate.deform import DeformSettings
 from shapegen_core.preprocess.collection import PreparedCollection, PrepareSettings, prepare_meshes
 
 PREPARE = PrepareSettings(n_landmarks=30, up_axis="z", seed=2)
+#: (closest points named: the start those files ran, no longer the default)
 SMALL = CorrespondenceSettings(stiffness=StiffnessSettings(alpha_steps=1), iterations=IterationSettings(max_iterations=3),
-                               groupwise_rounds=0)
+                               groupwise_rounds=0, data_term=DataTermSettings(initialisation="closest"))
 FIT = FitSettings(prepare=PREPARE, model="ppca", correspondence=SMALL)
 
 #: the arrays of the oldest files of each kind (their settings besides)
@@ -54,7 +55,7 @@ OLDEST_CORRESPONDENCE_SETTINGS = {
     "groupwise_rounds": 0, "outlier_mad_factor": 3.0, "outlier_min_ratio": 1.5, "max_residual": 0.05,
     "max_scale_ratio": 3.0}
 #: ... read now: what those runs did where options were added later (no turning-line feature)
-OLDEST_READ = replace(SMALL, data_term=DataTermSettings(feature_between=0.0))
+OLDEST_READ = replace(SMALL, data_term=DataTermSettings(feature_between=0.0, initialisation="closest"))
 
 #: SMALL as flat JSON files record it: every option flat, the outlier and refinement ones by
 #: their names of then, and the feature-match knobs removed since (constants now)

@@ -370,8 +370,14 @@ def test_progress_is_monotone_ends_at_one_and_names_every_shape(small_vases, sma
         for r in range(1, rounds + 1):
             assert any(m.startswith(f"registering {name} (round {r} of {rounds}, iteration ") for m in messages)
             assert any(m.startswith(f"registered {name} (round {r} of {rounds}, ") for m in messages)
-    # the first round ends where the mean template replaces the chosen one
-    assert (1 / rounds, f"mean template (round 2 of {rounds})") in events
+    # the first round ends where the mean template replaces the chosen one (the rounds
+    # follow the automatic start's evidence, the default: its spectra)
+    from shapegen_core.correspond.starting import EVIDENCE_SHARE
+
+    assert CorrespondenceSettings().data_term.initialisation == "auto"
+    ended = [f for f, m in events if m == f"mean template (round 2 of {rounds})"]
+    assert ended == [pytest.approx(EVIDENCE_SHARE + (1 - EVIDENCE_SHARE) / rounds)]
+    assert any(m.startswith("closest-point start chosen for the collection: ") for m in messages)
 
 
 def test_save_load_round_trip_and_refusal_of_foreign_files(tmp_path, small_vases, small_result):

@@ -24,7 +24,8 @@ def _correspondence(diagnostics=None) -> Correspondence:
         barycentric=np.full((SHAPES, LANDMARKS, 3), 1 / 3), edges=np.array([[0, 1], [1, 2]]),
         template_points=points[0].copy(), template_name="a", transforms=np.tile(np.eye(4), (SHAPES, 1, 1)),
         residuals=np.full(SHAPES, 0.01), outliers=np.zeros(SHAPES, dtype=bool), outlier_reasons=["", "", ""],
-        settings=CorrespondenceSettings(), diagnostics=diagnostics)
+        # closest points named, as every file without the record ran them (auto records its choice)
+        settings=CorrespondenceSettings.from_dict({"initialisation": "closest"}), diagnostics=diagnostics)
 
 
 def _saved(arrays: dict, path) -> Correspondence:
