@@ -2,13 +2,14 @@
 the procedural quadrupeds, one row per class and start, a training shape first.
 
     .venv/bin/python scripts/render_samples.py [--tosca DIR] [--work bench_output/samples_articulated]
-        [--starts default,auto] [--samples 8] [--seed 0] [--output docs/samples_articulated.png]
+        [--starts default,closest] [--samples 8] [--seed 0] [--output docs/samples_articulated.png]
 
 From scratch, step by step (each step skipped when its output is already in --work):
 1. the collections: links to the TOSCA files (people: the man and woman files, not the
    gorilla) and the procedural quadrupeds (core/demo_data/ `make_quadrupeds`) as OBJ files;
-2. `shapegen fit FOLDER --up z --skip-unreadable` with the defaults ("default") and with
-   `--initialisation auto` ("auto"): WORK/<start>/<class>.npz;
+2. `shapegen fit FOLDER --up z --skip-unreadable` with the defaults ("default": the start
+   the collection chooses, auto) and with `--initialisation closest` ("closest": the
+   template as it is, the thesis' start): WORK/<start>/<class>.npz;
 3. `shapegen sample MODEL -n 8 --seed 0 --keep-failed`: WORK/<start>/<class>_samples/
    (a run that falls short of 8 passing samples writes only its failing ones, to failed/:
    the row then shows those, in red);
@@ -38,7 +39,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # shared_data: the real collections
 from shared_data import shared_path  # noqa: E402
 
 CLASSES = ("people", "cat", "dog", "horse", "quadrupeds")
-STARTS = {"default": [], "auto": ["--initialisation", "auto"]}
+STARTS = {"default": [], "closest": ["--initialisation", "closest"]}
 COLOURS = {"training": (0.8, 0.82, 0.86, 1.0), "sample": (0.45, 0.65, 0.95, 1.0), "failed": (0.95, 0.35, 0.3, 1.0)}
 
 
@@ -183,7 +184,7 @@ def main() -> int:
                         help="TOSCA folder: cat/, dog/, horse/, people/ (default: %(default)s)")
     parser.add_argument("--work", type=Path, default=ROOT / "bench_output" / "samples_articulated",
                         help="collections, models, samples and logs (kept: a second run only renders)")
-    parser.add_argument("--starts", default="default,auto", help="comma-separated: default, auto")
+    parser.add_argument("--starts", default="default,closest", help="comma-separated: default, closest")
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quadrupeds", type=int, default=12, help="procedural quadrupeds to fit on")
