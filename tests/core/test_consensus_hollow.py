@@ -79,6 +79,7 @@ def test_upside_down_needs_every_reference_and_the_floor():
     assert hollows.upside_down(0, yaw_rotation(70.0), up, 0.1) is None
 
 
+@pytest.mark.quality
 def test_cup_upside_down_that_the_cost_misses_is_turned_by_its_hollow():
     """Seed 5: without the hollows the upside-down cup is left upside down (only flagged as
     an unusual shape); with them it is turned back and the reason says why."""
@@ -95,6 +96,7 @@ def test_cup_upside_down_that_the_cost_misses_is_turned_by_its_hollow():
             assert not shape.orientation_changed and np.array_equal(shape.pose_rotation, np.eye(3))
 
 
+@pytest.mark.quality
 def test_kept_upside_down_cup_is_flagged_with_its_hollow():
     meshes, flipped = _flipped_widest_topped(5)
     kept = prepare_collection(meshes, keep_pose=[i == flipped for i in range(len(meshes))])
@@ -104,6 +106,7 @@ def test_kept_upside_down_cup_is_flagged_with_its_hollow():
     assert all(s.pose_outlier == "" for i, s in enumerate(kept) if i != flipped)
 
 
+@pytest.mark.quality
 def test_flip_the_cost_objects_to_is_flagged_not_made():
     """When the cost objects to the flip more than hollows.cost allows (0: always), the
     hollow does not turn the cup; the pose check still flags it by its hollow."""
@@ -113,6 +116,7 @@ def test_flip_the_cost_objects_to_is_flagged_not_made():
     assert "hollow opens downwards" in prepared[flipped].pose_outlier
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_consistent_cups_keep_their_poses(seed):
     """Upright cups of revolution: no turn (their facing is triangulation noise, no

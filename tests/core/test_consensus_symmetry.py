@@ -30,6 +30,7 @@ def _up_error(shape, turn: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((shape.transform.rotation @ turn)[2, 2], -1.0, 1.0))))
 
 
+@pytest.mark.quality
 def test_group_lying_together_is_stood_up_or_flagged():
     """Three barrels on their side among upright vases and one upright barrel: the upright
     majority fits each of them better standing on another axis of its file; each is
@@ -52,6 +53,7 @@ def test_group_lying_together_is_stood_up_or_flagged():
             assert shape.pose_outlier == ""
 
 
+@pytest.mark.quality
 def test_flat_shapes_are_not_laid_on_their_side_by_tall_neighbours():
     """Bowls (vases flattened) among tall vases fit them better on their side; the
     symmetry about their up vetoes that change of up, even with no margin."""

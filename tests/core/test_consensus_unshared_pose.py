@@ -40,6 +40,7 @@ def test_a_copy_turned_between_axis_rotations_is_nearest_once_turns_are_compared
     assert search.nearest(0, [1, 2], 1) == [1]
 
 
+@pytest.mark.quality
 def test_airplanes_turned_at_random_about_up_end_in_one_pose():
     # the real class where the chance majority went wrong: 5 of 20 airplanes ended half
     # a turn from the others, none flagged (random turns of seed 8)

@@ -29,6 +29,7 @@ def _true_yaws(shapes, prepared) -> list[float]:
     return [_yaw(p.transform.rotation @ s.pose.rotation) for s, p in zip(shapes, prepared)]
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("seed", [1, 4])
 def test_random_turns_about_up_are_all_undone_precisely(seed):
     # make_vases poses every vase with a random turn about up; a pouring lip and an
@@ -42,12 +43,14 @@ def test_random_turns_about_up_are_all_undone_precisely(seed):
     assert all("no input facing is shared" in p.pose_change for p in turned)
 
 
+@pytest.mark.quality
 def test_more_shapes_in_random_turns_agree_to_a_degree():
     shapes = make_vases(16, seed=11, resolution=(33, 64))
     prepared = prepare_collection([s.mesh for s in shapes])
     assert _spread(_true_yaws(shapes, prepared)) < 1.0
 
 
+@pytest.mark.quality
 def test_a_collection_oriented_alike_up_to_small_differences_is_untouched():
     # inputs that share their facing up to 20° (files oriented by hand): nobody turns
     rng = np.random.default_rng(5)
@@ -60,6 +63,7 @@ def test_a_collection_oriented_alike_up_to_small_differences_is_untouched():
     assert all(np.array_equal(p.transform.rotation, np.eye(3)) for p in prepared)
 
 
+@pytest.mark.quality
 def test_a_shared_facing_with_a_few_shapes_turned_keeps_the_others():
     # a quarter of the shapes turned far about up: the votes still agree, the majority
     # keeps its poses exactly and the turned ones are turned back to it
@@ -75,6 +79,7 @@ def test_a_shared_facing_with_a_few_shapes_turned_keeps_the_others():
             assert p.pose_change == ""
 
 
+@pytest.mark.quality
 def test_shared_facing_setting_switches_the_rule_off():
     # facing.shared_facing 0: a chance majority keeps its poses as before (within facing.angle)
     shapes = make_vases(6, seed=1, resolution=(65, 130))

@@ -195,6 +195,7 @@ def test_remeshed_copy_corresponds_within_a_fraction_of_the_edge_length():
     assert error < 0.25 * fine.mesh.mean_edge_length(), f"{error / fine.mesh.mean_edge_length():.3f} edges"
 
 
+@pytest.mark.quality
 def test_groupwise_beats_pairwise_on_the_procedural_class():
     shapes, prepared = _bent_vase_collection(5, 250)
     template = shapes[0].name  # an atypical (bent) template: what §4.2.7 re-estimation is for

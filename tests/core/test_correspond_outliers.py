@@ -43,6 +43,7 @@ def upside_down():
     return _turn_upside_down(_prepared(0), FLIPPED)
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_clean_collection_flags_nobody(seed):
     result = correspond(_prepared(seed), jobs=1)

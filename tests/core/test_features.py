@@ -114,6 +114,7 @@ def _true_error(shapes, prepared, result) -> float:
                           / shapes[m].mesh.bbox_diagonal() for m in range(len(shapes)) if m != t]))
 
 
+@pytest.mark.quality
 def test_feature_matches_lower_the_true_error_of_a_procedural_class():
     # measured with 150 landmarks: 3.65 % (closest points), 2.86 % (sides only, 0.78 of
     # closest), 2.65 % (with positions between turning lines, the default; 0.93 of sides
@@ -129,6 +130,7 @@ def test_feature_matches_lower_the_true_error_of_a_procedural_class():
     assert features < 0.985 * sides_only, f"features {features:.4f} vs without positions between lines {sides_only:.4f}"
 
 
+@pytest.mark.quality
 def test_trimmed_matches_let_a_part_without_counterpart_follow_its_neighbours(monkeypatch):
     # seed 1's template (vase 2) has a neck; vase 1's lip (0.17) is narrower than its neck
     # (0.21), so its neck is no turning line and the template's neck-to-lip wall, facing
@@ -343,6 +345,7 @@ def _unchecked(prepared, settings, monkeypatch):
         return correspond(prepared, settings, jobs=1)
 
 
+@pytest.mark.quality
 def test_cups_leaning_the_other_way_are_matched_by_closest_points_exactly(tmp_path, monkeypatch):
     # the template (cup 3) leans in (top radius 12 % below the bottom's); in the first round
     # feature matches collapse it onto part of the three cups leaning out by 12-21 % (residual
@@ -437,6 +440,7 @@ def test_plain_points_are_matched_by_position_and_normal_only():
     np.testing.assert_array_equal(matcher.backward(points, features, ~every)[0], matcher.backward(points, features)[0])
 
 
+@pytest.mark.quality
 def test_a_vase_without_a_neck_is_matched_plainly_where_its_regions_merge(tmp_path, monkeypatch):
     # seed 1: the template (vase 2) has a neck; vases 1 and 4 have none, so belly to rim
     # faces up on them in one piece where the template's neck splits it. Measured true

@@ -26,6 +26,7 @@ def _mixed(n: int, seed: int) -> list:
     return vases + list(make_barrels(n - n // 2, seed=seed))
 
 
+@pytest.mark.quality
 def test_candidate_pairs_find_the_nearest_shapes_of_all_pairs():
     meshes = _mixed(40, seed=1)
     every_pair = PoseSearch.of(meshes, [np.eye(3)] * len(meshes), 300, 0)
@@ -43,6 +44,7 @@ def test_candidate_pairs_find_the_nearest_shapes_of_all_pairs():
     assert known.sum() < n * n  # and still not every pair
 
 
+@pytest.mark.quality
 def test_nearest_in_pool_settles_in_the_order_of_all_pairs():
     """consensus settles the waiting shape closest to a settled one next: NearestInPool,
     kept up to date as the pool grows and exact only where the order needs it, gives the

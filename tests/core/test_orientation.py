@@ -35,6 +35,7 @@ def _angle(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("kind,seed", [("vase", 2), ("barrel", 3)])
 def test_consistent_input_keeps_every_pose_exactly(kind, seed):
     prepared = prepare_collection(_upright(10, seed, kind))
@@ -44,6 +45,7 @@ def test_consistent_input_keeps_every_pose_exactly(kind, seed):
         assert not shape.orientation_changed and shape.pose_change == "" and shape.pose_outlier == ""
 
 
+@pytest.mark.quality
 def test_perturbed_subset_is_restored_or_flagged_and_nobody_else_moves():
     """The orientation policy on barrels (nearly symmetric top to bottom: only the odd moments
     tell the ends apart): turns about up are undone, a shape on its side is stood on
@@ -67,6 +69,7 @@ def test_perturbed_subset_is_restored_or_flagged_and_nobody_else_moves():
     assert (turned.pose_rotation @ turns[1])[2, 2] > np.cos(np.radians(3.0)), turned.pose_change
 
 
+@pytest.mark.quality
 def test_keep_pose_is_respected_and_the_wrong_pose_flagged():
     meshes = _turned(_upright(10, 7, "barrel"), {2: UPSIDE_DOWN})
     keep = [i == 2 for i in range(10)]

@@ -63,6 +63,7 @@ def psb_prepared():
     return prepared
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("name", sorted(PINNED))
 def test_psb_decisions_as_filed_are_pinned(psb_prepared, name):
     decisions = {shape.name: _decision(shape) for shape in psb_prepared(name)}
@@ -74,6 +75,7 @@ def test_psb_decisions_as_filed_are_pinned(psb_prepared, name):
 AIRPLANES_LYING = {"62", "63", "64", "77"}
 
 
+@pytest.mark.quality
 def test_no_psb_airplane_is_laid_on_its_side(psb_prepared):
     """Every airplane upright in its file keeps its file's up (none laid on its side or
     turned over by the floor the centred files seem to share); those lying in their files
@@ -106,6 +108,7 @@ MIXED_CLASSES = {
 }
 
 
+@pytest.mark.quality
 @pytest.mark.parametrize("name", sorted(MIXED_CLASSES))
 def test_mixed_file_conventions_end_as_one_convention_does(name):
     """Every third file re-saved y-up (a quarter turn about x about its origin): every
@@ -117,6 +120,7 @@ def test_mixed_file_conventions_end_as_one_convention_does(name):
         assert bool(a.pose_outlier) == bool(b.pose_outlier), (a.name, a.pose_outlier, b.pose_outlier)
 
 
+@pytest.mark.quality
 def test_mixed_file_conventions_of_a_tosca_class_end_as_one_convention_does():
     """TOSCA's centaurs stand on z = 0 in one pose each; two of six files re-saved y-up (a
     quarter turn about their origin): no majority rests on one floor any more, the costs
@@ -148,6 +152,7 @@ def _same_surface(prepared, relative: np.ndarray) -> bool:
     return bool(np.sqrt(np.mean(distance ** 2)) < 0.01 * radius)
 
 
+@pytest.mark.quality
 def test_mixed_file_conventions_of_psb_cups_end_as_filed(psb_prepared):
     """PSB's cups with every third file re-saved z-up: with a third of the files lying
     when read y-up, and five cups lying on their sides in their own files, no upright
@@ -162,6 +167,7 @@ def test_mixed_file_conventions_of_psb_cups_end_as_filed(psb_prepared):
         assert _same_surface(b, relative), (a.name, _angle(relative), a.pose_change, a.pose_outlier)
 
 
+@pytest.mark.quality
 def test_upright_shapes_on_a_floor_are_never_turned():
     """Mugs and vases standing on one ground plane as their author put them (origins under
     their bases): nobody is turned over or onto a side."""

@@ -36,6 +36,7 @@ def _up_error(shape, turn: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((shape.transform.rotation @ turn)[2, 2], -1.0, 1.0))))
 
 
+@pytest.mark.quality
 def test_a_taper_both_ways_turns_nobody():
     """Solid mugs (caps at both ends) whose walls taper inward on some and outward on
     others: the taper is all that differs between top and bottom, and it varies across
@@ -47,6 +48,7 @@ def test_a_taper_both_ways_turns_nobody():
             np.testing.assert_array_equal(shape.pose_rotation, np.eye(3))
 
 
+@pytest.mark.quality
 def test_a_file_a_quarter_turn_off_is_put_right_and_nobody_else_moves():
     meshes = placed([v.mesh for v in make_vases(9, seed=5, resolution=(12, 16), pose=False)], 2)
     prepared = prepare_collection(turned(meshes, {4: Y_UP_FILE}))
@@ -57,6 +59,7 @@ def test_a_file_a_quarter_turn_off_is_put_right_and_nobody_else_moves():
             assert not shape.orientation_changed and shape.pose_outlier == "", (i, shape.pose_change)
 
 
+@pytest.mark.quality
 def test_a_shape_turned_over_on_doubtful_evidence_is_flagged_then_turned_on_request():
     """Barrels are nearly symmetric top to bottom: the Chamfer cost cannot tell a barrel
     upside down, only its odd moments do, which is not evidence enough to turn it over:
@@ -98,6 +101,7 @@ def test_flag_turns_are_saved_and_older_files_read_without(tmp_path):
     assert PreparedCollection.load(tmp_path / "older.npz").flagged() == []
 
 
+@pytest.mark.quality
 def test_cli_turn_flagged(tmp_path):
     folder = tmp_path / "barrels"
     shapes = turned(placed(make_barrels(6, seed=5, pose=False), 3), {1: UPSIDE_DOWN})
@@ -161,6 +165,7 @@ def test_file_floors_of_a_small_collection_and_of_centred_files():
     assert FileFloors([box] * 4, [2.0] * 4).shared(list(range(4)), tolerance=0.15) == Floor(0.0, 0.3)
 
 
+@pytest.mark.quality
 def test_on_a_shared_floor_the_floor_decides_what_the_file_says():
     """Barrels on one floor: one saved upside down about its origin is turned over (the
     odd moments alone only flag it, previous test), one laid on its side on the floor by

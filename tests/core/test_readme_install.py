@@ -23,10 +23,9 @@ ROOT = Path(__file__).resolve().parents[2]
 NEWEST = ROOT / "requirements" / "newest.txt"
 #: the README's lines: `pip install .`, then `shapegen fit meshes/ -o model.npz --up y` and
 #: `shapegen sample model.npz -n 100 -o samples/ --format obj` (fewer shapes, landmarks and
-#: samples here: the runs only have to end well and write their samples; the fit of all 20
-#: fish with 200 landmarks took 46 CPU-seconds, 10 fish with 100 take 30)
+#: samples here: the runs only have to end well and write their samples)
 FIT_OPTIONS = ["--landmarks", "100", "--model", "ppca", "--jobs", "2"]
-FISH_SHAPES = 10
+FISH_SHAPES = 6
 
 pytestmark = pytest.mark.skipif(sys.version_info[:2] != (3, 13),
                                 reason="requirements/newest.txt is resolved for Python 3.13: the newest tier runs this")

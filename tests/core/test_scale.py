@@ -77,6 +77,7 @@ def _collection(meshes) -> PreparedCollection:
     return prepare_meshes(meshes, PrepareSettings(n_landmarks=200, align="none"))
 
 
+@pytest.mark.quality
 def test_dense_and_sparse_copies_correspond_alike(vases):
     """A shape and its 16x denser copy (the same surface) land their landmarks at the same
     places, up to the spacing of the landmarks (each copy picks its own target landmarks);

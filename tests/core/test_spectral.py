@@ -121,6 +121,7 @@ def test_a_shape_in_two_parts_falls_back_and_says_why():
     assert start.message.startswith("closest-point start: spectrum not trusted (its largest of 2 parts holds 50 %")
 
 
+@pytest.mark.quality
 def test_a_tosca_cat_in_another_pose_starts_closer_to_the_truth_than_closest_points():
     """cat0 → cat1 (a cat that moved its limbs): the closest-point start (the files share
     z up and the facing) puts the landmarks far from their true places, the spectral start
@@ -185,6 +186,7 @@ def _evidence_of(meshes, landmarks: int = 300):
     return chosen_start(pose_evidence([s.mesh for s in prepared.shapes], sets, chamfer_medoid(sets)))
 
 
+@pytest.mark.quality
 def test_auto_takes_the_intrinsic_start_for_an_animal_in_different_poses():
     from shapegen_core.meshes.reading import read_mesh
 
