@@ -63,8 +63,12 @@ def measure_class(name: str, jobs: int, decisions_only: bool) -> dict:
     """Prepare and (unless `decisions_only`) correspond one PSB class at the defaults."""
     import numpy as np
 
-    from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
-    from shapegen_core.meshes.reading import read_folder
+    try:
+        from shapegen_core.meshes.reading import read_folder
+        from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
+    except ModuleNotFoundError:  # a revision from before core/ was in layers
+        from shapegen_core.collection import PrepareSettings, prepare_meshes
+        from shapegen_core.io import read_folder
 
     folder = folder_or_exit("psb", name)
     meshes = read_folder(folder)

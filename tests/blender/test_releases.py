@@ -21,8 +21,8 @@ from shared_data import folder_or_skip
 
 SMOKE = Path(__file__).with_name("release_smoke.py")
 RELEASES = ("4.2", "5.2")
-#: the smoke imports and fits the first 10 of the 20 PSB fish (Blender 5.2: 15 CPU-s, all 20: 24)
-FISH_SHAPES = 10
+#: the smoke imports and fits the first 6 of the 20 PSB fish: the pass has only to end well
+FISH_SHAPES = 6
 
 
 def release_pythons() -> dict[str, str]:
