@@ -25,7 +25,7 @@ from ..base.settings import SettingsError, is_group, nested_data, settings_from_
 from ..meshes.spill import SpillStore
 from .stages import SettingsConflict, StagePlan, file_stage, plan_stages, read_offered
 
-__all__ = ["CommandError", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
+__all__ = ["CommandError", "StagedOutput", "Source", "SOURCE_KINDS", "positive_int", "add_settings_options", "given_options", "flag_of",
            "settings_from_args", "requested_settings", "add_keep_pose_option", "add_skip_unreadable_option",
            "read_mesh_folder", "turned_on_console", "read_source", "prepare_source", "pose_lines",
            "correspond_on_console", "console_progress"]
@@ -295,7 +295,7 @@ def console_progress(prefix: str) -> Progress:
     return report
 
 
-class _StagedOutput:
+class StagedOutput:
     """A folder written completely in a sibling temporary folder, then moved into place."""
 
     def __init__(self, target: Path):

@@ -28,7 +28,7 @@ from ..meshes.spill import SpillStore, loaded
 from ..meshes.writing import MeshWriters
 from ..preprocess import ShapeTransform
 from ..preprocess.collection import PrepareSettings
-from .cli_common import (CommandError, _StagedOutput, add_keep_pose_option, add_settings_options,
+from .cli_common import (CommandError, StagedOutput, add_keep_pose_option, add_settings_options,
                          add_skip_unreadable_option, console_progress, positive_int, prepare_source, read_mesh_folder,
                          read_source, requested_settings, settings_from_args)
 from .cli_sample import cmd_sample
@@ -204,7 +204,7 @@ def _complete_from_pins(args: argparse.Namespace, model) -> int:
     done = model.complete_from_pins(pins)
     index = model.choose_template(done.landmarks, args.template)
     distances = done.distances(pins)
-    with _StagedOutput(args.output) as staging:
+    with StagedOutput(args.output) as staging:
         save_npz(staging / "completed.npz", "shapegen.samples", 1,
                  {"landmarks": done.landmarks[None], "latents": done.latent[None],
                   "landmark_std": done.std[None], "templates": np.asarray([model.names[index]]),
@@ -240,7 +240,7 @@ def cmd_complete(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.partial}: has {partial.shape[1]} landmarks per shape, the model "
                            f"{model.n_landmarks}")
     completed = model.complete(partial)
-    with _StagedOutput(args.output) as staging:
+    with StagedOutput(args.output) as staging:
         save_npz(staging / "completed.npz", "shapegen.samples", 1,
                  {"landmarks": completed, "observed": np.isfinite(partial).all(axis=2)})
         _write_meshes(model, completed, args.template, args.smooth, staging,
@@ -262,7 +262,7 @@ def cmd_morph(args: argparse.Namespace) -> int:
     landmarks = model.decode(line)
     # one template along the whole line, so every step has the same mesh (pipeline.path_template)
     template = model.names[model.path_template(latents[index_a], latents[index_b], args.template)]
-    with _StagedOutput(args.output) as staging:
+    with StagedOutput(args.output) as staging:
         _write_meshes(model, landmarks, template, args.smooth, staging,
                       [f"morph_{k:03d}" for k in range(len(landmarks))], args.format)
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1,

@@ -24,7 +24,7 @@ from ..generate.sampling import (GatedSample, draw_budget, gate_summary, gated_s
                                  rejection_lines, shortfall)
 from ..meshes.labels import write_label_file, written_face_labels
 from ..meshes.writing import MeshWriters
-from .cli_common import CommandError, _StagedOutput, settings_from_args
+from .cli_common import CommandError, StagedOutput, settings_from_args
 from .sample_batch import cluster_sampler, contiguous_chunks
 from .shape_model import GenerativeShapeModel
 
@@ -212,7 +212,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
     budget = draw_budget(args.n, quality)
     samples = failure = None
     try:
-        with _StagedOutput(args.output) as staging:
+        with StagedOutput(args.output) as staging:
             jobs = args.jobs or (os.cpu_count() or 1)
             templates = _first_templates(model, run) if jobs > 1 and run.count >= 64 else []
             samples = _write_samples(args, model, replace(run, folder=str(staging)), templates)

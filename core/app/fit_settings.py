@@ -18,7 +18,8 @@ from ..generate.deform import DeformSettings
 from ..models import MODEL_TYPES
 from ..preprocess.collection import PrepareSettings
 
-__all__ = ["FitSettings", "RunOptions", "split_run_options", "TemplateError", "TEMPLATE_CHOICES"]
+__all__ = ["FitSettings", "RunOptions", "split_run_options", "TemplateError", "TEMPLATE_CHOICES", "load_fit_settings",
+           "check_mesh_template"]
 
 
 TEMPLATE_CHOICES = ("nearest-data", "nearest-latent")
@@ -81,14 +82,14 @@ def split_run_options(data: Mapping) -> tuple[RunOptions, dict]:
     return run, {name: value for name, value in data.items() if name not in RUN_OPTIONS}
 
 
-def _check_mesh_template(settings: FitSettings, names: list[str]) -> None:
+def check_mesh_template(settings: FitSettings, names: list[str]) -> None:
     """The default meshing template must be a choice or one of the training shapes."""
     if settings.mesh_template not in TEMPLATE_CHOICES and settings.mesh_template not in names:
         raise SettingsError("mesh_template", f"must be {' or '.join(TEMPLATE_CHOICES)} or a training shape's "
                             f"name; no shape is named {settings.mesh_template!r}")
 
 
-def _load_fit_settings(arrays: dict, path) -> FitSettings:
+def load_fit_settings(arrays: dict, path) -> FitSettings:
     """The FitSettings a model file records (one JSON string, or the key/value arrays of
     files written before, `compat.old_model_settings`); invalid settings are a
     ModelFileError naming the file."""

@@ -19,7 +19,7 @@ from ..meshes.spill import loaded
 from ..models import make_model
 from ..models.scaling import ScaleWarning, size_note
 from ..preprocess.collection import PreparedCollection, prepare_meshes
-from .fit_settings import FitSettings, _check_mesh_template
+from .fit_settings import FitSettings, check_mesh_template
 from .shape_model import GenerativeShapeModel
 
 __all__ = ["fit_meshes", "fit_shape_model", "posed_meshes"]
@@ -46,10 +46,10 @@ def fit_meshes(meshes_or_prepared, settings: FitSettings = FitSettings(), progre
         prepared = meshes_or_prepared
         if prepared.settings is not None:
             settings = replace(settings, prepare=prepared.settings)
-        _check_mesh_template(settings, prepared.names)
+        check_mesh_template(settings, prepared.names)
     else:
         meshes = list(meshes_or_prepared)
-        _check_mesh_template(settings, [m.name for m in meshes])
+        check_mesh_template(settings, [m.name for m in meshes])
         prepared = prepare_meshes(meshes, settings.prepare, progress=sub_range(progress, 0.0, 0.15, "prepare: "),
                                   should_cancel=cancel)
     cancel()
@@ -112,7 +112,7 @@ def fit_shape_model(meshes: list[Mesh], corr: Correspondence, settings: FitSetti
     cancel = CancelCheck(should_cancel, "fit")
     start = time.perf_counter() if started is None else started
 
-    _check_mesh_template(settings, list(corr.names))
+    check_mesh_template(settings, list(corr.names))
     _check_variation(meshes)
     note = size_note(settings.model, len(corr.names))
     if note is not None:  # an N³ fit of many shapes: say so

@@ -49,7 +49,7 @@ from ..meshes.spill import full_mesh
 from ..models import model_from_arrays
 from ..models.latent_units import LatentUnits
 from ..preprocess.rotations import up_rotation
-from .fit_settings import TEMPLATE_CHOICES, FitSettings, TemplateError, _load_fit_settings
+from .fit_settings import TEMPLATE_CHOICES, FitSettings, TemplateError, load_fit_settings
 
 __all__ = ["GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
            "MODEL_FILE_VERSIONS"]
@@ -383,7 +383,7 @@ class GenerativeShapeModel:
         if model.n_features_ != 3 * correspondence.n_landmarks:
             raise ModelFileError(f"{path}: the shape model has {model.n_features_} features, "
                                  f"the correspondence {3 * correspondence.n_landmarks}")
-        loaded = cls(meshes, correspondence, model, settings=_load_fit_settings(arrays, path),
+        loaded = cls(meshes, correspondence, model, settings=load_fit_settings(arrays, path),
                      metadata=dict(zip(arrays["metadata_keys"].tolist(), arrays["metadata_values"].tolist())),
                      **_load_latents(arrays, path, len(meshes), model.latent_dim),
                      part_labels=_load_part_labels(arrays, path, [len(m.faces) for m in meshes]))

@@ -10,8 +10,8 @@ import numpy as np
 
 from ..meshes.mesh import Mesh
 from ..preprocess import ShapeTransform
-from .revolved import _capped_ring_faces
-from .vases import _random_placement
+from .revolved import capped_ring_faces
+from .vases import random_placement
 
 
 # ---------------------------------------------------------------------------- classes built from parts
@@ -73,7 +73,7 @@ def _part_mesh(surface, rng: np.random.Generator, breaks, n_rings: int,
     uv = np.concatenate([[[0.0, np.nan]], np.stack([np.repeat(levels, n_around), theta.ravel()], axis=1),
                          [[1.0, np.nan]]])
     vertices = surface(uv[:, 0], np.nan_to_num(uv[:, 1]))
-    return vertices, _capped_ring_faces(len(levels), n_around, rng), uv
+    return vertices, capped_ring_faces(len(levels), n_around, rng), uv
 
 
 #: u-values where a tube (`_tube`) changes part: start cap | wall | end cap
@@ -120,7 +120,7 @@ def _parted_shape(parts, resolutions, rng: np.random.Generator, pose: bool, name
         faces.append(part_faces + offset)
         coordinates.append(np.column_stack([np.full(len(uv), float(k)), uv]))
         offset += len(part_vertices)
-    placement = _random_placement(rng) if pose else ShapeTransform.identity()
+    placement = random_placement(rng) if pose else ShapeTransform.identity()
     mesh = Mesh(placement.to_normalised(np.vstack(vertices)), np.vstack(faces), name=name)
     return PartedShape(mesh, tuple(surface for surface, _ in parts), np.vstack(coordinates), placement)
 

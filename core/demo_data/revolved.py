@@ -8,10 +8,10 @@ import numpy as np
 
 from ..meshes.mesh import Mesh
 from ..preprocess import ShapeTransform
-from .vases import _random_placement
+from .vases import random_placement
 
 
-def _capped_ring_faces(count: int, n_around: int, rng: np.random.Generator | None = None) -> np.ndarray:
+def capped_ring_faces(count: int, n_around: int, rng: np.random.Generator | None = None) -> np.ndarray:
     """Faces of `count` rings of `n_around` vertices (vertex 1 + k·n_around + i), a pole
     vertex 0 below the first and one after the last closing the ends. Each quad between
     two rings is cut along its rising diagonal, or (with `rng`) along either at random."""
@@ -41,7 +41,7 @@ def _revolved_mesh(profile: np.ndarray, radius_scale, rng: np.random.Generator,
     r = rings[:, 0:1] * radius_scale(np.angle(np.exp(1j * theta)), z)
     ring_points = np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=-1).reshape(-1, 3)
     vertices = np.vstack([[0.0, 0.0, profile[0, 1]], ring_points, [0.0, 0.0, profile[-1, 1]]])
-    return vertices, _capped_ring_faces(len(rings), n_around)
+    return vertices, capped_ring_faces(len(rings), n_around)
 
 
 def make_barrels(n: int = 24, seed: int = 0, rings: tuple[int, int] = (14, 22), pose: bool = True) -> list[Mesh]:
@@ -68,7 +68,7 @@ def make_barrels(n: int = 24, seed: int = 0, rings: tuple[int, int] = (14, 22), 
             return shaped * (1.0 + ellipticity * np.cos(2.0 * theta))
 
         vertices, faces = _revolved_mesh(profile, radius_scale, rng, int(rng.integers(28, 40)))
-        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        placement = random_placement(rng) if pose else ShapeTransform.identity()
         shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"barrel_{i:03d}"))
     return shapes
 
@@ -92,7 +92,7 @@ def make_cups(n: int = 12, seed: int = 0, taper: tuple[float, float] = (-0.2, 0.
                                   np.stack([outer(down) - wall, down], axis=1), [[0.0, floor]]])
         vertices, faces = _revolved_mesh(profile, lambda theta, z: np.ones_like(theta), rng,
                                          int(rng.integers(28, 40)))
-        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        placement = random_placement(rng) if pose else ShapeTransform.identity()
         shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"cup_{i:03d}"))
     return shapes
 
@@ -122,7 +122,7 @@ def make_mugs(n: int = 10, seed: int = 0, closed: bool = True, taper: tuple[floa
         handle, handle_faces = _handle(rng, outer, height * rng.uniform(*handle_height), height)
         vertices = np.vstack([body, handle])
         faces = np.vstack([body_faces, handle_faces + len(body)])
-        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        placement = random_placement(rng) if pose else ShapeTransform.identity()
         shapes.append(Mesh(placement.to_normalised(vertices), faces, name=f"mug_{i:03d}"))
     return shapes
 

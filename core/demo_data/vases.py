@@ -220,13 +220,13 @@ def make_vases(
         n_rings = int(rng.integers(resolution[0], resolution[1] + 1))
         n_around = int(round(n_rings * rng.uniform(1.1, 1.5)))
         vertices, faces, st = _vase_mesh(params, rng, n_rings, n_around)
-        placement = _random_placement(rng) if pose else ShapeTransform.identity()
+        placement = random_placement(rng) if pose else ShapeTransform.identity()
         mesh = Mesh(placement.to_normalised(vertices), faces, name=f"vase_{i:03d}")
         shapes.append(ProceduralShape(mesh, params, st, placement))
     return shapes
 
 
-def _random_placement(rng: np.random.Generator) -> ShapeTransform:
+def random_placement(rng: np.random.Generator) -> ShapeTransform:
     """Random yaw about z, scale in [0.5, 2] and translation in [-1, 1]³."""
     yaw = rng.uniform(-np.pi, np.pi)
     c, s = np.cos(yaw), np.sin(yaw)

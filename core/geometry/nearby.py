@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from .nearfaces import NearFaces
-from .surface import SurfacePoints, _empty_surface_points, closest_points_on_triangles
+from .surface import SurfacePoints, closest_points_on_triangles, empty_surface_points
 
 __all__ = ["closest_within"]
 
@@ -143,8 +143,8 @@ class _Search:
             compatible = candidates.compatible(pair_rows, at, normals, self.min_cos)
             bound = _row_min(len(rows), pair_rows[compatible], centre[compatible])
             tested |= compatible & (gap <= bound[pair_rows] + tolerance[pair_rows])
-        best_plain = _empty_surface_points(len(rows)) if plain else None
-        best_compatible = _empty_surface_points(len(rows)) if compatible is not None else None
+        best_plain = empty_surface_points(len(rows)) if plain else None
+        best_compatible = empty_surface_points(len(rows)) if compatible is not None else None
         tested = np.flatnonzero(tested)
         for start in range(0, len(tested), _PAIR_CHUNK):
             chunk = tested[start:start + _PAIR_CHUNK]
@@ -176,7 +176,7 @@ def closest_within(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
     centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     normals = None if normals is None else np.asarray(normals, dtype=np.float64)
     if len(points) == 0:
-        return _empty_surface_points(0)
+        return empty_surface_points(0)
     search = _Search(vertices, faces, points, reach, normals, min_cos, centre, float(scale), everywhere)
     # first within the nearest vertex's distance (below `reach`): a compatible point found
     # there is the closest overall; the other rows look within 4 × reach, or only as far as

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfacePoints", "TargetSurface", "closest_points_on_triangles"]
+__all__ = ["SurfacePoints", "TargetSurface", "closest_points_on_triangles", "empty_surface_points"]
 
 
 def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +130,7 @@ class TargetSurface:
         among its `WIDEN[-1]` nearest faces gets distance inf (the caller gives it
         weight 0)."""
         points = np.asarray(points, dtype=np.float64)
-        best = _empty_surface_points(len(points))
+        best = empty_surface_points(len(points))
         compatible = self._compatibility(normals, min_cos)
         rows = self._upper_bound(points, np.arange(len(points)), best, compatible)
         query_rows, faces = self._candidates(points, rows, best.distance[rows])
@@ -266,7 +266,7 @@ def _size_classes(radii: np.ndarray, centroids: np.ndarray, small: int, ratio: f
     return classes
 
 
-def _empty_surface_points(n: int) -> SurfacePoints:
+def empty_surface_points(n: int) -> SurfacePoints:
     return SurfacePoints(np.zeros((n, 3)), np.zeros(n, dtype=np.int64), np.zeros((n, 3)), np.full(n, np.inf))
 
 
@@ -298,7 +298,7 @@ class _TrackedClosest:
         s = self.surface
         points = np.asarray(points, dtype=np.float64)
         n = len(points)
-        best = _empty_surface_points(n)
+        best = empty_surface_points(n)
         compatible = s._compatibility(normals, min_cos)
         if len(self.anchor) != n:  # first call (or a different point set): query everything
             self.anchor, self.radius = points.copy(), np.full(n, -np.inf)

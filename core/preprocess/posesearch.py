@@ -66,7 +66,6 @@ class PoseSearch:
         self.samples = [np.asarray(s, dtype=np.float64) for s in samples]
         self.trees = [cKDTree(s) for s in self.samples]
         self._pair_costs: dict[tuple[int, int, bytes], float] = {}
-        n = len(self.samples)
         self._coarse = [s[:max(len(s) // SCREEN_FRACTION, 1)] for s in self.samples]
         self._coarse_trees = [cKDTree(c) for c in self._coarse]
         self._exact_shapes = exact_shapes

@@ -24,7 +24,7 @@ MAP_NAME = "ShapeGen Latent Map"
 
 
 # ------------------------------------------------------------------------------ operators
-class _NeedsLive(store.NeedsModel):
+class NeedsLive(store.NeedsModel):
     """Operator mixin: a model and its live object (Explore) must exist."""
 
     @classmethod
@@ -37,7 +37,7 @@ class _NeedsLive(store.NeedsModel):
         return True
 
 
-def _run(operator, function) -> set[str]:
+def run_and_report(operator, function) -> set[str]:
     """Run `function` (returns a message); a live shape that now fails the quality gate
     (latent.py keeps its reasons in keys.QUALITY_KEY) turns the report into a warning."""
     try:
@@ -70,10 +70,10 @@ class SHAPEGEN_OT_explore(store.NeedsModel, bpy.types.Operator):
             obj, note = create_live(context.scene, model, self.template)
             return f"'{obj.name}': {model.latent_dim} sliders on template '{obj[TEMPLATE_KEY]}'.{note}"
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
-class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_explore_randomise(NeedsLive, bpy.types.Operator):
     """Set the sliders to a random plausible shape (within ±3 on every slider)"""
 
     bl_idname = "shapegen.explore_randomise"
@@ -94,10 +94,10 @@ class SHAPEGEN_OT_explore_randomise(_NeedsLive, bpy.types.Operator):
                 return f"Random shape (seed {seed}): no draw within {limit} in {drawn.redraws + 1}, clipped to {limit}"
             return f"Random shape (seed {seed}{f', {drawn.redraws} redrawn beyond {limit}' if drawn.redraws else ''})"
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
-class SHAPEGEN_OT_explore_reset(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_explore_reset(NeedsLive, bpy.types.Operator):
     """Move every slider back to the middle: the collection's average shape"""
 
     bl_idname = "shapegen.explore_reset"
@@ -109,10 +109,10 @@ class SHAPEGEN_OT_explore_reset(_NeedsLive, bpy.types.Operator):
             reset_sliders(context.scene)
             return ""
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
-class SHAPEGEN_OT_explore_snap(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_explore_snap(NeedsLive, bpy.types.Operator):
     """Move the sliders to the training shape nearest to the live shape"""
 
     bl_idname = "shapegen.explore_snap"
@@ -130,10 +130,10 @@ class SHAPEGEN_OT_explore_snap(_NeedsLive, bpy.types.Operator):
             set_latent(scene, training[index])
             return f"Snapped to '{model.names[index]}'"
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
-class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_explore_bake(NeedsLive, bpy.types.Operator):
     """Turn the live object into an ordinary mesh (no longer driven by the sliders)"""
 
     bl_idname = "shapegen.explore_bake"
@@ -146,7 +146,7 @@ class SHAPEGEN_OT_explore_bake(_NeedsLive, bpy.types.Operator):
             warning = obj.get(QUALITY_KEY, "")
             return f"Baked '{obj.name}'" + (f" (it fails the quality gate: {warning})" if warning else "")
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
 class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
@@ -189,7 +189,7 @@ class SHAPEGEN_OT_latent_map(store.NeedsModel, bpy.types.Operator):
             return (f"Latent map of {len(model.names)} shapes ({n_out} outlier(s)) on {axes}: "
                     f"image '{image.name}'")
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
 CLASSES = (SHAPEGEN_OT_explore, SHAPEGEN_OT_explore_randomise, SHAPEGEN_OT_explore_reset,

@@ -8,12 +8,12 @@ from bpy.props import IntProperty
 
 from .. import pins
 from ..keys import PIN_KEY
-from .explore import _NeedsLive, _run
+from .explore import NeedsLive, run_and_report
 
 __all__ = ["CLASSES"]
 
 
-class SHAPEGEN_OT_pin_add(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_pin_add(NeedsLive, bpy.types.Operator):
     """Pin a point of the live object: an Empty at its landmark nearest the 3D cursor (or the
     landmark given); move the pin and the whole shape follows as far as the model allows"""
 
@@ -29,10 +29,10 @@ class SHAPEGEN_OT_pin_add(_NeedsLive, bpy.types.Operator):
             pin = pins.add_pin(context.scene, self.landmark)
             return f"'{pin.name}' pins landmark {pin[PIN_KEY]}: move it to reshape the live object"
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
-class SHAPEGEN_OT_pins_clear(_NeedsLive, bpy.types.Operator):
+class SHAPEGEN_OT_pins_clear(NeedsLive, bpy.types.Operator):
     """Remove every pin; the live object goes back to its shape before the first pin"""
 
     bl_idname = "shapegen.pins_clear"
@@ -43,7 +43,7 @@ class SHAPEGEN_OT_pins_clear(_NeedsLive, bpy.types.Operator):
         def work():
             return f"Removed {pins.clear_pins(context.scene)} pin(s)"
 
-        return _run(self, work)
+        return run_and_report(self, work)
 
 
 CLASSES = (SHAPEGEN_OT_pin_add, SHAPEGEN_OT_pins_clear)

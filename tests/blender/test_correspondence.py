@@ -68,7 +68,7 @@ def test_bad_settings_are_reported_before_any_worker_starts(prepared):
 def test_find_correspondences_on_a_named_collection_needs_it_prepared(prepared):
     with pytest.raises(RuntimeError, match="No collection named 'missing'"):
         bpy.ops.shapegen.find_correspondences(collection_name="missing")
-    raw = bpy.data.collections.new("raw")
+    bpy.data.collections.new("raw")
     with pytest.raises(RuntimeError, match="'raw' has no prepared collection"):
         bpy.ops.shapegen.find_correspondences(collection_name="raw")
     assert bpy.context.scene.shapegen.job_state == "DONE"  # Prepare's; no job started

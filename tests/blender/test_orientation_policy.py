@@ -16,7 +16,6 @@ import math
 
 import bpy
 import numpy as np
-import pytest
 from conftest import ROOT, addon_module, vertices
 
 KINDS = ("plain", "subdivided", "parented", "rotated", "scaled")

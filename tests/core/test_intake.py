@@ -13,7 +13,6 @@ import trimesh
 from shapegen_core.preprocess.collection import PrepareSettings
 from shapegen_core.demo_data import make_vases, write_collection
 from shapegen_core.generate.deform import enclosed_volume
-from shapegen_core.base.errors import MeshError
 from shapegen_core.meshes.winding import OPEN_PART_MIN_OUTWARDNESS, outside_sides, outwardness, winding_numbers
 from shapegen_core.meshes.intake import WELD_RTOL, clean_mesh, weld_vertices
 from shapegen_core.meshes.reading import read_folder, read_mesh

@@ -15,7 +15,6 @@ import trimesh
 from shapegen_core.meshes.reading import read_mesh
 from shapegen_core.meshes.writing import write_mesh
 from shapegen_core.meshes.layout import FaceLayout, pack_layouts, unpack_layouts
-from shapegen_core.meshes.mesh import Mesh
 
 SHAPEGEN = str(Path(sys.executable).parent / "shapegen")
 AROUND, RINGS = 12, 6
@@ -153,7 +152,7 @@ def test_fit_and_sample_write_the_template_faces_and_uvs(collection, model, tmp_
 
 
 def test_a_model_file_keeps_the_layouts_and_older_files_load(model, tmp_path):
-    from shapegen_core.base.npzfile import load_npz, save_npz
+    from shapegen_core.base.npzfile import save_npz
     from shapegen_core.app.shape_model import MODEL_FILE_FORMAT, GenerativeShapeModel
 
     fitted = GenerativeShapeModel.load(model)

@@ -18,7 +18,7 @@ import pytest
 from conftest import Y_UP_FILE, in_process, on_a_floor, placed, turned
 
 from shapegen_core.preprocess.collection import PrepareSettings, PreparedCollection, prepare_meshes
-from shapegen_core.demo_data import make_barrels, make_mugs, make_vases, write_collection
+from shapegen_core.demo_data import make_barrels, make_mugs, make_vases
 from shapegen_core.base.errors import CollectionError
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.app.fit_settings import FitSettings
