@@ -41,6 +41,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..preprocess.rotations import rotation_angle
+
 __all__ = ["rigid_fit", "landmark_poses", "apply_pose", "pose_angle", "POSED_START"]
 
 #: the per-shape start whose landmarks tell a shape's pose (start.py)
@@ -75,7 +77,7 @@ def apply_pose(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def pose_angle(pose: np.ndarray) -> float:
     """The angle (degrees) of a pose's rotation."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(np.asarray(pose)[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    return rotation_angle(np.asarray(pose)[:3, :3])
 
 
 def landmark_poses(points: np.ndarray, template_index: int, shape_starts: Sequence[str], kept: Sequence[bool]

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from .moments import surface_moments, third_central_moment
 
 __all__ = ["UP_AXES", "up_rotation", "horizontal_pca_rotation", "AXIS_ROTATIONS", "TILTS", "yaw_rotation",
-           "turn_rotations", "describe_rotation"]
+           "turn_rotations", "describe_rotation", "rotation_angle"]
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
@@ -81,6 +81,11 @@ def turn_rotations(yaw_step: float) -> np.ndarray:
     steps = max(int(round(90.0 / yaw_step)), 1)
     turns = [yaw_rotation(90.0 * k + 90.0 * m / steps) for k in range(4) for m in range(1, steps)]
     return np.concatenate([AXIS_ROTATIONS, np.reshape(turns, (-1, 3, 3))])
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """The angle of a 3 × 3 rotation, degrees: arccos((tr R − 1) / 2)."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def describe_rotation(rotation: np.ndarray) -> str:

@@ -12,11 +12,8 @@ from conftest import psb_class
 from shapegen_core.meshes.reading import read_folder
 from shapegen_core.preprocess import prepare_collection
 from shapegen_core.preprocess.posesearch import PoseSearch
-from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, turn_rotations, up_rotation, yaw_rotation
+from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, rotation_angle, turn_rotations, up_rotation, yaw_rotation
 
-
-def _angle(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def test_turn_rotations_are_the_axis_rotations_and_the_turns_between_them():
@@ -54,15 +51,15 @@ def test_airplanes_turned_at_random_about_up_end_in_one_pose():
     prepared = prepare_collection([m.with_vertices(m.vertices @ t.T) for m, t in zip(meshes, turns)], up_axis="y")
     # each shape's pose relative to its as-filed result: one common turn for all
     relative = [p.pose_rotation @ up @ t @ pose.T for p, t, pose in zip(prepared, turns, poses)]
-    within = [[_angle(a @ b.T) <= 20.0 for b in relative] for a in relative]
+    within = [[rotation_angle(a @ b.T) <= 20.0 for b in relative] for a in relative]
     common = relative[int(np.argmax(np.sum(within, axis=1)))]
     # shapes lying on their side in their files (62, 63, 77) are turned about a horizontal
     # axis by a turn about their own up: no file-convention turn undoes that (the
     # orientation policy: flagged or left), so only the shapes upright in their files, and not flagged
     # as maybe upside down there, are counted
     upright = {p.name for p in as_filed if not p.orientation_changed and not p.pose_outlier}
-    apart = {p.name: round(_angle(r @ common.T)) for p, r in zip(prepared, relative)
-             if _angle(r @ common.T) > 20.0 and p.name in upright}
+    apart = {p.name: round(rotation_angle(r @ common.T)) for p, r in zip(prepared, relative)
+             if rotation_angle(r @ common.T) > 20.0 and p.name in upright}
     # main before the unshared rule: 65, 68, 73, 74 and 75 half a turn apart
     assert len(apart) <= 1, apart
     assert sum("no input pose is shared" in p.pose_change for p in prepared) >= len(meshes) // 2

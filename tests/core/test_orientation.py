@@ -11,7 +11,7 @@ import pytest
 from shapegen_core.demo_data import make_barrels, make_vases
 from shapegen_core.preprocess import ShapeTransform, prepare_collection
 from shapegen_core.preprocess.prepare import turn_as_flagged
-from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, describe_rotation, yaw_rotation
+from shapegen_core.preprocess.rotations import AXIS_ROTATIONS, describe_rotation, rotation_angle, yaw_rotation
 
 UPSIDE_DOWN = AXIS_ROTATIONS[4]  # 180° about x
 ON_ITS_SIDE = AXIS_ROTATIONS[9]  # +x up, then a quarter turn
@@ -30,9 +30,6 @@ def _upright(n: int, seed: int, kind: str) -> list:
 def _turned(meshes, turns: dict) -> list:
     return [m.with_vertices(m.vertices @ turns[i].T) if i in turns else m for i, m in enumerate(meshes)]
 
-
-def _angle(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 @pytest.mark.quality
@@ -60,7 +57,7 @@ def test_perturbed_subset_is_restored_or_flagged_and_nobody_else_moves():
     assert (prepared[4].pose_rotation @ turns[4])[2, 2] > np.cos(np.radians(3.0))
     assert prepared[4].pose_outlier.startswith("may be upside down: stood on another axis")
     assert "37° about -z" in prepared[6].pose_change and "facing" in prepared[6].pose_change
-    assert _angle(prepared[8].pose_rotation @ turns[8]) < 3.0
+    assert rotation_angle(prepared[8].pose_rotation @ turns[8]) < 3.0
     for i, shape in enumerate(prepared):
         if i not in turns:
             assert np.array_equal(shape.pose_rotation, np.eye(3)) and not shape.orientation_changed

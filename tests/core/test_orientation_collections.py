@@ -16,7 +16,7 @@ from shapegen_core.demo_data import make_mugs, make_vases
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.meshes.reading import read_folder
 from shapegen_core.preprocess import prepare_collection
-from shapegen_core.preprocess.rotations import describe_rotation
+from shapegen_core.preprocess.rotations import describe_rotation, rotation_angle
 
 #: Prepare's decision for each shape as filed (up y): "kept", or the turn made; "flagged"
 #: when its pose is flagged as doubtful
@@ -46,9 +46,6 @@ def _decision(shape) -> str:
     words = describe_rotation(shape.pose_rotation) if shape.pose_change else "kept"
     return words + (", flagged" if shape.pose_outlier else "")
 
-
-def _angle(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +92,7 @@ def _mixed_against_single(meshes):
     single = prepare_collection(meshes)
     turns = {i: Y_UP_FILE for i in range(1, len(meshes), 3)}
     mixed = prepare_collection(turned(meshes, turns))
-    return [(a, b, _angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T))
+    return [(a, b, rotation_angle(a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T))
             for i, (a, b) in enumerate(zip(mixed, single))]
 
 
@@ -139,7 +136,7 @@ def _same_surface(prepared, relative: np.ndarray) -> bool:
     """Whether the turn `relative` (prepared frame) leaves the prepared shape where it was:
     within 5°, or a turn about up after which its surface samples lie on its surface (RMS
     distance below 1 % of its RMS radius: a round cup at any turn about its axis)."""
-    if _angle(relative) <= 5.0:
+    if rotation_angle(relative) <= 5.0:
         return True
     if relative[2, 2] < np.cos(np.radians(5.0)):
         return False
@@ -164,7 +161,7 @@ def test_mixed_file_conventions_of_psb_cups_end_as_filed(psb_prepared):
     mixed = prepare_collection(turned(meshes, turns), up_axis="y")
     for i, (a, b) in enumerate(zip(mixed, psb_prepared("Cup"))):
         relative = a.transform.rotation @ turns.get(i, np.eye(3)) @ b.transform.rotation.T
-        assert _same_surface(b, relative), (a.name, _angle(relative), a.pose_change, a.pose_outlier)
+        assert _same_surface(b, relative), (a.name, rotation_angle(relative), a.pose_change, a.pose_outlier)
 
 
 @pytest.mark.quality

@@ -25,8 +25,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..posesearch import NearestInPool, PoseSearch
-from ..rotations import describe_rotation, yaw_rotation
-from .state import ConsensusState, PoseDecision, angle_degrees, combined, reference_names, step_progress
+from ..rotations import describe_rotation, rotation_angle, yaw_rotation
+from .state import ConsensusState, PoseDecision, combined, reference_names, step_progress
 
 
 def facings(state: ConsensusState) -> None:
@@ -94,7 +94,7 @@ class _CostFacing:
             return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: its {len(references)} nearest shapes "
                                               f"({reference_names(state.names, references)}) fit {ratio:.1f}× better ({why})")
         share = f"{each} of {len(references)} shapes fit it {ratio:.1f}× better turned about up"
-        if ratio <= least or 2 * each <= len(references) or angle_degrees(turn) <= settings.facing.angle:
+        if ratio <= least or 2 * each <= len(references) or rotation_angle(turn) <= settings.facing.angle:
             return PoseDecision(start[j])
         if each >= settings.costs.agreement * len(references):
             return PoseDecision(fit.rotation, f"{describe_rotation(turn)}: {share}, the collection facing one way")

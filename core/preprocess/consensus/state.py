@@ -220,11 +220,6 @@ def noted_kept(decision: PoseDecision) -> PoseDecision:
                         f"{decision.flag} (its pose is kept by request)", decision.flag_rotation)
 
 
-def angle_degrees(rotation: np.ndarray) -> float:
-    """The angle of a rotation, degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def reference_names(names: Sequence[str], references: Sequence[tuple[int, np.ndarray]]) -> str:
     return ", ".join(names[i] for i, _ in references)
 
