@@ -29,7 +29,7 @@ from conftest import subdivided
 
 #: meshes above this many faces are kept on disk in these tests (the vases below have ~26k)
 ABOVE = 5000
-SETTINGS = PrepareSettings(n_landmarks=200, align="none")
+SETTINGS = PrepareSettings(n_landmarks=100, align="none")
 CORRESPONDENCE = CorrespondenceSettings(proxy_faces=2000)  # shapes above 5000 faces: dense
 
 
