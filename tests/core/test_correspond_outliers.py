@@ -136,7 +136,7 @@ def test_mesh_templates_skip_outliers(upside_down):
 def test_a_pose_prepare_flagged_is_a_correspondence_outlier_and_never_the_medoid():
     """A shape Prepare could not put right (Align "none", one vase upside down) carries
     Prepare's pose flag into the correspondence's reasons and is no medoid candidate."""
-    shapes = make_vases(10, seed=4, resolution=(14, 18))
+    shapes = make_vases(6, seed=4, resolution=(14, 18))
     meshes = [s.mesh for s in shapes]
     meshes[FLIPPED] = meshes[FLIPPED].with_vertices(meshes[FLIPPED].vertices @ UPSIDE_DOWN.T)
     prepared = prepare_meshes(meshes, PrepareSettings(n_landmarks=120, align="none", seed=4))
