@@ -27,19 +27,21 @@ def run(*args):
 
 @pytest.fixture(scope="module")
 def vase(tmp_path_factory):
-    """A small PPCA model of 8 PSB vases (40 landmarks) fitted from a folder that holds
-    their part labels; returns (model file, data folder, loaded model)."""
+    """A small PPCA model of the 5 smallest PSB vases (40 landmarks) fitted from a folder
+    that holds their part labels; returns (model file, data folder, loaded model). Closest
+    points named: the round trips below do not depend on where registration starts (the
+    automatic start would first compute every shape's spectrum)."""
     vases = psb_class("Vase")
     folder = tmp_path_factory.mktemp("vase")
     data = folder / "data"
     data.mkdir()
-    for off in sorted(vases.glob("*.off"))[:8]:
+    for off in sorted(vases.glob("*.off"), key=lambda path: (path.stat().st_size, path.name))[:5]:
         shutil.copy(off, data / off.name)
         shutil.copy(vases / f"{off.stem}_labels.txt", data / f"{off.stem}_labels.txt")
     result = run("fit", data, "-o", folder / "model.npz", "--model", "ppca", "--landmarks", 40, "--up", "y",
-                 "--jobs", 1)
+                 "--initialisation", "closest", "--jobs", 1)
     assert result.returncode == 0, result.stderr
-    assert "part labels of 8 shape(s)" in result.stdout
+    assert "part labels of 5 shape(s)" in result.stdout
     return folder / "model.npz", data, GenerativeShapeModel.load(folder / "model.npz")
 
 

@@ -241,8 +241,8 @@ UPSIDE_DOWN = np.diag([1.0, -1.0, -1.0])
 
 @pytest.fixture(scope="module")
 def upright_vases():
-    """Eight upright vases, vase_003 turned upside down."""
-    meshes = [v.mesh for v in make_vases(8, seed=2, resolution=(12, 16), pose=False)]
+    """Five upright vases, vase_003 turned upside down."""
+    meshes = [v.mesh for v in make_vases(5, seed=2, resolution=(12, 16), pose=False)]
     meshes[3] = meshes[3].with_vertices(meshes[3].vertices @ UPSIDE_DOWN.T)
     return meshes
 
@@ -284,7 +284,7 @@ def test_file_without_pose_report_loads_as_kept(saved, tmp_path):
 def test_keep_pose_by_name_or_flags(upright_vases):
     settings = PrepareSettings(n_landmarks=30)
     by_name = prepare_meshes(upright_vases, settings, keep_pose=["vase_003"])
-    by_flags = prepare_meshes(upright_vases, settings, keep_pose=[i == 3 for i in range(8)])
+    by_flags = prepare_meshes(upright_vases, settings, keep_pose=[i == 3 for i in range(5)])
     for prepared in (by_name, by_flags):
         kept = prepared.shapes[3]
         assert kept.pose_change == "" and np.array_equal(kept.pose_rotation, np.eye(3))
@@ -297,11 +297,11 @@ def test_cli_prints_pose_lines_and_keeps_poses_by_name(upright_folder, tmp_path)
     result = _run("prepare", upright_folder, "-o", tmp_path / "a.npz", "--landmarks", "30")
     assert result.returncode == 0, result.stderr
     assert "vase_003: turned 180° about" in result.stderr
-    assert "poses: 7 kept, 1 turned, 0 flagged" in result.stderr
+    assert "poses: 4 kept, 1 turned, 0 flagged" in result.stderr
     result = _run("prepare", upright_folder, "-o", tmp_path / "b.npz", "--landmarks", "30", "--keep-pose", "vase_003")
     assert result.returncode == 0, result.stderr
     assert "vase_003: pose looks wrong: may be upside down" in result.stderr
-    assert "poses: 8 kept, 0 turned, 1 flagged" in result.stderr
+    assert "poses: 5 kept, 0 turned, 1 flagged" in result.stderr
     assert PreparedCollection.load(tmp_path / "b.npz").shapes[3].pose_outlier.startswith("may be upside down")
 
 

@@ -27,13 +27,21 @@ def cluster():
         yield local
 
 
-def test_dask_registrations_equal_the_process_pool(cluster):
+SETTINGS = CorrespondenceSettings(iterations=IterationSettings(max_iterations=8))
+
+
+@pytest.fixture(scope="module")
+def pooled():
+    """Five prepared vases and their correspondence on the local process pool."""
     prepared = prepare_meshes([s.mesh for s in make_vases(5, seed=4, resolution=(14, 20))],
                               PrepareSettings(n_landmarks=120))
-    settings = CorrespondenceSettings(iterations=IterationSettings(max_iterations=8))
-    pool = correspond(prepared, settings, jobs=2)
+    return prepared, correspond(prepared, SETTINGS, jobs=2)
+
+
+def test_dask_registrations_equal_the_process_pool(cluster, pooled):
+    prepared, pool = pooled
     messages = []
-    on_dask = correspond(prepared, settings, scheduler=cluster.scheduler_address,
+    on_dask = correspond(prepared, SETTINGS, scheduler=cluster.scheduler_address,
                          progress=lambda fraction, message: messages.append((fraction, message)))
     assert on_dask.names == pool.names and on_dask.template_name == pool.template_name
     np.testing.assert_allclose(on_dask.points, pool.points, rtol=0, atol=1e-12)
@@ -44,18 +52,17 @@ def test_dask_registrations_equal_the_process_pool(cluster):
     assert any("registered" in m for _, m in messages)
 
 
-def test_cancel_on_dask_stops_the_registrations(cluster):
+def test_cancel_on_dask_stops_the_registrations(cluster, pooled):
     """Cancel asked once the first shape is registered raises Cancelled; nothing is returned."""
     import threading
 
     from shapegen_core.base.errors import Cancelled
 
-    prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=7, resolution=(14, 20))],
-                              PrepareSettings(n_landmarks=120))
+    prepared, _ = pooled
     stop = threading.Event()
     with pytest.raises(Cancelled):
-        correspond(prepared, CorrespondenceSettings(iterations=IterationSettings(max_iterations=8)),
-                   scheduler=cluster.scheduler_address, should_cancel=stop, progress=lambda fraction, message: "registered" in message and stop.set())
+        correspond(prepared, SETTINGS, scheduler=cluster.scheduler_address, should_cancel=stop,
+                   progress=lambda fraction, message: "registered" in message and stop.set())
 
 
 def test_dense_shapes_on_dask_equal_the_pool(cluster):
@@ -97,21 +104,20 @@ def test_core_imports_and_runs_without_dask():
     assert 'pip install "dask[distributed]"' in done.stdout
 
 
-def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, tmp_path):
+def test_batch_sampling_on_dask_writes_the_pools_meshes(cluster, pooled, tmp_path):
     """`shapegen sample --scheduler` writes the same files as the local process pool."""
     from shapegen_core.app.cli import main
     from shapegen_core.app.fit_settings import FitSettings
-    from shapegen_core.app.pipeline import fit_meshes
+    from shapegen_core.app.pipeline import fit_shape_model
 
-    meshes = [s.mesh for s in make_vases(5, seed=6, resolution=(14, 20))]
-    settings = FitSettings(prepare=PrepareSettings(n_landmarks=120), model="ppca",
-                           correspondence=CorrespondenceSettings(iterations=IterationSettings(max_iterations=6)))
-    model_path = fit_meshes(meshes, settings, jobs=1).save(tmp_path / "model.npz")
-    common = ["sample", str(model_path), "-n", "64", "--seed", "3"]
+    prepared, corr = pooled
+    settings = FitSettings(prepare=prepared.settings, model="ppca")
+    model_path = fit_shape_model([s.mesh for s in prepared.shapes], corr, settings).save(tmp_path / "model.npz")
+    common = ["sample", str(model_path), "-n", "16", "--seed", "3"]
     assert main(common + ["-o", str(tmp_path / "pool"), "--jobs", "2"]) == 0
     assert main(common + ["-o", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0
     pool_files = sorted(p.name for p in (tmp_path / "pool").iterdir())
-    assert pool_files == sorted(p.name for p in (tmp_path / "dask").iterdir()) and len(pool_files) == 65
+    assert pool_files == sorted(p.name for p in (tmp_path / "dask").iterdir()) and len(pool_files) == 17
     for name in pool_files:
         if name.endswith(".obj"):
             assert (tmp_path / "pool" / name).read_bytes() == (tmp_path / "dask" / name).read_bytes(), name

@@ -231,7 +231,7 @@ def test_report_is_byte_for_byte_reproducible(tiny_collection, tmp_path):
     _, corr = tiny_collection
     outputs = [tmp_path / "a", tmp_path / "b"]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    runs = [subprocess.Popen([str(SHAPEGEN), "evaluate", str(corr), "--folds", "3", "--samples", "20", "--seed", "3",
+    runs = [subprocess.Popen([str(SHAPEGEN), "evaluate", str(corr), "--folds", "2", "--samples", "20", "--seed", "3",
                               "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             for out in outputs]                  # both at once: two cores, half the wait
     for run in runs:

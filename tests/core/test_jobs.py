@@ -182,10 +182,14 @@ def test_registration_workers_exit_when_their_job_is_killed(tmp_path):
     from shapegen_core.preprocess.collection import PrepareSettings, prepare_meshes
     from shapegen_core.demo_data import make_vases
 
-    prepared = prepare_meshes([s.mesh for s in make_vases(6, seed=2)], PrepareSettings(n_landmarks=400))
+    prepared = prepare_meshes([s.mesh for s in make_vases(4, seed=2, resolution=(12, 18))],
+                              PrepareSettings(n_landmarks=100))
     prepared.save(tmp_path / "prepared.npz")
+    # registrations that iterate far longer than the test waits (no tolerance): the job is
+    # killed while every worker is registering, however small the shapes
+    long_registrations = {"iterations": {"tolerance": 0.0, "max_iterations": 400, "max_iterations_per_alpha": 80}}
     job = BackgroundJob("correspond", {"prepared": str(tmp_path / "prepared.npz"), "jobs": 2,
-                                       "output": str(tmp_path / "corr.npz")}).start()
+                                       "settings": long_registrations, "output": str(tmp_path / "corr.npz")}).start()
     deadline = time.monotonic() + 120
     while "registering" not in (job.poll().stage or "") and time.monotonic() < deadline:
         time.sleep(0.05)

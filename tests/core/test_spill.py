@@ -29,7 +29,7 @@ from conftest import subdivided
 
 #: meshes above this many faces are kept on disk in these tests (the vases below have ~26k)
 ABOVE = 5000
-SETTINGS = PrepareSettings(n_landmarks=200, align="none")
+SETTINGS = PrepareSettings(n_landmarks=100, align="none")
 CORRESPONDENCE = CorrespondenceSettings(proxy_faces=2000)  # shapes above 5000 faces: dense
 
 
@@ -49,25 +49,27 @@ def _mesh_bytes(meshes) -> int:
     return sum(m.vertices.nbytes + m.faces.nbytes for m in meshes)
 
 
-def _fit(meshes):
+def _fit(meshes, progress=None):
     prepared = prepare_meshes(meshes, SETTINGS)
-    corr = correspond(prepared, CORRESPONDENCE, jobs=1)
+    corr = correspond(prepared, CORRESPONDENCE, jobs=1, progress=progress)
     model = fit_shape_model([s.mesh for s in prepared.shapes], corr, FitSettings(prepare=SETTINGS, model="ppca"))
     return prepared, corr, model
 
 
 @pytest.fixture(scope="module")
 def in_memory(folder):
-    """The folder read and fitted in memory: (meshes, prepared, correspondence, model)."""
+    """The folder read and fitted in memory: (meshes, prepared, correspondence, model, the
+    correspondence's progress messages)."""
     memory = read_folder(folder, jobs=1)
-    return (memory, *_fit(memory))
+    messages = []
+    return (memory, *_fit(memory, lambda fraction, message: messages.append(message)), messages)
 
 
 def test_a_spilled_fit_equals_the_in_memory_fit(folder, in_memory, tmp_path):
     """Read, Prepare, correspondence and the model file of meshes kept on disk give the
     same arrays as the same meshes held in memory; a worker that reads a file keeps it
     in the store itself."""
-    memory, prepared, corr, model = in_memory
+    memory, prepared, corr, model, _ = in_memory
     with SpillStore(above=ABOVE) as store:
         meshes = read_folder(folder, jobs=2, spill=store)
         assert all(isinstance(m, StoredMesh) for m in meshes)
@@ -98,7 +100,7 @@ def test_the_main_process_keeps_handles_not_meshes(folder, in_memory):
     """With a store, what this process keeps from reading to the fitted model is names,
     sizes, summaries, proxies and landmarks: less than one mesh of the 4 (without it:
     every mesh, twice from Prepare on)."""
-    memory, prepared, _, _ = in_memory  # the in-memory fit also imported whatever the stages import on first use
+    memory, prepared, _, _, _ = in_memory  # the in-memory fit also imported whatever the stages import on first use
     one_mesh = _mesh_bytes(memory) / len(memory)
     assert len(pickle.dumps(prepared)) > 0.9 * _mesh_bytes(memory)
     with SpillStore(above=ABOVE) as store:
@@ -163,20 +165,19 @@ def test_commands_remove_their_store(folder, tmp_path, monkeypatch):
     assert list(spill_parent.iterdir()) == []
 
 
-def test_correspondence_reuses_the_proxy_prepare_built(folder, monkeypatch):
+def test_correspondence_reuses_the_proxy_prepare_built(folder, in_memory, monkeypatch):
     """A stored shape's registration proxy is built once, by Prepare while the shape is at
     full density; correspondence registers against it without building another, with
-    the same landmarks as when it builds the proxy itself."""
+    the same landmarks as when it builds the proxy itself (the in-memory fit's
+    correspondence: the spilled fit's equals it)."""
     import shapegen_core.preprocess.collection as collection
     from shapegen_core.correspond.proxy import dense_limit
 
+    _, _, built_later, _, built_later_messages = in_memory
+    assert sum("proxy of" in m for m in built_later_messages) == len(built_later)
     key = (CORRESPONDENCE.proxy_faces, dense_limit(CORRESPONDENCE))
     with SpillStore(above=ABOVE) as store:
         meshes = read_folder(folder, jobs=1, spill=store)
-        messages = []
-        built_later = correspond(prepare_meshes(meshes, SETTINGS), CORRESPONDENCE, jobs=1,
-                                 progress=lambda fraction, message: messages.append(message))
-        assert sum("proxy of" in m for m in messages) == len(meshes)
         monkeypatch.setattr(collection, "REGISTRATION_PROXY", key)  # Prepare builds the proxy these settings use
         prepared = prepare_meshes(meshes, SETTINGS)
         assert all(key in s.mesh.proxies for s in prepared.shapes)
