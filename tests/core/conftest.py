@@ -30,6 +30,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: shared_d
 from shared_data import folder_or_skip  # noqa: E402
 
 
+def pytest_collection_modifyitems(config, items):
+    """The files holding `quality` tests (the long ones) run first: with a file per worker
+    (`--dist loadfile`) a tier that ends on one of them keeps one core busy while the other
+    idles. The order is otherwise the collected one."""
+    long_files = {item.path for item in items if item.get_closest_marker("quality")}
+    items.sort(key=lambda item: item.path not in long_files)
+
+
 @pytest.fixture(scope="session")
 def small_vases():
     """Six coarse procedural vases in random input poses (yaw, scale, translation)."""
