@@ -1,5 +1,6 @@
 """Prepare's orientation decisions on whole collections: the PSB Airplane and Cup
-classes as filed (every shape's decision pinned; no airplane laid on its side), a class
+classes as filed (every shape's decision pinned; no airplane laid on its side), the
+airplanes turned at random about up (they end in one pose again), a class
 whose files mix the two common up conventions (it ends as the single-convention class
 does, PSB cups among them), and upright shapes on one floor (never turned).
 
@@ -16,7 +17,7 @@ from shapegen_core.demo_data import make_mugs, make_vases
 from shapegen_core.geometry import TargetSurface
 from shapegen_core.meshes.reading import read_folder
 from shapegen_core.preprocess import prepare_collection
-from shapegen_core.preprocess.rotations import describe_rotation, rotation_angle
+from shapegen_core.preprocess.rotations import describe_rotation, rotation_angle, up_rotation, yaw_rotation
 
 #: Prepare's decision for each shape as filed (up y): "kept", or the turn made; "flagged"
 #: when its pose is flagged as doubtful
@@ -103,6 +104,34 @@ MIXED_CLASSES = {
     "vases": lambda: placed([v.mesh for v in make_vases(12, seed=3, resolution=(12, 16), pose=False)], 1),
     "open mugs on a floor": lambda: on_a_floor(make_mugs(12, 2, closed=False, handle_height=(0.3, 0.7), pose=False), 2),
 }
+
+
+@pytest.mark.quality
+def test_airplanes_turned_at_random_about_up_end_in_one_pose(psb_prepared):
+    # the real class where the chance majority went wrong: 5 of 20 airplanes ended half
+    # a turn from the others, none flagged (random turns of seed 8)
+    meshes = read_folder(psb_class("Airplane"))
+    up = up_rotation("y")
+    as_filed = psb_prepared("Airplane")
+    assert not any("no input pose is shared" in p.pose_change for p in as_filed)
+    poses = [p.pose_rotation @ up for p in as_filed]  # file -> prepared frame
+    angles = np.random.default_rng(8).uniform(0.0, 360.0, len(meshes))
+    turns = [pose.T @ yaw_rotation(a) @ pose for pose, a in zip(poses, angles)]  # about each shape's own up
+    prepared = prepare_collection([m.with_vertices(m.vertices @ t.T) for m, t in zip(meshes, turns)], up_axis="y")
+    # each shape's pose relative to its as-filed result: one common turn for all
+    relative = [p.pose_rotation @ up @ t @ pose.T for p, t, pose in zip(prepared, turns, poses)]
+    within = [[rotation_angle(a @ b.T) <= 20.0 for b in relative] for a in relative]
+    common = relative[int(np.argmax(np.sum(within, axis=1)))]
+    # shapes lying on their side in their files (62, 63, 77) are turned about a horizontal
+    # axis by a turn about their own up: no file-convention turn undoes that (the
+    # orientation policy: flagged or left), so only the shapes upright in their files, and not flagged
+    # as maybe upside down there, are counted
+    upright = {p.name for p in as_filed if not p.orientation_changed and not p.pose_outlier}
+    apart = {p.name: round(rotation_angle(r @ common.T)) for p, r in zip(prepared, relative)
+             if rotation_angle(r @ common.T) > 20.0 and p.name in upright}
+    # main before the unshared rule: 65, 68, 73, 74 and 75 half a turn apart
+    assert len(apart) <= 1, apart
+    assert sum("no input pose is shared" in p.pose_change for p in prepared) >= len(meshes) // 2
 
 
 @pytest.mark.quality
