@@ -40,7 +40,7 @@ export SHAPEGEN_BLENDER_RELEASES := 4.2=$(abspath $(PY_BPY42)) 5.2=$(abspath $(P
 
 EXTENSION_SOURCES := blender_manifest.toml __init__.py $(shell find core shapegen_addon -name '*.py' -not -path '*/__pycache__/*')
 
-.PHONY: all demo test test-core test-core-oldest test-core-newest test-blender build wheels clean bench setup pins
+.PHONY: all demo test test-core test-core-oldest test-core-newest test-blender build wheels clean bench pins
 
 all: test
 
@@ -107,11 +107,6 @@ test-core-newest: $(VENV_NEWEST)/.installed
 # the full Blender tier on Blender 5.0, and the smoke on Blender 4.2 and 5.2 LTS
 test-blender: dist/.built $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 	timeout $(BLENDER_TEST_TIMEOUT) $(PY) $(PYTEST) $(PARALLEL) tests/blender
-
-# the environments (and the extension, once .venv is there) are built side by side:
-# mostly download and unpacking, so they overlap well
-setup:
-	$(MAKE) --no-print-directory -j2 dist/.built $(VENV_OLDEST)/.installed $(VENV_NEWEST)/.installed $(VENV_BPY42)/.installed
 
 # the three tiers side by side, each on all cores: one after another, each tier's startup
 # (Blender's import in every worker) and its tail (the last file on one worker, the release

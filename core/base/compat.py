@@ -179,13 +179,8 @@ def key_value_settings(arrays: Mapping, label: str, key: str = "settings") -> di
     return key_value_data(arrays[keys].tolist(), arrays[values].tolist())
 
 
-#: a model file of the key/value layout: its settings, and its meshing settings by key
-_OLD_MODEL_SPEC = {
-    "settings_keys": ArraySpec("U", ("S",)),
-    "settings_values": ArraySpec("U", ("S",)),
-    "deform_keys": ArraySpec("U", ("K",)),
-    "deform_values": ArraySpec("f", ("K",)),
-}
+#: a model file of the key/value layout: its meshing settings, numbers by key
+_OLD_MODEL_DEFORM_SPEC = {"deform_keys": ArraySpec("U", ("K",)), "deform_values": ArraySpec("f", ("K",))}
 
 
 def old_model_settings(arrays: Mapping, label: str) -> dict:
@@ -193,8 +188,8 @@ def old_model_settings(arrays: Mapping, label: str) -> dict:
     Prepare options (flat then) nested under "prepare", the meshing settings read from
     their numbers (`OLD_MODEL_DEFORM_INTEGERS` as integers). A malformed record is a
     ModelFileError starting with `label`."""
-    validate_arrays(arrays, _OLD_MODEL_SPEC, label)
-    data = key_value_data(arrays["settings_keys"].tolist(), arrays["settings_values"].tolist())
+    data = key_value_settings(arrays, label)
+    validate_arrays(arrays, _OLD_MODEL_DEFORM_SPEC, label)
     nested = {key: value for key, value in data.items() if key not in OLD_MODEL_PREPARE_NAMES}
     nested["prepare"] = {key: value for key, value in data.items() if key in OLD_MODEL_PREPARE_NAMES}
     nested["deform"] = {key: int(value) if key in OLD_MODEL_DEFORM_INTEGERS else float(value)
