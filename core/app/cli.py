@@ -64,8 +64,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     for name, reason in zip(result.names, result.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
-    chosen = f"{result.start_summary()}; " if result.start_summary() else ""
-    posed = f"{result.pose_summary()}; " if result.pose_summary() else ""
+    chosen, posed = (f"{said}; " if said else "" for said in (result.start_summary(), result.pose_summary()))
     print(
         f"corresponded {len(result)} shapes x {result.n_landmarks} landmarks -> {args.output}; "
         f"template {result.template_name}; median residual {100 * float(np.median(result.residuals)):.2f} % "

@@ -91,12 +91,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if folder.is_dir():
             model.part_labels = _part_labels(model, folder)
         model.save(args.output)
-    outliers = [n for n, o in zip(model.names, model.correspondence.outliers) if o]
-    for name, reason in zip(model.names, model.correspondence.outlier_reasons):
+    fitted_on = model.correspondence
+    outliers = [n for n, o in zip(model.names, fitted_on.outliers) if o]
+    for name, reason in zip(model.names, fitted_on.outlier_reasons):
         if reason:
             print(f"outlier: {name}: {reason}", file=sys.stderr)
-    posed = f"; {model.correspondence.pose_summary()}" if model.correspondence.pose_summary() else ""
-    chosen = f"; {model.correspondence.start_summary()}" if model.correspondence.start_summary() else ""
+    posed, chosen = (f"; {said}" if said else "" for said in (fitted_on.pose_summary(), fitted_on.start_summary()))
     labelled = "" if model.part_labels is None else \
         f"; part labels of {sum(bool((p >= 0).any()) for p in model.part_labels.parts)} shape(s)"
     print(f"fitted {model.model_type} (latent dimension {model.latent_dim}) on {len(model.names)} shapes x "
