@@ -30,10 +30,20 @@ BLENDER_EXT  = $(PY) $(BPY_DIR)/scripts/addons_core/bl_pkg/cli/blender_ext.py
 VALID_TAGS   = $(BPY_DIR)/scripts/modules/_bpy_internal/extensions/tags.py
 UV_HOME     := .uv
 UV          := $(UV_HOME)/bin/uv
-# uv reads the system's certificates as pip does (pip.conf's cert), and never fetches a Python
+# uv reads the system's certificates as pip does (pip.conf's cert), waits as long as pip is
+# told to (PIP_DEFAULT_TIMEOUT), and never fetches a Python
 export UV_NATIVE_TLS := 1
 export UV_PYTHON_DOWNLOADS := never
-UV_INSTALL   = $(UV) pip install -q --python
+export UV_HTTP_TIMEOUT ?= $(or $(PIP_DEFAULT_TIMEOUT),60)
+
+# $(call install,PYTHON,ARGUMENTS): uv pip install ARGUMENTS into the environment of PYTHON;
+# where uv cannot fetch (an index, proxy or certificate only pip's configuration knows),
+# the machine's pip installs the same pins, and says so
+define install
+	$(UV) pip install -q --python $(1) $(2) || { echo "uv could not install $(2): pip installs it"; \
+	  $(PYTHON) -m pip --python $(1) install --disable-pip-version-check --root-user-action=ignore -q \
+	  --no-compile $(2); }
+endef
 export OPENBLAS_NUM_THREADS := 1
 # pytest runs on Blender-as-a-module must end on their own; this is the backstop
 BLENDER_TEST_TIMEOUT ?= 1800
@@ -64,27 +74,27 @@ $(UV): requirements/uv.txt
 # fetch_wheels.py downloads the extension's wheels with it.
 $(VENV)/.installed: requirements/blender.txt pyproject.toml $(UV)
 	$(PYTHON) -m venv $(VENV)
-	$(UV_INSTALL) $(PY) -r requirements/blender.txt
-	$(UV_INSTALL) $(PY) --no-deps --no-build-isolation -e .
+	$(call install,$(PY),-r requirements/blender.txt)
+	$(call install,$(PY),--no-deps --no-build-isolation -e .)
 	touch $@
 
 $(VENV_OLDEST)/.installed: requirements/oldest.txt pyproject.toml $(UV)
 	$(PYTHON) -m venv $(VENV_OLDEST)
-	$(UV_INSTALL) $(PY_OLDEST) -r requirements/oldest.txt
-	$(UV_INSTALL) $(PY_OLDEST) --no-deps --no-build-isolation -e .
+	$(call install,$(PY_OLDEST),-r requirements/oldest.txt)
+	$(call install,$(PY_OLDEST),--no-deps --no-build-isolation -e .)
 	touch $@
 
 $(VENV_NEWEST)/.installed: requirements/newest.txt pyproject.toml $(UV)
 	@test -n "$(PYTHON313)" || { echo "Python 3.13 not found: put python3.13 on the PATH (or PYTHON313=...)"; exit 2; }
 	$(PYTHON313) -m venv $(VENV_NEWEST)
-	$(UV_INSTALL) $(PY_NEWEST) -r requirements/newest.txt
-	$(UV_INSTALL) $(PY_NEWEST) --no-deps --no-build-isolation -e .
+	$(call install,$(PY_NEWEST),-r requirements/newest.txt)
+	$(call install,$(PY_NEWEST),--no-deps --no-build-isolation -e .)
 	touch $@
 
 # only Blender 4.2 and its numpy: nothing here installs with pip
 $(VENV_BPY42)/.installed: requirements/blender-4.2.txt $(UV)
 	$(PYTHON) -m venv --without-pip $(VENV_BPY42)
-	$(UV_INSTALL) $(PY_BPY42) -r requirements/blender-4.2.txt
+	$(call install,$(PY_BPY42),-r requirements/blender-4.2.txt)
 	touch $@
 
 # requirements/oldest.txt, newest.txt and blender-4.2.txt, resolved anew (scripts/refresh_pins.py)
