@@ -34,7 +34,7 @@ from .cli_common import (CommandError, StagedOutput, add_keep_pose_option, add_s
 from .cli_sample import cmd_sample
 from .fit_settings import FitSettings, RunOptions
 from .pipeline import fit_meshes, fit_shape_model
-from .shape_model import GenerativeShapeModel
+from .shape_model import PATH_SHAPES, GenerativeShapeModel
 
 __all__ = ["add_generate_commands"]
 
@@ -257,8 +257,7 @@ def cmd_morph(args: argparse.Namespace) -> int:
     model = GenerativeShapeModel.load(args.model)
     index_a, index_b = model.shape_index(args.name_a), model.shape_index(args.name_b)
     latents = model.training_latents()
-    weights = np.linspace(0.0, 1.0, args.n)[:, None]
-    line = (1 - weights) * latents[index_a] + weights * latents[index_b]
+    weights, line = model.latent_path(latents[index_a], latents[index_b], args.n)
     landmarks = model.decode(line)
     # one template along the whole line, so every step has the same mesh (pipeline.path_template)
     template = model.names[model.path_template(latents[index_a], latents[index_b], args.template)]
@@ -266,7 +265,7 @@ def cmd_morph(args: argparse.Namespace) -> int:
         _write_meshes(model, landmarks, template, args.smooth, staging,
                       [f"morph_{k:03d}" for k in range(len(landmarks))], args.format)
         save_npz(staging / "landmarks.npz", "shapegen.samples", 1,
-                 {"landmarks": landmarks, "latents": line, "weights": weights[:, 0],
+                 {"landmarks": landmarks, "latents": line, "weights": weights,
                   "ends": np.asarray([args.name_a, args.name_b])})
     print(f"wrote {args.n} meshes on the latent line {args.name_a} -> {args.name_b}, "
           f"all on template {template} -> {args.output}")
@@ -336,7 +335,7 @@ def add_generate_commands(sub) -> None:
     p.add_argument("model", type=Path)
     p.add_argument("name_a")
     p.add_argument("name_b")
-    p.add_argument("-n", type=int, default=8, help="meshes on the line, ends included (default %(default)s)")
+    p.add_argument("-n", type=int, default=PATH_SHAPES, help="meshes on the line, ends included (default %(default)s)")
     p.add_argument("-o", "--output", type=Path, required=True)
     mesh_options(p)
     p.set_defaults(func=cmd_morph)

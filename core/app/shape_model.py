@@ -52,7 +52,7 @@ from ..preprocess.rotations import up_rotation
 from .fit_settings import TEMPLATE_CHOICES, FitSettings, TemplateError, load_fit_settings
 
 __all__ = ["GenerativeShapeModel", "LatentMesher", "PinCompletion", "MODEL_FILE_FORMAT", "MODEL_FILE_VERSION",
-           "MODEL_FILE_VERSIONS"]
+           "MODEL_FILE_VERSIONS", "PATH_SHAPES"]
 
 
 MODEL_FILE_FORMAT = "shapegen.model"
@@ -63,6 +63,10 @@ MODEL_FILE_VERSION = 2
 
 #: Versions `GenerativeShapeModel.load` reads (1: before the meshes' face layouts).
 MODEL_FILE_VERSIONS = (1, 2)
+
+#: shapes on a path between two latents by default, both ends included: `shapegen morph`
+#: writes them all, Blender's Interpolate adds the PATH_SHAPES − 2 between its two objects
+PATH_SHAPES = 8
 
 
 @dataclass(frozen=True)
@@ -251,6 +255,18 @@ class GenerativeShapeModel:
         would switch mid-path: the mesh would jump and change its vertex count (§6.2.5)."""
         midpoint = self.decode(0.5 * (np.asarray(latent_a, dtype=np.float64) + np.asarray(latent_b, dtype=np.float64)))
         return self.choose_template(midpoint[0], template)
+
+    @staticmethod
+    def latent_path(latent_a: np.ndarray, latent_b: np.ndarray, count: int = PATH_SHAPES
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """`count` evenly spaced points of the straight latent line from `latent_a` to
+        `latent_b`, both ends included (a morph, Blender's Interpolate): (weights (count,)
+        from 0 to 1, latents (count, d))."""
+        if count < 2:
+            raise ShapeGenError(f"a path needs at least 2 shapes (both ends), got {count}")
+        weights = np.linspace(0.0, 1.0, count)
+        latent_a, latent_b = np.asarray(latent_a, dtype=np.float64), np.asarray(latent_b, dtype=np.float64)
+        return weights, (1 - weights[:, None]) * latent_a + weights[:, None] * latent_b
 
     def template_order(self, landmarks: np.ndarray, template: str | None) -> np.ndarray:
         """The templates for a landmark set, best first: a named template alone, else the

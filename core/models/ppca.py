@@ -17,7 +17,11 @@ from .base import (ModelInputError, ShapeModel, ShapePosterior, as_generator, ch
                    check_rows, check_training_data, latent_dim_for_variance, ledoit_wolf_shrinkage,
                    principal_axes, shrunk_spectrum)
 
-__all__ = ["PPCA"]
+__all__ = ["PPCA", "MODE_RANGE"]
+
+#: how far a mode reaches either way where it is shown on its own (Blender's mode shape
+#: keys), in latent units: z ~ N(0, 1), so ±3 holds 99.7 % of the model's shapes along it
+MODE_RANGE = 3.0
 
 _LOG_2PI = np.log(2.0 * np.pi)
 

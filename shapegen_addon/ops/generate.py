@@ -24,6 +24,7 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 from ...core.base.errors import ShapeGenError
 from ...core.generate.quality import QualitySettings
 from ...core.generate.sampling import draw_budget, gate_summary, gated_samples, shortfall
+from ...core.models.ppca import MODE_RANGE
 from .. import store
 from ..keys import INTERPOLATION_KEY, REJECTED_KEY, STIFFNESS_KEY
 from ..latent import object_latent, tag_object
@@ -140,8 +141,8 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             z_a, z_b = object_latent(model, scene, first), object_latent(model, scene, second)
             index = model.path_template(z_a, z_b, settings.generate.sample_template)  # one mesh along the path
             mesher = model.latent_mesher(index, dtype=np.float64)
-            ts = np.linspace(0.0, 1.0, steps + 2)
-            shapes = [mesher.vertices((1 - t) * z_a + t * z_b) for t in ts]
+            ts, path = model.latent_path(z_a, z_b, steps + 2)  # the two objects and `steps` between
+            shapes = [mesher.vertices(z) for z in path]
         except ShapeGenError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -155,7 +156,7 @@ class SHAPEGEN_OT_interpolate(store.NeedsModel, bpy.types.Operator):
             for k, location in enumerate(locations, start=1):
                 obj = meshes.new_object(f"{base} {k}", index, shapes[k])
                 obj.location = location
-                tag_object(obj, scene, (1 - ts[k]) * z_a + ts[k] * z_b, model.names[index])
+                tag_object(obj, scene, path[k], model.names[index])
                 obj[INTERPOLATION_KEY] = float(ts[k])
                 collection.objects.link(obj)
             self.report({"INFO"}, f"{steps} in-between shape(s) of '{first.name}' and '{second.name}' in "
@@ -231,17 +232,19 @@ class SHAPEGEN_OT_modes_to_shape_keys(store.NeedsModel, bpy.types.Operator):
             return {"CANCELLED"}
         meshes = TemplateMeshes(scene, model)
         obj = meshes.new_object(f"{store.model_name(scene)} modes", index, mean)
-        # room for every mode key at ±3
-        obj.location = place_one(scene, vertex_box(np.concatenate([mean[None], mean + 3 * modes, mean - 3 * modes])))
+        # room for every mode key at either end of its range
+        obj.location = place_one(scene, vertex_box(np.concatenate([mean[None], mean + MODE_RANGE * modes,
+                                                                    mean - MODE_RANGE * modes])))
         ensure_collection(scene, MODES_COLLECTION).objects.link(obj)
         tag_object(obj, scene, np.zeros(model.latent_dim), model.names[index])
         obj.shape_key_add(name="Mean", from_mix=False)
         for k, mode in enumerate(modes):
             key = obj.shape_key_add(name=f"Mode {k + 1}", from_mix=False)
             key.data.foreach_set("co", meshes.positions(index, mean + mode))
-            key.slider_min, key.slider_max = -3.0, 3.0
+            key.slider_min, key.slider_max = -MODE_RANGE, MODE_RANGE
             key.value = 0.0
-        self.report({"INFO"}, f"'{obj.name}': {model.latent_dim} mode shape keys (range ±3).{meshes.note}")
+        self.report({"INFO"}, f"'{obj.name}': {model.latent_dim} mode shape keys (range ±{MODE_RANGE:g})."
+                              f"{meshes.note}")
         return {"FINISHED"}
 
 

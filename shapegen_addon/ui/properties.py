@@ -17,6 +17,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        PointerProperty, StringProperty)
 
 from ...core.app.fit_settings import FitSettings
+from ...core.app.shape_model import PATH_SHAPES
 from ...core.models.latent_units import SLIDER_LIMIT
 from ..latent import on_slider_changed
 from ..prepared import PREPARE_SETTINGS
@@ -248,7 +249,7 @@ class ShapeGenGenerateSettings(bpy.types.PropertyGroup):
                                    description="The first shape: a training object or a ShapeGen sample")
     interpolate_b: PointerProperty(name="To", type=bpy.types.Object,
                                    description="The last shape: a training object or a ShapeGen sample")
-    interpolate_steps: IntProperty(name="Steps", default=5, min=1, soft_max=50,
+    interpolate_steps: IntProperty(name="Steps", default=PATH_SHAPES - 2, min=1, soft_max=50,
                                    description="How many shapes in between")
     interpolate_mode: EnumProperty(name="Output", items=INTERPOLATION_ITEMS, default="OBJECTS",
                                    description="Separate objects, or one object animated with shape keys")

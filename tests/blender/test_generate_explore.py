@@ -183,7 +183,8 @@ def test_ppca_modes_are_native_shape_keys_that_work_without_the_addon(extension,
     obj = bpy.data.objects["vases_ppca modes"]
     keys = obj.data.shape_keys.key_blocks
     assert [k.name for k in keys] == ["Mean", "Mode 1", "Mode 2"]
-    assert all(k.slider_min == -3.0 and k.slider_max == 3.0 for k in keys[1:])
+    assert all(k.slider_min == -3.0 and k.slider_max == 3.0 for k in keys[1:])  # ±3 standard deviations
+    assert addon_module(extension, "core.models.ppca").MODE_RANGE == 3.0  # the core's range, not the add-on's
     model = _model(store)
     mesher = model.latent_mesher(model.mean_template(), dtype=np.float64)
     basis = np.array([v.co[:] for v in keys[0].data])

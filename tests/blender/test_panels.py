@@ -183,6 +183,8 @@ def test_every_blender_default_is_the_core_and_cli_default(extension):
             assert received.correspondence.data_term.initialisation == initialisation
         assert panel.generate.sample_template == fit_settings.FitSettings().mesh_template
         assert panel.fit.mesh_stiffness == fit_settings.FitSettings().deform.final_alpha
+        # Interpolate's in-betweens and its two objects are the shapes `shapegen morph` writes
+        assert panel.generate.interpolate_steps + 2 == addon_module(extension, "core.app.shape_model").PATH_SHAPES
     finally:
         bpy.data.scenes.remove(scene)
     # every choice the panel offers is one the core knows, and the other way round

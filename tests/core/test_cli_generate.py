@@ -202,6 +202,20 @@ def test_morph_ends_at_the_two_training_shapes(model_file, tmp_path):
     np.testing.assert_allclose(landmarks[[0, -1]], ends, atol=1e-9)
 
 
+def test_a_latent_path_holds_its_ends_and_even_steps_between():
+    from shapegen_core.app.shape_model import PATH_SHAPES, GenerativeShapeModel
+    from shapegen_core.base.errors import ShapeGenError
+
+    a, b = np.array([1.0, -2.0, 0.5]), np.array([-3.0, 2.0, 4.5])
+    weights, path = GenerativeShapeModel.latent_path(a, b)
+    assert len(path) == PATH_SHAPES == 8
+    np.testing.assert_array_equal(path[[0, -1]], [a, b])
+    np.testing.assert_allclose(weights, np.arange(8) / 7, atol=1e-15)
+    np.testing.assert_allclose(np.diff(path, axis=0), np.tile((b - a) / 7, (7, 1)), atol=1e-14)
+    with pytest.raises(ShapeGenError, match="at least 2 shapes"):
+        GenerativeShapeModel.latent_path(a, b, 1)
+
+
 def _morph_meshes(folder: Path, steps: int):
     return [trimesh.load(folder / f"morph_{k:03d}.obj", process=False, force="mesh") for k in range(steps)]
 
