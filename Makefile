@@ -12,8 +12,8 @@
 #                 module (newest.txt): core tier, Blender 5.2 smoke, the README's pip install
 #   .venv-bpy42   Python 3.11, Blender 4.2 LTS as a module (blender-4.2.txt): Blender 4.2 smoke
 # Each is a plain `python -m venv` filled by uv (requirements/uv.txt, installed into .uv/ by
-# pip): it unpacks the pinned wheels in a quarter of pip's CPU (about 15 CPU-s for the four
-# environments against 57, most of it the three Blender wheels).
+# pip), which installs the pinned wheels with less than half of pip's CPU (most of it goes to
+# unpacking the three Blender wheels).
 
 PYTHON      ?= python3.11
 PYTHON313   ?= $(shell python3.13 -c 'import sys; print(sys.executable)' 2>/dev/null || ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.13*/bin/python3.13 2>/dev/null | tail -1)
